@@ -1,0 +1,140 @@
+"""Rigid-body and Gaussian geometry, vectorised. Each formula lives here once.
+
+Quaternions are (w, x, y, z), Hamilton convention, rotating vectors from the local frame to
+the parent frame. Functions accept numpy arrays or torch tensors (same module out as in) unless
+they say otherwise, so the tracker (numpy) and the rasteriser (torch) share one formula.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+try:  # torch is a hard dependency of the package, but keep geometry importable without it
+    import torch
+except ImportError:  # pragma: no cover
+    torch = None
+
+
+def _xp(a):
+    return torch if torch is not None and isinstance(a, torch.Tensor) else np
+
+
+def quat_to_rotmat(q):
+    """(..., 4) quaternions (w, x, y, z), normalised here, to (..., 3, 3) rotation matrices."""
+    xp = _xp(q)
+    q = q / xp.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    rows = [
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ]
+    return xp.stack(rows, axis=-1).reshape(q.shape[:-1] + (3, 3))
+
+
+def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) rotation matrices to (..., 4) unit quaternions (w, x, y, z) with w >= 0.
+
+    numpy only. Uses the numerically stable branch per matrix (largest diagonal term)."""
+    R = np.asarray(R, dtype=np.float64)
+    batch = R.shape[:-2]
+    R = R.reshape(-1, 3, 3)
+    m00, m11, m22 = R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]
+    trace = m00 + m11 + m22
+    # Four candidate solutions; pick the best conditioned one per matrix.
+    cand = np.stack(
+        [
+            np.stack([1 + trace, R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], -1),
+            np.stack([R[:, 2, 1] - R[:, 1, 2], 1 + m00 - m11 - m22, R[:, 0, 1] + R[:, 1, 0], R[:, 0, 2] + R[:, 2, 0]], -1),
+            np.stack([R[:, 0, 2] - R[:, 2, 0], R[:, 0, 1] + R[:, 1, 0], 1 - m00 + m11 - m22, R[:, 1, 2] + R[:, 2, 1]], -1),
+            np.stack([R[:, 1, 0] - R[:, 0, 1], R[:, 0, 2] + R[:, 2, 0], R[:, 1, 2] + R[:, 2, 1], 1 - m00 - m11 + m22], -1),
+        ],
+        axis=1,
+    )
+    best = np.argmax(np.stack([trace, m00, m11, m22], -1), axis=-1)
+    q = cand[np.arange(len(R)), best]
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
+    q *= np.where(q[:, :1] < 0, -1.0, 1.0)
+    return q.reshape(batch + (4,))
+
+
+def make_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """4x4 float64 pose from a 3x3 rotation and a translation in metres."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    return T
+
+
+def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 transform to Nx3 points."""
+    return points @ T[:3, :3].T + T[:3, 3]
+
+
+def invert_pose(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid 4x4 transform."""
+    R, t = T[:3, :3], T[:3, 3]
+    return make_pose(R.T, -R.T @ t)
+
+
+def so3_exp(w: np.ndarray) -> np.ndarray:
+    """Rodrigues: axis-angle 3-vector (radians) to a 3x3 rotation matrix."""
+    theta = float(np.linalg.norm(w))
+    K = skew(w)
+    if theta < 1e-12:
+        return np.eye(3) + K
+    return np.eye(3) + np.sin(theta) / theta * K + (1 - np.cos(theta)) / theta**2 * (K @ K)
+
+
+def skew(v):
+    """(..., 3) vectors to (..., 3, 3) cross-product matrices."""
+    xp = _xp(v)
+    z = xp.zeros_like(v[..., 0])
+    x, y, w = v[..., 0], v[..., 1], v[..., 2]
+    return xp.stack([z, -w, y, w, z, -x, -y, x, z], axis=-1).reshape(v.shape[:-1] + (3, 3))
+
+
+def rotation_angle_deg(R: np.ndarray) -> np.ndarray:
+    """Angle in degrees of (..., 3, 3) rotation matrices."""
+    c = (np.trace(R, axis1=-2, axis2=-1) - 1) / 2
+    return np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
+
+
+def covariance_from_scales(quats, scales):
+    """Gaussian covariances R diag(s^2) R^T from (N,4) quaternions (w,x,y,z) and (N,3) scales
+    (standard deviations in metres)."""
+    R = quat_to_rotmat(quats)
+    return (R * (scales[..., None, :] ** 2)) @ R.mT
+
+
+def scales_from_covariance(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Decompose (N,3,3) symmetric covariances into (quaternions (w,x,y,z), scales).
+
+    Scales are the square roots of the eigenvalues (descending), the rotation's columns the
+    eigenvectors, made right-handed. numpy only."""
+    eigval, eigvec = np.linalg.eigh(cov)
+    eigval, eigvec = eigval[:, ::-1], eigvec[:, :, ::-1]
+    det = np.linalg.det(eigvec)
+    eigvec[:, :, 2] *= np.sign(det)[:, None]
+    return rotmat_to_quat(eigvec), np.sqrt(np.clip(eigval, 0.0, None))
+
+
+def pixel_grid(camera, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column indices (int arrays, flattened) of every `stride`-th pixel."""
+    v, u = np.mgrid[0 : camera.height : stride, 0 : camera.width : stride]
+    return v.ravel(), u.ravel()
+
+
+def backproject(depth: np.ndarray, camera, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Back-project every `stride`-th pixel with valid depth to camera-frame points.
+
+    Returns (Nx3 float32 points in metres, camera frame) and (N flat pixel indices into
+    the HxW image) so callers can fetch colours or other per-pixel values.
+    """
+    v, u = pixel_grid(camera, stride)
+    z = depth[v, u]
+    keep = z > 0
+    v, u, z = v[keep], u[keep], z[keep]
+    x = (u - camera.cx) / camera.fx * z
+    y = (v - camera.cy) / camera.fy * z
+    return np.stack([x, y, z], axis=-1).astype(np.float32), v * camera.width + u

@@ -1,0 +1,40 @@
+"""What a plugin module imports: the hook marker and the spec it returns.
+
+A plugin module is any importable module named by an entry point in the group ``slamkit``::
+
+    [project.entry-points.slamkit]
+    my_tracker = "my_package.my_tracker"
+
+and implementing one or more hooks of `slamkit.hookspecs`::
+
+    from slamkit.plugin import PluginSpec, hookimpl
+
+    @hookimpl
+    def slamkit_trackers():
+        return [PluginSpec("my_tracker", MyTracker, MyTrackerConfig)]
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import pluggy
+
+PROJECT = "slamkit"
+hookimpl = pluggy.HookimplMarker(PROJECT)
+hookspec = pluggy.HookspecMarker(PROJECT)
+
+
+@dataclass(frozen=True)
+class PluginSpec:
+    """One implementation of a role.
+
+    name: what users select it by (``tracker=NAME``). cls: a subclass of the role's base class
+    (`slamkit.roles`), constructed as ``cls(config)``. config: a dataclass (ideally a
+    `slamkit.roles.PluginConfig` subclass) whose fields all have defaults; it becomes the
+    role's structured config group entry, so its fields are type-checked overrides.
+    """
+
+    name: str
+    cls: type
+    config: type

@@ -1,0 +1,188 @@
+"""The abstract roles a plugin can fill. Each is small on purpose.
+
+A plugin provides a subclass of one role and a config dataclass; the registry builds the
+subclass with the validated config object as its only argument.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, fields
+from typing import Any
+
+import numpy as np
+
+from slamkit.errors import ConfigError
+from slamkit.gaussian_map import GaussianMap
+from slamkit.types import Camera, Frame, KeyframeKind, TrackingResult
+
+
+@dataclass
+class PluginConfig:
+    """Base of every plugin's config dataclass. Subclasses add fields with defaults and may
+    override `validate` to reject out-of-range values (raise ConfigError naming the field)."""
+
+    def validate(self) -> None:
+        """Raise ConfigError for an out-of-range value. The default checks nothing."""
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+
+def require(condition: bool, field: str, expected: str, value: Any) -> None:
+    """Raise a one-line ConfigError unless `condition` holds."""
+    if not condition:
+        raise ConfigError(f"{field}: expected {expected}, got {value!r}")
+
+
+@dataclass
+class DatasetConfig(PluginConfig):
+    """Options every dataset takes.
+
+    path: folder of the sequence. start, stride, max_frames: which frames are used (frame i of
+    the run is raw frame start + i * stride); max_frames null = all. depth_trunc: metres,
+    points beyond are not used for tracking (null = the dataset's default). fx, fy, cx, cy:
+    override the intrinsics in pixels (null = from the dataset). prefetch: frames read ahead
+    in a background thread.
+    """
+
+    path: str = ""
+    start: int = 0
+    stride: int = 1
+    max_frames: int | None = None
+    depth_trunc: float | None = None
+    fx: float | None = None
+    fy: float | None = None
+    cx: float | None = None
+    cy: float | None = None
+    prefetch: int = 8
+
+    def validate(self) -> None:
+        require(self.start >= 0, "dataset.start", "an integer >= 0", self.start)
+        require(self.stride >= 1, "dataset.stride", "an integer >= 1", self.stride)
+        require(self.max_frames is None or self.max_frames >= 1, "dataset.max_frames", "null or >= 1", self.max_frames)
+        require(self.depth_trunc is None or self.depth_trunc > 0, "dataset.depth_trunc", "null or > 0 metres", self.depth_trunc)
+        require(self.prefetch >= 0, "dataset.prefetch", "an integer >= 0", self.prefetch)
+        for name in ("fx", "fy"):
+            v = getattr(self, name)
+            require(v is None or v > 0, f"dataset.{name}", "null or > 0 pixels", v)
+
+
+class Dataset(ABC):
+    """A finite RGB-D sequence with random access.
+
+    Subclasses set `camera` (before intrinsics overrides) and implement `num_available` and
+    `load`; the base class applies start / stride / max_frames, intrinsics overrides and
+    depth_trunc. `hints` lets a dataset suggest per-dataset defaults to other roles (e.g.
+    {"pixel_stride": 5}); a role's config value of null means "use the hint".
+    """
+
+    default_depth_trunc: float = float("inf")
+    hints: dict[str, Any] = {}
+
+    def __init__(self, cfg: DatasetConfig):
+        self.cfg = cfg
+
+    @property
+    @abstractmethod
+    def native_camera(self) -> Camera:
+        """The dataset's own intrinsics."""
+
+    @abstractmethod
+    def num_available(self) -> int:
+        """Number of frames in the sequence on disk."""
+
+    @abstractmethod
+    def load(self, raw_index: int) -> Frame:
+        """Read raw frame `raw_index` (0-based over the whole sequence) from disk."""
+
+    @property
+    def camera(self) -> Camera:
+        c = self.cfg
+        return self.native_camera.with_overrides(fx=c.fx, fy=c.fy, cx=c.cx, cy=c.cy)
+
+    @property
+    def depth_trunc(self) -> float:
+        return self.cfg.depth_trunc if self.cfg.depth_trunc is not None else self.default_depth_trunc
+
+    def raw_indices(self) -> range:
+        r = range(self.cfg.start, self.num_available(), self.cfg.stride)
+        return r if self.cfg.max_frames is None else r[: self.cfg.max_frames]
+
+    def __len__(self) -> int:
+        return len(self.raw_indices())
+
+    def __getitem__(self, i: int) -> Frame:
+        raw = self.raw_indices()[i]
+        frame = self.load(raw)
+        frame.index = i
+        frame.camera = self.camera
+        frame.depth_trunc = self.depth_trunc
+        return frame
+
+
+class Tracker(ABC):
+    """Estimates each frame's camera-to-world pose."""
+
+    @abstractmethod
+    def track(self, frame: Frame, gaussian_map: GaussianMap) -> TrackingResult:
+        """Pose of `frame` (camera-to-world). Must not raise on a bad frame: return
+        `lost=True` with the predicted pose instead."""
+
+    def update_target(self, gaussian_map: GaussianMap) -> None:
+        """Called after a tracking keyframe added its Gaussians: rebuild what is aligned to."""
+
+    def initialize(self, first_pose: np.ndarray) -> None:
+        """Called once before the first frame with the pose the trajectory starts from."""
+
+
+class KeyframePolicy(ABC):
+    """Decides which frames become keyframes, and of which kind."""
+
+    @abstractmethod
+    def decide(self, frame: Frame, result: TrackingResult) -> KeyframeKind:
+        """The keyframe kind of `frame` given its tracking result."""
+
+
+class KeyframeSampler(ABC):
+    """Chooses which keyframe the mapper trains on next."""
+
+    @abstractmethod
+    def sample(self, keyframe_ids: list[int], current_pose: np.ndarray | None, rng: np.random.Generator) -> int:
+        """One of `keyframe_ids` (non-empty)."""
+
+
+class Mapper(ABC):
+    """Optimises the shared Gaussian map from keyframe images."""
+
+    @abstractmethod
+    def add_keyframe(self, frame: Frame, result: TrackingResult, kind: KeyframeKind, new_rows: slice) -> None:
+        """Register a keyframe; `new_rows` are the map rows its Gaussians were added at."""
+
+    @abstractmethod
+    def optimize(self, iterations: int) -> int:
+        """Run up to `iterations` optimisation steps; return how many were done."""
+
+    def finish(self) -> None:
+        """Called after the last frame (final iterations, if any)."""
+
+    def evaluate(self, frames, poses: list[np.ndarray], out_dir) -> dict[str, Any]:
+        """Rendering metrics (psnr, ssim, ...) for the run's metrics.json; {} if none."""
+        return {}
+
+    def bind(self, gaussian_map: GaussianMap) -> None:
+        """Called once with the shared map before the first frame."""
+        self.gaussian_map = gaussian_map
+
+
+ROLES: dict[str, type] = {
+    "dataset": Dataset,
+    "tracker": Tracker,
+    "mapper": Mapper,
+    "keyframe": KeyframePolicy,
+    "sampler": KeyframeSampler,
+}
+
+
+def config_fields(cfg_cls: type) -> list[str]:
+    return [f.name for f in fields(cfg_cls)]

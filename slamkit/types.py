@@ -1,0 +1,117 @@
+"""Core value types shared by every role.
+
+Conventions used everywhere in slamkit:
+- A pose is a 4x4 float64 numpy array, camera-to-world, OpenCV camera axes
+  (x right, y down, z forward), translation in metres.
+- Depth is in metres; 0 marks an invalid pixel.
+- Quaternions are (w, x, y, z) inside slamkit; the TUM file format's (x, y, z, w) appears only
+  in the trajectory reader and writer.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A pinhole camera: image size in pixels, focal lengths and principal point in pixels."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+    @property
+    def K(self) -> np.ndarray:
+        """3x3 intrinsic matrix."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    def scaled(self, factor: float) -> "Camera":
+        """The same camera for an image resized by `factor` (pixel centres kept consistent)."""
+        return Camera(
+            width=int(round(self.width * factor)),
+            height=int(round(self.height * factor)),
+            fx=self.fx * factor,
+            fy=self.fy * factor,
+            cx=(self.cx + 0.5) * factor - 0.5,
+            cy=(self.cy + 0.5) * factor - 0.5,
+        )
+
+    def with_overrides(self, **values: float | None) -> "Camera":
+        """A copy with the given non-None intrinsics replaced."""
+        return replace(self, **{k: v for k, v in values.items() if v is not None})
+
+
+@dataclass
+class Frame:
+    """One RGB-D frame.
+
+    rgb: HxWx3 uint8. depth: HxW float32 metres, 0 = invalid. gt_pose: camera-to-world 4x4
+    float64 or None. depth_trunc: metres; farther points are not used for tracking.
+    """
+
+    index: int
+    timestamp: float
+    rgb: np.ndarray
+    depth: np.ndarray
+    camera: Camera
+    gt_pose: np.ndarray | None = None
+    depth_trunc: float = float("inf")
+
+
+class KeyframeKind(enum.Enum):
+    """What a keyframe is used for (paper Sec. 3.3)."""
+
+    NONE = "none"
+    TRACKING = "tracking"          # changes the tracking target and adds Gaussians
+    MAPPING_ONLY = "mapping_only"  # adds Gaussians and an image for mapping only
+
+    def __bool__(self) -> bool:
+        return self is not KeyframeKind.NONE
+
+
+@dataclass
+class FrameGaussians:
+    """Gaussians made from one frame's points, in world coordinates.
+
+    means: Nx3 metres (world). covariances: Nx3x3 m^2 (world, already regularised as the
+    tracker uses them). colors: Nx3 in [0, 1]. depths: N camera depths in metres (for scale
+    alignment). trackable: N bool (inside depth_trunc). sq_dist_to_map: N squared distance in
+    m^2 to the nearest map Gaussian found by the tracker's last correspondence search
+    (inf where none was found).
+    """
+
+    means: np.ndarray
+    covariances: np.ndarray
+    colors: np.ndarray
+    depths: np.ndarray
+    trackable: np.ndarray
+    sq_dist_to_map: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return len(self.means)
+
+
+@dataclass
+class TrackingResult:
+    """What a tracker reports for one frame.
+
+    pose: camera-to-world 4x4 float64. lost: the tracker could not estimate the pose and kept
+    its prediction. correspondence_ratio: fraction of trackable frame points with a map
+    Gaussian close by (None when the tracker has no such notion). gaussians: the frame's
+    Gaussians (None for trackers that keep no Gaussian map). stats: timings in seconds and
+    counters for the per-frame log.
+    """
+
+    pose: np.ndarray
+    lost: bool = False
+    correspondence_ratio: float | None = None
+    gaussians: FrameGaussians | None = None
+    stats: dict[str, Any] = field(default_factory=dict)
