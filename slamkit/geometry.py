@@ -72,9 +72,13 @@ def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 def invert_pose(T: np.ndarray) -> np.ndarray:
-    """Inverse of a rigid 4x4 transform."""
-    R, t = T[:3, :3], T[:3, 3]
-    return make_pose(R.T, -R.T @ t)
+    """Inverse of rigid (..., 4, 4) transforms."""
+    Rt = np.swapaxes(T[..., :3, :3], -1, -2)
+    inv = np.zeros_like(T)
+    inv[..., :3, :3] = Rt
+    inv[..., :3, 3] = -(Rt @ T[..., :3, 3, None])[..., 0]
+    inv[..., 3, 3] = 1.0
+    return inv
 
 
 def so3_exp(w: np.ndarray) -> np.ndarray:

@@ -1,0 +1,54 @@
+"""`keyframe=every_n`: fixed-interval keyframes (the paper's baseline in Fig. 4a).
+
+A tracking keyframe every `tracking_every` frames (the first frame included), and a
+mapping-only keyframe every `mapping_every` frames after the last keyframe (0 = none).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from slamkit.plugin import PluginSpec, hookimpl
+from slamkit.roles import KeyframePolicy, PluginConfig, require
+from slamkit.types import Frame, KeyframeKind, TrackingResult
+
+
+@dataclass
+class EveryNKeyframeConfig(PluginConfig):
+    """tracking_every: frames between tracking keyframes (>= 1). mapping_every: frames between
+    a keyframe and the next mapping-only keyframe (0 = no mapping-only keyframes)."""
+
+    tracking_every: int = 30
+    mapping_every: int = 0
+
+    def validate(self) -> None:
+        require(self.tracking_every >= 1, "keyframe.tracking_every", "an integer >= 1", self.tracking_every)
+        require(self.mapping_every >= 0, "keyframe.mapping_every", "an integer >= 0", self.mapping_every)
+
+
+class EveryNKeyframePolicy(KeyframePolicy):
+    """Keyframes at fixed frame intervals, counted in `frame.index` (so a lost frame, for
+    which the pipeline does not ask, does not shift the schedule)."""
+
+    def __init__(self, cfg: EveryNKeyframeConfig):
+        self.cfg = cfg
+        self.last_tracking: int | None = None
+        self.last_keyframe: int | None = None
+
+    def decide(self, frame: Frame, result: TrackingResult) -> KeyframeKind:
+        i = frame.index
+        kind = KeyframeKind.NONE
+        if self.last_tracking is None or i - self.last_tracking >= self.cfg.tracking_every:
+            kind = KeyframeKind.TRACKING
+        elif self.cfg.mapping_every and i - self.last_keyframe >= self.cfg.mapping_every:
+            kind = KeyframeKind.MAPPING_ONLY
+        if kind is KeyframeKind.TRACKING:
+            self.last_tracking = i
+        if kind:
+            self.last_keyframe = i
+        return kind
+
+
+@hookimpl
+def slamkit_keyframe_policies():
+    return [PluginSpec("every_n", EveryNKeyframePolicy, EveryNKeyframeConfig)]

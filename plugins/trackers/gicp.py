@@ -1,0 +1,350 @@
+"""G-ICP tracking against the shared Gaussian map (paper Sec. 3.1; Segal et al. 2009).
+
+Each frame's depth is back-projected on a fixed pixel grid (every `pixel_stride`-th pixel,
+no voxel filter); every point gets a covariance from its `knn` nearest neighbours (the source
+Gaussians), regularised (`ellipse` by default). The target is the map's trackable Gaussians
+with opacity above `min_target_opacity`, their covariances R diag(s^2) R^T regularised the
+same way (ellipse: a median eigenvalue below `target_min_median` gives target_min_median * I,
+as the reference code does). The pose minimises
+
+    sum_i d_i^T (C_t,i + R C_s,i R^T)^-1 d_i,   d_i = mu_t,i - (R p_i + t)
+
+by Levenberg-Marquardt on SE(3) (right perturbation T <- T exp(xi)), re-finding each source
+point's nearest target mean within `max_correspondence_distance` at every iteration. The
+target's KD-tree is built once per tracking keyframe, in `update_target`, never per frame.
+
+The frame's Gaussians (world means at the final pose, regularised covariances rotated to the
+world, colours, depths, squared distance to the nearest target mean from the last
+correspondence search) are returned for the keyframe policy and for map growth.
+"""
+
+from __future__ import annotations
+
+import enum
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from pykdtree.kdtree import KDTree
+
+from slamkit.gaussian_geometry import (
+    TARGET_MIN_MEDIAN,
+    Regularization,
+    inverse_sym3,
+    knn_covariances,
+    regularize,
+)
+from slamkit.gaussian_map import GaussianMap
+from slamkit.geometry import backproject, invert_pose, so3_exp
+from slamkit.plugin import PluginSpec, hookimpl
+from slamkit.roles import PluginConfig, Tracker, require
+from slamkit.types import Frame, FrameGaussians, TrackingResult
+
+
+class InitialGuess(enum.Enum):
+    """Where the optimisation starts: the previous pose, or the previous pose moved by the
+    last inter-frame motion (constant velocity)."""
+
+    previous = "previous"
+    constant_velocity = "constant_velocity"
+
+
+#: Used when a field is null and the dataset gave no hint of that name (TUM-like values).
+FALLBACKS = {"pixel_stride": 5, "max_correspondence_distance": 0.03, "min_target_opacity": 0.05}
+
+
+@dataclass
+class GICPConfig(PluginConfig):
+    """G-ICP tracker options. Null fields take the dataset's hint of the same name, else
+    `FALLBACKS`.
+
+    pixel_stride: back-project every n-th pixel in x and y (reference: 5 TUM, 10 Replica).
+    knn: neighbours (the point included) of each point's covariance.
+    regularization: ellipse | plane | none (paper Table 5).
+    plane_eps: the smallest eigenvalue of `plane` regularisation.
+    target_min_median: m^2; with ellipse, a map covariance whose median eigenvalue is below
+      this becomes target_min_median * I (reference code); null disables.
+    max_correspondence_distance: metres (reference: 0.03 TUM, 0.02 Replica).
+    max_iterations: Levenberg-Marquardt iterations (each re-finds correspondences).
+    rotation_tolerance, translation_tolerance: converged when every |dR - I| entry and every
+      |dt| entry (metres) of the last update is below these.
+    min_target_opacity: map Gaussians at or below this opacity are not aligned to.
+    initial_guess: previous | constant_velocity.
+    min_points: fewer valid trackable depth points -> the frame is lost.
+    min_correspondences: fewer matched points in an iteration -> the frame is lost.
+    lm_lambda: initial damping relative to the largest diagonal entry of the normal matrix.
+    lm_max_tries: damped steps tried per iteration before giving up on a cost decrease.
+    """
+
+    pixel_stride: int | None = None
+    knn: int = 10
+    regularization: Regularization = Regularization.ellipse
+    plane_eps: float = 1e-3
+    target_min_median: float | None = TARGET_MIN_MEDIAN
+    max_correspondence_distance: float | None = None
+    max_iterations: int = 64
+    rotation_tolerance: float = 2e-3
+    translation_tolerance: float = 5e-4
+    min_target_opacity: float | None = None
+    initial_guess: InitialGuess = InitialGuess.constant_velocity
+    min_points: int = 100
+    min_correspondences: int = 50
+    lm_lambda: float = 1e-9
+    lm_max_tries: int = 10
+
+    def validate(self) -> None:
+        require(self.pixel_stride is None or self.pixel_stride >= 1, "tracker.pixel_stride", "null or an integer >= 1", self.pixel_stride)
+        require(self.knn >= 3, "tracker.knn", "an integer >= 3", self.knn)
+        require(0 < self.plane_eps <= 1, "tracker.plane_eps", "in (0, 1]", self.plane_eps)
+        require(self.target_min_median is None or self.target_min_median >= 0, "tracker.target_min_median", "null or >= 0 m^2", self.target_min_median)
+        require(
+            self.max_correspondence_distance is None or self.max_correspondence_distance > 0,
+            "tracker.max_correspondence_distance", "null or > 0 metres", self.max_correspondence_distance,
+        )
+        require(self.max_iterations >= 1, "tracker.max_iterations", "an integer >= 1", self.max_iterations)
+        require(self.rotation_tolerance > 0, "tracker.rotation_tolerance", "> 0", self.rotation_tolerance)
+        require(self.translation_tolerance > 0, "tracker.translation_tolerance", "> 0 metres", self.translation_tolerance)
+        require(
+            self.min_target_opacity is None or 0 <= self.min_target_opacity < 1,
+            "tracker.min_target_opacity", "null or in [0, 1)", self.min_target_opacity,
+        )
+        require(self.min_points >= 1, "tracker.min_points", "an integer >= 1", self.min_points)
+        require(self.min_correspondences >= 6, "tracker.min_correspondences", "an integer >= 6", self.min_correspondences)
+        require(self.lm_lambda >= 0, "tracker.lm_lambda", ">= 0", self.lm_lambda)
+        require(self.lm_max_tries >= 1, "tracker.lm_max_tries", "an integer >= 1", self.lm_max_tries)
+
+
+def se3_exp(xi: np.ndarray) -> np.ndarray:
+    """4x4 exp of xi = (omega, v): rotation vector (rad) and translation part (metres)."""
+    omega, v = xi[:3], xi[3:]
+    theta = float(np.linalg.norm(omega))
+    R = so3_exp(omega)
+    K = np.array([[0, -omega[2], omega[1]], [omega[2], 0, -omega[0]], [-omega[1], omega[0], 0]])
+    if theta < 1e-10:
+        V = np.eye(3) + 0.5 * K
+    else:
+        V = np.eye(3) + (1 - np.cos(theta)) / theta**2 * K + (theta - np.sin(theta)) / theta**3 * (K @ K)
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = V @ v
+    return T
+
+
+class _Target:
+    """The aligned-to map Gaussians: means (float32 for the tree and float64 for residuals),
+    regularised covariances (float64) and the KD-tree over the means."""
+
+    def __init__(self, means: np.ndarray, covariances: np.ndarray, version: int):
+        self.means32 = np.ascontiguousarray(means, dtype=np.float32)
+        self.means = self.means32.astype(np.float64)
+        self.covariances = covariances
+        self.version = version
+        self.tree = KDTree(self.means32, leafsize=16)
+
+    def __len__(self) -> int:
+        return len(self.means)
+
+
+class GICPTracker(Tracker):
+    """Frame-to-map G-ICP on the shared Gaussian map (see the module docstring).
+
+    `tree_builds` counts target KD-tree builds (one per `update_target` with a non-empty
+    target)."""
+
+    def __init__(self, cfg: GICPConfig):
+        self.cfg = cfg
+        self.pixel_stride = int(self._resolve("pixel_stride"))
+        self.max_corr = float(self._resolve("max_correspondence_distance"))
+        self.min_opacity = float(self._resolve("min_target_opacity"))
+        require(self.pixel_stride >= 1, "tracker.pixel_stride", "an integer >= 1", self.pixel_stride)
+        require(self.max_corr > 0, "tracker.max_correspondence_distance", "> 0 metres", self.max_corr)
+        self.regularization = Regularization(cfg.regularization)
+        self.initial_guess = InitialGuess(cfg.initial_guess)
+        self.target: _Target | None = None
+        self.tree_builds = 0
+        self.poses: list[np.ndarray] = []
+        self.first_pose = np.eye(4)
+
+    def _resolve(self, name: str):
+        value = getattr(self.cfg, name)
+        return FALLBACKS[name] if value is None else value
+
+    # ---------------------------------------------------------------- role API
+    def initialize(self, first_pose: np.ndarray) -> None:
+        self.first_pose = np.asarray(first_pose, dtype=np.float64).copy()
+        self.poses = []
+
+    def update_target(self, gaussian_map: GaussianMap) -> None:
+        """Take the map's trackable Gaussians as the new target; regularise their covariances
+        and build the KD-tree (the only place it is built)."""
+        snap = gaussian_map.tracking_target(self.min_opacity)
+        if len(snap.means) == 0:
+            self.target = None
+            return
+        cov = self._regularize(snap.covariances, target=True)
+        self.target = _Target(snap.means, cov, snap.version)
+        self.tree_builds += 1
+
+    def predict(self) -> np.ndarray:
+        """The pose the optimisation starts from (camera-to-world)."""
+        if not self.poses:
+            return self.first_pose.copy()
+        if self.initial_guess is InitialGuess.constant_velocity and len(self.poses) >= 2:
+            prev, last = self.poses[-2], self.poses[-1]
+            return last @ (invert_pose(prev) @ last)
+        return self.poses[-1].copy()
+
+    def track(self, frame: Frame, gaussian_map: GaussianMap) -> TrackingResult:
+        predicted = self.predict()
+        result = self._track(frame, predicted)
+        self.poses.append(result.pose)
+        return result
+
+    # ---------------------------------------------------------------- internals
+    def _regularize(self, cov: np.ndarray, target: bool) -> np.ndarray:
+        min_median = self.cfg.target_min_median if target else None
+        return regularize(cov, self.regularization, self.cfg.plane_eps, min_median=min_median)
+
+    def _track(self, frame: Frame, predicted: np.ndarray) -> TrackingResult:
+        cfg = self.cfg
+        stats: dict = {"covariance_s": 0.0, "nn_search_s": 0.0, "solve_s": 0.0, "iterations": 0}
+        t0 = time.perf_counter()
+        depth = np.asarray(frame.depth)
+        if not np.isfinite(depth).all():
+            depth = np.where(np.isfinite(depth), depth, 0.0)
+        points, pix = backproject(depth, frame.camera, self.pixel_stride)
+        z = points[:, 2]
+        trackable = z <= frame.depth_trunc
+        n_track = int(trackable.sum())
+        stats["num_points"] = len(points)
+        stats["num_trackable"] = n_track
+        if n_track < cfg.min_points or len(points) < cfg.knn:
+            stats["lost_reason"] = f"too few valid depth points ({n_track} < {cfg.min_points})"
+            return TrackingResult(pose=predicted, lost=True, stats=stats)
+
+        cov_cam = self._regularize(knn_covariances(points, cfg.knn), target=False)
+        stats["covariance_s"] = time.perf_counter() - t0
+
+        src = points[trackable].astype(np.float64)
+        src_cov = cov_cam[trackable]
+        sq_track = np.full(n_track, np.inf)
+        pose = predicted
+        if self.target is None or len(self.target) == 0:
+            stats["lost_reason"] = ""
+            stats["note"] = "no target yet"
+        else:
+            pose, ok, sq_track = self._align(src, src_cov, predicted, stats)
+            if not ok:
+                return TrackingResult(pose=predicted, lost=True, stats=stats)
+
+        sq_dist = np.full(len(points), np.inf)
+        sq_dist[trackable] = sq_track
+        R, t = pose[:3, :3], pose[:3, 3]
+        rgb = np.asarray(frame.rgb).reshape(-1, 3)[pix]
+        colors = rgb.astype(np.float32) / 255.0 if np.issubdtype(rgb.dtype, np.integer) else np.clip(rgb, 0, 1).astype(np.float32)
+        gaussians = FrameGaussians(
+            means=(points.astype(np.float64) @ R.T + t).astype(np.float32),
+            covariances=np.einsum("ij,njk,lk->nil", R, cov_cam, R, optimize=True),
+            colors=colors,
+            depths=z.copy(),
+            trackable=trackable,
+            sq_dist_to_map=sq_dist,
+        )
+        stats["matched_fraction"] = float(np.isfinite(sq_track).mean()) if n_track else 0.0
+        return TrackingResult(pose=pose, lost=False, gaussians=gaussians, stats=stats)
+
+    def _align(self, src: np.ndarray, src_cov: np.ndarray, T0: np.ndarray, stats: dict):
+        """Levenberg-Marquardt G-ICP from T0. Returns (pose, ok, squared NN distances of the
+        last correspondence search (inf where none))."""
+        cfg, target = self.cfg, self.target
+        n = len(src)
+        # Body-frame Jacobian of the residual (R^T d) w.r.t. xi = (omega, v): [[p]x, -I].
+        J = np.zeros((n, 3, 6))
+        J[:, 0, 1], J[:, 0, 2] = src[:, 2], -src[:, 1]
+        J[:, 1, 0], J[:, 1, 2] = -src[:, 2], src[:, 0]
+        J[:, 2, 0], J[:, 2, 1] = src[:, 1], -src[:, 0]
+        J[:, 0, 3] = J[:, 1, 4] = J[:, 2, 5] = -1.0
+        T = T0.copy()
+        lam = None
+        nu = 2.0
+        sq = np.full(n, np.inf)
+        converged = False
+        max_corr = self.max_corr
+        for it in range(cfg.max_iterations):
+            stats["iterations"] = it + 1
+            R, t = T[:3, :3], T[:3, 3]
+            xw = src @ R.T + t
+            ts = time.perf_counter()
+            d2, idx = target.tree.query(xw.astype(np.float32), k=1, distance_upper_bound=max_corr, sqr_dists=True)
+            te = time.perf_counter()
+            stats["nn_search_s"] += te - ts
+            valid = idx < len(target)
+            sq = np.where(valid, d2, np.inf).astype(np.float64)
+            m = int(valid.sum())
+            stats["num_correspondences"] = m
+            if m < cfg.min_correspondences:
+                stats["lost_reason"] = f"too few correspondences ({m} < {cfg.min_correspondences})"
+                stats["solve_s"] += time.perf_counter() - te
+                return T0, False, sq
+            tid = idx[valid]
+            p = src[valid]
+            Jv = J[valid]
+            # Combined covariance in the body frame: R^T C_t R + C_s; residual R^T d.
+            Ct = target.covariances[tid]
+            B = np.matmul(np.matmul(R.T, Ct), R) + src_cov[valid]
+            W, singular = inverse_sym3(B)
+            mu = target.means[tid]
+            db = (mu - xw[valid]) @ R  # R^T d for each row
+            Wd = np.einsum("nij,nj->ni", W, db)
+            cost0 = float(np.einsum("ni,ni->", db, Wd))
+            WJ = np.matmul(W, Jv)
+            H = Jv.reshape(-1, 6).T @ WJ.reshape(-1, 6)
+            g = Jv.reshape(-1, 6).T @ Wd.reshape(-1)
+            if lam is None:
+                lam = cfg.lm_lambda * float(np.max(np.diag(H)))
+            accepted = False
+            for _ in range(cfg.lm_max_tries):
+                try:
+                    xi = np.linalg.solve(H + lam * np.eye(6), -g)
+                except np.linalg.LinAlgError:
+                    xi = np.linalg.lstsq(H + lam * np.eye(6), -g, rcond=None)[0]
+                delta = se3_exp(xi)
+                Tn = T @ delta
+                Rn, tn = Tn[:3, :3], Tn[:3, 3]
+                dbn = (mu - (p @ Rn.T + tn)) @ R  # same correspondences and weights
+                cost = float(np.einsum("ni,nij,nj->", dbn, W, dbn))
+                small = self._small(delta)
+                rho_den = float(xi @ (lam * xi - g))
+                rho = (cost0 - cost) / rho_den if rho_den > 0 else -1.0
+                if cost <= cost0 or rho > 0:
+                    T = Tn
+                    lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3) if rho > 0 else 1.0
+                    nu = 2.0
+                    accepted = True
+                    converged = small
+                    break
+                if small:
+                    converged = True
+                    break
+                lam *= nu
+                nu *= 2.0
+            stats["solve_s"] += time.perf_counter() - te
+            stats["singular_covariances"] = int(singular.sum())
+            if converged or not accepted:
+                break
+        stats["converged"] = bool(converged)
+        if not np.isfinite(T).all():
+            stats["lost_reason"] = "non-finite pose"
+            return T0, False, sq
+        return T, True, sq
+
+    def _small(self, delta: np.ndarray) -> bool:
+        return bool(
+            np.abs(delta[:3, :3] - np.eye(3)).max() < self.cfg.rotation_tolerance
+            and np.abs(delta[:3, 3]).max() < self.cfg.translation_tolerance
+        )
+
+
+@hookimpl
+def slamkit_trackers():
+    return [PluginSpec("gicp", GICPTracker, GICPConfig)]

@@ -1,0 +1,105 @@
+"""The `slamkit` command: a Hydra app over the plugin registry.
+
+`slamkit` alone runs the default pipeline on the built-in synthetic sequence; any config value
+is an override (`slamkit dataset=tum dataset.path=... tracker=kiss_icp`), `-m` runs sweeps.
+User errors (a bad file, a bad value) print one line and exit with status 2; set
+SLAMKIT_DEBUG=1 for the traceback.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+import sys
+from pathlib import Path
+
+from slamkit.errors import ConfigError, SlamkitError
+from slamkit.registry import ROLE_HOOKS, Registry, discover, register_configs
+
+CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
+log = logging.getLogger("slamkit")
+_registry: Registry | None = None
+
+
+def _fail(message: str) -> None:
+    print(f"slamkit: error: {message}", file=sys.stderr)
+    sys.exit(2)
+
+
+def _check_plugin_overrides(registry: Registry, args: list[str]) -> None:
+    """Reject `role=name` overrides naming unknown plugins, listing the available ones."""
+    for arg in args:
+        match = re.fullmatch(r"\+?(\w+)=(.*)", arg)
+        if not match or match.group(1) not in ROLE_HOOKS:
+            continue
+        role, value = match.groups()
+        for name in re.sub(r"^\w+\((.*)\)$", r"\1", value).split(","):  # sweeps: a,b or choice(a,b)
+            if name.strip():
+                registry.get(role, name.strip())
+
+
+def _precheck(args: list[str]) -> None:
+    """Compose and validate the config of a single run before Hydra starts it, so that a wrong
+    type or value fails in one line before any work. Sweeps are left to Hydra."""
+    from hydra import compose, initialize_config_dir
+
+    from slamkit.config import validate_config
+
+    if any(a in ("-m", "--multirun") or a.startswith("-") for a in args):
+        return
+    overrides = [a for a in args if not re.match(r"\+*hydra[./]", a)]
+    try:
+        with initialize_config_dir(str(CONF_DIR), version_base=None):
+            cfg = compose("config", overrides=overrides)
+    except Exception as exc:  # Hydra's override and type errors: name the value, one line
+        causes = [str(e).strip().splitlines()[0] for e in (exc, exc.__cause__) if e is not None and str(e).strip()]
+        raise ConfigError(": ".join(dict.fromkeys(causes))) from exc
+    validate_config(cfg)
+
+
+def _task(cfg) -> None:
+    from hydra.core.hydra_config import HydraConfig
+
+    from slamkit import pipeline
+    from slamkit.config import validate_config
+
+    hydra_cfg = HydraConfig.get()
+    names = {role: hydra_cfg.runtime.choices[role] for role in ("dataset", "tracker", "mapper", "keyframe")}
+    out_dir = Path(hydra_cfg.runtime.output_dir)
+    try:
+        run_cfg = validate_config(cfg)
+        metrics = pipeline.run(run_cfg, _registry, names, out_dir)
+    except SlamkitError as exc:
+        log.error("%s", exc)
+        if os.environ.get("SLAMKIT_DEBUG"):
+            raise
+        _fail(str(exc))
+    print(f"slamkit: {pipeline.summary(metrics)}")
+    print(f"slamkit: outputs in {out_dir}")
+    if not metrics["completed"]:
+        sys.exit(130)
+
+
+def main() -> None:
+    import hydra
+
+    from slamkit.config import register_run_config
+
+    global _registry
+    _registry = discover()
+    register_configs(_registry)
+    register_run_config()
+    try:
+        _check_plugin_overrides(_registry, sys.argv[1:])
+        _precheck(sys.argv[1:])
+    except SlamkitError as exc:
+        if os.environ.get("SLAMKIT_DEBUG"):
+            raise
+        _fail(str(exc))
+    app = hydra.main(version_base=None, config_path=str(CONF_DIR), config_name="config")(_task)
+    app()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,95 @@
+"""The top-level run configuration (Hydra structured config) and its validation.
+
+Each role's group (dataset, tracker, mapper, keyframe) holds the selected plugin's config
+dataclass, registered by `slamkit.registry.register_configs`. Validation turns every group into
+its dataclass (running its `validate`) before any work starts.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field, fields, is_dataclass
+from typing import Any
+
+from omegaconf import MISSING, DictConfig, OmegaConf
+
+from slamkit.errors import ConfigError
+from slamkit.map_growth import MapGrowthConfig
+from slamkit.roles import PluginConfig, require
+
+PLUGIN_GROUPS = ("dataset", "tracker", "mapper", "keyframe")
+
+
+class Mode(enum.Enum):
+    sequential = "sequential"
+    realtime = "realtime"
+
+
+@dataclass
+class EvalConfig:
+    """plot: write trajectory.png. running_ate_every: frames between running-ATE updates of the
+    progress bar (0 = off)."""
+
+    plot: bool = True
+    running_ate_every: int = 10
+
+
+@dataclass
+class RunConfig(PluginConfig):
+    """Top-level keys. mode: sequential (fixed mapping iterations per frame, deterministic) or
+    realtime. iterations_per_frame: mapper steps per frame in sequential mode. fps_limit:
+    input frames per second in realtime mode (null = as fast as possible). seed: for every
+    random choice. progress: show a progress bar."""
+
+    dataset: Any = MISSING
+    tracker: Any = MISSING
+    mapper: Any = MISSING
+    keyframe: Any = MISSING
+    map: MapGrowthConfig = field(default_factory=MapGrowthConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    mode: Mode = Mode.sequential
+    iterations_per_frame: int = 10
+    fps_limit: float | None = None
+    seed: int = 0
+    progress: bool = True
+
+    def validate(self) -> None:
+        require(self.iterations_per_frame >= 0, "iterations_per_frame", ">= 0", self.iterations_per_frame)
+        require(self.fps_limit is None or self.fps_limit > 0, "fps_limit", "null or > 0", self.fps_limit)
+
+
+def register_run_config() -> None:
+    from hydra.core.config_store import ConfigStore
+
+    ConfigStore.instance().store(name="slamkit_schema", node=RunConfig)
+
+
+def validate_config(cfg: DictConfig) -> RunConfig:
+    """Turn the composed config into a RunConfig whose groups are the plugins' config
+    dataclasses, running every `validate`. Raises ConfigError (one line) on a wrong value."""
+    try:
+        run = OmegaConf.to_object(cfg)
+    except ConfigError:
+        raise
+    except Exception as exc:  # OmegaConf's own type errors: keep their first line
+        raise ConfigError(str(exc).splitlines()[0]) from exc
+    if not isinstance(run, RunConfig):
+        raise ConfigError(f"expected the slamkit run config, got {type(run).__name__}")
+    for group in PLUGIN_GROUPS:
+        if not is_dataclass(getattr(run, group)):
+            raise ConfigError(f"{group}: no plugin selected (use {group}=NAME)")
+    return run
+
+
+def apply_hints(config: Any, hints: dict[str, Any]) -> list[str]:
+    """Fill the None fields of a config dataclass whose names appear in a dataset's `hints`.
+
+    Returns the names filled. Nested dataclasses are not searched."""
+    filled = []
+    if not is_dataclass(config):
+        return filled
+    for f in fields(config):
+        if getattr(config, f.name) is None and f.name in hints:
+            setattr(config, f.name, hints[f.name])
+            filled.append(f.name)
+    return filled

@@ -1,0 +1,224 @@
+"""Gaussian geometry shared by tracking and mapping: k-NN covariances, a fast batched 3x3
+symmetric eigensolver, covariance regularisation (paper Sec. 3.1) and batched 3x3 inverses.
+
+All functions are vectorised numpy (no Python loop over points). Covariances are (N,3,3) in
+m^2; points (N,3) in metres.
+"""
+
+from __future__ import annotations
+
+import enum
+
+import numpy as np
+from pykdtree.kdtree import KDTree
+
+#: Below this median eigenvalue (m^2) a map Gaussian's covariance becomes this value times I
+#: under ellipse regularisation (the reference code's rule for target covariances).
+TARGET_MIN_MEDIAN = 1e-3
+
+
+class Regularization(enum.Enum):
+    """How covariances are regularised before G-ICP (paper Sec. 3.1, Table 5).
+
+    ellipse: eigenvalues divided by the median eigenvalue (shape kept, median axis 1).
+    plane: eigenvalues replaced by (1, 1, eps), eps on the smallest axis.
+    none: raw covariances.
+    """
+
+    ellipse = "ellipse"
+    plane = "plane"
+    none = "none"
+
+
+def knn_covariances(points: np.ndarray, k: int = 10, tree: KDTree | None = None) -> np.ndarray:
+    """Covariance of each point's k nearest neighbours (the point itself included):
+    (1/k) sum_j (p_j - mu)(p_j - mu)^T, with mu the neighbours' mean.
+
+    points: (N,3). tree: a pykdtree KDTree over `points` (built here when None). When N < k
+    all N points are used. Returns (N,3,3) float64 (accumulated in float64 after centring, so
+    thin structures keep their small eigenvalues).
+    """
+    pts = np.ascontiguousarray(points)
+    n = len(pts)
+    if n == 0:
+        return np.zeros((0, 3, 3))
+    k = max(1, min(int(k), n))
+    if tree is None:
+        tree = KDTree(pts if pts.dtype in (np.float32, np.float64) else pts.astype(np.float64), leafsize=32)
+    query = pts.astype(tree.data.dtype, copy=False) if hasattr(tree, "data") else pts
+    _, idx = tree.query(query, k=k)
+    idx = idx.reshape(n, k)
+    # Offsets from the point itself (small numbers, float64), then second moments minus the
+    # squared mean: no cancellation worth the name at these magnitudes.
+    pt = np.ascontiguousarray(pts.T, dtype=np.float64)  # (3,N)
+    g = pt[:, idx]
+    g -= pt[:, :, None]  # (3,N,k)
+    m = g.mean(axis=2)  # (3,N)
+    cov = np.empty((n, 3, 3))
+    for i in range(3):
+        for j in range(i, 3):
+            cij = np.einsum("nk,nk->n", g[i], g[j]) / k - m[i] * m[j]
+            cov[:, i, j] = cij
+            cov[:, j, i] = cij
+    return cov
+
+
+def _orthonormal_complement(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors (N,3) spanning the plane orthogonal to unit vectors v (N,3)."""
+    ax, ay = np.abs(v[:, 0]), np.abs(v[:, 1])
+    use_x = ax > ay
+    u = np.where(
+        use_x[:, None],
+        np.stack([-v[:, 2], np.zeros_like(ax), v[:, 0]], axis=1),
+        np.stack([np.zeros_like(ax), v[:, 2], -v[:, 1]], axis=1),
+    )
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    return u, np.cross(v, u)
+
+
+def sym3_eigh(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Eigen-decomposition of (N,3,3) symmetric matrices, like ``np.linalg.eigh`` (eigenvalues
+    ascending, eigenvectors as columns) but ~10x faster for many small matrices.
+
+    Closed form: eigenvalues by the trigonometric formula; the eigenvector of the best isolated
+    eigenvalue from cross products of rows of (A - lambda I); the other two from the 2x2
+    problem in its orthogonal complement (stable for repeated eigenvalues). Matrices whose
+    result is not finite fall back to ``np.linalg.eigh``.
+    """
+    A = np.asarray(cov, dtype=np.float64)
+    n = len(A)
+    if n == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3, 3))
+    scale = np.abs(A).reshape(n, 9).max(axis=1)
+    scale = np.where(scale > 0, scale, 1.0)
+    B = A / scale[:, None, None]
+    a00, a11, a22 = B[:, 0, 0], B[:, 1, 1], B[:, 2, 2]
+    a01, a02, a12 = B[:, 0, 1], B[:, 0, 2], B[:, 1, 2]
+    q = (a00 + a11 + a22) / 3.0
+    b00, b11, b22 = a00 - q, a11 - q, a22 - q
+    p2 = (b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * (a01 * a01 + a02 * a02 + a12 * a12)) / 6.0
+    p = np.sqrt(p2)
+    safe_p = np.where(p > 0, p, 1.0)
+    det = (b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02) + a02 * (a01 * a12 - b11 * a02))
+    r = np.clip(det / (2.0 * safe_p**3), -1.0, 1.0)
+    phi = np.arccos(r) / 3.0
+    l_max = q + 2.0 * p * np.cos(phi)
+    l_min = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
+    l_mid = 3.0 * q - l_max - l_min
+    # The eigenvalue farther from the middle one is isolated: its eigenvector is well posed.
+    top_isolated = (l_max - l_mid) >= (l_mid - l_min)
+    iso = np.where(top_isolated, l_max, l_min)
+    r0 = B[:, 0, :].copy()
+    r1 = B[:, 1, :].copy()
+    r2 = B[:, 2, :].copy()
+    r0[:, 0] -= iso
+    r1[:, 1] -= iso
+    r2[:, 2] -= iso
+    c = np.stack([np.cross(r0, r1), np.cross(r0, r2), np.cross(r1, r2)], axis=1)  # (N,3,3)
+    norms = np.einsum("nij,nij->ni", c, c)
+    best = np.argmax(norms, axis=1)
+    v_iso = c[np.arange(n), best]
+    nv = np.sqrt(norms[np.arange(n), best])
+    isotropic = nv <= 1e-30
+    v_iso = np.where(isotropic[:, None], np.array([0.0, 0.0, 1.0]), v_iso / np.where(isotropic, 1.0, nv)[:, None])
+    u, w = _orthonormal_complement(v_iso)
+    Bu = np.einsum("nij,nj->ni", B, u)
+    Bw = np.einsum("nij,nj->ni", B, w)
+    m00 = np.einsum("ni,ni->n", u, Bu)
+    m11 = np.einsum("ni,ni->n", w, Bw)
+    m01 = np.einsum("ni,ni->n", u, Bw)
+    theta = 0.5 * np.arctan2(2.0 * m01, m00 - m11)
+    ct, st = np.cos(theta)[:, None], np.sin(theta)[:, None]
+    big = ct * u + st * w
+    small = -st * u + ct * w
+    half_sum, half_diff = 0.5 * (m00 + m11), np.sqrt((0.5 * (m00 - m11)) ** 2 + m01 * m01)
+    lam_big, lam_small = half_sum + half_diff, half_sum - half_diff
+    lam_iso = np.einsum("ni,nij,nj->n", v_iso, B, v_iso)
+    t = top_isolated[:, None]
+    vals = np.stack(
+        [
+            np.where(top_isolated, lam_small, lam_iso),
+            np.where(top_isolated, lam_big, lam_small),
+            np.where(top_isolated, lam_iso, lam_big),
+        ],
+        axis=1,
+    )
+    vecs = np.stack(
+        [np.where(t, small, v_iso), np.where(t, big, small), np.where(t, v_iso, big)], axis=2
+    )
+    vals *= scale[:, None]
+    bad = ~(np.isfinite(vals).all(axis=1) & np.isfinite(vecs).all(axis=(1, 2)))
+    if bad.any():
+        vals[bad], vecs[bad] = np.linalg.eigh(np.nan_to_num(A[bad]))
+    return vals, vecs
+
+
+def compose(vecs: np.ndarray, vals: np.ndarray) -> np.ndarray:
+    """V diag(vals) V^T for (N,3,3) column eigenvectors and (N,3) eigenvalues."""
+    return np.einsum("nik,nk,njk->nij", vecs, vals, vecs, optimize=True)
+
+
+def regularize(
+    cov: np.ndarray,
+    method: Regularization | str = Regularization.ellipse,
+    eps: float = 1e-3,
+    *,
+    min_median: float | None = None,
+) -> np.ndarray:
+    """Regularise (N,3,3) covariances for G-ICP (paper Sec. 3.1).
+
+    ellipse: C = U diag(l1 >= l2 >= l3) U^T becomes U diag(l1/l2, 1, l3/l2) U^T, dividing by
+      the median (sorted) eigenvalue. With `min_median` (m^2) set, a covariance whose median
+      eigenvalue is below it becomes min_median * I instead (the reference code's rule for map
+      Gaussians; not applied to frame covariances, whose median is ~1e-5..1e-4 m^2). A
+      covariance with a zero median eigenvalue (collinear or coincident neighbours) becomes I.
+    plane: eigenvalues become (1, 1, eps), eps on the smallest axis.
+    none: returned unchanged (a float64 copy).
+    """
+    method = Regularization(method)
+    cov = np.asarray(cov, dtype=np.float64)
+    if method is Regularization.none or len(cov) == 0:
+        return cov.copy()
+    vals, vecs = sym3_eigh(cov)  # ascending: l3, l2, l1
+    if method is Regularization.plane:
+        new = np.broadcast_to(np.array([eps, 1.0, 1.0]), vals.shape)
+        return compose(vecs, new)
+    vals = np.clip(vals, 0.0, None)
+    median = vals[:, 1]
+    degenerate = ~(median > 1e-12 * np.maximum(vals[:, 2], 1e-300))
+    new = vals / np.where(degenerate, 1.0, median)[:, None]
+    new[degenerate] = 1.0
+    out = compose(vecs, new)
+    if min_median is not None:
+        small = median < min_median
+        out[small] = min_median * np.eye(3)
+    return out
+
+
+def inverse_sym3(C: np.ndarray, rcond: float = 1e-10) -> tuple[np.ndarray, np.ndarray]:
+    """Inverses of (N,3,3) symmetric matrices by the adjugate; the Moore-Penrose
+    pseudo-inverse where a matrix is (numerically) singular: det <= rcond * (trace/3)^3.
+
+    Returns (inverses (N,3,3), singular mask (N,))."""
+    a00, a01, a02 = C[:, 0, 0], C[:, 0, 1], C[:, 0, 2]
+    a11, a12, a22 = C[:, 1, 1], C[:, 1, 2], C[:, 2, 2]
+    c00 = a11 * a22 - a12 * a12
+    c01 = a02 * a12 - a01 * a22
+    c02 = a01 * a12 - a02 * a11
+    c11 = a00 * a22 - a02 * a02
+    c12 = a01 * a02 - a00 * a12
+    c22 = a00 * a11 - a01 * a01
+    det = a00 * c00 + a01 * c01 + a02 * c02
+    tr = (a00 + a11 + a22) / 3.0
+    singular = ~(det > rcond * np.abs(tr) ** 3) | ~np.isfinite(det)
+    inv_det = 1.0 / np.where(singular, 1.0, det)
+    out = np.empty_like(C)
+    out[:, 0, 0] = c00 * inv_det
+    out[:, 1, 1] = c11 * inv_det
+    out[:, 2, 2] = c22 * inv_det
+    out[:, 0, 1] = out[:, 1, 0] = c01 * inv_det
+    out[:, 0, 2] = out[:, 2, 0] = c02 * inv_det
+    out[:, 1, 2] = out[:, 2, 1] = c12 * inv_det
+    if singular.any():
+        out[singular] = np.linalg.pinv(np.nan_to_num(C[singular]), hermitian=True)
+    return out, singular

@@ -1,0 +1,122 @@
+"""Reading colour and depth images (Pillow + numpy) and locating files, for dataset loaders.
+
+Every failure (missing file, truncated or corrupt data, wrong pixel format) raises
+`slamkit.errors.DataError` with one line naming the file and what was expected.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Iterable
+
+import numpy as np
+from PIL import Image
+
+from slamkit.errors import DataError
+
+_DEPTH_MODES = ("I;16", "I;16B", "I;16L", "I", "F")
+
+
+def _reason(exc: BaseException) -> str:
+    if isinstance(exc, FileNotFoundError):
+        return "file not found"
+    if isinstance(exc, IsADirectoryError):
+        return "is a folder"
+    text = str(exc).strip().splitlines()
+    return text[0] if text else type(exc).__name__
+
+
+def _open(path: Path, what: str, expected: str) -> Image.Image:
+    """Open and fully decode `path`, turning every Pillow / OS failure into a DataError."""
+    try:
+        im = Image.open(path)
+        im.load()
+        return im
+    except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as exc:
+        raise DataError(f"cannot read {what} image {path}: {_reason(exc)} (expected {expected})") from None
+
+
+def image_size(path: str | Path) -> tuple[int, int]:
+    """(width, height) in pixels from the image header only (no decoding)."""
+    path = Path(path)
+    try:
+        with Image.open(path) as im:
+            return im.size
+    except (OSError, ValueError, SyntaxError) as exc:
+        raise DataError(f"cannot read image {path}: {_reason(exc)} (expected a PNG or JPEG image)") from None
+
+
+def read_rgb(path: str | Path) -> np.ndarray:
+    """HxWx3 uint8 RGB image. Grey, palette and RGBA images are converted to RGB."""
+    path = Path(path)
+    im = _open(path, "colour", "an 8-bit colour image")
+    if im.mode in _DEPTH_MODES:
+        raise DataError(f"cannot read colour image {path}: pixel mode {im.mode} (expected an 8-bit colour image)")
+    if im.mode != "RGB":
+        im = im.convert("RGB")
+    return np.asarray(im, dtype=np.uint8).copy()
+
+
+def read_depth(path: str | Path, scale: float, invalid_values: Iterable[float] = ()) -> np.ndarray:
+    """HxW float32 depth in metres: raw / `scale` (e.g. 5000 for TUM, 1000 for millimetres).
+
+    Raw 0 stays 0 (invalid); raw values listed in `invalid_values` (e.g. 65535 in 7-Scenes),
+    negative values and non-finite values also become 0. Accepts 16-bit PNGs (modes I;16 / I)
+    and 32-bit float images (mode F)."""
+    path = Path(path)
+    im = _open(path, "depth", "a 16-bit PNG")
+    if im.mode not in _DEPTH_MODES:
+        raise DataError(f"cannot read depth image {path}: pixel mode {im.mode} (expected a 16-bit PNG)")
+    raw = np.asarray(im)
+    invalid = ~np.isfinite(raw) | (raw <= 0) if raw.dtype.kind == "f" else raw <= 0
+    for v in invalid_values:
+        invalid |= raw == v
+    depth = raw.astype(np.float32) / np.float32(scale)
+    depth[invalid] = 0.0
+    return depth
+
+
+def check_same_size(rgb: np.ndarray, depth: np.ndarray, path: str | Path) -> None:
+    """Raise DataError naming the depth file `path` if `depth` is not the size of `rgb`."""
+    if rgb.shape[:2] != depth.shape[:2]:
+        (h, w), (dh, dw) = rgb.shape[:2], depth.shape[:2]
+        raise DataError(f"depth image {path} is {dw}x{dh} but its colour image is {w}x{h} (expected the same size)")
+
+
+def check_camera_size(rgb: np.ndarray, camera, path: str | Path) -> None:
+    """Raise DataError naming the colour file `path` if `rgb` is not `camera`'s size."""
+    h, w = rgb.shape[:2]
+    if (w, h) != (camera.width, camera.height):
+        raise DataError(
+            f"colour image {path} is {w}x{h} but the camera is {camera.width}x{camera.height} "
+            "(expected images of the camera's size)"
+        )
+
+
+def dataset_folder(path: str | Path, expected: str, *markers: str) -> Path:
+    """`path` as a folder holding each file in `markers`; DataError naming what is missing."""
+    if not str(path):
+        raise DataError(f"dataset.path is empty (expected {expected})")
+    root = Path(path).expanduser()
+    if not root.is_dir():
+        raise DataError(f"dataset folder {root} not found (expected {expected})")
+    for m in markers:
+        if not (root / m).is_file():
+            raise DataError(f"{root / m} not found (expected {expected})")
+    return root
+
+
+def find_ground_truth(root: Path, gt_path: str | Path | None, default: str) -> Path | None:
+    """The ground-truth file of a dataset folder `root`: `gt_path` if given (a relative path is
+    looked up in `root` first, then the working directory), else `root / default`. Returns None
+    when the default file is absent (the caller warns); a given `gt_path` that does not exist
+    raises DataError."""
+    if gt_path is None:
+        p = root / default
+        return p if p.is_file() else None
+    p = Path(gt_path).expanduser()
+    if not p.is_absolute() and (root / p).is_file():
+        p = root / p
+    if not p.is_file():
+        raise DataError(f"dataset.gt_path: {p} not found (expected a ground-truth trajectory file)")
+    return p

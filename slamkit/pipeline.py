@@ -1,0 +1,209 @@
+"""Running SLAM on a dataset: building the roles from config, the progress bar, the run
+outputs (trajectory.txt, metrics.json, frames.csv, trajectory.png) and evaluation.
+
+The algorithm itself is `slamkit.slam.SLAM`; this module is the I/O around it.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import os
+import signal
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from slamkit import evaluation
+from slamkit.config import RunConfig, apply_hints
+from slamkit.errors import DataError
+from slamkit.gaussian_map import GaussianMap
+from slamkit.prefetch import prefetched
+from slamkit.registry import Registry
+from slamkit.slam import SLAM, StepResult
+from slamkit.tum_format import write_tum_trajectory
+from slamkit.types import Frame, KeyframeKind
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class RunState:
+    """What a run has produced so far; written out even when the run stops early."""
+
+    timestamps: list[float] = field(default_factory=list)
+    poses: list[np.ndarray] = field(default_factory=list)
+    gt_poses: list[np.ndarray | None] = field(default_factory=list)
+    num_keyframes: int = 0
+    lost_frames: int = 0
+    mapping_iterations: int = 0
+    tracking_time_s: float = 0.0
+    mapping_time_s: float = 0.0
+    completed: bool = False
+    error: str | None = None
+
+    def record(self, frame: Frame, step: StepResult) -> None:
+        self.timestamps.append(frame.timestamp)
+        self.poses.append(step.tracking.pose)
+        self.gt_poses.append(frame.gt_pose)
+        self.num_keyframes += bool(step.keyframe)
+        self.lost_frames += step.tracking.lost
+        self.mapping_iterations += step.mapping_iterations
+        self.tracking_time_s += step.tracking_time_s
+        self.mapping_time_s += step.mapping_time_s
+
+
+def build(cfg: RunConfig, registry: Registry, names: dict[str, str]):
+    """Dataset and SLAM system from a validated config; `names` maps role -> plugin name."""
+    dataset = registry.create("dataset", names["dataset"], cfg.dataset)
+    if len(dataset) == 0:
+        raise DataError(f"dataset {names['dataset']!r} at {cfg.dataset.path!r}: no frames selected")
+    for group in (cfg.tracker, cfg.keyframe, cfg.mapper, cfg.map):
+        apply_hints(group, dataset.hints)
+    tracker = registry.create("tracker", names["tracker"], cfg.tracker)
+    policy = registry.create("keyframe", names["keyframe"], cfg.keyframe)
+    mapper = registry.create("mapper", names["mapper"], cfg.mapper)
+    slam = SLAM(tracker, policy, mapper, GaussianMap(), cfg.map, cfg.iterations_per_frame)
+    return dataset, slam
+
+
+@contextmanager
+def _sigterm_as_interrupt():
+    """SIGTERM stops the run like Ctrl-C does, so outputs are written either way."""
+
+    def handler(signum, frame):
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    try:
+        previous = signal.signal(signal.SIGTERM, handler)
+    except ValueError:  # not the main thread
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Path) -> dict[str, Any]:
+    """Run SLAM as configured and write the outputs into `out_dir`; return the metrics."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    np.random.seed(cfg.seed)
+    dataset, slam = build(cfg, registry, names)
+    state = RunState()
+    start = time.perf_counter()
+    try:
+        with _sigterm_as_interrupt(), open(out_dir / "frames.csv", "w", newline="") as frames_log:
+            _loop(cfg, dataset, slam, state, csv.writer(frames_log), frames_log)
+        slam.mapper.finish()
+        state.completed = True
+    except KeyboardInterrupt as exc:
+        state.error = f"interrupted ({exc or 'SIGINT'})"
+        log.warning("run interrupted after %d frames; writing what it has", len(state.poses))
+    except Exception as exc:
+        state.error = f"{type(exc).__name__}: {exc}"
+        log.error("run failed after %d frames: %s; writing what it has", len(state.poses), state.error)
+        raise
+    finally:
+        metrics = finish(cfg, slam, dataset, state, time.perf_counter() - start, out_dir)
+    return metrics
+
+
+def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, writer, log_file) -> None:
+    from tqdm import tqdm
+
+    writer.writerow(["index", "timestamp", "keyframe", "lost", "tracking_ms", "mapping_ms", "iterations",
+                     "correspondence_ratio", "note"])
+    frames = prefetched(dataset, cfg.dataset.prefetch)
+    bar = tqdm(total=len(dataset), unit="frame", disable=None if cfg.progress else True, dynamic_ncols=True)
+    with bar:
+        for frame in frames:
+            if not state.poses:
+                slam.initialize(frame.gt_pose if frame.gt_pose is not None else np.eye(4))
+            step = slam.step(frame)
+            state.record(frame, step)
+            result = step.tracking
+            writer.writerow([frame.index, f"{frame.timestamp:.6f}", step.keyframe.value, int(result.lost),
+                             f"{1e3 * step.tracking_time_s:.2f}", f"{1e3 * step.mapping_time_s:.2f}",
+                             step.mapping_iterations, _fmt(result.correspondence_ratio),
+                             result.stats.get("lost_reason", "")])
+            if result.lost:
+                log.warning("frame %d lost: %s", frame.index, result.stats.get("lost_reason", "?"))
+            bar.update(1)
+            every = cfg.eval.running_ate_every
+            if every and len(state.poses) % every == 0:
+                bar.set_postfix_str(_running_ate(state), refresh=False)
+                log_file.flush()
+
+
+def _fmt(value: float | None) -> str:
+    return "" if value is None else f"{value:.4f}"
+
+
+def _running_ate(state: RunState) -> str:
+    result = evaluation.ate(np.array(state.poses), state.gt_poses)
+    return "ATE n/a" if result.rmse_m is None else f"ATE {100 * result.rmse_m:.2f} cm"
+
+
+def finish(cfg: RunConfig, slam: SLAM, dataset, state: RunState, wall_s: float, out_dir: Path) -> dict[str, Any]:
+    """Write trajectory.txt, metrics.json and the plot; return the metrics."""
+    n = len(state.poses)
+    poses = np.array(state.poses).reshape(n, 4, 4)
+    write_tum_trajectory(out_dir / "trajectory.txt", state.timestamps, poses)
+    ate = evaluation.ate(poses, state.gt_poses) if n else None
+    rpe = evaluation.rpe(poses, state.gt_poses) if n > 1 else None
+    metrics: dict[str, Any] = {
+        "num_frames": n,
+        "num_keyframes": state.num_keyframes,
+        "fps": n / wall_s if wall_s > 0 else None,
+        "tracking_fps": n / state.tracking_time_s if state.tracking_time_s > 0 else None,
+        "tracking_time_s": state.tracking_time_s,
+        "mapping_time_s": state.mapping_time_s,
+        "wall_time_s": wall_s,
+        "mapping_iterations": state.mapping_iterations,
+        "lost_frames": state.lost_frames,
+        "completed": state.completed,
+        "error": state.error,
+        "ate_rmse_m": ate.rmse_m if ate else None,
+        "ate_mean_m": ate.mean_m if ate else None,
+        "ate_frames": ate.num if ate else 0,
+        "rpe_trans_rmse_m": rpe["trans_rmse_m"] if rpe else None,
+        "rpe_rot_rmse_deg": rpe["rot_rmse_deg"] if rpe else None,
+        "num_gaussians": len(slam.gaussian_map),
+    }
+    if state.completed:
+        metrics.update(slam.mapper.evaluate(dataset, state.poses, out_dir))
+    _write_json_atomic(out_dir / "metrics.json", metrics)
+    if cfg.eval.plot and n:
+        from slamkit.plots import plot_trajectory
+
+        has_gt = ate is not None and ate.rmse_m is not None
+        est = ate.est_aligned if has_gt else poses[:, :3, 3]
+        gt = ate.gt_positions if has_gt else None
+        plot_trajectory(out_dir / "trajectory.png", est, gt, title=_summary(metrics))
+    return metrics
+
+
+def _write_json_atomic(path: Path, data: dict) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2, default=float) + "\n")
+    os.replace(tmp, path)
+
+
+def _summary(m: dict[str, Any]) -> str:
+    ate = "n/a (no ground truth)" if m["ate_rmse_m"] is None else f"{100 * m['ate_rmse_m']:.2f} cm"
+    fps = f"{m['fps']:.1f}" if m["fps"] else "n/a"
+    return f"{m['num_frames']} frames, ATE RMSE {ate}, {fps} frames/s"
+
+
+def summary(m: dict[str, Any]) -> str:
+    """One line for the terminal."""
+    text = _summary(m) + f", {m['num_keyframes']} keyframes, {m['lost_frames']} lost"
+    if m.get("psnr") is not None:
+        text += f", PSNR {m['psnr']:.2f} dB"
+    return text if m["completed"] else text + " (incomplete)"

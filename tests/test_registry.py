@@ -1,0 +1,120 @@
+"""The plugin registry: entry-point discovery, type checks, failures reported by name."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+import pytest
+
+from slamkit.errors import PluginError
+from slamkit.registry import discover
+
+from conftest import make_plugin_dist, run_slamkit
+
+FAKE_TRACKER = """
+    from dataclasses import dataclass
+    import numpy as np
+    from slamkit.plugin import PluginSpec, hookimpl
+    from slamkit.roles import PluginConfig, Tracker, require
+    from slamkit.types import TrackingResult
+
+    @dataclass
+    class StillConfig(PluginConfig):
+        '''offset: metres added to x of every pose.'''
+        offset: float = 0.0
+        def validate(self):
+            require(self.offset >= 0, "tracker.offset", ">= 0", self.offset)
+
+    class StillTracker(Tracker):
+        '''Reports the first pose for every frame, shifted by cfg.offset along x.'''
+        def __init__(self, cfg):
+            self.cfg = cfg
+        def initialize(self, first_pose):
+            self.pose = first_pose.copy()
+            self.pose[0, 3] += self.cfg.offset
+        def track(self, frame, gaussian_map):
+            return TrackingResult(pose=self.pose)
+
+    @hookimpl
+    def slamkit_trackers():
+        return [PluginSpec("still", StillTracker, StillConfig)]
+"""
+
+NOT_A_TRACKER = """
+    from dataclasses import dataclass
+    from slamkit.plugin import PluginSpec, hookimpl
+
+    @dataclass
+    class Cfg:
+        x: int = 1
+
+    @hookimpl
+    def slamkit_trackers():
+        return [PluginSpec("wrong", dict, Cfg)]
+"""
+
+
+@pytest.fixture
+def plugin_dir(tmp_path, monkeypatch):
+    root = make_plugin_dist(
+        tmp_path / "site",
+        "slamkit-test-plugins",
+        {"still_tracker": FAKE_TRACKER, "broken_plugin": "raise ImportError('needs libfoo')\n",
+         "wrong_plugin": NOT_A_TRACKER},
+        {"still": "still_tracker", "broken": "broken_plugin", "wrong": "wrong_plugin"},
+    )
+    monkeypatch.syspath_prepend(str(root))
+    return root
+
+
+def test_builtin_plugins_are_found_through_entry_points():
+    registry = discover()
+    assert {"tum", "replica", "sevenscenes", "synthetic"} <= set(registry.plugins["dataset"])
+    assert "kiss_icp" in registry.plugins["tracker"]
+    assert "none" in registry.plugins["mapper"]
+    assert "(slamkit)" in registry.plugins["tracker"]["kiss_icp"].source
+
+
+def test_third_party_plugin_found_and_broken_ones_reported(plugin_dir):
+    with pytest.warns(UserWarning) as warned:
+        registry = discover()
+    assert registry.get("tracker", "still").cls.__name__ == "StillTracker"
+    messages = " ".join(str(w.message) for w in warned)
+    assert "broken" in messages and "needs libfoo" in messages
+    assert "wrong" in messages and "not a subclass of Tracker" in messages
+    assert "wrong" not in registry.plugins["tracker"]
+    assert "kiss_icp" in registry.plugins["tracker"]  # the others keep working
+
+
+def test_unknown_plugin_lists_available(plugin_dir):
+    with pytest.warns(UserWarning):
+        registry = discover()
+    with pytest.raises(PluginError) as err:
+        registry.get("tracker", "gicpp")
+    message = str(err.value)
+    assert "unknown tracker 'gicpp'" in message and "kiss_icp" in message and "still" in message
+    assert "\n" not in message
+
+
+def test_third_party_plugin_runs_from_the_cli_with_its_config(plugin_dir, tmp_path):
+    out = tmp_path / "run"
+    env = {"PYTHONPATH": str(plugin_dir)}
+    proc = run_slamkit("tracker=still", "tracker.offset=0.5", "dataset.num_frames=8", "progress=false",
+                       f"hydra.run.dir={out}", cwd=tmp_path, env_extra=env)
+    assert proc.returncode == 0, proc.stderr
+    lines = (out / "trajectory.txt").read_text().splitlines()
+    assert len(lines) == 8
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["num_frames"] == 8 and metrics["ate_rmse_m"] > 0
+
+
+def test_third_party_config_validation_and_unknown_name_from_the_cli(plugin_dir, tmp_path):
+    env = {"PYTHONPATH": str(plugin_dir)}
+    bad = run_slamkit("tracker=still", "tracker.offset=-1", f"hydra.run.dir={tmp_path / 'x'}", cwd=tmp_path, env_extra=env)
+    assert bad.returncode == 2
+    assert bad.stderr.strip().splitlines()[-1] == "slamkit: error: tracker.offset: expected >= 0, got -1.0"
+    assert "Traceback" not in bad.stderr
+    unknown = run_slamkit("tracker=nope", cwd=tmp_path, env_extra=env)
+    assert unknown.returncode == 2
+    assert "unknown tracker 'nope'; available:" in unknown.stderr and "still" in unknown.stderr
