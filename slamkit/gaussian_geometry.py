@@ -63,6 +63,47 @@ def knn_covariances(points: np.ndarray, k: int = 10, tree: KDTree | None = None)
     return cov
 
 
+def _trig_eigvals(B: np.ndarray):
+    """Eigenvalues (min, mid, max) of (N,3,3) symmetric matrices (already scaled to O(1)) by
+    the trigonometric formula."""
+    a00, a11, a22 = B[:, 0, 0], B[:, 1, 1], B[:, 2, 2]
+    a01, a02, a12 = B[:, 0, 1], B[:, 0, 2], B[:, 1, 2]
+    q = (a00 + a11 + a22) / 3.0
+    b00, b11, b22 = a00 - q, a11 - q, a22 - q
+    p2 = (b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * (a01 * a01 + a02 * a02 + a12 * a12)) / 6.0
+    p = np.sqrt(p2)
+    safe_p = np.where(p > 0, p, 1.0)
+    det = b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02) + a02 * (a01 * a12 - b11 * a02)
+    r = np.clip(det / (2.0 * safe_p**3), -1.0, 1.0)
+    phi = np.arccos(r) / 3.0
+    l_max = q + 2.0 * p * np.cos(phi)
+    l_min = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
+    return l_min, 3.0 * q - l_max - l_min, l_max
+
+
+def sym3_eigvals(cov: np.ndarray) -> np.ndarray:
+    """Eigenvalues (N,3), ascending, of (N,3,3) symmetric matrices (closed form)."""
+    A = np.asarray(cov, dtype=np.float64)
+    n = len(A)
+    if n == 0:
+        return np.zeros((0, 3))
+    scale = np.abs(A).reshape(n, 9).max(axis=1)
+    scale = np.where(scale > 0, scale, 1.0)
+    vals = np.stack(_trig_eigvals(A / scale[:, None, None]), axis=1) * scale[:, None]
+    bad = ~np.isfinite(vals).all(axis=1)
+    if bad.any():
+        vals[bad] = np.linalg.eigvalsh(np.nan_to_num(A[bad]))
+    return vals
+
+
+def rotate_covariances(R: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """R C R^T for one 3x3 rotation R and (N,3,3) covariances C (two plain matrix products,
+    much faster than a batched 3x3 matmul)."""
+    n = len(cov)
+    CRt = (np.ascontiguousarray(cov).reshape(n * 3, 3) @ R.T).reshape(n, 3, 3)  # C R^T
+    return (R @ CRt.transpose(1, 0, 2).reshape(3, n * 3)).reshape(3, n, 3).transpose(1, 0, 2)
+
+
 def _orthonormal_complement(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Two unit vectors (N,3) spanning the plane orthogonal to unit vectors v (N,3)."""
     ax, ay = np.abs(v[:, 0]), np.abs(v[:, 1])
@@ -92,19 +133,7 @@ def sym3_eigh(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     scale = np.abs(A).reshape(n, 9).max(axis=1)
     scale = np.where(scale > 0, scale, 1.0)
     B = A / scale[:, None, None]
-    a00, a11, a22 = B[:, 0, 0], B[:, 1, 1], B[:, 2, 2]
-    a01, a02, a12 = B[:, 0, 1], B[:, 0, 2], B[:, 1, 2]
-    q = (a00 + a11 + a22) / 3.0
-    b00, b11, b22 = a00 - q, a11 - q, a22 - q
-    p2 = (b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * (a01 * a01 + a02 * a02 + a12 * a12)) / 6.0
-    p = np.sqrt(p2)
-    safe_p = np.where(p > 0, p, 1.0)
-    det = (b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02) + a02 * (a01 * a12 - b11 * a02))
-    r = np.clip(det / (2.0 * safe_p**3), -1.0, 1.0)
-    phi = np.arccos(r) / 3.0
-    l_max = q + 2.0 * p * np.cos(phi)
-    l_min = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
-    l_mid = 3.0 * q - l_max - l_min
+    l_min, l_mid, l_max = _trig_eigvals(B)
     # The eigenvalue farther from the middle one is isolated: its eigenvector is well posed.
     top_isolated = (l_max - l_mid) >= (l_mid - l_min)
     iso = np.where(top_isolated, l_max, l_min)
@@ -179,19 +208,21 @@ def regularize(
     cov = np.asarray(cov, dtype=np.float64)
     if method is Regularization.none or len(cov) == 0:
         return cov.copy()
-    vals, vecs = sym3_eigh(cov)  # ascending: l3, l2, l1
     if method is Regularization.plane:
-        new = np.broadcast_to(np.array([eps, 1.0, 1.0]), vals.shape)
-        return compose(vecs, new)
-    vals = np.clip(vals, 0.0, None)
+        # V diag(eps, 1, 1) V^T = I - (1 - eps) v_min v_min^T.
+        _, vecs = sym3_eigh(cov)
+        v = vecs[:, :, 0]
+        return np.eye(3) - (1.0 - eps) * (v[:, :, None] * v[:, None, :])
+    # ellipse: dividing every eigenvalue by the median one is dividing the matrix by it.
+    vals = sym3_eigvals(cov)  # ascending: l3, l2, l1
     median = vals[:, 1]
     degenerate = ~(median > 1e-12 * np.maximum(vals[:, 2], 1e-300))
-    new = vals / np.where(degenerate, 1.0, median)[:, None]
-    new[degenerate] = 1.0
-    out = compose(vecs, new)
+    out = cov / np.where(degenerate, 1.0, median)[:, None, None]
+    negative = np.clip(-vals[:, 0], 0.0, None) / np.where(degenerate, 1.0, median)  # rounding below 0
+    out += negative[:, None, None] * np.eye(3)
+    out[degenerate] = np.eye(3)
     if min_median is not None:
-        small = median < min_median
-        out[small] = min_median * np.eye(3)
+        out[median < min_median] = min_median * np.eye(3)
     return out
 
 

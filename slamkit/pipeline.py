@@ -95,6 +95,8 @@ def run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Path
     out_dir.mkdir(parents=True, exist_ok=True)
     np.random.seed(cfg.seed)
     dataset, slam = build(cfg, registry, names)
+    log.info("%s: %d frames, camera %s; tracker %s, mapper %s, keyframes %s", names["dataset"], len(dataset),
+             dataset.camera, names["tracker"], names["mapper"], names["keyframe"])
     state = RunState()
     start = time.perf_counter()
     try:
@@ -179,6 +181,7 @@ def finish(cfg: RunConfig, slam: SLAM, dataset, state: RunState, wall_s: float, 
     if state.completed:
         metrics.update(slam.mapper.evaluate(dataset, state.poses, out_dir))
     _write_json_atomic(out_dir / "metrics.json", metrics)
+    log.info("%s", summary(metrics))
     if cfg.eval.plot and n:
         from slamkit.plots import plot_trajectory
 

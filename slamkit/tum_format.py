@@ -21,7 +21,6 @@ import numpy as np
 from slamkit.errors import DataError
 from slamkit.geometry import quat_to_rotmat, rotmat_to_quat
 
-TRAJECTORY_HEADER = "# timestamp tx ty tz qx qy qz qw"
 
 
 def _data_lines(path: Path, commas: bool = True):
@@ -123,8 +122,9 @@ def write_tum_trajectory(path: str | Path, timestamps, poses) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
+        os.fchmod(fd, 0o644)  # mkstemp makes it private; a trajectory is an ordinary output
         with os.fdopen(fd, "w") as f:
-            f.write(TRAJECTORY_HEADER + "\n" + body)
+            f.write(body)  # no header: exactly one line per frame (the run-output contract)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)

@@ -41,7 +41,7 @@ def _cache_dir(tmp_path_factory, monkeypatch):
 
 def make_plugin_dist(root: Path, dist: str, modules: dict[str, str], entry_points: dict[str, str]) -> Path:
     """Write an importable 'installed' distribution into `root` (add `root` to sys.path)."""
-    info = root / f"{dist}-0.1.dist-info"
+    info = root / f"{dist.replace('-', '_')}-0.1.dist-info"  # the folder name is parsed at the first "-"
     info.mkdir(parents=True)
     (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {dist}\nVersion: 0.1\n")
     lines = "\n".join(f"{name} = {target}" for name, target in entry_points.items())

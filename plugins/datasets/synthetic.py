@@ -35,12 +35,15 @@ import tempfile
 import threading
 import time
 import zipfile
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
+from slamkit.errors import DataError
+from slamkit.geometry import so3_exp
 from slamkit.plugin import PluginSpec, hookimpl
 from slamkit.roles import Dataset, DatasetConfig, require
 from slamkit.types import Camera, Frame
@@ -91,7 +94,12 @@ class SyntheticConfig(DatasetConfig):
         require(self.num_frames >= 2, "dataset.num_frames", "an integer >= 2", self.num_frames)
         require(16 <= self.width <= 8192, "dataset.width", "an integer in [16, 8192] pixels", self.width)
         require(16 <= self.height <= 8192, "dataset.height", "an integer in [16, 8192] pixels", self.height)
-        require(10.0 <= self.fov_deg <= 150.0, "dataset.fov_deg", "a horizontal field of view in [10, 150] degrees", self.fov_deg)
+        require(
+            10.0 <= self.fov_deg <= 150.0,
+            "dataset.fov_deg",
+            "a horizontal field of view in [10, 150] degrees",
+            self.fov_deg,
+        )
         require(self.seed >= 0, "dataset.seed", "an integer >= 0", self.seed)
         require(0.0 < self.speed <= 10.0, "dataset.speed", "a factor in (0, 10]", self.speed)
         require(self.depth_noise >= 0.0, "dataset.depth_noise", ">= 0 metres", self.depth_noise)
@@ -121,41 +129,49 @@ def _rot(yaw: float = 0.0, pitch: float = 0.0, roll: float = 0.0) -> np.ndarray:
 _OCTAVE_ROT = [_rot(0, 0, 0), _rot(37, 21, 11), _rot(-53, 47, -29), _rot(71, -13, 59)]
 
 
-def _value_noise(q: np.ndarray) -> np.ndarray:
-    """Smooth value noise in [0, 1] at lattice coordinates q (n, 3); period 32 cells."""
-    f = np.floor(q)
-    w = (q - f).astype(np.float32)
-    w = w * w * (3.0 - 2.0 * w)
-    i = f.astype(np.int64)
+_OCTAVE_ROT32 = [r.astype(np.float32) for r in _OCTAVE_ROT]
+
+
+def _value_noise(qx: np.ndarray, qy: np.ndarray, qz: np.ndarray) -> np.ndarray:
+    """Smooth value noise in [0, 1] at lattice coordinates (qx, qy, qz); period 32 cells."""
     m = _NOISE_N - 1
-    x0, y0, z0 = i[:, 0] & m, i[:, 1] & m, i[:, 2] & m
-    x1, y1, z1 = (x0 + 1) & m, (y0 + 1) & m, (z0 + 1) & m
-    x0, x1 = x0 * _NOISE_N * _NOISE_N, x1 * _NOISE_N * _NOISE_N
-    y0, y1 = y0 * _NOISE_N, y1 * _NOISE_N
+    idx, wts = [], []
+    for q, stride in ((qx, _NOISE_N * _NOISE_N), (qy, _NOISE_N), (qz, 1)):
+        f = np.floor(q)
+        w = q - f
+        wts.append(w * w * (np.float32(3.0) - np.float32(2.0) * w))
+        i = f.astype(np.int32) & m
+        idx.append((i * stride, ((i + 1) & m) * stride))
+    (x0, x1), (y0, y1), (z0, z1) = idx
+    wx, wy, wz = wts
     t = _NOISE_TABLE
-    wx, wy, wz = w[:, 0], w[:, 1], w[:, 2]
-
-    def lerp(a, b, s):
-        return a + (b - a) * s
-
-    c00 = lerp(t[x0 + y0 + z0], t[x1 + y0 + z0], wx)
-    c10 = lerp(t[x0 + y1 + z0], t[x1 + y1 + z0], wx)
-    c01 = lerp(t[x0 + y0 + z1], t[x1 + y0 + z1], wx)
-    c11 = lerp(t[x0 + y1 + z1], t[x1 + y1 + z1], wx)
-    return lerp(lerp(c00, c10, wy), lerp(c01, c11, wy), wz)
+    out = None
+    for zz, sz in ((z0, None), (z1, wz)):
+        a0, a1 = x0 + zz, x1 + zz
+        c0 = np.take(t, a0 + y0)
+        c0 += (np.take(t, a1 + y0) - c0) * wx
+        c1 = np.take(t, a0 + y1)
+        c1 += (np.take(t, a1 + y1) - c1) * wx
+        c0 += (c1 - c0) * wy
+        out = c0 if sz is None else out + (c0 - out) * sz
+    return out
 
 
 def _fbm(p: np.ndarray, scale: float | np.ndarray, octaves: int = 2, offset: float = 0.0) -> np.ndarray:
-    """Fractal value noise in [0, 1]: `octaves` octaves, the first with features ~`scale` m
-    (a 3-vector scale stretches the noise anisotropically, e.g. wood grain)."""
-    q = p / np.asarray(scale, dtype=np.float32)
-    total = np.zeros(len(p), np.float32)
-    amp, norm = 1.0, 0.0
+    """Fractal value noise in [0, 1] at points p (n, 3): `octaves` octaves, the first with
+    features ~`scale` m (a 3-vector scale stretches the noise, e.g. wood grain)."""
+    sc = np.broadcast_to(np.asarray(scale, np.float32), (3,))
+    cols = [p[:, k] * np.float32(1.0 / sc[k]) for k in range(3)]
+    total, amp, norm = None, 1.0, 0.0
     for o in range(octaves):
-        total += amp * _value_noise((q * (2.0**o)) @ _OCTAVE_ROT[o % 4].astype(np.float32) + (offset + 7.31 * o))
+        M = _OCTAVE_ROT32[o % 4] * np.float32(2.0**o)
+        off = np.float32(offset + 7.31 * o)
+        q = [cols[0] * M[0, j] + cols[1] * M[1, j] + cols[2] * M[2, j] + off for j in range(3)]
+        n = _value_noise(*q)
+        total = n if total is None else total + np.float32(amp) * n
         norm += amp
         amp *= 0.5
-    return total / norm
+    return total * np.float32(1.0 / norm)
 
 
 def _pulse(u: np.ndarray, duty: float, w: np.ndarray) -> np.ndarray:
@@ -201,11 +217,11 @@ def _hash01(i: np.ndarray, salt: int = 0) -> np.ndarray:
 
 @dataclass
 class _Hit:
-    p: np.ndarray       # (n, 3) world points
-    pl: np.ndarray      # (n, 3) points in the primitive's local frame
-    nl: np.ndarray      # (n, 3) local normals
-    face: np.ndarray    # (n,) int: box faces 2*axis + (normal > 0); cylinders 4 / 5 caps, 6 side
-    fw: np.ndarray      # (n,) pixel footprint in metres
+    p: np.ndarray  # (n, 3) world points
+    pl: np.ndarray  # (n, 3) points in the primitive's local frame
+    nl: np.ndarray  # (n, 3) local normals
+    face: np.ndarray  # (n,) int: box faces 2*axis + (normal > 0); cylinders 4 / 5 caps, 6 side
+    fw: np.ndarray  # (n,) pixel footprint in metres
 
 
 Material = Callable[[_Hit], np.ndarray]
@@ -214,6 +230,7 @@ Material = Callable[[_Hit], np.ndarray]
 def _mat_solid(c, noise_amp: float = 0.08, scale: float = 0.3) -> Material:
     def f(h):
         return np.asarray(c, np.float32) * (1 - noise_amp + 2 * noise_amp * _fbm(h.p, scale, 2))[:, None]
+
     return f
 
 
@@ -221,6 +238,7 @@ def _mat_checker(c0, c1, cell: float, noise_amp: float = 0.06) -> Material:
     def f(h):
         col = _mix(c0, c1, _checker(h.pl, cell, h.fw))
         return col * (1 - noise_amp + 2 * noise_amp * _fbm(h.p, 0.25, 1, 3.0))[:, None]
+
     return f
 
 
@@ -228,6 +246,7 @@ def _mat_noise(c0, c1, scale: float, octaves: int = 3, contrast: float = 1.6) ->
     def f(h):
         n = np.clip(0.5 + contrast * (_fbm(h.pl, scale, octaves, 11.0) - 0.5), 0, 1)
         return _mix(c0, c1, n)
+
     return f
 
 
@@ -243,6 +262,7 @@ def _mat_wood(c0, c1, grain_axis: int = 0, ring: float = 0.035) -> Material:
         rings = _stripes(d, ring, h.fw, 0.35)
         streak = _fbm(q, stretch, 2, 17.0)
         return _mix(c0, c1, np.clip(0.55 * rings + 0.8 * (streak - 0.5) + 0.25, 0, 1))
+
     return f
 
 
@@ -305,20 +325,11 @@ def _mat_wall_north(h: _Hit) -> np.ndarray:
     return _mat_noise((0.72, 0.38, 0.28), (0.96, 0.78, 0.56), 0.45, 3, 2.0)(h)
 
 
-def _by_face(table: dict[int, Material]) -> Material:
-    """A material that picks one material per face (keys: face ids of `_Hit.face`)."""
-    def f(h):
-        out = np.empty((len(h.p), 3), np.float32)
-        for face, mat in table.items():
-            sel = np.nonzero(h.face == face)[0]
-            if len(sel):
-                out[sel] = mat(_Hit(h.p[sel], h.pl[sel], h.nl[sel], h.face[sel], h.fw[sel]))
-        return out
-    return f
-
-
 def _mat_beach_ball(h: _Hit) -> np.ndarray:
-    palette = np.array([(0.9, 0.1, 0.1), (0.95, 0.95, 0.95), (0.1, 0.3, 0.85), (0.98, 0.85, 0.1), (0.1, 0.6, 0.25), (0.95, 0.5, 0.1)], np.float32)
+    palette = np.array(
+        [(0.9, 0.1, 0.1), (0.95, 0.95, 0.95), (0.1, 0.3, 0.85), (0.98, 0.85, 0.1), (0.1, 0.6, 0.25), (0.95, 0.5, 0.1)],
+        np.float32,
+    )
     n = h.nl
     seg = np.floor((np.arctan2(n[:, 1], n[:, 0]) / (2 * np.pi) + 0.5) * 6).astype(np.int64) % 6
     col = palette[seg]
@@ -332,7 +343,9 @@ def _mat_clock(h: _Hit) -> np.ndarray:
     r = np.hypot(pl[:, 0], pl[:, 1])
     ang = np.arctan2(pl[:, 1], pl[:, 0]) / (2 * np.pi) * 12
     ticks = _pulse(ang + 0.06, 0.12, h.fw / np.maximum(r, 0.02) * 12 / (2 * np.pi)) * (r > 0.14) * (r < 0.18)
-    hand = ((np.abs(pl[:, 0]) < 0.008) & (pl[:, 1] > 0) & (pl[:, 1] < 0.13)) | ((np.abs(pl[:, 1] - 0.3 * pl[:, 0]) < 0.008) & (pl[:, 0] > 0) & (pl[:, 0] < 0.1))
+    hand = ((np.abs(pl[:, 0]) < 0.008) & (pl[:, 1] > 0) & (pl[:, 1] < 0.13)) | (
+        (np.abs(pl[:, 1] - 0.3 * pl[:, 0]) < 0.008) & (pl[:, 0] > 0) & (pl[:, 0] < 0.1)
+    )
     col = _mix((0.96, 0.95, 0.9), (0.05, 0.05, 0.05), np.maximum(ticks, hand.astype(np.float32)))
     rim = (r > 0.185) | (h.face != 5)
     col[rim] = (0.55, 0.12, 0.12)
@@ -383,22 +396,26 @@ def _mat_rug(h: _Hit) -> np.ndarray:
 
 def _mat_angle_stripes(c0, c1, n: int) -> Material:
     """Vertical stripes around a cylinder's axis (n around), caps in c0."""
+
     def f(h):
         ang = np.arctan2(h.pl[:, 1], h.pl[:, 0]) / (2 * np.pi) * n
         col = _mix(c0, c1, _pulse(ang, 0.5, np.full(len(ang), 0.05, np.float32)))
         col[h.face != 6] = c0
         return col
+
     return f
 
 
 def _mat_rings(c0, c1, period: float) -> Material:
     """Horizontal bands along a cylinder's (or box's) local z."""
+
     def f(h):
         return _mix(c0, c1, _stripes(h.pl[:, 2], period, h.fw, 0.5))
+
     return f
 
 
-def _mat_book(i: int) -> Material:
+def _mat_book(i: int, half_height: float) -> Material:
     rng = np.random.default_rng(1000 + i)
     hue = rng.random()
     base = np.array([0.5 + 0.45 * math.cos(2 * math.pi * (hue + k / 3)) for k in range(3)], np.float32)
@@ -407,11 +424,12 @@ def _mat_book(i: int) -> Material:
     band_z = rng.uniform(-0.6, 0.6)
 
     def f(h):
-        zrel = h.pl[:, 2] / max(float(np.max(np.abs(h.pl[:, 2]))), 1e-3)
+        zrel = h.pl[:, 2] / np.float32(half_height)
         band = np.abs(zrel - band_z) < 0.12
         col = np.broadcast_to(base, (len(h.p), 3)).copy()
         col[band] = band_c
         return col * (0.9 + 0.2 * _fbm(h.p, 0.05, 1, float(i)))[:, None]
+
     return f
 
 
@@ -426,74 +444,94 @@ _EPS = 1e-6
 
 @dataclass
 class _Prim:
-    kind: str              # "room" (box seen from inside), "box", "sphere", "cylinder" (local z axis)
-    center: np.ndarray     # (3,) world
-    size: np.ndarray       # (3,) box half extents; sphere (r, r, r); cylinder (r, r, half height)
-    R: np.ndarray          # (3, 3) local -> world
+    kind: str  # "plane", "box", "sphere", "cylinder" (axis: local z)
+    center: np.ndarray  # (3,) world (a plane: a point on it)
+    size: np.ndarray  # (3,) box half extents; sphere (r, r, r); cylinder (r, r, half height);
+    # plane: its unit normal, axis-aligned, pointing into free space
+    R: np.ndarray  # (3, 3) local -> world (identity for planes)
     material: Material
     name: str = ""
 
-    def corners(self) -> np.ndarray:
+    def __post_init__(self) -> None:
+        self.center = np.asarray(self.center, float)
+        self.size = np.asarray(self.size, float)
+        self.axis_aligned = bool(np.array_equal(self.R, np.eye(3)))
+
+    def corners(self) -> np.ndarray | None:
+        """World corners (8, 3) of the local bounding box; None for an unbounded plane."""
+        if self.kind == "plane":
+            return None
         s = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float) * self.size
         return s @ self.R.T + self.center
 
-    def intersect(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
-        """t of the first hit of rays o + t d, o (3,) and d (n, 3) in the local frame."""
+    def intersect(self, o: np.ndarray, d: list[np.ndarray], inv: list[np.ndarray] | None) -> np.ndarray:
+        """t of the first hit of rays o + t d (inf on a miss): o (3,) and d (3 arrays of one
+        shape, the x, y, z components) in the local frame; inv: 1 / d when at hand."""
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            if self.kind in ("room", "box"):
-                inv = 1.0 / d
-                t1 = (-self.size - o) * inv
-                t2 = (self.size - o) * inv
-                if self.kind == "room":
-                    return np.maximum(t1, t2).min(axis=1)
-                tnear = np.minimum(t1, t2).max(axis=1)
-                tfar = np.maximum(t1, t2).min(axis=1)
-                return np.where((tnear <= tfar) & (tnear > _EPS), tnear, np.inf).astype(np.float32)
+            if inv is None and self.kind in ("box", "plane"):
+                inv = [np.float32(1.0) / dk for dk in d]
+            if self.kind == "plane":
+                axis = int(np.argmax(np.abs(self.size)))
+                t = np.float32(-o[axis]) * inv[axis]
+                return np.where(t > _EPS, t, np.float32(np.inf))
+            if self.kind == "box":
+                tnear = tfar = None
+                for k in range(3):
+                    t1 = np.float32(-self.size[k] - o[k]) * inv[k]
+                    t2 = np.float32(self.size[k] - o[k]) * inv[k]
+                    lo, hi = np.minimum(t1, t2), np.maximum(t1, t2)
+                    tnear = lo if tnear is None else np.maximum(tnear, lo)
+                    tfar = hi if tfar is None else np.minimum(tfar, hi)
+                return np.where((tnear <= tfar) & (tnear > _EPS), tnear, np.float32(np.inf))
             if self.kind == "sphere":
                 r = self.size[0]
-                a = np.einsum("ij,ij->i", d, d)
-                b = d @ o
-                c = float(o @ o - r * r)
+                a = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+                b = d[0] * np.float32(o[0]) + d[1] * np.float32(o[1]) + d[2] * np.float32(o[2])
+                c = np.float32(o @ o - r * r)
                 disc = b * b - a * c
                 t = (-b - np.sqrt(disc)) / a
-                return np.where((disc >= 0) & (t > _EPS), t, np.inf).astype(np.float32)
+                return np.where((disc >= 0) & (t > _EPS), t, np.float32(np.inf))
             if self.kind == "cylinder":
                 r, hz = self.size[0], self.size[2]
-                dx, dy, dz = d[:, 0], d[:, 1], d[:, 2]
+                dx, dy, dz = d
                 a = dx * dx + dy * dy
-                b = dx * o[0] + dy * o[1]
-                c = o[0] ** 2 + o[1] ** 2 - r * r
+                b = dx * np.float32(o[0]) + dy * np.float32(o[1])
+                c = np.float32(o[0] ** 2 + o[1] ** 2 - r * r)
                 disc = b * b - a * c
                 ts = (-b - np.sqrt(disc)) / a
-                zs = o[2] + ts * dz
-                t = np.where((disc >= 0) & (ts > _EPS) & (np.abs(zs) <= hz), ts, np.inf)
+                zs = np.float32(o[2]) + ts * dz
+                t = np.where((disc >= 0) & (ts > _EPS) & (np.abs(zs) <= hz), ts, np.float32(np.inf))
                 if abs(o[2]) > hz:  # the cap facing the origin can be hit first
                     cap = hz if o[2] > 0 else -hz
-                    tc = (cap - o[2]) / dz
-                    xc, yc = o[0] + tc * dx, o[1] + tc * dy
+                    tc = np.float32(cap - o[2]) / dz
+                    xc, yc = np.float32(o[0]) + tc * dx, np.float32(o[1]) + tc * dy
                     t = np.where((tc > _EPS) & (xc * xc + yc * yc <= r * r) & (tc < t), tc, t)
-                return t.astype(np.float32)
+                return t
         raise ValueError(self.kind)
 
     def surface(self, pl: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Local normals (n, 3) and face ids (n,) at local hit points."""
-        n = np.zeros_like(pl)
-        if self.kind in ("room", "box"):
-            rel = np.abs(pl) / self.size.astype(np.float32)
-            axis = np.argmax(rel, axis=1)
-            sign = np.sign(pl[np.arange(len(pl)), axis])
-            sign[sign == 0] = 1
-            if self.kind == "room":
-                sign = -sign  # seen from inside
-            n[np.arange(len(pl)), axis] = sign
-            return n, (2 * axis + (sign > 0)).astype(np.int64)
+        """Local normals (n, 3) and face ids (n,) at local hit points (n, 3): box and plane
+        faces 2 * axis + (normal > 0); cylinder caps 4 (-z) / 5 (+z), side 6; spheres 6."""
+        n = np.zeros((len(pl), 3), np.float32)
+        if self.kind == "plane":
+            axis = int(np.argmax(np.abs(self.size)))
+            n[:] = self.size
+            return n, np.full(len(pl), 2 * axis + int(self.size[axis] > 0), np.int64)
+        if self.kind == "box":
+            rx, ry, rz = (np.abs(pl[:, k]) * np.float32(1.0 / self.size[k]) for k in range(3))
+            axis = np.where((rx >= ry) & (rx >= rz), 0, np.where(ry >= rz, 1, 2))
+            comp = np.choose(axis, [pl[:, 0], pl[:, 1], pl[:, 2]])
+            positive = comp >= 0
+            n[np.arange(len(pl)), axis] = np.where(positive, 1.0, -1.0)
+            return n, 2 * axis + positive
         if self.kind == "sphere":
-            return pl / np.float32(self.size[0]), np.full(len(pl), 6, np.int64)
+            return pl * np.float32(1.0 / self.size[0]), np.full(len(pl), 6, np.int64)
         r, hz = self.size[0], self.size[2]
         rad = np.hypot(pl[:, 0], pl[:, 1])
         is_cap = np.abs(np.abs(pl[:, 2]) - hz) < np.abs(rad - r)
-        n[:, 0] = np.where(is_cap, 0, pl[:, 0] / np.maximum(rad, 1e-9))
-        n[:, 1] = np.where(is_cap, 0, pl[:, 1] / np.maximum(rad, 1e-9))
+        inv_rad = 1.0 / np.maximum(rad, 1e-9)
+        n[:, 0] = np.where(is_cap, 0, pl[:, 0] * inv_rad)
+        n[:, 1] = np.where(is_cap, 0, pl[:, 1] * inv_rad)
         n[:, 2] = np.where(is_cap, np.sign(pl[:, 2]), 0)
         face = np.where(is_cap, np.where(pl[:, 2] > 0, 5, 4), 6)
         return n, face.astype(np.int64)
@@ -501,8 +539,8 @@ class _Prim:
     def sdf(self, p: np.ndarray) -> np.ndarray:
         """Signed distance (m) from world points (n, 3) to the surface (> 0 in free space)."""
         pl = (p - self.center) @ self.R
-        if self.kind == "room":
-            return np.min(self.size - np.abs(pl), axis=1)
+        if self.kind == "plane":
+            return pl @ self.size
         if self.kind == "box":
             q = np.abs(pl) - self.size
             return np.linalg.norm(np.maximum(q, 0), axis=1) + np.minimum(q.max(axis=1), 0)
@@ -527,7 +565,9 @@ def _sphere(c, r, material, name="") -> _Prim:
 
 
 def _cylinder(c, r, half_h, material, name="", R=None) -> _Prim:
-    return _Prim("cylinder", np.asarray(c, float), np.array([r, r, half_h], float), np.eye(3) if R is None else R, material, name)
+    return _Prim(
+        "cylinder", np.asarray(c, float), np.array([r, r, half_h], float), np.eye(3) if R is None else R, material, name
+    )
 
 
 #: The room: x in [-3, 3], y in [-2.5, 2.5], z in [0, 3] metres.
@@ -537,8 +577,22 @@ ROOM_HI = np.array([3.0, 2.5, 3.0])
 
 def _build_scene() -> list[_Prim]:
     P: list[_Prim] = []
-    room_mat = _by_face({0: _mat_wall_west, 1: _mat_wall_east, 2: _mat_wall_south, 3: _mat_wall_north, 4: _mat_floor, 5: _mat_ceiling})
-    P.append(_Prim("room", (ROOM_LO + ROOM_HI) / 2, (ROOM_HI - ROOM_LO) / 2, np.eye(3), room_mat, "room"))
+    # The room's six faces, seen from inside (planes with inward normals).
+    walls = [
+        ("west wall", _mat_wall_west),
+        ("east wall", _mat_wall_east),
+        ("south wall", _mat_wall_south),
+        ("north wall", _mat_wall_north),
+        ("floor", _mat_floor),
+        ("ceiling", _mat_ceiling),
+    ]
+    for k, (name, mat) in enumerate(walls):
+        axis, high = divmod(k, 2)
+        point = (ROOM_LO + ROOM_HI) / 2
+        point[axis] = ROOM_HI[axis] if high else ROOM_LO[axis]
+        normal = np.zeros(3)
+        normal[axis] = -1.0 if high else 1.0
+        P.append(_Prim("plane", point, normal, np.eye(3), mat, name))
 
     # Sofa against the south wall.
     fabric = _mat_noise((0.45, 0.08, 0.10), (0.75, 0.22, 0.20), 0.12, 2, 1.4)
@@ -546,8 +600,26 @@ def _build_scene() -> list[_Prim]:
     P.append(_box((-2.15, -2.50, 0.0), (0.15, -2.26, 0.92), fabric, "sofa back"))
     P.append(_box((-2.15, -2.26, 0.0), (-1.95, -1.55, 0.62), fabric, "sofa arm"))
     P.append(_box((-0.05, -2.26, 0.0), (0.15, -1.55, 0.62), fabric, "sofa arm"))
-    P.append(_box((-1.80, -2.22, 0.42), (-1.35, -2.06, 0.80), _mat_checker((0.95, 0.75, 0.15), (0.35, 0.20, 0.05), 0.06), "cushion", _rot(8, 0, -12), np.array([-1.57, -2.14, 0.42])))
-    P.append(_box((-0.75, -2.22, 0.42), (-0.30, -2.06, 0.78), _mat_rings((0.2, 0.55, 0.65), (0.9, 0.9, 0.85), 0.05), "cushion", _rot(-10, 0, -10), np.array([-0.52, -2.14, 0.42])))
+    P.append(
+        _box(
+            (-1.80, -2.22, 0.42),
+            (-1.35, -2.06, 0.80),
+            _mat_checker((0.95, 0.75, 0.15), (0.35, 0.20, 0.05), 0.06),
+            "cushion",
+            _rot(8, 0, 12),
+            np.array([-1.57, -2.14, 0.42]),
+        )
+    )
+    P.append(
+        _box(
+            (-0.75, -2.22, 0.42),
+            (-0.30, -2.06, 0.78),
+            _mat_rings((0.2, 0.55, 0.65), (0.9, 0.9, 0.85), 0.05),
+            "cushion",
+            _rot(-10, 0, 10),
+            np.array([-0.52, -2.14, 0.42]),
+        )
+    )
 
     # Table (rotated 15 deg) with legs, a ball, a mug and a book on it, east side.
     Rt, piv = _rot(15), np.array([1.95, 0.55, 0.0])
@@ -557,16 +629,37 @@ def _build_scene() -> list[_Prim]:
     for lx in (1.40, 2.45):
         for ly in (0.20, 0.85):
             P.append(_box((lx, ly, 0.0), (lx + 0.05, ly + 0.05, 0.72), metal, "table leg", Rt, piv))
-    P.append(_sphere(Rt @ (np.array([2.25, 0.40, 0.0]) - piv) + piv + (0, 0, 0.89), 0.12, _mat_checker((0.05, 0.05, 0.05), (0.95, 0.95, 0.95), 0.04), "ball"))
-    P.append(_cylinder(Rt @ (np.array([1.65, 0.75, 0.0]) - piv) + piv + (0, 0, 0.83), 0.045, 0.06, _mat_rings((0.8, 0.1, 0.1), (0.95, 0.95, 0.95), 0.03), "mug"))
+    P.append(
+        _sphere(
+            Rt @ (np.array([2.25, 0.40, 0.0]) - piv) + piv + (0, 0, 0.89),
+            0.12,
+            _mat_checker((0.05, 0.05, 0.05), (0.95, 0.95, 0.95), 0.04),
+            "ball",
+        )
+    )
+    P.append(
+        _cylinder(
+            Rt @ (np.array([1.65, 0.75, 0.0]) - piv) + piv + (0, 0, 0.83),
+            0.045,
+            0.06,
+            _mat_rings((0.8, 0.1, 0.1), (0.95, 0.95, 0.95), 0.03),
+            "mug",
+        )
+    )
     P.append(_box((1.55, 0.30, 0.77), (1.85, 0.52, 0.82), _mat_solid((0.1, 0.45, 0.2)), "book", Rt @ _rot(20), piv))
 
     # Cabinet in the north-west corner: drawers, handles, a vase on top.
-    P.append(_box((-3.0, 1.35, 0.0), (-2.25, 2.5, 1.2), _mat_checker((0.85, 0.85, 0.82), (0.70, 0.72, 0.75), 0.15), "cabinet"))
-    for k, z0 in enumerate((0.08, 0.46, 0.84)):
+    P.append(
+        _box(
+            (-3.0, 1.35, 0.0), (-2.25, 2.5, 1.2), _mat_checker((0.85, 0.85, 0.82), (0.70, 0.72, 0.75), 0.15), "cabinet"
+        )
+    )
+    for z0 in (0.08, 0.46, 0.84):
         P.append(_box((-2.25, 1.42, z0), (-2.22, 2.43, z0 + 0.32), _mat_solid((0.15, 0.45, 0.50), 0.12, 0.2), "drawer"))
         P.append(_box((-2.22, 1.80, z0 + 0.14), (-2.19, 2.05, z0 + 0.18), _mat_solid((0.8, 0.7, 0.3), 0.05), "handle"))
-    P.append(_cylinder((-2.62, 1.92, 1.38), 0.10, 0.18, _mat_rings((0.15, 0.25, 0.70), (0.90, 0.90, 0.95), 0.06), "vase"))
+    P.append(
+        _cylinder((-2.62, 1.92, 1.38), 0.10, 0.18, _mat_rings((0.15, 0.25, 0.70), (0.90, 0.90, 0.95), 0.06), "vase")
+    )
 
     # Bookshelf against the north wall: sides, boards, books of varied sizes.
     dark = _mat_wood((0.25, 0.15, 0.08), (0.40, 0.26, 0.14), 0, 0.03)
@@ -585,7 +678,7 @@ def _build_scene() -> list[_Prim]:
             if x + w > 1.72:
                 break
             if rng.random() < 0.8:
-                P.append(_box((x, 2.48 - dep, z), (x + w, 2.48, z + hgt), _mat_book(nb), "book"))
+                P.append(_box((x, 2.48 - dep, z), (x + w, 2.48, z + hgt), _mat_book(nb, hgt / 2), "book"))
                 nb += 1
             x += w + rng.uniform(0.0, 0.03)
     P.append(_sphere((1.2, 2.33, 1.49 + 0.11), 0.11, _mat_noise((0.1, 0.5, 0.3), (0.8, 0.9, 0.3), 0.05, 2), "globe"))
@@ -593,8 +686,20 @@ def _build_scene() -> list[_Prim]:
     # Floor lamp in the south-east corner, a stool, a big beach ball, a rug.
     P.append(_cylinder((2.45, -1.95, 0.015), 0.18, 0.015, metal, "lamp base"))
     P.append(_cylinder((2.45, -1.95, 0.76), 0.022, 0.73, metal, "lamp pole"))
-    P.append(_cylinder((2.45, -1.95, 1.62), 0.20, 0.15, _mat_angle_stripes((0.95, 0.90, 0.75), (0.80, 0.65, 0.45), 12), "lamp shade"))
-    P.append(_cylinder((1.10, -1.25, 0.23), 0.20, 0.23, _mat_angle_stripes((0.95, 0.55, 0.10), (0.25, 0.15, 0.60), 8), "stool"))
+    P.append(
+        _cylinder(
+            (2.45, -1.95, 1.62),
+            0.20,
+            0.15,
+            _mat_angle_stripes((0.95, 0.90, 0.75), (0.80, 0.65, 0.45), 12),
+            "lamp shade",
+        )
+    )
+    P.append(
+        _cylinder(
+            (1.10, -1.25, 0.23), 0.20, 0.23, _mat_angle_stripes((0.95, 0.55, 0.10), (0.25, 0.15, 0.60), 8), "stool"
+        )
+    )
     P.append(_sphere((-0.95, 1.15, 0.30), 0.30, _mat_beach_ball, "beach ball"))
     P.append(_box((-1.3, -1.1, 0.0), (0.7, 0.6, 0.012), _mat_rug, "rug"))
 
@@ -604,12 +709,16 @@ def _build_scene() -> list[_Prim]:
     P.append(_box((-2.96, -0.58, 1.22), (-2.95, 0.58, 1.98), _mat_painting, "painting"))
     P.append(_box((-3.0, -0.8, 0.15), (-2.9, 0.8, 0.70), _radiator, "radiator"))
     P.append(_box((2.99, -1.55, 1.0), (3.0, -0.55, 2.0), _mat_poster, "poster"))
-    P.append(_box((2.95, 0.95, 0.0), (3.0, 1.95, 2.1), _mat_wood((0.55, 0.36, 0.20), (0.75, 0.55, 0.35), 2, 0.05), "door"))
+    P.append(
+        _box((2.95, 0.95, 0.0), (3.0, 1.95, 2.1), _mat_wood((0.55, 0.36, 0.20), (0.75, 0.55, 0.35), 2, 0.05), "door")
+    )
     P.append(_sphere((2.91, 1.80, 1.0), 0.035, _mat_solid((0.85, 0.75, 0.35), 0.03), "door knob"))
     P.append(_box((-1.6, -2.5, 1.25), (-0.4, -2.47, 2.15), _mat_window, "window"))
     P.append(_box((-1.68, -2.5, 1.19), (-0.32, -2.38, 1.25), _mat_solid((0.95, 0.95, 0.93), 0.05), "window sill"))
     P.append(_cylinder((-1.0, 2.47, 2.05), 0.2, 0.03, _mat_clock, "clock", _rot(0, 0, 90)))
-    P.append(_box((-1.65, -2.5, 2.8), (-1.4, 2.5, 3.0), _mat_wood((0.50, 0.32, 0.18), (0.68, 0.46, 0.26), 1, 0.05), "beam"))
+    P.append(
+        _box((-1.65, -2.5, 2.8), (-1.4, 2.5, 3.0), _mat_wood((0.50, 0.32, 0.18), (0.68, 0.46, 0.26), 1, 0.05), "beam")
+    )
     P.append(_sphere((0.6, 0.2, 2.78), 0.17, _mat_solid((1.0, 0.97, 0.85), 0.02), "ceiling lamp"))
     return P
 
@@ -627,7 +736,7 @@ _SCENE_LOCK = threading.Lock()
 
 #: Light: a fixed direction (towards the light), Lambertian with ambient term.
 _LIGHT = np.array([0.35, -0.25, 0.90]) / np.linalg.norm([0.35, -0.25, 0.90])
-_AMBIENT, _DIFFUSE = 0.50, 0.55
+_AMBIENT, _DIFFUSE = 0.60, 0.45
 #: Shading overrides for self-lit surfaces (names).
 _UNLIT = {"ceiling lamp", "window"}
 
@@ -652,6 +761,32 @@ def scene_clearance(points: np.ndarray) -> np.ndarray:
 # ------------------------------------------------------------------------------------------
 
 
+_BOX_EDGES = [(i, j) for i in range(8) for j in range(i + 1, 8) if bin(i ^ j).count("1") == 1]
+
+
+def _screen_rect(corners_cam: np.ndarray, camera: Camera, near: float = 0.02) -> tuple[int, int, int, int] | None:
+    """Pixel rectangle (v0, v1, u0, u1) bounding the projection of a box given by its 8
+    camera-frame corners (clipped at z = near), or None when it is out of view."""
+    z = corners_cam[:, 2]
+    front = z > near
+    if not front.any():
+        return None
+    pts = [corners_cam[front]]
+    if not front.all():  # add where the box's edges cross the near plane
+        for i, j in _BOX_EDGES:
+            if front[i] != front[j]:
+                a, b = corners_cam[i], corners_cam[j]
+                pts.append((a + (near - a[2]) / (b[2] - a[2]) * (b - a))[None])
+    pts = np.concatenate(pts)
+    uu = camera.fx * pts[:, 0] / pts[:, 2] + camera.cx
+    vv = camera.fy * pts[:, 1] / pts[:, 2] + camera.cy
+    v0 = max(0, int(np.floor(vv.min())) - 1)
+    v1 = min(camera.height, int(np.ceil(vv.max())) + 2)
+    u0 = max(0, int(np.floor(uu.min())) - 1)
+    u1 = min(camera.width, int(np.ceil(uu.max())) + 2)
+    return (v0, v1, u0, u1) if v0 < v1 and u0 < u1 else None
+
+
 def render(camera: Camera, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Render the scene from `pose` (camera-to-world, OpenCV axes): (HxWx3 uint8 rgb,
     HxW float32 depth in metres, the camera-frame z of the nearest hit)."""
@@ -660,61 +795,73 @@ def render(camera: Camera, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     R = pose[:3, :3].astype(np.float64)
     o = pose[:3, 3].astype(np.float64)
     v, u = np.mgrid[0:H, 0:W].astype(np.float32)
-    dc = np.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, np.ones_like(u)], -1)
+    xc = (u - np.float32(camera.cx)) / np.float32(camera.fx)
+    yc = (v - np.float32(camera.cy)) / np.float32(camera.fy)
     # World directions with camera-frame z = 1: the hit distance t is the depth itself.
-    dw = (dc.reshape(-1, 3) @ R.T.astype(np.float32)).reshape(H, W, 3)
+    Rf = R.astype(np.float32)
+    dw = [Rf[k, 0] * xc + Rf[k, 1] * yc + Rf[k, 2] for k in range(3)]
+    with np.errstate(divide="ignore"):
+        invw = [np.float32(1.0) / dk for dk in dw]
 
     tbest = np.full((H, W), np.inf, np.float32)
     ids = np.zeros((H, W), np.int16)
     for k, prim in enumerate(prims):
-        if prim.kind == "room":
+        corners = prim.corners()
+        if corners is None:
             rect = (0, H, 0, W)
         else:
-            pc = (prim.corners() - o) @ R  # corners in the camera frame
-            if np.any(pc[:, 2] < 0.05):
-                rect = (0, H, 0, W)
-            else:
-                uu = camera.fx * pc[:, 0] / pc[:, 2] + camera.cx
-                vv = camera.fy * pc[:, 1] / pc[:, 2] + camera.cy
-                rect = (max(0, int(np.floor(vv.min())) - 1), min(H, int(np.ceil(vv.max())) + 2),
-                        max(0, int(np.floor(uu.min())) - 1), min(W, int(np.ceil(uu.max())) + 2))
-                if rect[0] >= rect[1] or rect[2] >= rect[3]:
-                    continue
+            rect = _screen_rect((corners - o) @ R, camera)
+            if rect is None:
+                continue
         v0, v1, u0, u1 = rect
-        ol = ((o - prim.center) @ prim.R).astype(np.float32)
-        dl = dw[v0:v1, u0:u1].reshape(-1, 3) @ prim.R.astype(np.float32)
-        t = prim.intersect(ol, dl).reshape(v1 - v0, u1 - u0)
+        ol = (o - prim.center) @ prim.R
+        if prim.axis_aligned:
+            d = [dk[v0:v1, u0:u1] for dk in dw]
+            inv = [ik[v0:v1, u0:u1] for ik in invw]
+        else:
+            Rp = prim.R.astype(np.float32)
+            sub = [dk[v0:v1, u0:u1] for dk in dw]
+            d = [Rp[0, j] * sub[0] + Rp[1, j] * sub[1] + Rp[2, j] * sub[2] for j in range(3)]
+            inv = None
+        t = prim.intersect(ol, d, inv)
         tb = tbest[v0:v1, u0:u1]
         better = t < tb
         if better.any():
             tb[better] = t[better]
             ids[v0:v1, u0:u1][better] = k
 
-    # Shade: group pixels by primitive.
+    # Shade, one primitive at a time. Points are kept as (3, n) planes and handed to materials
+    # as their (n, 3) transposes, so that p[:, k] is contiguous.
     tflat = tbest.ravel()
     idflat = ids.ravel()
-    dflat = dw.reshape(-1, 3)
+    dflat = [dk.ravel() for dk in dw]
     order = np.argsort(idflat, kind="stable")
     counts = np.bincount(idflat, minlength=len(prims))
     starts = np.concatenate([[0], np.cumsum(counts)])
-    rgb = np.empty((H * W, 3), np.float32)
-    o32 = o.astype(np.float32)
-    fx = np.float32(max(camera.fx, camera.fy))
+    rgb = np.empty((3, H * W), np.float32)
+    inv_f = np.float32(1.5 / max(camera.fx, camera.fy))  # pixel footprint (m) per metre of depth
     light = _LIGHT.astype(np.float32)
     for k in np.nonzero(counts)[0]:
         prim = prims[k]
         pix = order[starts[k] : starts[k + 1]]
-        t = tflat[pix]
-        p = o32 + t[:, None] * dflat[pix]
-        pl = ((p - prim.center.astype(np.float32)) @ prim.R.astype(np.float32)).astype(np.float32)
-        nl, face = prim.surface(pl)
-        col = prim.material(_Hit(p, pl, nl, face, t * np.float32(1.5) / fx))
+        t = np.take(tflat, pix)
+        P = np.empty((3, len(pix)), np.float32)
+        for j in range(3):
+            P[j] = np.float32(o[j]) + t * np.take(dflat[j], pix)
+        Pl = P - prim.center.astype(np.float32)[:, None]
+        if not prim.axis_aligned:
+            Pl = prim.R.T.astype(np.float32) @ Pl
+        nl, face = prim.surface(Pl.T)
+        col = prim.material(_Hit(P.T, Pl.T, nl, face, t * inv_f))
         if prim.name in _UNLIT:
             shade = np.float32(1.0)
         else:
-            nw = nl @ prim.R.T.astype(np.float32)
-            shade = (_AMBIENT + _DIFFUSE * np.maximum(nw @ light, 0.0))[:, None]
-        rgb[pix] = col * shade
+            nw_dot_l = nl @ (prim.R.T.astype(np.float32) @ light)
+            shade = np.float32(_AMBIENT) + np.float32(_DIFFUSE) * np.maximum(nw_dot_l, 0.0)
+        col = (col * (shade[:, None] if np.ndim(shade) else shade)).T
+        for j in range(3):
+            np.put(rgb[j], pix, col[j])
+    rgb = rgb.T
     rgb8 = np.clip(rgb * 255.0 + 0.5, 0, 255).astype(np.uint8).reshape(H, W, 3)
     return rgb8, tbest
 
@@ -742,7 +889,11 @@ def camera_path(num_frames: int, seed: int = 0, speed: float = 1.0, fps: float =
 
     # Position: |x| <= 0.45 + 0.25, |y| <= 0.35 + 0.2, z in 1.45 +- (0.16 + 0.08).
     pos = np.stack(
-        [s(0.45, 0.35, 0) + s(0.25, 0.83, 1), s(0.35, 0.41, 2) + s(0.20, 0.97, 3), 1.45 + s(0.16, 0.50, 4) + s(0.08, 1.30, 5)],
+        [
+            s(0.45, 0.35, 0) + s(0.25, 0.83, 1),
+            s(0.35, 0.41, 2) + s(0.20, 0.97, 3),
+            1.45 + s(0.16, 0.50, 4) + s(0.08, 1.30, 5),
+        ],
         axis=1,
     )
     # Heading pans around the room (0.2 rad/s plus a slow swing), looking ~20 deg down.
@@ -756,29 +907,34 @@ def camera_path(num_frames: int, seed: int = 0, speed: float = 1.0, fps: float =
     # Hand-held jitter: small smooth rotations about the camera axes (radians).
     deg = np.pi / 180
     jit = np.stack(
-        [s(1.5 * deg, 2.1, 8) + s(0.6 * deg, 5.3, 9), s(1.5 * deg, 1.7, 10) + s(0.6 * deg, 4.7, 11), s(2.5 * deg, 1.3, 12) + s(0.8 * deg, 3.9, 13)],
+        [
+            s(1.5 * deg, 2.1, 8) + s(0.6 * deg, 5.3, 9),
+            s(1.5 * deg, 1.7, 10) + s(0.6 * deg, 4.7, 11),
+            s(2.5 * deg, 1.3, 12) + s(0.8 * deg, 3.9, 13),
+        ],
         axis=1,
     )
     poses = np.zeros((num_frames, 4, 4))
     for i in range(num_frames):
         R_look = np.stack([right[i], down[i], fwd[i]], axis=1)
-        poses[i, :3, :3] = R_look @ _so3_exp(jit[i])
+        poses[i, :3, :3] = R_look @ so3_exp(jit[i])
         poses[i, :3, 3] = pos[i]
         poses[i, 3, 3] = 1.0
     return poses
 
 
-def _so3_exp(w: np.ndarray) -> np.ndarray:
-    th = float(np.linalg.norm(w))
-    K = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
-    if th < 1e-12:
-        return np.eye(3) + K
-    return np.eye(3) + math.sin(th) / th * K + (1 - math.cos(th)) / th**2 * (K @ K)
-
-
 # ------------------------------------------------------------------------------------------
 # The dataset
 # ------------------------------------------------------------------------------------------
+
+
+def _write_npz(f, arrays) -> None:
+    """Write (name, array) pairs as an .npz that np.load reads, like np.savez_compressed but
+    streaming and with zlib level 1 (the frames compress nearly as well, twice as fast)."""
+    with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1) as zf:
+        for name, value in arrays:
+            with zf.open(name + ".npy", "w", force_zip64=True) as member:
+                np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
 
 
 def default_cache_dir() -> Path:
@@ -831,46 +987,84 @@ class SyntheticDataset(Dataset):
 
     def _open_or_generate(self) -> None:
         meta = json.dumps(self.generation_params(), sort_keys=True)
-        if self.cache_path.is_file():
-            try:
-                store = np.load(self.cache_path)
-                if str(store["meta"]) == meta:
-                    self._poses = store["poses"]
-                    self._store = store
-                    return
-                store.close()
-                log.warning("synthetic cache %s does not match its parameters; regenerating", self.cache_path)
-            except (OSError, ValueError, KeyError, zipfile.BadZipFile) as e:
-                log.warning("synthetic cache %s is unreadable (%s); regenerating", self.cache_path, e)
-        arrays = self._generate()
-        arrays["meta"] = np.array(meta)
+        if self._open_cache(meta):
+            return
+        t0 = time.perf_counter()
+        tmp = None
         try:
             self.cache_path.parent.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(dir=self.cache_path.parent, prefix=self.cache_path.stem, suffix=".tmp")
-            try:
-                with os.fdopen(fd, "wb") as f:
-                    np.savez_compressed(f, **arrays)
-                os.replace(tmp, self.cache_path)
-            except BaseException:
-                Path(tmp).unlink(missing_ok=True)
-                raise
+            fd, tmp = tempfile.mkstemp(dir=self.cache_path.parent, prefix=self.cache_path.stem + ".", suffix=".tmp")
+            with os.fdopen(fd, "wb") as f:
+                _write_npz(f, self._generate(meta))
+            os.replace(tmp, self.cache_path)  # atomic: readers never see a partial file
+            tmp = None
         except OSError as e:
             log.warning("cannot write the synthetic cache %s (%s); keeping the sequence in memory", self.cache_path, e)
-        self._poses = arrays["poses"]
-        self._store = arrays
+            self._store = dict(self._generate(meta))
+            self._poses = self._store["poses"]
+            return
+        finally:
+            if tmp is not None:
+                Path(tmp).unlink(missing_ok=True)
+        log.info(
+            "generated the synthetic sequence (%d frames, %dx%d) in %.1f s: %s",
+            self.cfg.num_frames,
+            self.cfg.width,
+            self.cfg.height,
+            time.perf_counter() - t0,
+            self.cache_path,
+        )
+        if not self._open_cache(meta):
+            raise DataError(f"{self.cache_path}: the synthetic sequence just written cannot be read back")
 
-    def _generate(self) -> dict[str, np.ndarray]:
+    def _open_cache(self, meta: str) -> bool:
+        """Open the cache file if it exists and holds this parameter set."""
+        if not self.cache_path.is_file():
+            return False
+        try:
+            store = np.load(self.cache_path)
+            if str(store["meta"]) == meta and f"depth_{self.cfg.num_frames - 1:05d}.npy" in store.zip.namelist():
+                self._poses = store["poses"]
+                self._store = store
+                return True
+            store.close()
+            log.warning("synthetic cache %s does not match its parameters; regenerating", self.cache_path)
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
+            log.warning("synthetic cache %s is unreadable (%s); regenerating", self.cache_path, e)
+        return False
+
+    def _generate(self, meta: str):
+        """Yield (name, array): meta, poses, then rgb_%05d (uint8) and depth_%05d (uint16,
+        DEPTH_SCALE units per metre) per frame."""
         c = self.cfg
-        t0 = time.perf_counter()
         poses = camera_path(c.num_frames, c.seed, c.speed)
-        arrays: dict[str, np.ndarray] = {"poses": poses}
-        for i, pose in enumerate(poses):
-            rgb, depth = render(self._camera, pose)
-            arrays[f"rgb_{i:05d}"] = rgb
-            arrays[f"depth_{i:05d}"] = np.clip(np.round(depth * DEPTH_SCALE), 0, 65535).astype(np.uint16)
-        log.info("generated the synthetic sequence (%d frames, %dx%d) in %.1f s -> %s",
-                 c.num_frames, c.width, c.height, time.perf_counter() - t0, self.cache_path)
-        return arrays
+        yield "meta", np.array(meta)
+        yield "poses", poses
+        # Frames are independent: render a chunk at a time on a few threads (numpy releases
+        # the GIL); only one chunk is held in memory.
+        workers = max(1, min(4, os.cpu_count() or 1))
+        with ThreadPoolExecutor(workers) as pool:
+            for start in range(0, len(poses), 16):
+                chunk = pool.map(lambda pose: render(self._camera, pose), poses[start : start + 16])
+                for i, (rgb, depth) in enumerate(chunk, start):
+                    yield f"rgb_{i:05d}", rgb
+                    yield f"depth_{i:05d}", np.clip(np.round(depth * DEPTH_SCALE), 0, 65535).astype(np.uint16)
+
+    def close(self) -> None:
+        """Close the cache file (frames cannot be loaded afterwards)."""
+        if hasattr(self._store, "close"):
+            self._store.close()
+        self._store = None
+
+    def __getstate__(self) -> dict:  # picklable (e.g. for a worker process): reopen there
+        state = self.__dict__.copy()
+        state["_store"] = state["_lock"] = None
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._lock = threading.Lock()
+        self._open_or_generate()
 
     # -- Dataset --------------------------------------------------------------------------
     @property

@@ -33,6 +33,7 @@ from slamkit.gaussian_geometry import (
     inverse_sym3,
     knn_covariances,
     regularize,
+    rotate_covariances,
 )
 from slamkit.gaussian_map import GaussianMap
 from slamkit.geometry import backproject, invert_pose, so3_exp
@@ -130,6 +131,19 @@ def se3_exp(xi: np.ndarray) -> np.ndarray:
     return T
 
 
+def orthonormalize(T: np.ndarray) -> np.ndarray:
+    """The pose with its rotation block projected onto SO(3) (nearest rotation, by SVD), so
+    rounding cannot accumulate through pose products."""
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        R = U @ np.diag([1.0, 1.0, -1.0]) @ Vt
+    out = T.copy()
+    out[:3, :3] = R
+    out[3] = (0.0, 0.0, 0.0, 1.0)
+    return out
+
+
 class _Target:
     """The aligned-to map Gaussians: means (float32 for the tree and float64 for residuals),
     regularised covariances (float64) and the KD-tree over the means."""
@@ -171,7 +185,7 @@ class GICPTracker(Tracker):
 
     # ---------------------------------------------------------------- role API
     def initialize(self, first_pose: np.ndarray) -> None:
-        self.first_pose = np.asarray(first_pose, dtype=np.float64).copy()
+        self.first_pose = orthonormalize(np.asarray(first_pose, dtype=np.float64))
         self.poses = []
 
     def update_target(self, gaussian_map: GaussianMap) -> None:
@@ -191,7 +205,7 @@ class GICPTracker(Tracker):
             return self.first_pose.copy()
         if self.initial_guess is InitialGuess.constant_velocity and len(self.poses) >= 2:
             prev, last = self.poses[-2], self.poses[-1]
-            return last @ (invert_pose(prev) @ last)
+            return orthonormalize(last @ (invert_pose(prev) @ last))
         return self.poses[-1].copy()
 
     def track(self, frame: Frame, gaussian_map: GaussianMap) -> TrackingResult:
@@ -244,7 +258,7 @@ class GICPTracker(Tracker):
         colors = rgb.astype(np.float32) / 255.0 if np.issubdtype(rgb.dtype, np.integer) else np.clip(rgb, 0, 1).astype(np.float32)
         gaussians = FrameGaussians(
             means=(points.astype(np.float64) @ R.T + t).astype(np.float32),
-            covariances=np.einsum("ij,njk,lk->nil", R, cov_cam, R, optimize=True),
+            covariances=rotate_covariances(R, cov_cam),
             colors=colors,
             depths=z.copy(),
             trackable=trackable,
@@ -255,32 +269,32 @@ class GICPTracker(Tracker):
 
     def _align(self, src: np.ndarray, src_cov: np.ndarray, T0: np.ndarray, stats: dict):
         """Levenberg-Marquardt G-ICP from T0. Returns (pose, ok, squared NN distances of the
-        last correspondence search (inf where none))."""
+        last correspondence search (inf where none)).
+
+        Residuals are taken in the body frame: r_i = R^T (mu_i - R p_i - t) with weight
+        W_i = (R^T C_t,i R + C_s,i)^-1, and T <- T exp(xi), xi = (omega, v), for which
+        dr_i/dxi = [[p_i]x, -I]. The normal equations are assembled from cross products
+        (no per-point matrix products)."""
         cfg, target = self.cfg, self.target
-        n = len(src)
-        # Body-frame Jacobian of the residual (R^T d) w.r.t. xi = (omega, v): [[p]x, -I].
-        J = np.zeros((n, 3, 6))
-        J[:, 0, 1], J[:, 0, 2] = src[:, 2], -src[:, 1]
-        J[:, 1, 0], J[:, 1, 2] = -src[:, 2], src[:, 0]
-        J[:, 2, 0], J[:, 2, 1] = src[:, 1], -src[:, 0]
-        J[:, 0, 3] = J[:, 1, 4] = J[:, 2, 5] = -1.0
+        n_target = len(target)
         T = T0.copy()
         lam = None
         nu = 2.0
-        sq = np.full(n, np.inf)
+        sq = np.full(len(src), np.inf)
         converged = False
-        max_corr = self.max_corr
         for it in range(cfg.max_iterations):
             stats["iterations"] = it + 1
             R, t = T[:3, :3], T[:3, 3]
             xw = src @ R.T + t
             ts = time.perf_counter()
-            d2, idx = target.tree.query(xw.astype(np.float32), k=1, distance_upper_bound=max_corr, sqr_dists=True)
+            d2, idx = target.tree.query(
+                xw.astype(np.float32), k=1, distance_upper_bound=self.max_corr, sqr_dists=True
+            )
             te = time.perf_counter()
             stats["nn_search_s"] += te - ts
-            valid = idx < len(target)
+            valid = idx < n_target
             sq = np.where(valid, d2, np.inf).astype(np.float64)
-            m = int(valid.sum())
+            m = int(np.count_nonzero(valid))
             stats["num_correspondences"] = m
             if m < cfg.min_correspondences:
                 stats["lost_reason"] = f"too few correspondences ({m} < {cfg.min_correspondences})"
@@ -288,18 +302,21 @@ class GICPTracker(Tracker):
                 return T0, False, sq
             tid = idx[valid]
             p = src[valid]
-            Jv = J[valid]
-            # Combined covariance in the body frame: R^T C_t R + C_s; residual R^T d.
-            Ct = target.covariances[tid]
-            B = np.matmul(np.matmul(R.T, Ct), R) + src_cov[valid]
-            W, singular = inverse_sym3(B)
             mu = target.means[tid]
-            db = (mu - xw[valid]) @ R  # R^T d for each row
-            Wd = np.einsum("nij,nj->ni", W, db)
-            cost0 = float(np.einsum("ni,ni->", db, Wd))
-            WJ = np.matmul(W, Jv)
-            H = Jv.reshape(-1, 6).T @ WJ.reshape(-1, 6)
-            g = Jv.reshape(-1, 6).T @ Wd.reshape(-1)
+            W, singular = inverse_sym3(rotate_covariances(R.T, target.covariances[tid]) + src_cov[valid])
+            r = (mu - xw[valid]) @ R
+            Wr = np.einsum("nij,nj->ni", W, r)
+            cost0 = float(np.einsum("ni,ni->", r, Wr))
+            # J = [S, -I] with S = [p]x:  H = [[S^T W S, -S^T W], [-W S, W]],  g = [S^T W r; -W r].
+            WS = np.cross(W, p[:, None, :])  # rows of W crossed with p: W S
+            StWS = -np.cross(p[:, None, :], WS.transpose(0, 2, 1)).sum(axis=0).T  # sum S^T W S
+            H = np.empty((6, 6))
+            H[:3, :3] = StWS
+            H[:3, 3:] = -WS.sum(axis=0).T
+            H[3:, :3] = H[:3, 3:].T
+            H[3:, 3:] = W.sum(axis=0)
+            g = np.concatenate([np.cross(Wr, p).sum(axis=0), -Wr.sum(axis=0)])
+            H = 0.5 * (H + H.T)
             if lam is None:
                 lam = cfg.lm_lambda * float(np.max(np.diag(H)))
             accepted = False
@@ -310,9 +327,9 @@ class GICPTracker(Tracker):
                     xi = np.linalg.lstsq(H + lam * np.eye(6), -g, rcond=None)[0]
                 delta = se3_exp(xi)
                 Tn = T @ delta
-                Rn, tn = Tn[:3, :3], Tn[:3, 3]
-                dbn = (mu - (p @ Rn.T + tn)) @ R  # same correspondences and weights
-                cost = float(np.einsum("ni,nij,nj->", dbn, W, dbn))
+                # New cost with the same correspondences and weights.
+                rn = (mu - (p @ Tn[:3, :3].T + Tn[:3, 3])) @ R
+                cost = float(np.einsum("ni,ni->", rn, np.einsum("nij,nj->ni", W, rn)))
                 small = self._small(delta)
                 rho_den = float(xi @ (lam * xi - g))
                 rho = (cost0 - cost) / rho_den if rho_den > 0 else -1.0
@@ -336,7 +353,7 @@ class GICPTracker(Tracker):
         if not np.isfinite(T).all():
             stats["lost_reason"] = "non-finite pose"
             return T0, False, sq
-        return T, True, sq
+        return orthonormalize(T), True, sq
 
     def _small(self, delta: np.ndarray) -> bool:
         return bool(

@@ -36,7 +36,7 @@ class KissICPConfig(PluginConfig):
     """
 
     pixel_stride: int = 2
-    voxel_size: float = 0.02
+    voxel_size: float = 0.05
     max_range: float | None = None
     min_range: float = 0.1
     initial_threshold: float = 0.1

@@ -1,0 +1,106 @@
+"""The `slamkit` command end to end: run outputs (the DESIGN.md contract) and user errors."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from slamkit.tum_format import read_tum_trajectory
+
+from conftest import run_slamkit
+
+CONTRACT_KEYS = {"num_frames", "num_keyframes", "fps", "tracking_fps", "tracking_time_s", "mapping_time_s",
+                 "lost_frames", "completed", "ate_rmse_m", "ate_mean_m"}
+
+
+def _ok(proc):
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    return proc
+
+
+def _one_line_error(proc, *needles):
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    assert "Traceback" not in proc.stderr
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last.startswith("slamkit: error: ")
+    for needle in needles:
+        assert needle in last, last
+    return last
+
+
+def test_default_run_on_synthetic_prints_ate_and_fps(tmp_path):
+    out = tmp_path / "run"
+    proc = _ok(run_slamkit("dataset.num_frames=20", f"hydra.run.dir={out}", cwd=tmp_path))
+    assert "ATE RMSE" in proc.stdout and "frames/s" in proc.stdout
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert CONTRACT_KEYS <= set(metrics)
+    assert metrics["completed"] is True and metrics["num_frames"] == 20
+    assert metrics["ate_rmse_m"] < 0.05
+    for name in ("trajectory.txt", "frames.csv", "trajectory.png", ".hydra/config.yaml", "slamkit.log"):
+        assert (out / name).is_file(), name
+    assert "synthetic: 20 frames" in (out / "slamkit.log").read_text()
+
+
+@pytest.mark.parametrize("dataset,fixture,frames", [("tum", "tum_path", 40), ("replica", "replica_path", 20)])
+def test_kiss_icp_on_real_data_writes_poses_and_finite_ate(dataset, fixture, frames, request, tmp_path):
+    path = request.getfixturevalue(fixture)
+    out = tmp_path / "run"
+    _ok(run_slamkit(f"dataset={dataset}", f"dataset.path={path}", f"dataset.max_frames={frames}",
+                    "tracker=kiss_icp", "mapper=none", f"hydra.run.dir={out}", cwd=tmp_path))
+    timestamps, poses = read_tum_trajectory(out / "trajectory.txt")
+    assert len(timestamps) == frames and np.all(np.isfinite(poses))
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert np.isfinite(metrics["ate_rmse_m"]) and metrics["ate_rmse_m"] < 0.1
+    assert metrics["ate_mean_m"] <= metrics["ate_rmse_m"]
+
+
+def _tiny_tum_copy(src, dst, frames=12):
+    """A TUM folder with the first `frames` frames of the shared sequence (files copied)."""
+    (dst / "rgb").mkdir(parents=True)
+    (dst / "depth").mkdir()
+    for name in ("rgb", "depth"):
+        lines = [l for l in (src / f"{name}.txt").read_text().splitlines() if not l.startswith("#")][:frames]
+        (dst / f"{name}.txt").write_text("\n".join(lines) + "\n")
+        for line in lines:
+            rel = line.split()[1]
+            shutil.copy(src / rel, dst / rel)
+    shutil.copy(src / "groundtruth.txt", dst / "groundtruth.txt")
+    return dst
+
+
+def test_sequence_without_ground_truth_runs_with_null_ate(tum_path, tmp_path):
+    seq = _tiny_tum_copy(tum_path, tmp_path / "rgbd_dataset_freiburg1_x")
+    (seq / "groundtruth.txt").unlink()
+    out = tmp_path / "run"
+    proc = _ok(run_slamkit("dataset=tum", f"dataset.path={seq}", f"hydra.run.dir={out}", cwd=tmp_path))
+    assert "n/a (no ground truth)" in proc.stdout
+    assert len(read_tum_trajectory(out / "trajectory.txt")[0]) == 12
+    assert json.loads((out / "metrics.json").read_text())["ate_rmse_m"] is None
+
+
+def test_bad_input_gives_one_line_errors(tum_path, tmp_path):
+    missing = tmp_path / "nope"
+    _one_line_error(run_slamkit("dataset=tum", f"dataset.path={missing}", cwd=tmp_path), str(missing))
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    _one_line_error(run_slamkit("dataset=replica", f"dataset.path={empty}", cwd=tmp_path), str(empty))
+    seq = _tiny_tum_copy(tum_path, tmp_path / "corrupt")
+    victim = sorted((seq / "depth").iterdir())[5]
+    victim.write_bytes(victim.read_bytes()[:200])
+    _one_line_error(run_slamkit("dataset=tum", f"dataset.path={seq}", f"hydra.run.dir={tmp_path / 'r'}", cwd=tmp_path),
+                    victim.name)
+    # the frames before the corrupt one are kept
+    assert len(read_tum_trajectory(tmp_path / "r" / "trajectory.txt")[0]) == 5
+    _one_line_error(run_slamkit("dataset=tum", f"dataset.path={tum_path}", "dataset.gt_path=missing_gt.txt",
+                                cwd=tmp_path), "missing_gt.txt")
+
+
+def test_config_errors_fail_in_one_line_before_work(tmp_path):
+    _one_line_error(run_slamkit("dataset.stride=0", cwd=tmp_path), "dataset.stride", "got 0")
+    _one_line_error(run_slamkit("dataset.max_frames=abc", cwd=tmp_path), "dataset.max_frames", "abc")
+    _one_line_error(run_slamkit("tracker.no_such_key=1", cwd=tmp_path), "no_such_key")
+    _one_line_error(run_slamkit("mode=fast", cwd=tmp_path), "mode")
+    assert not (tmp_path / "outputs").exists()  # nothing ran

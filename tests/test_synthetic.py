@@ -1,0 +1,220 @@
+"""The built-in synthetic dataset: shapes, determinism, geometric consistency, cache, config."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from slamkit.errors import ConfigError
+from slamkit.geometry import backproject, invert_pose, rotation_angle_deg, transform_points
+from slamkit_plugins.datasets import synthetic
+from slamkit_plugins.datasets.synthetic import SyntheticConfig, SyntheticDataset
+
+SMALL = dict(num_frames=8, width=96, height=72)
+
+
+@pytest.fixture(scope="module")
+def default_ds(tmp_path_factory):
+    """The default sequence (120 frames, 320x240), generated once into a private cache."""
+    return SyntheticDataset(SyntheticConfig(cache_dir=str(tmp_path_factory.mktemp("synthetic_cache"))))
+
+
+def test_default_frames_and_shapes(default_ds):
+    ds = default_ds
+    assert len(ds) == ds.num_available() == 120
+    cam = ds.camera
+    assert (cam.width, cam.height) == (320, 240)
+    assert cam.fx == cam.fy and 250 < cam.fx < 262
+    assert (cam.cx, cam.cy) == (159.5, 119.5)
+    assert ds.depth_trunc == 6.0
+    for i in (0, 59, 119):
+        f = ds[i]
+        assert f.index == i and f.timestamp == pytest.approx(i / 30.0)
+        assert f.rgb.shape == (240, 320, 3) and f.rgb.dtype == np.uint8
+        assert f.depth.shape == (240, 320) and f.depth.dtype == np.float32
+        assert f.gt_pose.shape == (4, 4) and f.gt_pose.dtype == np.float64
+        R = f.gt_pose[:3, :3]
+        np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-9)
+        assert np.linalg.det(R) == pytest.approx(1.0)
+        # Exact depth: no holes, everything inside the room.
+        assert f.depth.min() > 0.3 and f.depth.max() < 8.0
+
+
+def test_motion_is_hand_held_like(default_ds):
+    poses = np.stack([default_ds[i].gt_pose for i in range(len(default_ds))])
+    speed = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1) * 30
+    rel = np.einsum("nji,njk->nik", poses[:-1, :3, :3], poses[1:, :3, :3])
+    ang = rotation_angle_deg(rel) * 30
+    assert 0.05 < speed.mean() < 0.6 and speed.max() < 1.0
+    assert ang.max() < 45.0
+    assert np.linalg.norm(poses[-1, :3, 3] - poses[0, :3, 3]) > 0.1
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 7])
+def test_camera_keeps_clear_of_surfaces(seed):
+    poses = synthetic.camera_path(900, seed)
+    lo, hi = synthetic.PATH_BOUNDS
+    assert np.all(poses[:, :3, 3] >= lo) and np.all(poses[:, :3, 3] <= hi)
+    assert synthetic.scene_clearance(poses[:, :3, 3]).min() >= 0.5
+
+
+def test_free_zone_is_clear():
+    lo, hi = synthetic.PATH_BOUNDS
+    grid = np.stack(np.meshgrid(*[np.linspace(lo[k], hi[k], 9) for k in range(3)], indexing="ij"), -1).reshape(-1, 3)
+    assert synthetic.scene_clearance(grid).min() >= 0.5
+
+
+def test_depth_consistent_with_ground_truth(default_ds):
+    """Frame i's depth, moved with the GT poses into frame i + 5, matches frame i + 5's depth."""
+    for i in (0, 40, 80, 110):
+        fi, fj = default_ds[i], default_ds[i + 5]
+        pts, _ = backproject(fi.depth, fi.camera)
+        pj = transform_points(invert_pose(fj.gt_pose) @ fi.gt_pose, pts.astype(np.float64))
+        c = fj.camera
+        z = pj[:, 2]
+        u = c.fx * pj[:, 0] / z + c.cx
+        v = c.fy * pj[:, 1] / z + c.cy
+        inside = (z > 0) & (u >= 0) & (u < c.width - 1) & (v >= 0) & (v < c.height - 1)
+        assert inside.mean() > 0.5
+        u, v, z = u[inside], v[inside], z[inside]
+        u0, v0 = np.floor(u).astype(int), np.floor(v).astype(int)
+        a, b = u - u0, v - v0
+        D = fj.depth.astype(np.float64)
+        z_obs = (D[v0, u0] * (1 - a) + D[v0, u0 + 1] * a) * (1 - b) + (
+            D[v0 + 1, u0] * (1 - a) + D[v0 + 1, u0 + 1] * a
+        ) * b
+        err = np.abs(z - z_obs)
+        assert np.median(err) < 1e-3, f"frames {i}->{i + 5}: median depth error {np.median(err) * 1000:.2f} mm"
+        # Nearest-pixel lookup too (the brief's 5 mm bound).
+        ui, vi = np.round(u).astype(int), np.round(v).astype(int)
+        assert np.median(np.abs(z - D[vi, ui])) < 5e-3
+
+
+def test_texture_variety(default_ds):
+    for i in (0, 60, 119):
+        rgb = default_ds[i].rgb
+        assert rgb.reshape(-1, 3).std(axis=0).mean() > 25
+        coarse = np.unique((rgb.reshape(-1, 3) // 64).astype(np.int32) @ np.array([16, 4, 1]))
+        assert len(coarse) >= 8  # several distinct surfaces/colours
+        # High-frequency detail: neighbouring pixels differ somewhere (texture, not flat fill).
+        grad = np.abs(np.diff(rgb.astype(np.int16), axis=1)).sum(-1)
+        assert (grad > 30).mean() > 0.01
+
+
+def test_scene_primitives_distinct_materials():
+    names = {p.name for p in synthetic.scene()}
+    for expected in ("floor", "ceiling", "sofa seat", "table top", "cabinet", "shelf side", "beach ball", "lamp pole"):
+        assert expected in names
+
+
+def test_deterministic_same_seed(tmp_path):
+    a = SyntheticDataset(SyntheticConfig(cache_dir=str(tmp_path / "a"), seed=3, **SMALL))
+    b = SyntheticDataset(SyntheticConfig(cache_dir=str(tmp_path / "b"), seed=3, **SMALL))
+    for i in range(len(a)):
+        fa, fb = a[i], b[i]
+        np.testing.assert_array_equal(fa.rgb, fb.rgb)
+        np.testing.assert_array_equal(fa.depth, fb.depth)
+        np.testing.assert_array_equal(fa.gt_pose, fb.gt_pose)
+
+
+def test_different_seed_different_path(tmp_path):
+    a = SyntheticDataset(SyntheticConfig(cache_dir=str(tmp_path), seed=0, **SMALL))
+    b = SyntheticDataset(SyntheticConfig(cache_dir=str(tmp_path), seed=1, **SMALL))
+    assert a.cache_path != b.cache_path
+    pa = np.stack([a[i].gt_pose for i in range(len(a))])
+    pb = np.stack([b[i].gt_pose for i in range(len(b))])
+    assert np.abs(pa - pb).max() > 0.1
+    assert not np.array_equal(a[0].rgb, b[0].rgb)
+
+
+def test_cache_is_reused(tmp_path, monkeypatch):
+    cfg = SyntheticConfig(cache_dir=str(tmp_path), **SMALL)
+    first = SyntheticDataset(cfg)
+    assert first.cache_path.is_file() and first.cache_path.parent == tmp_path
+    assert not list(tmp_path.glob("*.tmp"))  # written atomically, no leftovers
+    frames = [first[i] for i in range(len(first))]
+
+    def no_render(*args, **kwargs):
+        raise AssertionError("the cached sequence was rendered again")
+
+    monkeypatch.setattr(synthetic, "render", no_render)
+    second = SyntheticDataset(SyntheticConfig(cache_dir=str(tmp_path), **SMALL))
+    for i, f in enumerate(frames):
+        g = second[i]
+        np.testing.assert_array_equal(f.rgb, g.rgb)
+        np.testing.assert_array_equal(f.depth, g.depth)
+        np.testing.assert_array_equal(f.gt_pose, g.gt_pose)
+    # Options that do not change the generated frames share the cache file.
+    third = SyntheticDataset(
+        SyntheticConfig(cache_dir=str(tmp_path), max_frames=3, stride=2, depth_noise=0.01, **SMALL)
+    )
+    assert third.cache_path == first.cache_path and len(third) == 3
+
+
+def test_corrupt_cache_is_regenerated(tmp_path):
+    cfg = SyntheticConfig(cache_dir=str(tmp_path), **SMALL)
+    ds = SyntheticDataset(cfg)
+    ref = ds[2].depth
+    ds.close()
+    ds.cache_path.write_bytes(b"not a zip file")
+    again = SyntheticDataset(cfg)
+    np.testing.assert_array_equal(again[2].depth, ref)
+
+
+def test_cache_dir_from_environment(tmp_path, monkeypatch):
+    monkeypatch.setenv("SLAMKIT_CACHE", str(tmp_path))
+    ds = SyntheticDataset(SyntheticConfig(**SMALL))
+    assert ds.cache_path.parent == tmp_path / "synthetic" and ds.cache_path.is_file()
+
+
+def test_depth_noise_and_dropout(tmp_path):
+    clean = SyntheticDataset(SyntheticConfig(cache_dir=str(tmp_path), **SMALL))
+    noisy = SyntheticDataset(SyntheticConfig(cache_dir=str(tmp_path), depth_noise=0.005, depth_dropout=0.1, **SMALL))
+    d0, d1 = clean[1].depth, noisy[1].depth
+    assert np.all(d0 > 0)
+    holes = d1 == 0
+    assert 0.05 < holes.mean() < 0.15
+    resid = (d1 - d0)[~holes] / d0[~holes] ** 2
+    assert 0.003 < resid.std() < 0.007
+    np.testing.assert_array_equal(noisy[1].depth, d1)  # deterministic
+
+
+@pytest.mark.parametrize(
+    "values",
+    [
+        dict(num_frames=0),
+        dict(num_frames=1),
+        dict(width=8),
+        dict(height=4),
+        dict(fov_deg=0.0),
+        dict(seed=-1),
+        dict(depth_noise=-0.1),
+        dict(depth_dropout=1.0),
+        dict(speed=0.0),
+        dict(stride=0),
+    ],
+)
+def test_invalid_config(values):
+    with pytest.raises(ConfigError):
+        SyntheticConfig(**values)
+
+
+def test_hook_returns_the_plugin():
+    (spec,) = synthetic.slamkit_datasets()
+    assert spec.name == "synthetic" and spec.cls is SyntheticDataset and spec.config is SyntheticConfig
+
+
+def test_entry_point_declared():
+    from importlib.metadata import entry_points
+
+    eps = {ep.name: ep.value for ep in entry_points(group="slamkit")}
+    assert eps.get("synthetic") == "slamkit_plugins.datasets.synthetic"
+
+
+def test_unwritable_cache_falls_back_to_memory(tmp_path):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("x")
+    ds = SyntheticDataset(SyntheticConfig(cache_dir=str(blocker / "cache"), **SMALL))
+    ref = SyntheticDataset(SyntheticConfig(cache_dir=str(tmp_path / "ok"), **SMALL))
+    np.testing.assert_array_equal(ds[4].rgb, ref[4].rgb)
+    np.testing.assert_array_equal(ds[4].depth, ref[4].depth)
