@@ -37,3 +37,10 @@ def slamkit_keyframe_policies() -> list[PluginSpec]:
 def slamkit_keyframe_samplers() -> list[PluginSpec]:
     """Which keyframe the mapper trains on next: subclasses of `slamkit.roles.KeyframeSampler`.
     Selected with ``sampler=NAME``."""
+
+
+@hookspec
+def slamkit_rasterizers() -> list[PluginSpec]:
+    """Gaussian rasteriser backends: subclasses of `slamkit.rendering.Rasterizer`. Selected by
+    a mapper's ``rasterizer`` option (``auto`` picks gsplat on CUDA, else ``cpu``, else
+    ``torch``)."""

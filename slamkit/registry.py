@@ -29,6 +29,7 @@ ROLE_HOOKS = {
     "mapper": "slamkit_mappers",
     "keyframe": "slamkit_keyframe_policies",
     "sampler": "slamkit_keyframe_samplers",
+    "rasterizer": "slamkit_rasterizers",
 }
 
 
@@ -125,3 +126,30 @@ def register_configs(registry: Registry) -> None:
     for role, plugins in registry.plugins.items():
         for name, entry in plugins.items():
             store.store(group=role, name=name, node=entry.spec.config, provider=entry.source)
+
+
+_discovered: Registry | None = None
+
+
+def default_registry() -> Registry:
+    """The registry of the installed plugins, discovered once per process."""
+    global _discovered
+    if _discovered is None:
+        _discovered = discover()
+    return _discovered
+
+
+def create_rasterizer(name: str = "auto", registry: Registry | None = None):
+    """A rasteriser backend by name; `auto` = gsplat with CUDA, else cpu, else torch
+    (the first of those that is registered)."""
+    registry = registry or default_registry()
+    if name == "auto":
+        import torch
+
+        order = (["gsplat"] if torch.cuda.is_available() else []) + ["cpu", "torch"]
+        available = [n for n in order if n in registry.plugins["rasterizer"]]
+        if not available:
+            registry.get("rasterizer", "torch")  # raises, listing what is there
+        name = available[0]
+    spec = registry.get("rasterizer", name)
+    return spec.cls(spec.config())

@@ -175,12 +175,15 @@ class Mapper(ABC):
         self.gaussian_map = gaussian_map
 
 
+from slamkit.rendering import Rasterizer  # noqa: E402  (a role too; defined with its output type)
+
 ROLES: dict[str, type] = {
     "dataset": Dataset,
     "tracker": Tracker,
     "mapper": Mapper,
     "keyframe": KeyframePolicy,
     "sampler": KeyframeSampler,
+    "rasterizer": Rasterizer,
 }
 
 
