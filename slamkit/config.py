@@ -38,7 +38,9 @@ class EvalConfig:
 class RunConfig(PluginConfig):
     """Top-level keys. mode: sequential (fixed mapping iterations per frame, deterministic) or
     realtime. iterations_per_frame: mapper steps per frame in sequential mode. fps_limit:
-    input frames per second in realtime mode (null = as fast as possible). seed: for every
+    input frames per second in realtime mode (null = as fast as possible). drop_frames: in
+    realtime mode, skip a frame when the next one has already arrived (a live camera's
+    behaviour) instead of processing every frame late. seed: for every
     random choice. progress: show a progress bar."""
 
     dataset: Any = MISSING
@@ -50,6 +52,7 @@ class RunConfig(PluginConfig):
     mode: Mode = Mode.sequential
     iterations_per_frame: int = 10
     fps_limit: float | None = None
+    drop_frames: bool = False
     seed: int = 0
     progress: bool = True
 

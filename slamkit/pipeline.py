@@ -20,12 +20,12 @@ from typing import Any
 import numpy as np
 
 from slamkit import evaluation
-from slamkit.config import RunConfig, apply_hints
+from slamkit.config import Mode, RunConfig, apply_hints
 from slamkit.errors import DataError
 from slamkit.gaussian_map import GaussianMap
 from slamkit.prefetch import prefetched
 from slamkit.registry import Registry
-from slamkit.slam import SLAM, StepResult
+from slamkit.slam import SLAM, MappingThread, StepResult
 from slamkit.tum_format import write_tum_trajectory
 from slamkit.types import Frame, KeyframeKind
 
@@ -41,11 +41,20 @@ class RunState:
     gt_poses: list[np.ndarray | None] = field(default_factory=list)
     num_keyframes: int = 0
     lost_frames: int = 0
+    dropped_frames: int = 0
     mapping_iterations: int = 0
     tracking_time_s: float = 0.0
     mapping_time_s: float = 0.0
     completed: bool = False
     error: str | None = None
+
+    def record_dropped(self, frame: Frame) -> None:
+        """A frame that arrived while the tracker was busy (real-time mode, drop_frames): it
+        keeps the last pose, so the trajectory still has one line per input frame."""
+        self.timestamps.append(frame.timestamp)
+        self.poses.append(self.poses[-1])
+        self.gt_poses.append(frame.gt_pose)
+        self.dropped_frames += 1
 
     def record(self, frame: Frame, step: StepResult) -> None:
         self.timestamps.append(frame.timestamp)
@@ -116,31 +125,79 @@ def run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Path
     return metrics
 
 
+class InputClock:
+    """Paces input like a live camera: frame i arrives `i / fps` seconds after the first."""
+
+    def __init__(self, fps: float | None):
+        self.period = 1.0 / fps if fps else 0.0
+        self.start: float | None = None
+
+    def wait(self, i: int) -> bool:
+        """Sleep until frame i has arrived; True if frame i+1 has arrived too (we are late)."""
+        if not self.period:
+            return False
+        now = time.perf_counter()
+        if self.start is None:
+            self.start = now
+        arrival = self.start + i * self.period
+        if now < arrival:
+            time.sleep(arrival - now)
+            return False
+        return now >= arrival + self.period
+
+
 def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, writer, log_file) -> None:
     from tqdm import tqdm
 
     writer.writerow(["index", "timestamp", "keyframe", "lost", "tracking_ms", "mapping_ms", "iterations",
                      "correspondence_ratio", "note"])
-    frames = prefetched(dataset, cfg.dataset.prefetch)
+    realtime = cfg.mode is Mode.realtime
+    clock = InputClock(cfg.fps_limit if realtime else None)
+    mapping = MappingThread(slam.mapper) if realtime else None
     bar = tqdm(total=len(dataset), unit="frame", disable=None if cfg.progress else True, dynamic_ncols=True)
-    with bar:
-        for frame in frames:
+    try:
+        if mapping:
+            mapping.start()
+        for frame in prefetched(dataset, cfg.dataset.prefetch):
             if not state.poses:
                 slam.initialize(frame.gt_pose if frame.gt_pose is not None else np.eye(4))
-            step = slam.step(frame)
+            if clock.wait(frame.index) and cfg.drop_frames and state.poses:
+                state.record_dropped(frame)
+                writer.writerow([frame.index, f"{frame.timestamp:.6f}", "none", 0, "", "", 0, "", "dropped"])
+                bar.update(1)
+                continue
+            step = slam.track(frame) if realtime else slam.step(frame)
+            if mapping:
+                mapping.check()
             state.record(frame, step)
-            result = step.tracking
-            writer.writerow([frame.index, f"{frame.timestamp:.6f}", step.keyframe.value, int(result.lost),
-                             f"{1e3 * step.tracking_time_s:.2f}", f"{1e3 * step.mapping_time_s:.2f}",
-                             step.mapping_iterations, _fmt(result.correspondence_ratio),
-                             result.stats.get("lost_reason", "")])
-            if result.lost:
-                log.warning("frame %d lost: %s", frame.index, result.stats.get("lost_reason", "?"))
+            _log_frame(writer, frame, step)
             bar.update(1)
             every = cfg.eval.running_ate_every
             if every and len(state.poses) % every == 0:
                 bar.set_postfix_str(_running_ate(state), refresh=False)
                 log_file.flush()
+    finally:
+        bar.close()
+        if mapping:
+            _stop_mapping(mapping, state)
+
+
+def _stop_mapping(mapping: MappingThread, state: RunState) -> None:
+    try:
+        mapping.stop()
+    finally:
+        state.mapping_iterations += mapping.iterations
+        state.mapping_time_s += mapping.busy_time_s
+
+
+def _log_frame(writer, frame: Frame, step: StepResult) -> None:
+    result = step.tracking
+    writer.writerow([frame.index, f"{frame.timestamp:.6f}", step.keyframe.value, int(result.lost),
+                     f"{1e3 * step.tracking_time_s:.2f}", f"{1e3 * step.mapping_time_s:.2f}",
+                     step.mapping_iterations, _fmt(result.correspondence_ratio),
+                     result.stats.get("lost_reason", "")])
+    if result.lost:
+        log.warning("frame %d lost: %s", frame.index, result.stats.get("lost_reason", "?"))
 
 
 def _fmt(value: float | None) -> str:
@@ -169,6 +226,8 @@ def finish(cfg: RunConfig, slam: SLAM, dataset, state: RunState, wall_s: float, 
         "wall_time_s": wall_s,
         "mapping_iterations": state.mapping_iterations,
         "lost_frames": state.lost_frames,
+        "dropped_frames": state.dropped_frames,
+        "mode": cfg.mode.value,
         "completed": state.completed,
         "error": state.error,
         "ate_rmse_m": ate.rmse_m if ate else None,

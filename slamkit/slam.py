@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 import time
 from dataclasses import dataclass
 
@@ -56,14 +57,22 @@ class SLAM:
         self.tracker.initialize(first_pose)
 
     def step(self, frame: Frame) -> StepResult:
+        """Track one frame, then run this frame's mapping iterations (sequential mode)."""
+        step = self.track(frame)
+        start = time.perf_counter()
+        step.mapping_iterations = self.mapper.optimize(self.iterations_per_frame)
+        step.mapping_time_s = time.perf_counter() - start
+        return step
+
+    def track(self, frame: Frame) -> StepResult:
+        """Track one frame and, if it is a keyframe, grow the map (real-time mode maps in
+        another thread: see `MappingThread`)."""
         start = time.perf_counter()
         result = self.tracker.track(frame, self.gaussian_map)
         kind = KeyframeKind.NONE if result.lost else self.keyframe_policy.decide(frame, result)
         if kind:
             self.add_keyframe(frame, result, kind)
-        tracked = time.perf_counter()
-        iterations = self.mapper.optimize(self.iterations_per_frame)
-        return StepResult(result, kind, tracked - start, time.perf_counter() - tracked, iterations)
+        return StepResult(result, kind, time.perf_counter() - start, 0.0, 0)
 
     def add_keyframe(self, frame: Frame, result: TrackingResult, kind: KeyframeKind) -> None:
         rows = slice(len(self.gaussian_map), len(self.gaussian_map))
@@ -73,3 +82,43 @@ class SLAM:
             self.tracker.update_target(self.gaussian_map)
         self.mapper.add_keyframe(frame, result, kind, rows)
         self.num_keyframes += 1
+
+
+class MappingThread(threading.Thread):
+    """Runs `mapper.optimize(1)` in a loop beside tracking (real-time mode).
+
+    The mapper changes the shared map only under `gaussian_map.lock` and the tracker reads it
+    only through `tracking_target()` copies, so no copy of the whole map is made per frame.
+    An exception in the mapper stops the loop and is re-raised by `check()` / `stop()`.
+    """
+
+    def __init__(self, mapper: Mapper):
+        super().__init__(name="slamkit-mapping", daemon=True)
+        self.mapper = mapper
+        self.iterations = 0
+        self.busy_time_s = 0.0
+        self.error: BaseException | None = None
+        self._stop_event = threading.Event()
+
+    def run(self) -> None:
+        try:
+            while not self._stop_event.is_set():
+                start = time.perf_counter()
+                done = self.mapper.optimize(1)
+                self.iterations += done
+                self.busy_time_s += time.perf_counter() - start
+                if not done:  # nothing to train on yet
+                    self._stop_event.wait(0.005)
+        except BaseException as exc:  # handed to the tracking thread
+            self.error = exc
+
+    def check(self) -> None:
+        """Re-raise a mapper failure in the calling (tracking) thread."""
+        if self.error is not None:
+            raise RuntimeError(f"mapper failed: {type(self.error).__name__}: {self.error}") from self.error
+
+    def stop(self) -> None:
+        self._stop_event.set()
+        if self.is_alive():
+            self.join()
+        self.check()

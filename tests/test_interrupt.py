@@ -1,0 +1,53 @@
+"""An interrupted run leaves valid outputs: trajectory of the frames processed, completed false."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from slamkit.tum_format import read_tum_trajectory
+
+
+def _start(out: Path, *args: str) -> subprocess.Popen:
+    exe = Path(sys.executable).with_name("slamkit")
+    return subprocess.Popen([str(exe), *args, "progress=false", f"hydra.run.dir={out}"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _wait_for_frames(out: Path, n: int, proc: subprocess.Popen, timeout: float = 120) -> None:
+    log = out / "frames.csv"
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            pytest.fail(f"run ended early: {proc.communicate()}")
+        if log.exists() and len(log.read_text().splitlines()) > n:
+            return
+        time.sleep(0.2)
+    pytest.fail("run made no progress")
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_realtime_run_interrupted_by_a_signal_writes_consistent_outputs(sig, tmp_path):
+    out = tmp_path / "run"
+    # 10 frames/s input over 120 frames: about 12 s if left alone
+    proc = _start(out, "mode=realtime", "fps_limit=10", "eval.running_ate_every=1")
+    try:
+        _wait_for_frames(out, 5, proc)
+        os.kill(proc.pid, sig)
+        proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["completed"] is False and metrics["error"].startswith("interrupted")
+    timestamps, poses = read_tum_trajectory(out / "trajectory.txt")
+    assert 5 <= metrics["num_frames"] < 120
+    assert len(timestamps) == metrics["num_frames"]
+    assert metrics["ate_rmse_m"] is not None
