@@ -66,6 +66,12 @@ def make_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return T
 
 
+def nearest_rotation(M: np.ndarray) -> np.ndarray:
+    """The rotation matrix closest (Frobenius) to a 3x3 matrix, via SVD."""
+    U, _, Vt = np.linalg.svd(M)
+    return U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+
+
 def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Apply a 4x4 transform to Nx3 points."""
     return points @ T[:3, :3].T + T[:3, 3]

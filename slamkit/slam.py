@@ -50,11 +50,13 @@ class SLAM:
         self.map_growth = map_growth
         self.iterations_per_frame = iterations_per_frame
         self.num_keyframes = 0
+        self.last_pose: np.ndarray | None = None
         mapper.bind(gaussian_map)
 
     def initialize(self, first_pose: np.ndarray) -> None:
         """Set the pose (camera-to-world) the trajectory starts from."""
         self.tracker.initialize(first_pose)
+        self.last_pose = first_pose
 
     def step(self, frame: Frame) -> StepResult:
         """Track one frame, then run this frame's mapping iterations (sequential mode)."""
@@ -69,6 +71,10 @@ class SLAM:
         another thread: see `MappingThread`)."""
         start = time.perf_counter()
         result = self.tracker.track(frame, self.gaussian_map)
+        if not np.all(np.isfinite(result.pose)):  # a diverged tracker must not poison the map
+            pose = self.last_pose if self.last_pose is not None else np.eye(4)
+            result = TrackingResult(pose=pose.copy(), lost=True, stats={"lost_reason": "non-finite pose from tracker"})
+        self.last_pose = result.pose
         kind = KeyframeKind.NONE if result.lost else self.keyframe_policy.decide(frame, result)
         if kind:
             self.add_keyframe(frame, result, kind)
