@@ -236,6 +236,7 @@ def finish(cfg: RunConfig, slam: SLAM, dataset, state: RunState, wall_s: float, 
         "rpe_trans_rmse_m": rpe["trans_rmse_m"] if rpe else None,
         "rpe_rot_rmse_deg": rpe["rot_rmse_deg"] if rpe else None,
         "num_gaussians": len(slam.gaussian_map),
+        "peak_memory_mb": _peak_memory_mb(),
     }
     if state.completed:
         metrics.update(slam.mapper.evaluate(dataset, state.poses, out_dir))
@@ -249,6 +250,12 @@ def finish(cfg: RunConfig, slam: SLAM, dataset, state: RunState, wall_s: float, 
         gt = ate.gt_positions if has_gt else None
         plot_trajectory(out_dir / "trajectory.png", est, gt, title=_summary(metrics))
     return metrics
+
+
+def _peak_memory_mb() -> float:
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # kilobytes on Linux
 
 
 def _write_json_atomic(path: Path, data: dict) -> None:
