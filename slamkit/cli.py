@@ -15,9 +15,11 @@ import sys
 from pathlib import Path
 
 from slamkit.errors import ConfigError, SlamkitError
-from slamkit.registry import ROLE_HOOKS, Registry, discover, register_configs
+from slamkit.registry import ROLE_HOOKS, Registry, default_registry, discover, register_configs
 
 CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
+# Experiment configs (`+experiment=NAME`) live in experiments/experiment/NAME.yaml.
+EXPERIMENTS_DIR = Path(__file__).resolve().parent.parent / "experiments"
 log = logging.getLogger("slamkit")
 _registry: Registry | None = None
 
@@ -48,7 +50,9 @@ def _precheck(args: list[str]) -> None:
 
     if any(a in ("-m", "--multirun") or a.startswith("-") for a in args):
         return
-    overrides = [a for a in args if not re.match(r"\+*hydra[./]", a)]
+    overrides = [a for a in args if not re.match(r"\+*hydra[./]", a) or a.startswith("hydra.searchpath")]
+    if any(_is_sweep(a) for a in overrides):
+        return
     try:
         with initialize_config_dir(str(CONF_DIR), version_base=None):
             cfg = compose("config", overrides=overrides)
@@ -58,18 +62,35 @@ def _precheck(args: list[str]) -> None:
     validate_config(cfg)
 
 
+def _is_sweep(override: str) -> bool:
+    """A Hydra sweep value: a,b / range(...) / choice(...) / glob(...) outside brackets."""
+    value = override.partition("=")[2]
+    if re.match(r"^(range|choice|glob|interval|tag)\(", value):
+        return True
+    depth = 0
+    for ch in value:
+        if ch in "[{(":
+            depth += 1
+        elif ch in "]})":
+            depth -= 1
+        elif ch == "," and depth == 0:
+            return True
+    return False
+
+
 def _task(cfg) -> None:
     from hydra.core.hydra_config import HydraConfig
 
     from slamkit import pipeline
     from slamkit.config import validate_config
 
+    registry = _registry or default_registry()  # launchers run jobs in fresh processes
     hydra_cfg = HydraConfig.get()
     names = {role: hydra_cfg.runtime.choices[role] for role in ("dataset", "tracker", "mapper", "keyframe")}
     out_dir = Path(hydra_cfg.runtime.output_dir)
     try:
         run_cfg = validate_config(cfg)
-        metrics = pipeline.run(run_cfg, _registry, names, out_dir)
+        metrics = pipeline.run(run_cfg, registry, names, out_dir)
     except SlamkitError as exc:
         log.error("%s", exc)
         if os.environ.get("SLAMKIT_DEBUG"):
@@ -88,6 +109,8 @@ def main() -> None:
 
     global _registry
     _registry = discover()
+    if EXPERIMENTS_DIR.is_dir() and not any(a.startswith("hydra.searchpath") for a in sys.argv[1:]):
+        sys.argv.append(f"hydra.searchpath=[file://{EXPERIMENTS_DIR}]")
     register_configs(_registry)
     register_run_config()
     try:

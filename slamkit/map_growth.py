@@ -20,6 +20,15 @@ from slamkit.roles import PluginConfig, require
 from slamkit.types import FrameGaussians
 
 
+class InitialShape(enum.Enum):
+    """gicp: the tracker's covariance (rotation from its eigenvectors, scale-aligned).
+    knn: 3DGS's usual initialisation, isotropic with scale = RMS distance to the 3 nearest
+    other new points, identity rotation (paper Table 6, "w/o G-ICP covariance")."""
+
+    gicp = "gicp"
+    knn = "knn"
+
+
 class ScaleAlignment(enum.Enum):
     none = "none"
     constant = "constant"
@@ -29,10 +38,12 @@ class ScaleAlignment(enum.Enum):
 
 @dataclass
 class MapGrowthConfig(PluginConfig):
-    """scale_alignment: none | constant | z | z_pow (paper Table 6). scale_c, scale_p: the c
+    """initial_shape: gicp | knn (see InitialShape). scale_alignment: none | constant | z |
+    z_pow (paper Table 6), applied to gicp shapes. scale_c, scale_p: the c
     and p of max(c z^p, 1). initial_opacity: opacity of new Gaussians in (0, 1).
     new_gaussian_overlap: m^2, null = the dataset's hint."""
 
+    initial_shape: InitialShape = InitialShape.gicp
     scale_alignment: ScaleAlignment = ScaleAlignment.z_pow
     scale_c: float = 2.0
     scale_p: float = 1.5
@@ -59,6 +70,18 @@ def scale_alignment_factors(depths: np.ndarray, cfg: MapGrowthConfig) -> np.ndar
     return np.maximum(cfg.scale_c * depths**p, 1.0)
 
 
+def knn_isotropic_scales(points: np.ndarray, k: int = 3) -> np.ndarray:
+    """(N,3) equal scales: the RMS distance (metres) of each point to its k nearest others."""
+    from pykdtree.kdtree import KDTree
+
+    pts = np.ascontiguousarray(points, dtype=np.float32)
+    k = min(k + 1, len(pts))
+    dist, _ = KDTree(pts).query(pts, k=k)
+    dist = dist.reshape(len(pts), k)[:, 1:]
+    rms = np.sqrt(np.mean(dist.astype(np.float64) ** 2, axis=1)) if k > 1 else np.full(len(pts), 0.01)
+    return np.repeat(np.maximum(rms, 1e-4)[:, None], 3, axis=1)
+
+
 def add_keyframe_gaussians(
     gaussian_map: GaussianMap, gaussians: FrameGaussians, keyframe_id: int, cfg: MapGrowthConfig
 ) -> slice:
@@ -66,6 +89,10 @@ def add_keyframe_gaussians(
     trackable = gaussians.trackable
     if gaussians.sq_dist_to_map is not None and cfg.new_gaussian_overlap is not None:
         trackable = trackable & (gaussians.sq_dist_to_map > cfg.new_gaussian_overlap)
+    if cfg.initial_shape is InitialShape.knn:
+        quats = np.tile([1.0, 0.0, 0.0, 0.0], (len(gaussians), 1))
+        return gaussian_map.append(gaussians.means, quats, knn_isotropic_scales(gaussians.means), gaussians.colors,
+                                   cfg.initial_opacity, trackable, keyframe_id)
     return gaussian_map.append_covariances(
         gaussians.means,
         gaussians.covariances,

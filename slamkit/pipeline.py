@@ -214,6 +214,10 @@ def finish(cfg: RunConfig, slam: SLAM, dataset, state: RunState, wall_s: float, 
     n = len(state.poses)
     poses = np.array(state.poses).reshape(n, 4, 4)
     write_tum_trajectory(out_dir / "trajectory.txt", state.timestamps, poses)
+    has_gt = [i for i, p in enumerate(state.gt_poses) if p is not None and np.all(np.isfinite(p))]
+    if has_gt:  # beside the estimate, for evo and slamkit-report
+        write_tum_trajectory(out_dir / "groundtruth.txt", [state.timestamps[i] for i in has_gt],
+                             np.array([state.gt_poses[i] for i in has_gt]))
     ate = evaluation.ate(poses, state.gt_poses) if n else None
     rpe = evaluation.rpe(poses, state.gt_poses) if n > 1 else None
     metrics: dict[str, Any] = {
