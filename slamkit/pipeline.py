@@ -21,9 +21,9 @@ import numpy as np
 
 from slamkit import evaluation
 from slamkit.config import Mode, RunConfig, apply_hints
-from slamkit.errors import DataError
+from slamkit.errors import DataError, PluginError, SlamkitError
 from slamkit.gaussian_map import GaussianMap
-from slamkit.prefetch import prefetched
+from slamkit.prefetch import UnreadableFrame, prefetched
 from slamkit.registry import Registry
 from slamkit.slam import SLAM, MappingThread, StepResult
 from slamkit.tum_format import write_tum_trajectory
@@ -48,6 +48,13 @@ class RunState:
     completed: bool = False
     error: str | None = None
 
+    def record_unreadable(self, timestamp: float) -> None:
+        """A frame that could not be read (dataset.on_error=skip): lost, keeps the last pose."""
+        self.timestamps.append(timestamp)
+        self.poses.append(self.poses[-1] if self.poses else np.full((4, 4), np.nan))
+        self.gt_poses.append(None)
+        self.lost_frames += 1
+
     def record_dropped(self, frame: Frame) -> None:
         """A frame that arrived while the tracker was busy (real-time mode, drop_frames): it
         keeps the last pose, so the trajectory still has one line per input frame."""
@@ -67,6 +74,31 @@ class RunState:
         self.mapping_time_s += step.mapping_time_s
 
 
+class Blamed:
+    """Wraps a plugin so that an exception escaping any of its methods names the plugin:
+    the run then stops with a one-line PluginError and writes what it has."""
+
+    def __init__(self, plugin, role: str, name: str):
+        self._plugin, self._role, self._name = plugin, role, name
+
+    def __getattr__(self, attr):
+        value = getattr(self._plugin, attr)
+        if not callable(value):
+            return value
+
+        def call(*args, **kwargs):
+            try:
+                return value(*args, **kwargs)
+            except SlamkitError:
+                raise
+            except Exception as exc:
+                log.exception("%s %r failed in %s()", self._role, self._name, attr)
+                message = f"{self._role} plugin {self._name!r} failed in {attr}(): {type(exc).__name__}: {exc}"
+                raise PluginError(message.splitlines()[0]) from exc
+
+        return call
+
+
 def build(cfg: RunConfig, registry: Registry, names: dict[str, str]):
     """Dataset and SLAM system from a validated config; `names` maps role -> plugin name."""
     dataset = registry.create("dataset", names["dataset"], cfg.dataset)
@@ -74,9 +106,8 @@ def build(cfg: RunConfig, registry: Registry, names: dict[str, str]):
         raise DataError(f"dataset {names['dataset']!r} at {cfg.dataset.path!r}: no frames selected")
     for group in (cfg.tracker, cfg.keyframe, cfg.mapper, cfg.map):
         apply_hints(group, dataset.hints)
-    tracker = registry.create("tracker", names["tracker"], cfg.tracker)
-    policy = registry.create("keyframe", names["keyframe"], cfg.keyframe)
-    mapper = registry.create("mapper", names["mapper"], cfg.mapper)
+    tracker, policy, mapper = (Blamed(registry.create(role, names[role], getattr(cfg, role)), role, names[role])
+                               for role in ("tracker", "keyframe", "mapper"))
     slam = SLAM(tracker, policy, mapper, GaussianMap(), cfg.map, cfg.iterations_per_frame)
     return dataset, slam
 
@@ -158,7 +189,14 @@ def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, writer, log_file
     try:
         if mapping:
             mapping.start()
-        for frame in prefetched(dataset, cfg.dataset.prefetch):
+        skip_errors = cfg.dataset.on_error.value == "skip"
+        for frame in prefetched(dataset, cfg.dataset.prefetch, skip_errors):
+            if isinstance(frame, UnreadableFrame):
+                log.warning("frame %d skipped: %s", frame.index, frame.error)
+                state.record_unreadable(frame.timestamp)
+                writer.writerow([frame.index, f"{frame.timestamp:.6f}", "none", 1, "", "", 0, "", f"unreadable: {frame.error}"])
+                bar.update(1)
+                continue
             if not state.poses:
                 slam.initialize(frame.gt_pose if frame.gt_pose is not None else np.eye(4))
             if clock.wait(frame.index) and cfg.drop_frames and state.poses:
@@ -213,6 +251,8 @@ def finish(cfg: RunConfig, slam: SLAM, dataset, state: RunState, wall_s: float, 
     """Write trajectory.txt, metrics.json and the plot; return the metrics."""
     n = len(state.poses)
     poses = np.array(state.poses).reshape(n, 4, 4)
+    finite = np.flatnonzero(np.isfinite(poses).all(axis=(1, 2)))
+    poses[: finite[0] if len(finite) else n] = poses[finite[0]] if len(finite) else np.eye(4)  # unreadable first frames
     write_tum_trajectory(out_dir / "trajectory.txt", state.timestamps, poses)
     has_gt = [i for i, p in enumerate(state.gt_poses) if p is not None and np.all(np.isfinite(p))]
     if has_gt:  # beside the estimate, for evo and slamkit-report

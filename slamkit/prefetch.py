@@ -4,31 +4,46 @@ from __future__ import annotations
 
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from typing import Iterator
 
+from slamkit.errors import DataError
 from slamkit.roles import Dataset
 from slamkit.types import Frame
 
 
-def prefetched(dataset: Dataset, ahead: int = 8) -> Iterator[Frame]:
+@dataclass
+class UnreadableFrame:
+    """A frame that failed to load (with dataset.on_error=skip)."""
+
+    index: int
+    timestamp: float
+    error: DataError
+
+
+def prefetched(dataset: Dataset, ahead: int = 8, skip_errors: bool = False) -> Iterator[Frame | UnreadableFrame]:
     """Yield dataset[0], dataset[1], ... while up to `ahead` later frames load in the
-    background (image decoding releases the GIL). A loading error is raised at that frame's
-    turn, after the frames before it have been yielded."""
+    background (image decoding releases the GIL). A DataError is raised at that frame's turn,
+    after the frames before it, or yielded as an UnreadableFrame when `skip_errors`."""
     n = len(dataset)
-    if ahead <= 0:
-        for i in range(n):
-            yield dataset[i]
-        return
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="slamkit-prefetch") as pool:
-        pending = deque(pool.submit(dataset.__getitem__, i) for i in range(min(ahead, n)))
+        pending = deque(pool.submit(dataset.__getitem__, i) for i in range(min(max(ahead, 1), n)))
         next_index = len(pending)
+        index = 0
         try:
             while pending:
-                frame = pending.popleft().result()
+                future = pending.popleft()
                 if next_index < n:
                     pending.append(pool.submit(dataset.__getitem__, next_index))
                     next_index += 1
+                try:
+                    frame = future.result()
+                except DataError as exc:
+                    if not skip_errors:
+                        raise
+                    frame = UnreadableFrame(index, dataset.timestamp(index), exc)
                 yield frame
+                index += 1
         finally:
             for future in pending:
                 future.cancel()

@@ -6,6 +6,7 @@ subclass with the validated config object as its only argument.
 
 from __future__ import annotations
 
+import enum
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, fields
 from typing import Any
@@ -35,6 +36,11 @@ def require(condition: bool, field: str, expected: str, value: Any) -> None:
         raise ConfigError(f"{field}: expected {expected}, got {value!r}")
 
 
+#: What a frame that fails to load does: stop the run (raise) or become a lost frame (skip).
+#: (Functional form: `raise` is a keyword, and Hydra matches enum members by name.)
+OnError = enum.Enum("OnError", {"raise": "raise", "skip": "skip"}, module=__name__)
+
+
 @dataclass
 class DatasetConfig(PluginConfig):
     """Options every dataset takes.
@@ -43,7 +49,9 @@ class DatasetConfig(PluginConfig):
     the run is raw frame start + i * stride); max_frames null = all. depth_trunc: metres,
     points beyond are not used for tracking (null = the dataset's default). fx, fy, cx, cy:
     override the intrinsics in pixels (null = from the dataset). prefetch: frames read ahead
-    in a background thread.
+    in a background thread. on_error: raise (default) stops the run at a frame that cannot be
+    read, with a one-line error naming the file; skip logs a warning, marks the frame lost
+    (it keeps the previous pose) and counts it in lost_frames.
     """
 
     path: str = ""
@@ -56,6 +64,7 @@ class DatasetConfig(PluginConfig):
     cx: float | None = None
     cy: float | None = None
     prefetch: int = 8
+    on_error: OnError = OnError["raise"]
 
     def validate(self) -> None:
         require(self.start >= 0, "dataset.start", "an integer >= 0", self.start)
@@ -104,6 +113,14 @@ class Dataset(ABC):
     @property
     def depth_trunc(self) -> float:
         return self.cfg.depth_trunc if self.cfg.depth_trunc is not None else self.default_depth_trunc
+
+    def raw_timestamp(self, raw_index: int) -> float:
+        """Seconds; must not read image files (used for frames that fail to load). Datasets
+        whose timestamps are not raw_index / 30 override it."""
+        return raw_index / 30.0
+
+    def timestamp(self, i: int) -> float:
+        return self.raw_timestamp(self.raw_indices()[i])
 
     def raw_indices(self) -> range:
         r = range(self.cfg.start, self.num_available(), self.cfg.stride)

@@ -121,7 +121,7 @@ class MappingThread(threading.Thread):
     def check(self) -> None:
         """Re-raise a mapper failure in the calling (tracking) thread."""
         if self.error is not None:
-            raise RuntimeError(f"mapper failed: {type(self.error).__name__}: {self.error}") from self.error
+            raise self.error
 
     def stop(self) -> None:
         self._stop_event.set()

@@ -104,3 +104,18 @@ def test_config_errors_fail_in_one_line_before_work(tmp_path):
     _one_line_error(run_slamkit("tracker.no_such_key=1", cwd=tmp_path), "no_such_key")
     _one_line_error(run_slamkit("mode=fast", cwd=tmp_path), "mode")
     assert not (tmp_path / "outputs").exists()  # nothing ran
+
+
+def test_on_error_skip_marks_an_unreadable_frame_lost_and_goes_on(tum_path, tmp_path):
+    seq = _tiny_tum_copy(tum_path, tmp_path / "rgbd_dataset_freiburg1_y")
+    victim = sorted((seq / "rgb").iterdir())[4]
+    victim.write_bytes(b"not a png")
+    out = tmp_path / "run"
+    proc = _ok(run_slamkit("dataset=tum", f"dataset.path={seq}", "dataset.on_error=skip", f"hydra.run.dir={out}",
+                           cwd=tmp_path))
+    assert "1 lost" in proc.stdout
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["lost_frames"] == 1 and metrics["completed"] is True
+    timestamps, poses = read_tum_trajectory(out / "trajectory.txt")
+    assert len(timestamps) == 12 and np.allclose(poses[4], poses[3])
+    assert "unreadable" in (out / "frames.csv").read_text() and victim.name in (out / "slamkit.log").read_text()

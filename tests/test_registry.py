@@ -23,6 +23,7 @@ FAKE_TRACKER = """
     class StillConfig(PluginConfig):
         '''offset: metres added to x of every pose.'''
         offset: float = 0.0
+        fail_at: int = -1
         def validate(self):
             require(self.offset >= 0, "tracker.offset", ">= 0", self.offset)
 
@@ -34,6 +35,8 @@ FAKE_TRACKER = """
             self.pose = first_pose.copy()
             self.pose[0, 3] += self.cfg.offset
         def track(self, frame, gaussian_map):
+            if frame.index == self.cfg.fail_at:
+                raise ValueError("simulated failure")
             return TrackingResult(pose=self.pose)
 
     @hookimpl
@@ -118,3 +121,16 @@ def test_third_party_config_validation_and_unknown_name_from_the_cli(plugin_dir,
     unknown = run_slamkit("tracker=nope", cwd=tmp_path, env_extra=env)
     assert unknown.returncode == 2
     assert "unknown tracker 'nope'; available:" in unknown.stderr and "still" in unknown.stderr
+
+
+def test_a_plugin_that_raises_stops_the_run_cleanly_naming_it(plugin_dir, tmp_path):
+    out = tmp_path / "run"
+    proc = run_slamkit("tracker=still", "tracker.fail_at=3", "dataset.num_frames=8", f"hydra.run.dir={out}",
+                       cwd=tmp_path, env_extra={"PYTHONPATH": str(plugin_dir)})
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert proc.stderr.strip().splitlines()[-1] == (
+        "slamkit: error: tracker plugin 'still' failed in track(): ValueError: simulated failure")
+    assert len((out / "trajectory.txt").read_text().splitlines()) == 3
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["completed"] is False and "simulated failure" in metrics["error"]
+    assert "Traceback" in (out / "slamkit.log").read_text()  # the log keeps the details

@@ -112,6 +112,9 @@ class SevenScenesDataset(Dataset):
     def num_available(self) -> int:
         return len(self.numbers)
 
+    def raw_timestamp(self, raw_index: int) -> float:
+        return float(raw_index)
+
     def load(self, raw_index: int) -> Frame:
         rgb = read_rgb(self.rgb_files[raw_index])
         check_camera_size(rgb, self._camera, self.rgb_files[raw_index])

@@ -123,6 +123,9 @@ class TUMDataset(Dataset):
     def num_available(self) -> int:
         return len(self.timestamps)
 
+    def raw_timestamp(self, raw_index: int) -> float:
+        return float(self.timestamps[raw_index])
+
     def load(self, raw_index: int) -> Frame:
         rgb = read_rgb(self.rgb_files[raw_index])
         check_camera_size(rgb, self._camera, self.rgb_files[raw_index])
