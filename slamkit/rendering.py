@@ -30,10 +30,13 @@ class Rasterizer(ABC):
 
     Conventions shared by every backend so that they agree to float precision:
     - projection of the mean, EWA 2D covariance J W Sigma W^T J^T plus 0.3 px^2 on the diagonal
-      (the usual low-pass term); Gaussians with camera z <= 0.01 m are culled;
+      (the usual low-pass term), with x/z and y/z in the Jacobian clamped to the image plus 15%
+      on each side (as 3DGS and gsplat); Gaussians with camera z <= 0.01 m are culled;
+    - a Gaussian covers exactly the pixels where its alpha >= 1/255 (no 3-sigma box);
     - pixel centres at integer coordinates (u, v) = (column, row), as in the intrinsics;
     - per pixel, Gaussians sorted by camera z, front to back; alpha_i = min(0.99, o_i exp(-q/2));
-      pairs with alpha_i < 1/255 are skipped; compositing stops before a Gaussian that would
+      pairs with alpha_i < 1/255 are skipped (gsplat clamps at 0.999, not 0.99: the backends agree
+      where opacity <= 0.99); compositing stops before a Gaussian that would
       bring the transmittance below 1e-4;
     - colour = sum_i w_i c_i + (1 - alpha) * background, w_i = alpha_i T_i.
     """
