@@ -33,8 +33,9 @@ $(VENV)/.installed: pyproject.toml $(VENV)/.torch
 	$(PY) -m pip install --quiet -e .
 	touch $@
 
-$(VENV)/.installed-test: pyproject.toml $(VENV)/.torch
+$(VENV)/.installed-test: pyproject.toml examples/slamkit-p2plane/pyproject.toml $(VENV)/.torch
 	$(PY) -m pip install --quiet -e ".[test]"
+	$(PY) -m pip install --quiet --no-deps -e examples/slamkit-p2plane  # the example third-party plugin
 	touch $(VENV)/.installed $@
 
 clean:
