@@ -122,8 +122,10 @@ def scales_from_covariance(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
     Scales are the square roots of the eigenvalues (descending), the rotation's columns the
     eigenvectors, made right-handed. numpy only."""
-    eigval, eigvec = np.linalg.eigh(cov)
-    eigval, eigvec = eigval[:, ::-1], eigvec[:, :, ::-1]
+    from slamkit.gaussian_geometry import sym3_eigh  # closed form, ~10x faster than np.linalg.eigh
+
+    eigval, eigvec = sym3_eigh(cov)
+    eigval, eigvec = eigval[:, ::-1], eigvec[:, :, ::-1].copy()
     det = np.linalg.det(eigvec)
     eigvec[:, :, 2] *= np.sign(det)[:, None]
     return rotmat_to_quat(eigvec), np.sqrt(np.clip(eigval, 0.0, None))

@@ -69,8 +69,12 @@ class OverlapKeyframePolicy(KeyframePolicy):
 
     def __init__(self, cfg: OverlapKeyframeConfig):
         self.cfg = cfg
-        self.overlap_threshold = float(cfg.overlap_threshold if cfg.overlap_threshold is not None else FALLBACKS["overlap_threshold"])
-        self.keyframe_threshold = float(cfg.keyframe_threshold if cfg.keyframe_threshold is not None else FALLBACKS["keyframe_threshold"])
+        self.overlap_threshold = float(
+            FALLBACKS["overlap_threshold"] if cfg.overlap_threshold is None else cfg.overlap_threshold
+        )
+        self.keyframe_threshold = float(
+            FALLBACKS["keyframe_threshold"] if cfg.keyframe_threshold is None else cfg.keyframe_threshold
+        )
         require(self.overlap_threshold > 0, "keyframe.overlap_threshold", "> 0 m^2", self.overlap_threshold)
         self.last_tracking: int | None = None
         self.last_keyframe: int | None = None

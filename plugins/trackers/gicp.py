@@ -12,6 +12,12 @@ as the reference code does). The pose minimises
 by Levenberg-Marquardt on SE(3) (right perturbation T <- T exp(xi)), re-finding each source
 point's nearest target mean within `max_correspondence_distance` at every iteration. The
 target's KD-tree is built once per tracking keyframe, in `update_target`, never per frame.
+Only trackable points (depth <= the frame's depth_trunc) are aligned; all get covariances.
+
+The optimisation starts from a constant-velocity prediction (measured better than the
+reference code's previous pose on TUM fr1/rpy: 4.5 vs 6.2 cm mean ATE over seven start
+frames; equal on Replica); if it slides away or fails from there (a sudden stop), it is run
+again from the previous pose and the result matching more points is kept.
 
 The frame's Gaussians (world means at the final pose, regularised covariances rotated to the
 world, colours, depths, squared distance to the nearest target mean from the last
@@ -30,7 +36,7 @@ from pykdtree.kdtree import KDTree
 from slamkit.gaussian_geometry import (
     TARGET_MIN_MEDIAN,
     Regularization,
-    inverse_sym3,
+    whitening_sym3,
     knn_covariances,
     regularize,
     rotate_covariances,
@@ -71,6 +77,11 @@ class GICPConfig(PluginConfig):
       |dt| entry (metres) of the last update is below these.
     min_target_opacity: map Gaussians at or below this opacity are not aligned to.
     initial_guess: previous | constant_velocity.
+    fallback_to_previous: when G-ICP from a constant-velocity start does not converge, loses
+      the frame, or ends farther than fallback_slide * max_correspondence_distance (RMS
+      displacement of the points) from its start (it slid, e.g. after a sudden stop), run it
+      again from the previous pose and keep the result with more correspondences.
+    fallback_slide: that distance, in units of max_correspondence_distance.
     min_points: fewer valid trackable depth points -> the frame is lost.
     min_correspondences: fewer matched points in an iteration -> the frame is lost.
     lm_lambda: initial damping relative to the largest diagonal entry of the normal matrix.
@@ -90,27 +101,34 @@ class GICPConfig(PluginConfig):
     initial_guess: InitialGuess = InitialGuess.constant_velocity
     min_points: int = 100
     min_correspondences: int = 50
+    fallback_to_previous: bool = True
+    fallback_slide: float = 2.0
     lm_lambda: float = 1e-9
     lm_max_tries: int = 10
 
     def validate(self) -> None:
-        require(self.pixel_stride is None or self.pixel_stride >= 1, "tracker.pixel_stride", "null or an integer >= 1", self.pixel_stride)
+        require(self.pixel_stride is None or self.pixel_stride >= 1,
+                "tracker.pixel_stride", "null or an integer >= 1", self.pixel_stride)
         require(self.knn >= 3, "tracker.knn", "an integer >= 3", self.knn)
         require(0 < self.plane_eps <= 1, "tracker.plane_eps", "in (0, 1]", self.plane_eps)
-        require(self.target_min_median is None or self.target_min_median >= 0, "tracker.target_min_median", "null or >= 0 m^2", self.target_min_median)
+        require(self.target_min_median is None or self.target_min_median >= 0,
+                "tracker.target_min_median", "null or >= 0 m^2", self.target_min_median)
         require(
             self.max_correspondence_distance is None or self.max_correspondence_distance > 0,
             "tracker.max_correspondence_distance", "null or > 0 metres", self.max_correspondence_distance,
         )
         require(self.max_iterations >= 1, "tracker.max_iterations", "an integer >= 1", self.max_iterations)
         require(self.rotation_tolerance > 0, "tracker.rotation_tolerance", "> 0", self.rotation_tolerance)
-        require(self.translation_tolerance > 0, "tracker.translation_tolerance", "> 0 metres", self.translation_tolerance)
+        require(self.translation_tolerance > 0,
+                "tracker.translation_tolerance", "> 0 metres", self.translation_tolerance)
         require(
             self.min_target_opacity is None or 0 <= self.min_target_opacity < 1,
             "tracker.min_target_opacity", "null or in [0, 1)", self.min_target_opacity,
         )
         require(self.min_points >= 1, "tracker.min_points", "an integer >= 1", self.min_points)
-        require(self.min_correspondences >= 6, "tracker.min_correspondences", "an integer >= 6", self.min_correspondences)
+        require(self.min_correspondences >= 6,
+                "tracker.min_correspondences", "an integer >= 6", self.min_correspondences)
+        require(self.fallback_slide > 0, "tracker.fallback_slide", "> 0", self.fallback_slide)
         require(self.lm_lambda >= 0, "tracker.lm_lambda", ">= 0", self.lm_lambda)
         require(self.lm_max_tries >= 1, "tracker.lm_max_tries", "an integer >= 1", self.lm_max_tries)
 
@@ -129,6 +147,12 @@ def se3_exp(xi: np.ndarray) -> np.ndarray:
     T[:3, :3] = R
     T[:3, 3] = V @ v
     return T
+
+
+def _rotate_rows(R: np.ndarray, cov_rows: np.ndarray, m: int) -> np.ndarray:
+    """R^T C R for (m,9) row-major covariances C: (m,3,3)."""
+    CR = (cov_rows.reshape(m * 3, 3) @ R).reshape(m, 3, 3)
+    return (R.T @ CR.transpose(1, 0, 2).reshape(3, m * 3)).reshape(3, m, 3).transpose(1, 0, 2)
 
 
 def orthonormalize(T: np.ndarray) -> np.ndarray:
@@ -150,10 +174,18 @@ class _Target:
 
     def __init__(self, means: np.ndarray, covariances: np.ndarray, version: int):
         self.means32 = np.ascontiguousarray(means, dtype=np.float32)
-        self.means = self.means32.astype(np.float64)
-        self.covariances = covariances
+        # Means and covariances side by side: one gather per iteration.
+        self.packed = np.concatenate([self.means32.astype(np.float64), covariances.reshape(-1, 9)], axis=1)
         self.version = version
         self.tree = KDTree(self.means32, leafsize=16)
+
+    @property
+    def means(self) -> np.ndarray:
+        return self.packed[:, :3]
+
+    @property
+    def covariances(self) -> np.ndarray:
+        return self.packed[:, 3:].reshape(-1, 3, 3)
 
     def __len__(self) -> int:
         return len(self.means)
@@ -208,10 +240,24 @@ class GICPTracker(Tracker):
             return orthonormalize(last @ (invert_pose(prev) @ last))
         return self.poses[-1].copy()
 
+    @staticmethod
+    def _moved(src: np.ndarray, start: np.ndarray, end: np.ndarray) -> float:
+        """RMS displacement in metres of the source points between two poses."""
+        D = invert_pose(start) @ end
+        return float(np.sqrt(np.mean(np.sum((src @ (D[:3, :3] - np.eye(3)).T + D[:3, 3]) ** 2, axis=1))))
+
+    def _fallback_start(self, predicted: np.ndarray) -> np.ndarray | None:
+        """The previous pose, when the motion model moved the start away from it and
+        `fallback_to_previous` is on; else None."""
+        if not (self.cfg.fallback_to_previous and self.poses):
+            return None
+        last = self.poses[-1]
+        return None if np.array_equal(last, predicted) else last.copy()
+
     def track(self, frame: Frame, gaussian_map: GaussianMap) -> TrackingResult:
         predicted = self.predict()
         result = self._track(frame, predicted)
-        self.poses.append(result.pose)
+        self.poses = self.poses[-1:] + [result.pose]  # the motion model needs the last two
         return result
 
     # ---------------------------------------------------------------- internals
@@ -221,7 +267,7 @@ class GICPTracker(Tracker):
 
     def _track(self, frame: Frame, predicted: np.ndarray) -> TrackingResult:
         cfg = self.cfg
-        stats: dict = {"covariance_s": 0.0, "nn_search_s": 0.0, "solve_s": 0.0, "iterations": 0}
+        stats = self._new_stats()
         t0 = time.perf_counter()
         depth = np.asarray(frame.depth)
         if not np.isfinite(depth).all():
@@ -244,10 +290,9 @@ class GICPTracker(Tracker):
         sq_track = np.full(n_track, np.inf)
         pose = predicted
         if self.target is None or len(self.target) == 0:
-            stats["lost_reason"] = ""
             stats["note"] = "no target yet"
         else:
-            pose, ok, sq_track = self._align(src, src_cov, predicted, stats)
+            pose, ok, sq_track = self._solve(src, src_cov, predicted, stats)
             if not ok:
                 return TrackingResult(pose=predicted, lost=True, stats=stats)
 
@@ -255,7 +300,10 @@ class GICPTracker(Tracker):
         sq_dist[trackable] = sq_track
         R, t = pose[:3, :3], pose[:3, 3]
         rgb = np.asarray(frame.rgb).reshape(-1, 3)[pix]
-        colors = rgb.astype(np.float32) / 255.0 if np.issubdtype(rgb.dtype, np.integer) else np.clip(rgb, 0, 1).astype(np.float32)
+        if np.issubdtype(rgb.dtype, np.integer):
+            colors = rgb.astype(np.float32) / 255.0
+        else:
+            colors = np.clip(rgb, 0.0, 1.0).astype(np.float32)
         gaussians = FrameGaussians(
             means=(points.astype(np.float64) @ R.T + t).astype(np.float32),
             covariances=rotate_covariances(R, cov_cam),
@@ -267,16 +315,44 @@ class GICPTracker(Tracker):
         stats["matched_fraction"] = float(np.isfinite(sq_track).mean()) if n_track else 0.0
         return TrackingResult(pose=pose, lost=False, gaussians=gaussians, stats=stats)
 
+    @staticmethod
+    def _new_stats() -> dict:
+        return {"covariance_s": 0.0, "nn_search_s": 0.0, "solve_s": 0.0, "iterations": 0}
+
+    def _solve(self, src: np.ndarray, src_cov: np.ndarray, predicted: np.ndarray, stats: dict):
+        """G-ICP from the prediction; with a motion-model prediction that did not converge,
+        lost the frame or slid (ended more than fallback_slide * max_correspondence_distance
+        RMS from its start), again from the previous pose, keeping the result matching more
+        points."""
+        pose, ok, sq = self._align(src, src_cov, predicted, stats)
+        start = self._fallback_start(predicted)
+        slide_limit = self.cfg.fallback_slide * self.max_corr
+        if start is None or (ok and stats["converged"] and self._moved(src, predicted, pose) <= slide_limit):
+            return pose, ok, sq
+        retry = self._new_stats()
+        pose2, ok2, sq2 = self._align(src, src_cov, start, retry)
+        stats["retried"] = True
+        summed = ("nn_search_s", "solve_s", "iterations")
+        for key in summed:
+            stats[key] += retry[key]
+        if ok2 and (not ok or retry["num_correspondences"] > stats["num_correspondences"]):
+            stats.pop("lost_reason", None)
+            stats.update({k: v for k, v in retry.items() if k not in summed and k != "covariance_s"})
+            stats["fallback"] = "previous pose"
+            return pose2, ok2, sq2
+        return pose, ok, sq
+
     def _align(self, src: np.ndarray, src_cov: np.ndarray, T0: np.ndarray, stats: dict):
         """Levenberg-Marquardt G-ICP from T0. Returns (pose, ok, squared NN distances of the
         last correspondence search (inf where none)).
 
         Residuals are taken in the body frame: r_i = R^T (mu_i - R p_i - t) with weight
-        W_i = (R^T C_t,i R + C_s,i)^-1, and T <- T exp(xi), xi = (omega, v), for which
-        dr_i/dxi = [[p_i]x, -I]. The normal equations are assembled from cross products
-        (no per-point matrix products)."""
+        W_i = (R^T C_t,i R + C_s,i)^-1 = G_i^T G_i (G_i: inverse Cholesky factor; the
+        pseudo-inverse where singular), and T <- T exp(xi), xi = (omega, v), for which
+        dr_i/dxi = [[p_i]x, -I]."""
         cfg, target = self.cfg, self.target
         n_target = len(target)
+        packed_src = np.concatenate([src, src_cov.reshape(-1, 9)], axis=1)
         T = T0.copy()
         lam = None
         nu = 2.0
@@ -285,11 +361,9 @@ class GICPTracker(Tracker):
         for it in range(cfg.max_iterations):
             stats["iterations"] = it + 1
             R, t = T[:3, :3], T[:3, 3]
-            xw = src @ R.T + t
+            query = (src @ R.T + t).astype(np.float32)
             ts = time.perf_counter()
-            d2, idx = target.tree.query(
-                xw.astype(np.float32), k=1, distance_upper_bound=self.max_corr, sqr_dists=True
-            )
+            d2, idx = target.tree.query(query, k=1, distance_upper_bound=self.max_corr, sqr_dists=True)
             te = time.perf_counter()
             stats["nn_search_s"] += te - ts
             valid = idx < n_target
@@ -300,23 +374,27 @@ class GICPTracker(Tracker):
                 stats["lost_reason"] = f"too few correspondences ({m} < {cfg.min_correspondences})"
                 stats["solve_s"] += time.perf_counter() - te
                 return T0, False, sq
-            tid = idx[valid]
-            p = src[valid]
-            mu = target.means[tid]
-            W, singular = inverse_sym3(rotate_covariances(R.T, target.covariances[tid]) + src_cov[valid])
-            r = (mu - xw[valid]) @ R
-            Wr = np.einsum("nij,nj->ni", W, r)
-            cost0 = float(np.einsum("ni,ni->", r, Wr))
-            # J = [S, -I] with S = [p]x:  H = [[S^T W S, -S^T W], [-W S, W]],  g = [S^T W r; -W r].
-            WS = np.cross(W, p[:, None, :])  # rows of W crossed with p: W S
-            StWS = -np.cross(p[:, None, :], WS.transpose(0, 2, 1)).sum(axis=0).T  # sum S^T W S
-            H = np.empty((6, 6))
-            H[:3, :3] = StWS
-            H[:3, 3:] = -WS.sum(axis=0).T
-            H[3:, :3] = H[:3, 3:].T
-            H[3:, 3:] = W.sum(axis=0)
-            g = np.concatenate([np.cross(Wr, p).sum(axis=0), -Wr.sum(axis=0)])
-            H = 0.5 * (H + H.T)
+            tg = target.packed[idx[valid]]
+            sg = packed_src[valid]
+            p = sg[:, :3]
+            mu_t = tg[:, :3] - t
+            r = mu_t @ R - p  # R^T (mu - R p - t)
+            G, singular = whitening_sym3(_rotate_rows(R, tg[:, 3:], m) + sg[:, 3:].reshape(m, 3, 3))
+            z = np.einsum("nij,nj->ni", G, r)  # whitened residuals: |z|^2 = r^T W r
+            cost0 = float(np.einsum("ni,ni->", z, z))
+            # Whitened Jacobian A = G [S, -I] with S = [p]x: the rows of G S are the rows of G
+            # crossed with p. H = A^T A and g = A^T z by one matrix product each.
+            A = np.empty((m, 3, 6))
+            px, py, pz = p[:, 0], p[:, 1], p[:, 2]
+            for i in range(3):
+                gx, gy, gz = G[:, i, 0], G[:, i, 1], G[:, i, 2]
+                A[:, i, 0] = gy * pz - gz * py
+                A[:, i, 1] = gz * px - gx * pz
+                A[:, i, 2] = gx * py - gy * px
+            np.negative(G, out=A[:, :, 3:])
+            A = A.reshape(-1, 6)
+            H = A.T @ A
+            g = A.T @ z.reshape(-1)
             if lam is None:
                 lam = cfg.lm_lambda * float(np.max(np.diag(H)))
             accepted = False
@@ -328,8 +406,10 @@ class GICPTracker(Tracker):
                 delta = se3_exp(xi)
                 Tn = T @ delta
                 # New cost with the same correspondences and weights.
-                rn = (mu - (p @ Tn[:3, :3].T + Tn[:3, 3])) @ R
-                cost = float(np.einsum("ni,ni->", rn, np.einsum("nij,nj->ni", W, rn)))
+                # R^T (mu - Rn p - tn) = R^T (mu - t) - R^T (tn - t) - (R^T Rn) p
+                rn = mu_t @ R - (Tn[:3, 3] - t) @ R - p @ (R.T @ Tn[:3, :3]).T
+                zn = np.einsum("nij,nj->ni", G, rn)
+                cost = float(np.einsum("ni,ni->", zn, zn))
                 small = self._small(delta)
                 rho_den = float(xi @ (lam * xi - g))
                 rho = (cost0 - cost) / rho_den if rho_den > 0 else -1.0

@@ -1,0 +1,441 @@
+"""G-ICP tracker and Gaussian geometry: k-NN covariances, the closed-form eigensolver,
+regularisation, the covariance round trip, scale alignment, pose recovery on a synthetic
+structured scene, degenerate frames and the KD-tree discipline."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import slamkit_plugins.trackers.gicp as gicp_module
+from slamkit.errors import ConfigError
+from slamkit.gaussian_geometry import (
+    Regularization,
+    inverse_sym3,
+    knn_covariances,
+    regularize,
+    rotate_covariances,
+    sym3_eigh,
+    sym3_eigvals,
+)
+from slamkit.gaussian_map import GaussianMap
+from slamkit.geometry import (
+    backproject,
+    covariance_from_scales,
+    invert_pose,
+    make_pose,
+    quat_to_rotmat,
+    rotation_angle_deg,
+    scales_from_covariance,
+    so3_exp,
+    transform_points,
+)
+from slamkit.map_growth import MapGrowthConfig, ScaleAlignment, add_keyframe_gaussians, scale_alignment_factors
+from slamkit_plugins.trackers.gicp import GICPConfig, GICPTracker, InitialGuess, se3_exp, slamkit_trackers
+from slamkit.types import Camera, Frame
+
+CAMERA = Camera(160, 120, 120.0, 120.0, 79.5, 59.5)
+
+
+def random_covariances(rng, n, std=(1e-3, 1.0)):
+    """Rotated Gaussians with standard deviations log-uniform in `std` (metres)."""
+    quats = rng.normal(size=(n, 4))
+    scales = np.exp(rng.uniform(np.log(std[0]), np.log(std[1]), size=(n, 3)))
+    return covariance_from_scales(quats, scales)
+
+
+# ----------------------------------------------------------------------------- geometry
+def test_knn_covariances_match_brute_force():
+    rng = np.random.default_rng(0)
+    pts = rng.normal(size=(300, 3)).astype(np.float32)
+    cov = knn_covariances(pts, k=10)
+    d = np.linalg.norm(pts[:, None] - pts[None], axis=2)
+    nn = np.argsort(d, axis=1, kind="stable")[:, :10]
+    for i in (0, 17, 299):
+        q = pts[nn[i]].astype(np.float64)
+        ref = (q - q.mean(0)).T @ (q - q.mean(0)) / 10
+        np.testing.assert_allclose(cov[i], ref, rtol=1e-5, atol=1e-9)
+    assert cov.shape == (300, 3, 3) and cov.dtype == np.float64
+
+
+def test_knn_covariances_keep_thin_structure():
+    """Points on a plane 3 m away: the normal-direction variance is tiny but not lost."""
+    u, v = np.meshgrid(np.arange(50) * 0.01, np.arange(50) * 0.01)
+    pts = np.stack([u.ravel(), v.ravel(), 3.0 + 1e-4 * np.sin(40 * u.ravel())], 1).astype(np.float32)
+    vals = np.linalg.eigvalsh(knn_covariances(pts, 10))
+    assert np.all(vals[:, 0] < 1e-3 * vals[:, 1])
+    assert np.all(vals[:, 1] > 1e-5)
+
+
+def test_sym3_eigh_matches_numpy_including_degenerate_cases():
+    rng = np.random.default_rng(1)
+    n = 400
+    R = quat_to_rotmat(rng.normal(size=(n, 4)))
+    cases = [
+        rng.uniform(1e-3, 1, (n, 3)),                                   # generic
+        np.stack([np.ones(n), np.full(n, 0.5), np.full(n, 1e-9)], 1),   # nearly planar
+        np.stack([np.ones(n), np.ones(n), np.full(n, 0.1)], 1),         # repeated largest
+        np.stack([np.ones(n), np.full(n, 1e-6), np.full(n, 1e-6)], 1),  # repeated smallest (a line)
+        np.full((n, 3), 2e-5),                                          # isotropic
+        np.zeros((n, 3)),                                               # zero
+    ]
+    for lam in cases:
+        C = np.einsum("nik,nk,njk->nij", R, lam, R)
+        vals, vecs = sym3_eigh(C)
+        np.testing.assert_allclose(vals, np.linalg.eigvalsh(C), atol=1e-13 * max(lam.max(), 1e-300))
+        np.testing.assert_allclose(sym3_eigvals(C), np.linalg.eigvalsh(C), atol=1e-13 * max(lam.max(), 1e-300))
+        np.testing.assert_allclose(np.einsum("nik,nk,njk->nij", vecs, vals, vecs), C, atol=1e-13 * max(lam.max(), 1e-300))
+        np.testing.assert_allclose(np.einsum("nki,nkj->nij", vecs, vecs), np.broadcast_to(np.eye(3), (n, 3, 3)), atol=1e-12)
+
+
+def test_covariance_round_trip_anisotropic_rotated():
+    q = np.array([[0.9, 0.2, -0.3, 0.25]])
+    q /= np.linalg.norm(q)
+    s = np.array([[0.30, 0.05, 0.002]])
+    C = covariance_from_scales(q, s)
+    q2, s2 = scales_from_covariance(C)
+    np.testing.assert_allclose(s2, s, rtol=1e-10)
+    np.testing.assert_allclose(covariance_from_scales(q2, s2), C, atol=1e-14)
+    # The recovered rotation is the original up to the sign of each axis.
+    R, R2 = quat_to_rotmat(q)[0], quat_to_rotmat(q2)[0]
+    np.testing.assert_allclose(np.abs(R.T @ R2), np.eye(3), atol=1e-10)
+
+
+def test_regularize_ellipse_divides_by_sorted_median():
+    rng = np.random.default_rng(2)
+    C = random_covariances(rng, 200)
+    out = regularize(C, "ellipse")
+    before, after = np.linalg.eigvalsh(C), np.linalg.eigvalsh(out)
+    np.testing.assert_allclose(after, before / before[:, 1:2], rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(after[:, 1], 1.0, rtol=1e-6)
+    # Same eigenvectors: the shape is kept.
+    np.testing.assert_allclose(out, C / before[:, 1, None, None], rtol=1e-6, atol=1e-12)
+
+
+def test_regularize_ellipse_target_rule_min_median():
+    rng = np.random.default_rng(3)
+    small = random_covariances(rng, 20, std=(3e-3, 0.3))  # median variances around 1e-3
+    vals = np.linalg.eigvalsh(small)
+    out = regularize(small, Regularization.ellipse, min_median=1e-3)
+    for C, lam, o in zip(small, vals, out):
+        if lam[1] < 1e-3:
+            np.testing.assert_allclose(o, 1e-3 * np.eye(3))
+        else:
+            np.testing.assert_allclose(np.linalg.eigvalsh(o), lam / lam[1], rtol=1e-6)
+    assert (vals[:, 1] < 1e-3).any() and (vals[:, 1] >= 1e-3).any()
+
+
+def test_regularize_plane_and_none():
+    rng = np.random.default_rng(4)
+    C = random_covariances(rng, 100)
+    out = regularize(C, "plane", eps=1e-4)
+    np.testing.assert_allclose(np.linalg.eigvalsh(out), np.broadcast_to([1e-4, 1.0, 1.0], (100, 3)), atol=1e-12)
+    # The small axis is the original smallest eigenvector.
+    v_min = np.linalg.eigh(C)[1][:, :, 0]
+    np.testing.assert_allclose(np.einsum("ni,nij,nj->n", v_min, out, v_min), 1e-4, atol=1e-10)
+    none = regularize(C, "none")
+    np.testing.assert_array_equal(none, C)
+    assert none is not C
+
+
+def test_regularize_degenerate_becomes_identity():
+    C = np.zeros((2, 3, 3))
+    C[1, 0, 0] = 1.0  # collinear neighbours: median eigenvalue 0
+    np.testing.assert_allclose(regularize(C, "ellipse"), np.broadcast_to(np.eye(3), (2, 3, 3)))
+
+
+def test_inverse_sym3_and_pseudo_inverse_fallback():
+    rng = np.random.default_rng(5)
+    C = random_covariances(rng, 50)
+    inv, singular = inverse_sym3(C)
+    assert not singular.any()
+    np.testing.assert_allclose(inv @ C, np.broadcast_to(np.eye(3), C.shape), atol=1e-6)
+    S = np.diag([1.0, 2.0, 0.0])[None]
+    inv, singular = inverse_sym3(S)
+    assert singular.all()
+    np.testing.assert_allclose(inv[0], np.diag([1.0, 0.5, 0.0]), atol=1e-12)
+
+
+def test_rotate_covariances():
+    rng = np.random.default_rng(6)
+    C = random_covariances(rng, 20)
+    R = so3_exp(np.array([0.3, -0.2, 1.0]))
+    np.testing.assert_allclose(rotate_covariances(R, C), R @ C @ R.T, atol=1e-14)
+
+
+@pytest.mark.parametrize(
+    "kind, expected",
+    [
+        (ScaleAlignment.none, [1.0, 1.0, 1.0, 1.0]),
+        (ScaleAlignment.constant, [2.0, 2.0, 2.0, 2.0]),
+        (ScaleAlignment.z, [1.0, 1.4, 2.0, 6.0]),
+        (ScaleAlignment.z_pow, [1.0, 2 * 0.7**1.5, 2.0, 2 * 3.0**1.5]),
+    ],
+)
+def test_scale_alignment_factors(kind, expected):
+    """max(c z^p, 1) with c = 2 and p = 1.5 (paper Table 6)."""
+    depths = np.array([0.2, 0.7, 1.0, 3.0])
+    got = scale_alignment_factors(depths, MapGrowthConfig(scale_alignment=kind))
+    np.testing.assert_allclose(got, np.maximum(expected, 1.0))
+
+
+# ----------------------------------------------------------------------------- synthetic scene
+def render_depth(pose: np.ndarray, camera: Camera = CAMERA) -> np.ndarray:
+    """Depth (metres) of a box room [-2,2]x[-1.5,1.5]x[-1,4] with a sphere and a slanted
+    block inside, seen from camera-to-world `pose`."""
+    v, u = np.mgrid[0 : camera.height, 0 : camera.width]
+    d_cam = np.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, np.ones_like(u, float)], -1)
+    R, c = pose[:3, :3], pose[:3, 3]
+    d = d_cam @ R.T  # world direction with camera z = 1
+    t = np.full(d.shape[:2], np.inf)
+    for axis, lo, hi in ((0, -2.0, 2.0), (1, -1.5, 1.5), (2, -1.0, 4.0)):
+        for wall in (lo, hi):
+            with np.errstate(divide="ignore", invalid="ignore"):
+                s = (wall - c[axis]) / d[..., axis]
+            t = np.where((s > 0) & (s < t), s, t)
+    # Sphere centre (0.8, 0.3, 2.5) radius 0.5.
+    oc = c - np.array([0.8, 0.3, 2.5])
+    a = np.einsum("hwi,hwi->hw", d, d)
+    b = 2 * d @ oc
+    disc = b * b - 4 * a * (oc @ oc - 0.25)
+    s = (-b - np.sqrt(np.clip(disc, 0, None))) / (2 * a)
+    t = np.where((disc > 0) & (s > 0) & (s < t), s, t)
+    # A slanted plane patch (a ramp) on the left: n . x = 0.2, n = normalised (1, 1, 0.5).
+    n = np.array([1.0, 1.0, 0.5]) / 1.5
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (-0.9 - c @ n) / (d @ n)
+    hit = c + s[..., None] * d
+    inside = (s > 0) & (s < t) & (np.abs(hit[..., 2] - 2.0) < 0.6) & (hit[..., 1] > -1.4)
+    t = np.where(inside, s, t)
+    return np.where(np.isfinite(t), t, 0.0).astype(np.float32)
+
+
+def make_frame(pose: np.ndarray, index: int = 0, depth=None) -> Frame:
+    depth = render_depth(pose) if depth is None else depth
+    rgb = np.full(depth.shape + (3,), 128, np.uint8)
+    return Frame(index=index, timestamp=float(index), rgb=rgb, depth=depth, camera=CAMERA, gt_pose=pose,
+                 depth_trunc=10.0)
+
+
+def map_from_frame(frame: Frame, pose: np.ndarray, stride: int = 2, k: int = 10) -> GaussianMap:
+    """A map holding the frame's points in the world with their raw k-NN covariances."""
+    pts, _ = backproject(frame.depth, frame.camera, stride)
+    world = transform_points(pose, pts.astype(np.float64))
+    cov = knn_covariances(world, k)
+    gmap = GaussianMap()
+    gmap.append_covariances(world, cov, np.full((len(world), 3), 0.5), 0.5, np.ones(len(world), bool), 0)
+    return gmap
+
+
+POSE = make_pose(so3_exp(np.array([0.05, 0.3, -0.02])), [0.1, -0.2, 0.3])
+
+
+def tight_config(**kw) -> GICPConfig:
+    base = dict(pixel_stride=2, max_correspondence_distance=0.2, min_target_opacity=0.0,
+                rotation_tolerance=1e-7, translation_tolerance=1e-8, max_iterations=64)
+    base.update(kw)
+    return GICPConfig(**base)
+
+
+@pytest.mark.parametrize("reg", list(Regularization))
+def test_gicp_recovers_known_transform(reg):
+    frame = make_frame(POSE)
+    gmap = map_from_frame(frame, POSE)
+    tracker = GICPTracker(tight_config(regularization=reg, plane_eps=1e-3, target_min_median=None))
+    tracker.update_target(gmap)
+    start = POSE @ make_pose(so3_exp(np.radians([1.0, -1.5, 0.8])), [0.02, -0.015, 0.01])
+    tracker.initialize(start)
+    result = tracker.track(frame, gmap)
+    assert not result.lost, result.stats
+    E = invert_pose(POSE) @ result.pose
+    assert np.linalg.norm(E[:3, 3]) < 1e-4, (reg, E[:3, 3], result.stats)
+    assert rotation_angle_deg(E[:3, :3]) < 0.01, (reg, result.stats)
+    assert result.stats["converged"]
+    g = result.gaussians
+    assert g is not None and len(g) == result.stats["num_points"]
+    # World means at the final pose coincide with the target points (same pixels).
+    assert np.median(np.sqrt(g.sq_dist_to_map)) < 1e-4
+    np.testing.assert_allclose(g.colors, 128 / 255, rtol=1e-6)
+    assert g.trackable.all()
+    for key in ("covariance_s", "nn_search_s", "solve_s", "iterations"):
+        assert key in result.stats
+
+
+def test_gicp_frame_covariances_are_regularised_and_in_world():
+    frame = make_frame(POSE)
+    tracker = GICPTracker(tight_config())
+    tracker.initialize(POSE)
+    result = tracker.track(frame, GaussianMap())  # empty map: first frame
+    assert not result.lost
+    np.testing.assert_allclose(result.pose, POSE, atol=1e-15)
+    g = result.gaussians
+    vals = np.linalg.eigvalsh(g.covariances)
+    np.testing.assert_allclose(vals[:, 1], 1.0, rtol=1e-6)  # ellipse: median axis 1
+    pts, _ = backproject(frame.depth, CAMERA, 2)
+    cam_cov = regularize(knn_covariances(pts, 10), "ellipse")
+    R = POSE[:3, :3]
+    np.testing.assert_allclose(g.covariances[:50], R @ cam_cov[:50] @ R.T, atol=1e-9)
+    np.testing.assert_allclose(g.means, transform_points(POSE, pts.astype(np.float64)), atol=1e-5)
+    np.testing.assert_allclose(g.depths, pts[:, 2])
+    assert np.isinf(g.sq_dist_to_map).all()
+
+
+def test_gicp_tracks_a_moving_camera_with_map_growth():
+    """Frame-to-model over a short synthetic trajectory through the slamkit map growth."""
+    poses = [POSE @ make_pose(so3_exp(np.array([0.0, 0.01 * k, 0.004 * k])), [0.01 * k, 0.0, 0.015 * k]) for k in range(6)]
+    tracker = GICPTracker(GICPConfig(pixel_stride=2, max_correspondence_distance=0.05, min_target_opacity=0.05,
+                                     initial_guess=InitialGuess.constant_velocity))
+    tracker.initialize(poses[0])
+    gmap = GaussianMap()
+    growth = MapGrowthConfig(new_gaussian_overlap=1e-4)
+    for k, P in enumerate(poses):
+        result = tracker.track(make_frame(P, k), gmap)
+        assert not result.lost
+        E = invert_pose(P) @ result.pose
+        assert np.linalg.norm(E[:3, 3]) < 2e-3 and rotation_angle_deg(E[:3, :3]) < 0.1
+        if k == 0:
+            add_keyframe_gaussians(gmap, result.gaussians, 0, growth)
+            tracker.update_target(gmap)
+
+
+def test_degenerate_frame_is_lost_and_keeps_predicted_pose():
+    tracker = GICPTracker(tight_config(initial_guess=InitialGuess.constant_velocity))
+    tracker.initialize(POSE)
+    frame = make_frame(POSE)
+    gmap = map_from_frame(frame, POSE)
+    tracker.update_target(gmap)
+    moved = POSE @ make_pose(np.eye(3), [0.01, 0, 0])
+    tracker.poses = [POSE, moved]  # history: the prediction extrapolates the motion
+    predicted = tracker.predict()
+    zero = make_frame(POSE, 2, depth=np.zeros((CAMERA.height, CAMERA.width), np.float32))
+    result = tracker.track(zero, gmap)
+    assert result.lost
+    np.testing.assert_allclose(result.pose, predicted)
+    assert "depth" in result.stats["lost_reason"]
+    nan = make_frame(POSE, 3, depth=np.full((CAMERA.height, CAMERA.width), np.nan, np.float32))
+    assert tracker.track(nan, gmap).lost
+
+
+def test_frame_without_overlap_is_lost_with_reason():
+    tracker = GICPTracker(tight_config(max_correspondence_distance=0.01))
+    frame = make_frame(POSE)
+    gmap = map_from_frame(frame, POSE)
+    tracker.update_target(gmap)
+    far = make_pose(np.eye(3), [50.0, 0, 0]) @ POSE
+    tracker.initialize(far)
+    result = tracker.track(frame, gmap)
+    assert result.lost and "correspondences" in result.stats["lost_reason"]
+    np.testing.assert_allclose(result.pose, far)
+
+
+def test_kdtree_built_only_in_update_target(monkeypatch):
+    built = []
+    real = gicp_module.KDTree
+
+    def counting(*args, **kwargs):
+        built.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(gicp_module, "KDTree", counting)
+    frame = make_frame(POSE)
+    gmap = map_from_frame(frame, POSE)
+    tracker = GICPTracker(tight_config(rotation_tolerance=2e-3, translation_tolerance=5e-4))
+    tracker.initialize(POSE)
+    assert tracker.tree_builds == 0
+    tracker.update_target(gmap)
+    assert tracker.tree_builds == 1 and len(built) == 1
+    for k in range(3):
+        assert not tracker.track(make_frame(POSE, k), gmap).lost
+    assert tracker.tree_builds == 1 and len(built) == 1
+    tracker.update_target(gmap)
+    assert tracker.tree_builds == 2 and len(built) == 2
+
+
+def test_target_takes_trackable_opaque_gaussians_only():
+    frame = make_frame(POSE)
+    pts, _ = backproject(frame.depth, CAMERA, 4)
+    world = transform_points(POSE, pts.astype(np.float64))
+    gmap = GaussianMap()
+    n = len(world)
+    cov = knn_covariances(world, 10)
+    trackable = np.arange(n) % 2 == 0
+    gmap.append_covariances(world, cov, np.zeros((n, 3)), 0.5, trackable, 0)
+    gmap.append_covariances(world + 5.0, cov, np.zeros((n, 3)), 0.01, np.ones(n, bool), 1)
+    tracker = GICPTracker(tight_config(min_target_opacity=0.05))
+    tracker.update_target(gmap)
+    assert len(tracker.target) == trackable.sum()
+    empty = GICPTracker(tight_config(min_target_opacity=0.9))
+    empty.update_target(gmap)
+    assert empty.target is None
+
+
+def test_constant_velocity_prediction():
+    tracker = GICPTracker(tight_config(initial_guess=InitialGuess.constant_velocity))
+    A = POSE
+    step = make_pose(so3_exp(np.array([0.0, 0.02, 0.0])), [0.01, 0.0, 0.02])
+    tracker.initialize(A)
+    np.testing.assert_allclose(tracker.predict(), A)
+    tracker.poses = [A, A @ step]
+    np.testing.assert_allclose(tracker.predict(), A @ step @ step, atol=1e-12)
+    prev = GICPTracker(tight_config(initial_guess=InitialGuess.previous))
+    prev.poses = [A, A @ step]
+    np.testing.assert_allclose(prev.predict(), A @ step)
+
+
+def test_se3_exp_small_and_large():
+    xi = np.array([0.1, -0.2, 0.3, 0.5, 0.1, -0.4])
+    T = se3_exp(xi)
+    np.testing.assert_allclose(T[:3, :3], so3_exp(xi[:3]))
+    # Compare with the matrix exponential by series.
+    X = np.zeros((4, 4))
+    X[:3, :3] = np.array([[0, -xi[2], xi[1]], [xi[2], 0, -xi[0]], [-xi[1], xi[0], 0]])
+    X[:3, 3] = xi[3:]
+    E, term = np.eye(4), np.eye(4)
+    for k in range(1, 30):
+        term = term @ X / k
+        E = E + term
+    np.testing.assert_allclose(T, E, atol=1e-12)
+    np.testing.assert_allclose(se3_exp(np.zeros(6)), np.eye(4))
+
+
+def test_config_validation_and_hints():
+    with pytest.raises(ConfigError, match="tracker.knn"):
+        GICPConfig(knn=1)
+    with pytest.raises(ConfigError, match="tracker.max_correspondence_distance"):
+        GICPConfig(max_correspondence_distance=-1.0)
+    with pytest.raises(ConfigError, match="tracker.pixel_stride"):
+        GICPConfig(pixel_stride=0)
+    cfg = GICPConfig()
+    assert cfg.pixel_stride is None and cfg.max_correspondence_distance is None and cfg.min_target_opacity is None
+    tracker = GICPTracker(cfg)  # unhinted nulls fall back to documented values
+    assert tracker.pixel_stride == gicp_module.FALLBACKS["pixel_stride"]
+    from slamkit.config import apply_hints
+
+    cfg = GICPConfig()
+    apply_hints(cfg, {"pixel_stride": 10, "max_correspondence_distance": 0.02, "min_target_opacity": 0.05})
+    tracker = GICPTracker(cfg)
+    assert (tracker.pixel_stride, tracker.max_corr, tracker.min_opacity) == (10, 0.02, 0.05)
+
+
+def test_hook_registers_gicp():
+    (spec,) = slamkit_trackers()
+    assert spec.name == "gicp" and spec.cls is GICPTracker and spec.config is GICPConfig
+
+
+def test_fallback_to_previous_pose_after_a_sudden_stop():
+    """The motion model predicts 8 cm of motion the camera did not make: G-ICP from there
+    finds too little overlap, and the retry from the previous pose recovers the pose."""
+    frame = make_frame(POSE)
+    gmap = map_from_frame(frame, POSE)
+    for fallback in (True, False):
+        tracker = GICPTracker(tight_config(max_correspondence_distance=0.03, initial_guess=InitialGuess.constant_velocity,
+                                          fallback_to_previous=fallback, min_correspondences=4000))
+        tracker.update_target(gmap)
+        tracker.poses = [POSE @ make_pose(so3_exp(np.radians([0, -4.0, 0])), [-0.08, 0, 0]), POSE]
+        result = tracker.track(frame, gmap)
+        if fallback:
+            assert not result.lost and result.stats["fallback"] == "previous pose" and result.stats["retried"]
+            E = invert_pose(POSE) @ result.pose
+            assert np.linalg.norm(E[:3, 3]) < 1e-4
+        else:
+            assert result.lost and "retried" not in result.stats
