@@ -16,7 +16,7 @@ SMALL = dict(num_frames=8, width=96, height=72)
 @pytest.fixture(scope="module")
 def default_ds(tmp_path_factory):
     """The default sequence (120 frames, 320x240), generated once into a private cache."""
-    return SyntheticDataset(SyntheticConfig(cache_dir=str(tmp_path_factory.mktemp("synthetic_cache"))))
+    return SyntheticDataset(SyntheticConfig(cache_dir=str(tmp_path_factory.mktemp("synthetic_cache")), depth_noise=0.0))
 
 
 def test_default_frames_and_shapes(default_ds):
@@ -168,7 +168,7 @@ def test_cache_dir_from_environment(tmp_path, monkeypatch):
 
 
 def test_depth_noise_and_dropout(tmp_path):
-    clean = SyntheticDataset(SyntheticConfig(cache_dir=str(tmp_path), **SMALL))
+    clean = SyntheticDataset(SyntheticConfig(cache_dir=str(tmp_path), depth_noise=0.0, **SMALL))
     noisy = SyntheticDataset(SyntheticConfig(cache_dir=str(tmp_path), depth_noise=0.005, depth_dropout=0.1, **SMALL))
     d0, d1 = clean[1].depth, noisy[1].depth
     assert np.all(d0 > 0)

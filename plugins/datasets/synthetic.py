@@ -69,7 +69,8 @@ class SyntheticConfig(DatasetConfig):
     the principal point at the image centre, cx = (width - 1) / 2, cy = (height - 1) / 2.
     seed: draws the camera path (the scene is fixed). speed: multiplies the camera's linear and
     angular speeds (the same path, traversed faster). depth_noise: metres of Gaussian depth
-    noise at 1 m, growing with z^2 as a Kinect's does (0 = exact depth). depth_dropout:
+    noise at 1 m, growing with z^2 as a Kinect's does (0 = exact depth; the default 1.5 mm is
+    a Kinect v1's, so that the default run is not a noiseless toy). depth_dropout:
     fraction of pixels whose depth is set to 0 (invalid) at random. cache_dir: folder of the
     cached sequences (null = $SLAMKIT_CACHE/synthetic, else ~/.cache/slamkit/synthetic).
 
@@ -85,7 +86,7 @@ class SyntheticConfig(DatasetConfig):
     fov_deg: float = 64.0
     seed: int = 0
     speed: float = 1.0
-    depth_noise: float = 0.0
+    depth_noise: float = 0.0015
     depth_dropout: float = 0.0
     cache_dir: str | None = None
 
