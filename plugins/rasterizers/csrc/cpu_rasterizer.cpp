@@ -1,0 +1,1091 @@
+// slamkit CPU rasteriser: tile-based differentiable 3D Gaussian Splatting, forward and backward.
+//
+// Plain C++17 with a C ABI (loaded with ctypes by slamkit_plugins/rasterizers/cpu_rasterizer.py):
+// no torch headers, so it builds in seconds with any C++17 compiler and does not depend on the
+// torch version (GCC >= 9 or Clang; vector extensions). Threads: a persistent pool, work handed
+// out dynamically in chunks; results are independent of the thread count (every sum has a
+// fixed order).
+//
+// Conventions: exactly those of slamkit.rendering.Rasterizer and the `torch` backend
+// (plugins/rasterizers/torch_rasterizer.py), which is the reference:
+//   - p = R m + t; culled when p_z <= 0.01 or opacity <= 1/255 (float32 compare);
+//   - u = fx x / z + cx, v = fy y / z + cy; J with x/z, y/z clamped to the image extended by
+//     15 % (+0.5 px) on each side; 2D covariance J R Sigma R^T J^T + 0.3 I; conic = its inverse;
+//   - a Gaussian covers, row by row, exactly the columns the torch backend's closed-form
+//     interval gives (the same float32 operations in the same order: compiled with
+//     -ffp-contract=off and without -ffast-math so they are reproduced bit for bit);
+//   - log alpha = log o - q / 2, alpha = min(0.99, exp(log alpha));
+//   - per pixel, front to back by camera z (ties by index); stop at the first Gaussian that
+//     would bring the transmittance below 1e-4;
+//   - colour = sum w c + (1 - sum w) bg, depth = sum w z, alpha = sum w, w = alpha T (the
+//     background's weight is computed as the final transmittance, equal to 1 - sum w).
+// The projection (means, quats, scales -> 2D mean, conic) and its backward are computed in
+// double precision; the pixel work in float32 (16 pixels per vector), the per-Gaussian
+// gradient sums in double.
+//
+// Forward: project + cull (parallel over Gaussians) -> radix sort by depth -> binning into
+// 16x16 tiles (each Gaussian is listed, in depth order, in the tiles its exact row intervals
+// touch) -> per tile, 32 entries at a time: their row spans (16 rows at once), per tile row the
+// entries covering it, then each row (16 pixels = one vector) composited with its state in
+// registers; per-pixel early termination, per-row and per-tile early exit. Kept for the
+// backward pass: the final transmittance and the last composited list position of every pixel.
+// Backward: per tile, the list walked back to front (transmittance recovered by division, the
+// suffix sum sum_{j>i} w_j v_j carried per pixel), per (tile, Gaussian) entry ten moments
+// accumulated in registers and stored in that entry's own slot (no atomics); then per Gaussian
+// the slots are reduced in a fixed order (deterministic) and the projection's analytic backward
+// gives the gradients w.r.t. means, quaternions, scales, opacities and colours.
+
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <condition_variable>
+#include <functional>
+#include <ctime>
+#include <cmath>
+#include <cstdint>
+#include <cstdio>
+#include <cstring>
+#include <exception>
+#include <memory>
+#include <mutex>
+#include <new>
+#include <thread>
+#include <vector>
+
+#include <unistd.h>
+
+#if defined(__AVX512F__)
+#include <immintrin.h>
+#endif
+
+namespace {
+
+constexpr int ABI_VERSION = 2;
+constexpr int TILE = 16;
+constexpr int TILE_PIX = TILE * TILE;
+constexpr double NEAR_PLANE = 0.01;
+constexpr double EPS_2D = 0.3;
+constexpr float ALPHA_MAX = 0.99f;
+constexpr double T_MIN = 1e-4;
+constexpr double JACOBIAN_MARGIN = 0.15;
+constexpr int NUM_MOMENTS = 10;
+
+// ------------------------------------------------------------------------------------------
+// Threads and timing
+
+struct Stamp {  // wall-clock and process CPU time, microseconds
+  int64_t wall, cpu;
+};
+
+inline Stamp now_us() {
+  Stamp s;
+  s.wall = std::chrono::duration_cast<std::chrono::microseconds>(std::chrono::steady_clock::now().time_since_epoch())
+               .count();
+  s.cpu = (int64_t)((double)std::clock() * 1e6 / CLOCKS_PER_SEC);
+  return s;
+}
+
+// A persistent pool of worker threads. A job is a number of chunks handed out dynamically; the
+// caller works too and waits only for chunks that were taken, never for a worker to start: on
+// a busy machine (tracking beside mapping, other processes) a worker that is not scheduled in
+// time is simply not waited for. One job at a time; a caller that finds the pool busy (renders
+// from several Python threads) does its job alone.
+class Pool {
+ public:
+  static Pool& instance() {
+    static std::mutex m;
+    static Pool* pool = nullptr;
+    static int64_t pid = -1;
+    std::lock_guard<std::mutex> lock(m);
+    const int64_t now = (int64_t)::getpid();
+    if (pool == nullptr || pid != now) {  // a forked child has none of the parent's threads
+      pool = new Pool();  // never destroyed: its detached threads live as long as the process
+      pid = now;
+    }
+    return *pool;
+  }
+
+  // f(chunk, worker) for every chunk in [0, chunks), worker in [0, nthreads) (0 = the caller)
+  void run(int nthreads, int64_t chunks, const std::function<void(int64_t, int)>& f) {
+    std::unique_lock<std::mutex> busy(run_mutex_, std::try_to_lock);
+    if (nthreads <= 1 || chunks <= 1 || !busy.owns_lock()) {
+      for (int64_t c = 0; c < chunks; ++c) f(c, 0);
+      return;
+    }
+    ensure_workers(nthreads - 1);
+    Job job;
+    job.f = &f;
+    job.chunks = chunks;
+    job.max_workers = nthreads - 1;
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      job.generation = ++generation_;
+      job_ = &job;
+    }
+    wake_.notify_all();
+    work(job, 0);
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      job_ = nullptr;  // no worker joins from now on
+    }
+    std::unique_lock<std::mutex> lock(done_mutex_);
+    done_.wait(lock, [&] { return job.active.load() == 0; });  // chunks taken by workers are finished
+    if (job.error) std::rethrow_exception(job.error);
+  }
+
+ private:
+  struct Job {
+    const std::function<void(int64_t, int)>* f = nullptr;
+    int64_t chunks = 0, generation = 0;
+    int max_workers = 0;
+    std::atomic<int64_t> next{0};
+    std::atomic<int> active{0}, joined{0};
+    std::mutex error_mutex;
+    std::exception_ptr error;
+  };
+
+  static void work(Job& job, int worker) {
+    for (;;) {
+      const int64_t c = job.next.fetch_add(1, std::memory_order_relaxed);
+      if (c >= job.chunks) return;
+      try {
+        (*job.f)(c, worker);
+      } catch (...) {
+        std::lock_guard<std::mutex> lock(job.error_mutex);
+        if (!job.error) job.error = std::current_exception();
+        job.next.store(job.chunks);  // stop handing out chunks
+      }
+    }
+  }
+
+  void ensure_workers(int n) {
+    std::lock_guard<std::mutex> lock(mutex_);
+    while (num_workers_ < n) {
+      try {
+        std::thread([this] { worker_loop(); }).detach();
+      } catch (...) {  // no more threads: the caller (and the workers there are) do the work
+        return;
+      }
+      ++num_workers_;
+    }
+  }
+
+  void worker_loop() {
+    int64_t seen = 0;
+    for (;;) {
+      Job* job;
+      int id;
+      {
+        std::unique_lock<std::mutex> lock(mutex_);
+        wake_.wait(lock, [&] { return job_ != nullptr && job_->generation != seen; });
+        job = job_;
+        seen = job->generation;
+        id = job->joined.fetch_add(1) + 1;
+        if (id > job->max_workers) continue;
+        job->active.fetch_add(1);
+      }
+      work(*job, id);
+      {
+        std::lock_guard<std::mutex> lock(done_mutex_);
+        job->active.fetch_sub(1);
+      }
+      done_.notify_all();
+    }
+  }
+
+  std::mutex run_mutex_, mutex_, done_mutex_;
+  std::condition_variable wake_, done_;
+  Job* job_ = nullptr;
+  int64_t generation_ = 0;
+  int num_workers_ = 0;
+};
+
+// f(begin, end, worker) over [0, n) in chunks of `grain`, handed out dynamically to at most
+// nthreads threads; worker < nthreads.
+template <class F>
+void parallel_for(int nthreads, int64_t n, int64_t grain, F&& f) {
+  if (n <= 0) return;
+  grain = std::max<int64_t>(grain, 1);
+  const int64_t chunks = (n + grain - 1) / grain;
+  const std::function<void(int64_t, int)> body = [&](int64_t c, int worker) {
+    const int64_t b = c * grain;
+    f(b, std::min(n, b + grain), worker);
+  };
+  Pool::instance().run((int)std::min<int64_t>(nthreads, chunks), chunks, body);
+}
+
+// ------------------------------------------------------------------------------------------
+// Camera and projection (double precision)
+
+struct Camera {
+  int W, H;
+  double fx, fy, cx, cy;
+  double R[9], t[3];
+  double lim_x0, lim_x1, lim_y0, lim_y1;  // tx in [-lim_x0, lim_x1], ty in [-lim_y0, lim_y1]
+};
+
+Camera make_camera(const double* viewmat, const double* intr, int W, int H) {
+  Camera c;
+  c.W = W;
+  c.H = H;
+  c.fx = intr[0];
+  c.fy = intr[1];
+  c.cx = intr[2];
+  c.cy = intr[3];
+  for (int i = 0; i < 3; ++i) {
+    for (int j = 0; j < 3; ++j) c.R[3 * i + j] = viewmat[4 * i + j];
+    c.t[i] = viewmat[4 * i + 3];
+  }
+  // as the torch backend: the values are float32 where it clamps (a python float on a float32
+  // tensor), so round them the same way
+  c.lim_x0 = (float)((JACOBIAN_MARGIN * W + c.cx + 0.5) / c.fx);
+  c.lim_x1 = (float)((W * (1 + JACOBIAN_MARGIN) - c.cx - 0.5) / c.fx);
+  c.lim_y0 = (float)((JACOBIAN_MARGIN * H + c.cy + 0.5) / c.fy);
+  c.lim_y1 = (float)((H * (1 + JACOBIAN_MARGIN) - c.cy - 0.5) / c.fy);
+  return c;
+}
+
+struct Projection {  // everything the forward computes, kept to differentiate it
+  double p[3], iz, txr, tyr, tx, ty;
+  double qn[4], qnorm, Rq[9], s2[3];
+  double M[6];  // J R (2x3)
+  double A[6];  // M Rq (2x3): cov2d = A diag(s^2) A^T
+  double sxx, sxy, syy, a, b, c, u, v;
+};
+
+inline void quat_to_rotmat(const double* q, double* R) {
+  double w = q[0], x = q[1], y = q[2], z = q[3];
+  R[0] = 1 - 2 * (y * y + z * z);
+  R[1] = 2 * (x * y - w * z);
+  R[2] = 2 * (x * z + w * y);
+  R[3] = 2 * (x * y + w * z);
+  R[4] = 1 - 2 * (x * x + z * z);
+  R[5] = 2 * (y * z - w * x);
+  R[6] = 2 * (x * z - w * y);
+  R[7] = 2 * (y * z + w * x);
+  R[8] = 1 - 2 * (x * x + y * y);
+}
+
+// camera-frame mean only (for culling)
+inline double camera_z(const Camera& cam, const float* m) {
+  return cam.R[6] * m[0] + cam.R[7] * m[1] + cam.R[8] * m[2] + cam.t[2];
+}
+
+void project(const Camera& cam, const float* m, const float* q, const float* s, Projection& P) {
+  const double* R = cam.R;
+  for (int i = 0; i < 3; ++i)
+    P.p[i] = R[3 * i] * m[0] + R[3 * i + 1] * m[1] + R[3 * i + 2] * m[2] + cam.t[i];
+  double x = P.p[0], y = P.p[1], z = P.p[2];
+  P.iz = 1.0 / z;
+  P.u = cam.fx * x * P.iz + cam.cx;
+  P.v = cam.fy * y * P.iz + cam.cy;
+  P.txr = x * P.iz;
+  P.tyr = y * P.iz;
+  P.tx = std::min(std::max(P.txr, -cam.lim_x0), cam.lim_x1);
+  P.ty = std::min(std::max(P.tyr, -cam.lim_y0), cam.lim_y1);
+  double J00 = cam.fx * P.iz, J02 = -cam.fx * P.tx * P.iz;
+  double J11 = cam.fy * P.iz, J12 = -cam.fy * P.ty * P.iz;
+  for (int j = 0; j < 3; ++j) {
+    P.M[j] = J00 * R[j] + J02 * R[6 + j];
+    P.M[3 + j] = J11 * R[3 + j] + J12 * R[6 + j];
+  }
+  double qd[4] = {q[0], q[1], q[2], q[3]};
+  P.qnorm = std::sqrt(qd[0] * qd[0] + qd[1] * qd[1] + qd[2] * qd[2] + qd[3] * qd[3]);
+  for (int i = 0; i < 4; ++i) P.qn[i] = qd[i] / P.qnorm;
+  quat_to_rotmat(P.qn, P.Rq);
+  for (int k = 0; k < 3; ++k) P.s2[k] = (double)s[k] * (double)s[k];
+  for (int r = 0; r < 2; ++r)
+    for (int k = 0; k < 3; ++k)
+      P.A[3 * r + k] = P.M[3 * r] * P.Rq[k] + P.M[3 * r + 1] * P.Rq[3 + k] + P.M[3 * r + 2] * P.Rq[6 + k];
+  double c00 = 0, c01 = 0, c11 = 0;
+  for (int k = 0; k < 3; ++k) {
+    c00 += P.A[k] * P.A[k] * P.s2[k];
+    c01 += P.A[k] * P.A[3 + k] * P.s2[k];
+    c11 += P.A[3 + k] * P.A[3 + k] * P.s2[k];
+  }
+  P.sxx = c00 + EPS_2D;
+  P.syy = c11 + EPS_2D;
+  P.sxy = c01;
+  double inv_det = 1.0 / (P.sxx * P.syy - P.sxy * P.sxy);
+  P.a = P.syy * inv_det;
+  P.b = -P.sxy * inv_det;
+  P.c = P.sxx * inv_det;
+}
+
+// Gradients of (u, v, conic a b c, z) -> means, quats, scales (added to gm, gq, gs).
+void project_backward(const Camera& cam, const Projection& P, const float* s, double gu, double gv, double ga,
+                      double gb, double gc, double gz_direct, float* gm, float* gq, float* gs) {
+  const double a = P.a, b = P.b, c = P.c;
+  // conic = cov^-1: dL/dcov = -C G C (G the symmetric gradient w.r.t. the conic matrix)
+  double g_sxx = -(a * a * ga + a * b * gb + b * b * gc);
+  double g_syy = -(b * b * ga + b * c * gb + c * c * gc);
+  double g_sxy = -(2 * a * b * ga + (a * c + b * b) * gb + 2 * b * c * gc);
+  // cov2d = A S A^T, S = diag(s^2); Gcov = [[g_sxx, g_sxy/2], [g_sxy/2, g_syy]]
+  const double* A = P.A;
+  double gA[6];
+  for (int k = 0; k < 3; ++k) {
+    // (Gcov A)_rk, then times 2 s_k^2
+    double r0 = g_sxx * A[k] + 0.5 * g_sxy * A[3 + k];
+    double r1 = 0.5 * g_sxy * A[k] + g_syy * A[3 + k];
+    gA[k] = 2 * r0 * P.s2[k];
+    gA[3 + k] = 2 * r1 * P.s2[k];
+    double q = A[k] * A[k] * g_sxx + A[k] * A[3 + k] * g_sxy + A[3 + k] * A[3 + k] * g_syy;
+    gs[k] += (float)(2 * (double)s[k] * q);
+  }
+  // A = M Rq: dL/dM = gA Rq^T, dL/dRq = M^T gA
+  double gM[6], gR[9];
+  for (int r = 0; r < 2; ++r)
+    for (int j = 0; j < 3; ++j)
+      gM[3 * r + j] = gA[3 * r] * P.Rq[3 * j] + gA[3 * r + 1] * P.Rq[3 * j + 1] + gA[3 * r + 2] * P.Rq[3 * j + 2];
+  for (int i = 0; i < 3; ++i)
+    for (int k = 0; k < 3; ++k) gR[3 * i + k] = P.M[i] * gA[k] + P.M[3 + i] * gA[3 + k];
+  // Rq(qn) -> qn -> q
+  {
+    double w = P.qn[0], x = P.qn[1], y = P.qn[2], z = P.qn[3];
+    const double* G = gR;
+    double gw = 2 * (-z * G[1] + y * G[2] + z * G[3] - x * G[5] - y * G[6] + x * G[7]);
+    double gx = 2 * (y * G[1] + z * G[2] + y * G[3] - 2 * x * G[4] - w * G[5] + z * G[6] + w * G[7] - 2 * x * G[8]);
+    double gy = 2 * (-2 * y * G[0] + x * G[1] + w * G[2] + x * G[3] + z * G[5] - w * G[6] + z * G[7] - 2 * y * G[8]);
+    double gz = 2 * (-2 * z * G[0] - w * G[1] + x * G[2] + w * G[3] - 2 * z * G[4] + y * G[5] + x * G[6] + y * G[7]);
+    double dot = w * gw + x * gx + y * gy + z * gz;
+    gq[0] += (float)((gw - w * dot) / P.qnorm);
+    gq[1] += (float)((gx - x * dot) / P.qnorm);
+    gq[2] += (float)((gy - y * dot) / P.qnorm);
+    gq[3] += (float)((gz - z * dot) / P.qnorm);
+  }
+  // M = J R: dL/dJ = gM R^T (only J00, J02, J11, J12 are not constant)
+  const double* R = cam.R;
+  double gJ00 = gM[0] * R[0] + gM[1] * R[1] + gM[2] * R[2];
+  double gJ02 = gM[0] * R[6] + gM[1] * R[7] + gM[2] * R[8];
+  double gJ11 = gM[3] * R[3] + gM[4] * R[4] + gM[5] * R[5];
+  double gJ12 = gM[3] * R[6] + gM[4] * R[7] + gM[5] * R[8];
+  const double x = P.p[0], y = P.p[1], iz = P.iz;
+  double g_iz = cam.fx * (gJ00 - gJ02 * P.tx) + cam.fy * (gJ11 - gJ12 * P.ty) + gu * cam.fx * x + gv * cam.fy * y;
+  double gx = gu * cam.fx * iz, gy = gv * cam.fy * iz;
+  if (P.txr >= -cam.lim_x0 && P.txr <= cam.lim_x1) {
+    double g_tx = -gJ02 * cam.fx * iz;
+    gx += g_tx * iz;
+    g_iz += g_tx * x;
+  }
+  if (P.tyr >= -cam.lim_y0 && P.tyr <= cam.lim_y1) {
+    double g_ty = -gJ12 * cam.fy * iz;
+    gy += g_ty * iz;
+    g_iz += g_ty * y;
+  }
+  double gzp = gz_direct - g_iz * iz * iz;
+  for (int j = 0; j < 3; ++j) gm[j] += (float)(R[j] * gx + R[3 + j] * gy + R[6 + j] * gzp);
+}
+
+// ------------------------------------------------------------------------------------------
+// Per-Gaussian data in depth order, one cache line each
+
+struct alignas(64) Splat {
+  float u, v, a, b, c, det, level, boa;  // boa = b / a
+  float logo, z, col[3];
+  int32_t y0, y1;
+  int32_t index;  // input index
+};
+static_assert(sizeof(Splat) == 64, "Splat is one cache line");
+
+// For the 16 image rows y0 + i: the covered columns [xl[i], xr[i]] (empty where xr < xl) and
+// the rows' constants of log alpha = row_k - dx (a dx + row_b) / 2 with dx = x - xl + row_dx.
+// The float32 operations and their order are the torch backend's (so the covered pixels are
+// exactly the same); the loop is vectorised across rows.
+struct RowSpans {
+  alignas(64) float dy[TILE];
+  alignas(64) float row_dx[TILE];
+  alignas(64) float row_k[TILE];
+  alignas(64) float row_b[TILE];
+  alignas(64) int32_t xl[TILE];
+  alignas(64) int32_t xr[TILE];
+};
+
+// ------------------------------------------------------------------------------------------
+// One tile row = 16 pixels = one vector (GCC/Clang vector extensions: AVX-512 with
+// -march=native where available, split into 8- or 4-wide registers elsewhere).
+
+typedef float vf __attribute__((vector_size(64)));
+typedef int32_t vi __attribute__((vector_size(64)));
+static_assert(TILE * sizeof(float) == sizeof(vf), "a tile row is one vector");
+
+const vi LANE = {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15};
+
+inline vf vf1(float x) { return vf{x, x, x, x, x, x, x, x, x, x, x, x, x, x, x, x}; }  // (0 + x is not x for x = -0)
+inline vi vi1(int32_t x) { return vi{} + x; }
+inline vf select(vi m, vf a, vf b) { return (vf)(((vi)a & m) | ((vi)b & ~m)); }
+inline vi select(vi m, vi a, vi b) { return (a & m) | (b & ~m); }
+#if defined(__AVX512F__)
+inline bool any(vi m) { return _mm512_test_epi32_mask((__m512i)m, (__m512i)m) != 0; }
+inline bool all(vi m) { return _mm512_test_epi32_mask((__m512i)m, (__m512i)m) == 0xFFFF; }
+inline float hsum(vf v) { return _mm512_reduce_add_ps((__m512)v); }
+#else
+inline bool any(vi m) {
+  uint64_t w[8];
+  std::memcpy(w, &m, sizeof(w));
+  return (w[0] | w[1] | w[2] | w[3] | w[4] | w[5] | w[6] | w[7]) != 0;
+}
+inline bool all(vi m) {
+  uint64_t w[8];
+  std::memcpy(w, &m, sizeof(w));
+  return (w[0] & w[1] & w[2] & w[3] & w[4] & w[5] & w[6] & w[7]) == ~uint64_t(0);
+}
+inline float hsum(vf v) {
+  float h[TILE];
+  std::memcpy(h, &v, sizeof(h));
+  float a = 0, b = 0, c = 0, d = 0;
+  for (int i = 0; i < TILE; i += 4) {
+    a += h[i];
+    b += h[i + 1];
+    c += h[i + 2];
+    d += h[i + 3];
+  }
+  return (a + b) + (c + d);
+}
+#endif
+
+// a * b + c, fused where the target has FMA (used only where rounding need not match torch)
+inline vf vfma(vf a, vf b, vf c) {
+#if defined(__AVX512F__)
+  return (vf)_mm512_fmadd_ps((__m512)a, (__m512)b, (__m512)c);
+#else
+  return a * b + c;
+#endif
+}
+inline vf vfma(vf a, float b, vf c) { return vfma(a, vf1(b), c); }
+
+// exp for float lanes (Cephes' expf: range reduction by ln 2, degree-6 polynomial; within
+// ~1 ulp of the correctly rounded value on [-87, 0], which is all that alpha needs).
+inline vf vexp(vf x) {
+  x = select(x < -87.0f, vf1(-87.0f), x);
+  const vf t = x * 1.44269504088896341f + 12582912.0f;  // 1.5 * 2^23: rounds x log2(e) to an integer
+  const vf n = t - 12582912.0f;
+  const vi e = ((vi)t - 0x4B400000 + 127) << 23;  // the bits of 2^n
+  vf r = vfma(n, -0.693359375f, x);
+  r = vfma(n, 2.12194440e-4f, r);
+  vf p = vfma(vf1(1.9875691500E-4f), r, vf1(1.3981999507E-3f));
+  p = vfma(p, r, vf1(8.3334519073E-3f));
+  p = vfma(p, r, vf1(4.1665795894E-2f));
+  p = vfma(p, r, vf1(1.6666665459E-1f));
+  p = vfma(p, r, vf1(5.0000001201E-1f));
+  const vf y = vfma(p * r, r, r) + 1.0f;
+  return y * (vf)e;
+}
+
+inline vf vsqrt(vf x) {
+#if defined(__AVX512F__)
+  return (vf)_mm512_sqrt_ps((__m512)x);
+#else
+  for (int i = 0; i < TILE; ++i) x[i] = std::sqrt(x[i]);
+  return x;
+#endif
+}
+
+inline vf vclamp(vf x, float lo, float hi) {
+  x = select(x < lo, vf1(lo), x);
+  return select(x > hi, vf1(hi), x);
+}
+
+// exact ceil / floor for |x| < 2^31 (truncation toward zero, then corrected)
+inline vf vceil(vf x) {
+  const vf t = __builtin_convertvector(__builtin_convertvector(x, vi), vf);
+  return t + select(t < x, vf1(1.0f), vf{});
+}
+inline vf vfloor(vf x) {
+  const vf t = __builtin_convertvector(__builtin_convertvector(x, vi), vf);
+  return t - select(t > x, vf1(1.0f), vf{});
+}
+
+// the rows' spans (see RowSpans): the torch backend's float32 operations, 16 rows at once
+inline void row_spans(const Splat& s, int y0, int W, RowSpans& o) {
+  const float a_level = s.a * s.level, wmax = (float)(W - 1);
+  const vf dy = __builtin_convertvector(LANE + y0, vf) - s.v;
+  const vf disc = a_level - s.det * dy * dy;
+  const vf half = vsqrt(select(disc > 0.0f, disc, vf{})) / s.a;
+  const vf mid = s.u - s.boa * dy;
+  // clamping the bounds to [-1, W] first changes no result below (they are clamped to
+  // [0, W - 1] after rounding) and keeps the float -> int conversions in range
+  vf xl = vceil(vclamp(mid - half, -1.0f, (float)W));
+  vf xr = vfloor(vclamp(mid + half, -1.0f, (float)W));
+  xl = select(xl > 0.0f, xl, vf{});
+  xr = select(xr < wmax, xr, vf1(wmax));
+  const vi ok = xr >= xl;
+  *(vf*)o.dy = dy;
+  *(vf*)o.row_dx = xl - s.u;
+  *(vf*)o.row_k = s.logo - 0.5f * s.c * dy * dy;
+  *(vf*)o.row_b = 2.0f * s.b * dy;
+  *(vi*)o.xl = select(ok, __builtin_convertvector(xl, vi), vi1(1));
+  *(vi*)o.xr = select(ok, __builtin_convertvector(xr, vi), vi{});
+}
+
+// Compositing a tile goes chunk by chunk (CHUNK entries): the entries' row spans are computed
+// (16 rows at once) and, per tile row, the entries covering it are listed, so that each row is
+// then composited with its state in registers.
+constexpr int CHUNK = 32;
+constexpr int PREFETCH = 8;  // entries ahead whose splat is prefetched (they are scattered in memory)
+struct ChunkEntry {
+  RowSpans sp;
+  float a, col[3], z;
+  int32_t pos;  // position in the tile list
+};
+
+// alpha of the 16 lanes of row lr of an entry, and dx (lane - (xl - x0) + row_dx); log alpha is
+// the torch backend's expression (fused here: it does not decide which pixels are covered)
+inline vf entry_alpha(const ChunkEntry& E, int lr, int x0, vf& dx) {
+  dx = __builtin_convertvector(LANE - (E.sp.xl[lr] - x0), vf) + E.sp.row_dx[lr];
+  const vf la = vfma(dx * -0.5f, vfma(dx, E.a, vf1(E.sp.row_b[lr])), vf1(E.sp.row_k[lr]));
+  const vf al = vexp(la);
+  return select(al < ALPHA_MAX, al, vf1(ALPHA_MAX));
+}
+
+struct State {
+  int N = 0, M = 0, W = 0, H = 0, tiles_x = 0, tiles_y = 0;
+  Camera cam;
+  std::vector<Splat> splats;            // M, depth order
+  std::vector<int32_t> tile_start;      // tiles + 1
+  std::vector<int32_t> tile_ids;        // entries: splat index, depth order within a tile
+  std::vector<int32_t> tile_slot;       // entries: slot of the entry (Gaussian-major order)
+  std::vector<int32_t> sorted_of;       // N: depth rank of input Gaussian i, -1 if culled
+  std::vector<int32_t> slot_start;      // M + 1: slots of splat i are [slot_start[i], slot_start[i+1])
+  std::vector<int32_t> tile_order;      // tiles by decreasing list length (load balance)
+  std::vector<float> T_final;           // H*W
+  std::vector<int32_t> last;            // H*W: last composited position in the tile list, -1 none
+  int64_t num_pairs = 0;
+  int64_t num_rows = 0;  // (entry, tile row) iterations of the forward pass
+  // per phase (forward: project, sort, bin, lists, composite; backward: tiles, reduce): wall, CPU
+  int64_t wall_us[8] = {0}, cpu_us[8] = {0};
+};
+
+void radix_sort_by_key(std::vector<uint32_t>& key, std::vector<int32_t>& val) {
+  size_t n = key.size();
+  std::vector<uint32_t> k2(n);
+  std::vector<int32_t> v2(n);
+  for (int shift = 0; shift < 32; shift += 11) {
+    size_t count[2049] = {0};
+    for (size_t i = 0; i < n; ++i) ++count[((key[i] >> shift) & 2047) + 1];
+    for (int d = 0; d < 2048; ++d) count[d + 1] += count[d];
+    for (size_t i = 0; i < n; ++i) {
+      size_t j = count[(key[i] >> shift) & 2047]++;
+      k2[j] = key[i];
+      v2[j] = val[i];
+    }
+    key.swap(k2);
+    val.swap(v2);
+  }
+}
+
+inline uint32_t float_bits(float f) {
+  uint32_t u;
+  std::memcpy(&u, &f, 4);
+  return u;
+}
+
+// ------------------------------------------------------------------------------------------
+// Forward
+
+void forward(State& S, const float* means, const float* quats, const float* scales, const float* opac,
+             const float* colors, const float* bg, int nthreads, float* out_color, float* out_depth,
+             float* out_alpha) {
+  const Camera& cam = S.cam;
+  const int N = S.N, W = S.W, H = S.H;
+  const float alpha_min = (float)(1.0 / 255.0);
+
+  Stamp t0 = now_us();
+  // 1. project, cull, per-Gaussian rasterisation constants
+  std::vector<Splat> tmp(N);
+  std::vector<uint8_t> valid(N, 0);
+  parallel_for(nthreads, N, 4096, [&](int64_t b, int64_t e, int) {
+    Projection P;
+    for (int64_t i = b; i < e; ++i) {
+      float o = opac[i];
+      if (!(camera_z(cam, means + 3 * i) > NEAR_PLANE) || !(o > alpha_min)) continue;
+      project(cam, means + 3 * i, quats + 4 * i, scales + 3 * i, P);
+      Splat& s = tmp[i];
+      s.u = (float)P.u;
+      s.v = (float)P.v;
+      s.a = (float)P.a;
+      s.b = (float)P.b;
+      s.c = (float)P.c;
+      s.z = (float)P.p[2];
+      s.level = 2.0f * std::log(255.0f * o);
+      s.logo = std::log(o);
+      s.det = s.a * s.c - s.b * s.b;
+      s.boa = s.b / s.a;
+      for (int k = 0; k < 3; ++k) s.col[k] = colors[3 * i + k];
+      s.index = (int32_t)i;
+      float lv = s.level > 0.0f ? s.level : 0.0f;
+      float ry = std::sqrt(lv * s.a / s.det);
+      float rx = std::sqrt(lv * s.c / s.det);
+      float y0 = std::ceil(s.v - ry), y1 = std::floor(s.v + ry);
+      y0 = y0 > 0.0f ? y0 : 0.0f;
+      y1 = y1 < (float)(H - 1) ? y1 : (float)(H - 1);
+      const bool finite = std::isfinite(s.u) && std::isfinite(s.v) && std::isfinite(s.a) && std::isfinite(s.b) &&
+                          std::isfinite(s.c) && std::isfinite(s.det) && std::isfinite(s.boa) && std::isfinite(s.z);
+      bool on = finite && s.level > 0.0f && y1 >= y0 && std::floor(s.u + rx) >= 0.0f && std::ceil(s.u - rx) <= (float)(W - 1);
+      if (!on) continue;
+      s.y0 = (int32_t)y0;
+      s.y1 = (int32_t)y1;
+      valid[i] = 1;
+    }
+  });
+
+  Stamp t1 = now_us();
+  // 2. sort by depth (stable: ties keep the input order), z > 0 so its bits sort as integers
+  std::vector<uint32_t> key;
+  std::vector<int32_t> order;
+  key.reserve(N);
+  order.reserve(N);
+  for (int i = 0; i < N; ++i)
+    if (valid[i]) {
+      key.push_back(float_bits(tmp[i].z));
+      order.push_back(i);
+    }
+  radix_sort_by_key(key, order);
+  const int M = (int)order.size();
+  S.M = M;
+  S.sorted_of.assign(N, -1);
+  for (int i = 0; i < M; ++i) S.sorted_of[order[i]] = i;
+  S.splats.resize(M);
+  std::vector<int32_t> band_start(M + 1);
+  band_start[0] = 0;
+  for (int i = 0; i < M; ++i) {
+    const Splat& s = tmp[order[i]];
+    band_start[i + 1] = band_start[i] + (s.y1 / TILE - s.y0 / TILE + 1);
+  }
+  std::vector<int16_t> band_x0(band_start[M]), band_x1(band_start[M]);
+  std::vector<int32_t> entries_of(M);
+
+  Stamp t2 = now_us();
+  // 3. tile columns touched in each band of 16 rows, from the exact row intervals
+  parallel_for(nthreads, M, 1024, [&](int64_t b, int64_t e, int) {
+    RowSpans sp;
+    for (int64_t i = b; i < e; ++i) {
+      if (i + PREFETCH < e) __builtin_prefetch(&tmp[order[i + PREFETCH]]);
+      const Splat& s = S.splats[i] = tmp[order[i]];
+      int n = 0, k = band_start[i];
+      for (int ty = s.y0 / TILE; ty <= s.y1 / TILE; ++ty, ++k) {
+        const int r0 = std::max(s.y0 - ty * TILE, 0), r1 = std::min(s.y1 - ty * TILE, TILE - 1);
+        row_spans(s, ty * TILE, W, sp);
+        int lo = W, hi = -1;
+        for (int lr = r0; lr <= r1; ++lr) {
+          if (sp.xr[lr] < sp.xl[lr]) continue;
+          lo = std::min(lo, sp.xl[lr]);
+          hi = std::max(hi, sp.xr[lr]);
+        }
+        if (hi < lo) {
+          band_x0[k] = 1;
+          band_x1[k] = 0;
+          continue;
+        }
+        band_x0[k] = (int16_t)(lo / TILE);
+        band_x1[k] = (int16_t)(hi / TILE);
+        n += band_x1[k] - band_x0[k] + 1;
+      }
+      entries_of[i] = n;
+    }
+  });
+  tmp.clear();
+  tmp.shrink_to_fit();
+
+  Stamp t3 = now_us();
+  // 4. tile lists in depth order, and each entry's slot (Gaussian-major) for the backward pass
+  const int tiles = S.tiles_x * S.tiles_y;
+  S.slot_start.assign(M + 1, 0);
+  for (int i = 0; i < M; ++i) S.slot_start[i + 1] = S.slot_start[i] + entries_of[i];
+  const int64_t num_entries = S.slot_start[M];
+  S.tile_start.assign(tiles + 1, 0);
+  for (int i = 0; i < M; ++i) {
+    const Splat& s = S.splats[i];
+    int k = band_start[i];
+    for (int ty = s.y0 / TILE; ty <= s.y1 / TILE; ++ty, ++k)
+      for (int tx = band_x0[k]; tx <= band_x1[k]; ++tx) ++S.tile_start[ty * S.tiles_x + tx + 1];
+  }
+  for (int t = 0; t < tiles; ++t) S.tile_start[t + 1] += S.tile_start[t];
+  S.tile_ids.resize(num_entries);
+  S.tile_slot.resize(num_entries);
+  {
+    std::vector<int32_t> cursor(S.tile_start.begin(), S.tile_start.end() - 1);
+    int32_t slot = 0;
+    for (int i = 0; i < M; ++i) {
+      const Splat& s = S.splats[i];
+      int k = band_start[i];
+      for (int ty = s.y0 / TILE; ty <= s.y1 / TILE; ++ty, ++k)
+        for (int tx = band_x0[k]; tx <= band_x1[k]; ++tx) {
+          int32_t pos = cursor[ty * S.tiles_x + tx]++;
+          S.tile_ids[pos] = i;
+          S.tile_slot[pos] = slot++;
+        }
+    }
+  }
+  S.tile_order.resize(tiles);
+  for (int t = 0; t < tiles; ++t) S.tile_order[t] = t;
+  std::stable_sort(S.tile_order.begin(), S.tile_order.end(), [&](int p, int q) {
+    return S.tile_start[p + 1] - S.tile_start[p] > S.tile_start[q + 1] - S.tile_start[q];
+  });
+
+  Stamp t4 = now_us();
+  // 5. composite each tile
+  S.T_final.resize((size_t)W * H);
+  S.last.resize((size_t)W * H);
+  std::vector<int64_t> pairs_per_thread(std::max(nthreads, 1), 0), rows_per_thread(std::max(nthreads, 1), 0);
+  parallel_for(nthreads, tiles, 1, [&](int64_t b, int64_t e, int tid) {
+    std::unique_ptr<ChunkEntry[]> ents(new ChunkEntry[CHUNK]);
+    for (int64_t ti = b; ti < e; ++ti) {
+      const int tile = S.tile_order[ti];
+      const int tx = tile % S.tiles_x, ty = tile / S.tiles_x;
+      const int x0 = tx * TILE, y0 = ty * TILE;
+      const int tw = std::min(TILE, W - x0), th = std::min(TILE, H - y0), x1 = x0 + tw - 1;
+      // per tile row: transmittance, colour, depth and alpha sums, last position, done lanes
+      vf T[TILE], c0[TILE], c1[TILE], c2[TILE], dep[TILE], acc[TILE];
+      vi last[TILE], done[TILE];
+      bool alive[TILE];
+      const vi outside = LANE >= tw;
+      for (int r = 0; r < TILE; ++r) {
+        T[r] = vf1(1.0f);
+        c0[r] = c1[r] = c2[r] = dep[r] = acc[r] = vf{};
+        last[r] = vi1(-1);
+        done[r] = r < th ? outside : vi1(-1);
+        alive[r] = r < th && tw > 0;
+      }
+      int rows_alive = th;
+      int64_t rows = 0;
+      vi count = vi{};
+      const int end = S.tile_start[tile + 1];
+      for (int cs = S.tile_start[tile]; cs < end && rows_alive > 0; cs += CHUNK) {
+        // the chunk's entries: their row spans, and per tile row the ones covering it in depth
+        // order (rows already done are skipped)
+        const int ce = std::min(end, cs + CHUNK);
+        int nrow[TILE] = {0};
+        uint8_t list[TILE][CHUNK];
+        for (int pos = cs; pos < ce; ++pos) {
+          if (pos + PREFETCH < end) __builtin_prefetch(&S.splats[S.tile_ids[pos + PREFETCH]]);
+          const Splat& s = S.splats[S.tile_ids[pos]];
+          const int k = pos - cs;
+          ChunkEntry& E = ents[k];
+          const int r0 = std::max(s.y0 - y0, 0), r1 = std::min(s.y1 - y0, th - 1);
+          row_spans(s, y0, W, E.sp);
+          E.a = s.a;
+          E.col[0] = s.col[0];
+          E.col[1] = s.col[1];
+          E.col[2] = s.col[2];
+          E.z = s.z;
+          E.pos = pos;
+          for (int lr = r0; lr <= r1; ++lr)  // rows whose span meets the tile's columns
+            if (alive[lr] && E.sp.xr[lr] >= E.sp.xl[lr] && E.sp.xl[lr] <= x1 && E.sp.xr[lr] >= x0)
+              list[lr][nrow[lr]++] = (uint8_t)k;
+        }
+        // composite row by row, the row's state in registers
+        for (int lr = 0; lr < th; ++lr) {
+          const int n = nrow[lr];
+          if (n == 0) continue;
+          rows += n;
+          vf rT = T[lr], r0c = c0[lr], r1c = c1[lr], r2c = c2[lr], rdep = dep[lr], racc = acc[lr];
+          vi rlast = last[lr], rdone = done[lr];
+          for (int j = 0; j < n; ++j) {
+            const ChunkEntry& E = ents[list[lr][j]];
+            const vi in = (LANE >= E.sp.xl[lr] - x0) & (LANE <= E.sp.xr[lr] - x0) & ~rdone;
+            vf dx;
+            const vf al = entry_alpha(E, lr, x0, dx);
+            const vf Tn = rT * (1.0f - al);
+            const vi stop = in & (Tn < (float)T_MIN);
+            const vi m = in & ~stop;
+            const vf w = select(m, al * rT, vf{});
+            r0c = vfma(w, E.col[0], r0c);
+            r1c = vfma(w, E.col[1], r1c);
+            r2c = vfma(w, E.col[2], r2c);
+            rdep = vfma(w, E.z, rdep);
+            racc += w;
+            rT = select(m, Tn, rT);
+            rlast = select(m, vi1(E.pos), rlast);
+            count -= m;
+            rdone |= stop;  // (branch-free: stops are too frequent and irregular to predict)
+            if (all(rdone)) {
+              alive[lr] = false;
+              --rows_alive;
+              break;
+            }
+          }
+          T[lr] = rT;
+          c0[lr] = r0c;
+          c1[lr] = r1c;
+          c2[lr] = r2c;
+          dep[lr] = rdep;
+          acc[lr] = racc;
+          last[lr] = rlast;
+          done[lr] = rdone;
+        }
+      }
+      for (int lr = 0; lr < th; ++lr)
+        for (int lc = 0; lc < tw; ++lc) {
+          const size_t q = (size_t)(y0 + lr) * W + (x0 + lc);
+          // the background shows through T = 1 - sum w (T is the more accurate where alpha ~ 1)
+          const float rest = T[lr][lc];
+          out_color[3 * q] = c0[lr][lc] + rest * bg[0];
+          out_color[3 * q + 1] = c1[lr][lc] + rest * bg[1];
+          out_color[3 * q + 2] = c2[lr][lc] + rest * bg[2];
+          out_depth[q] = dep[lr][lc];
+          out_alpha[q] = acc[lr][lc];
+          S.T_final[q] = T[lr][lc];
+          S.last[q] = last[lr][lc];
+        }
+      int64_t pairs = 0;
+      for (int i = 0; i < TILE; ++i) pairs += count[i];
+      pairs_per_thread[tid] += pairs;
+      rows_per_thread[tid] += rows;
+    }
+  });
+  S.num_pairs = 0;
+  for (int64_t p : pairs_per_thread) S.num_pairs += p;
+  S.num_rows = 0;
+  for (int64_t r : rows_per_thread) S.num_rows += r;
+  Stamp t5 = now_us();
+  S.wall_us[0] = t1.wall - t0.wall;
+  S.cpu_us[0] = t1.cpu - t0.cpu;
+  S.wall_us[1] = t2.wall - t1.wall;
+  S.cpu_us[1] = t2.cpu - t1.cpu;
+  S.wall_us[2] = t3.wall - t2.wall;
+  S.cpu_us[2] = t3.cpu - t2.cpu;
+  S.wall_us[3] = t4.wall - t3.wall;
+  S.cpu_us[3] = t4.cpu - t3.cpu;
+  S.wall_us[4] = t5.wall - t4.wall;
+  S.cpu_us[4] = t5.cpu - t4.cpu;
+}
+
+// ------------------------------------------------------------------------------------------
+// Backward
+
+void backward(State& S, const float* means, const float* quats, const float* scales, const float* opac,
+              const float* g_color, const float* g_depth, const float* g_alpha, const float* bg, int nthreads,
+              float* g_means, float* g_quats, float* g_scales, float* g_opac, float* g_colors, float* g_bg) {
+  const int W = S.W, H = S.H;
+  const int tiles = S.tiles_x * S.tiles_y;
+  const int64_t num_entries = S.tile_ids.size();
+  Stamp t0 = now_us();
+  std::unique_ptr<float[]> moments(new float[(size_t)num_entries * NUM_MOMENTS]);  // every slot is written
+  std::vector<double> bg_tile(3 * (size_t)tiles);
+
+  // 1. per tile, back to front: per-entry moments
+  parallel_for(nthreads, tiles, 1, [&](int64_t b, int64_t e, int) {
+    for (int64_t ti = b; ti < e; ++ti) {
+      const int tile = S.tile_order[ti];
+      const int tx = tile % S.tiles_x, ty = tile / S.tiles_x;
+      const int x0 = tx * TILE, y0 = ty * TILE;
+      const int tw = std::min(TILE, W - x0), th = std::min(TILE, H - y0);
+      const int start = S.tile_start[tile], end = S.tile_start[tile + 1];
+      // per tile row: transmittance (after the current entry), suffix sum of w v, output grads
+      vf T[TILE], Ssum[TILE], g0[TILE], g1[TILE], g2[TILE], gd[TILE], ga[TILE];
+      vi last[TILE];
+      int maxlast = -1;
+      for (int lr = 0; lr < TILE; ++lr) {
+        T[lr] = Ssum[lr] = g0[lr] = g1[lr] = g2[lr] = gd[lr] = ga[lr] = vf{};
+        last[lr] = vi1(-1);
+      }
+      for (int lr = 0; lr < th; ++lr)
+        for (int lc = 0; lc < tw; ++lc) {
+          const size_t q = (size_t)(y0 + lr) * W + (x0 + lc);
+          T[lr][lc] = S.T_final[q];
+          g0[lr][lc] = g_color[3 * q];
+          g1[lr][lc] = g_color[3 * q + 1];
+          g2[lr][lc] = g_color[3 * q + 2];
+          gd[lr][lc] = g_depth[q];
+          // d colour / d (sum w) = -bg, folded into the alpha gradient
+          ga[lr][lc] = g_alpha[q] - (g_color[3 * q] * bg[0] + g_color[3 * q + 1] * bg[1] + g_color[3 * q + 2] * bg[2]);
+          last[lr][lc] = S.last[q];
+          maxlast = std::max(maxlast, S.last[q]);
+        }
+      {
+        double b0 = 0, b1 = 0, b2 = 0;  // d colour / d bg = T
+        for (int lr = 0; lr < th; ++lr)
+          for (int lc = 0; lc < tw; ++lc) {
+            b0 += (double)T[lr][lc] * g0[lr][lc];
+            b1 += (double)T[lr][lc] * g1[lr][lc];
+            b2 += (double)T[lr][lc] * g2[lr][lc];
+          }
+        bg_tile[3 * tile] = b0;
+        bg_tile[3 * tile + 1] = b1;
+        bg_tile[3 * tile + 2] = b2;
+      }
+      ChunkEntry E;
+      for (int pos = end - 1; pos >= start; --pos) {
+        float* mom = &moments[(size_t)S.tile_slot[pos] * NUM_MOMENTS];
+        if (pos > maxlast) {
+          for (int k = 0; k < NUM_MOMENTS; ++k) mom[k] = 0.0f;
+          continue;
+        }
+        if (pos - PREFETCH >= start) __builtin_prefetch(&S.splats[S.tile_ids[pos - PREFETCH]]);
+        const Splat& s = S.splats[S.tile_ids[pos]];
+        vf m0 = vf{}, mx = vf{}, my = vf{}, mxx = vf{}, mxy = vf{}, myy = vf{};
+        vf w0 = vf{}, w1 = vf{}, w2 = vf{}, wd = vf{};
+        const vi posv = vi1(pos);
+        const int r0 = std::max(s.y0 - y0, 0), r1 = std::min(s.y1 - y0, th - 1);
+        row_spans(s, y0, W, E.sp);
+        E.a = s.a;
+        for (int lr = r0; lr <= r1; ++lr) {
+          if (E.sp.xr[lr] < E.sp.xl[lr] || E.sp.xl[lr] > x0 + tw - 1 || E.sp.xr[lr] < x0) continue;
+          const vi m = (LANE >= E.sp.xl[lr] - x0) & (LANE <= E.sp.xr[lr] - x0) & (posv <= last[lr]);
+          if (!any(m)) continue;
+          vf dx;
+          const vf al = entry_alpha(E, lr, x0, dx);
+          const vf dy = vf1(E.sp.dy[lr]);
+          const vf inv = 1.0f / (1.0f - al);
+          const vf Tb = T[lr] * inv;  // transmittance before this Gaussian
+          const vf w = select(m, al * Tb, vf{});
+          const vf val = vfma(vf1(s.col[0]), g0[lr], vfma(vf1(s.col[1]), g1[lr], vfma(vf1(s.col[2]), g2[lr], vfma(vf1(s.z), gd[lr], ga[lr]))));
+          // dL/dlog(alpha) = alpha dL/dalpha = alpha (T v - sum_{j>i} w_j v_j / (1 - alpha)), zero
+          // where alpha is clamped
+          const vf sg = select(m & (al < ALPHA_MAX), al * vfma(Tb, val, -(Ssum[lr] * inv)), vf{});
+          const vf dxm = select(m, dx, vf{});
+          const vf sdx = sg * dxm;
+          const vf sdy = sg * dy;
+          m0 += sg;
+          mx += sdx;
+          my += sdy;
+          mxx = vfma(sdx, dxm, mxx);
+          mxy = vfma(sdx, dy, mxy);
+          myy = vfma(sdy, dy, myy);
+          w0 = vfma(w, g0[lr], w0);
+          w1 = vfma(w, g1[lr], w1);
+          w2 = vfma(w, g2[lr], w2);
+          wd = vfma(w, gd[lr], wd);
+          Ssum[lr] = vfma(w, val, Ssum[lr]);  // w = 0 outside m
+          T[lr] = select(m, Tb, T[lr]);
+        }
+        mom[0] = hsum(m0);
+        mom[1] = hsum(mx);
+        mom[2] = hsum(my);
+        mom[3] = hsum(mxx);
+        mom[4] = hsum(mxy);
+        mom[5] = hsum(myy);
+        mom[6] = hsum(w0);
+        mom[7] = hsum(w1);
+        mom[8] = hsum(w2);
+        mom[9] = hsum(wd);
+      }
+    }
+  });
+
+  for (int k = 0; k < 3; ++k) {
+    double sum = 0;
+    for (int t = 0; t < tiles; ++t) sum += bg_tile[3 * t + k];
+    g_bg[k] = (float)sum;
+  }
+  Stamp t1 = now_us();
+  // 2. per Gaussian, in input order (the inputs and outputs stream; the sorted-side data is
+  // prefetched): reduce its slots (fixed order), then the projection's backward
+  const Camera& cam = S.cam;
+  const int N = S.N;
+  parallel_for(nthreads, N, 2048, [&](int64_t b, int64_t e, int) {
+    Projection P;
+    for (int64_t i = b; i < e; ++i) {
+      if (i + 2 * PREFETCH < e) {
+        const int32_t j2 = S.sorted_of[i + 2 * PREFETCH];
+        if (j2 >= 0) {
+          __builtin_prefetch(&S.splats[j2]);
+          __builtin_prefetch(&S.slot_start[j2]);
+        }
+      }
+      if (i + PREFETCH < e) {
+        const int32_t j1 = S.sorted_of[i + PREFETCH];
+        if (j1 >= 0) __builtin_prefetch(&moments[(size_t)S.slot_start[j1] * NUM_MOMENTS]);
+      }
+      float* gm = g_means + 3 * i;
+      float* gq = g_quats + 4 * i;
+      float* gs = g_scales + 3 * i;
+      for (int k = 0; k < 3; ++k) gm[k] = gs[k] = g_colors[3 * i + k] = 0.0f;
+      for (int k = 0; k < 4; ++k) gq[k] = 0.0f;
+      g_opac[i] = 0.0f;
+      const int32_t j = S.sorted_of[i];
+      if (j < 0) continue;  // culled: no gradient
+      double m[NUM_MOMENTS] = {0};
+      for (int32_t k = S.slot_start[j]; k < S.slot_start[j + 1]; ++k)
+        for (int q = 0; q < NUM_MOMENTS; ++q) m[q] += moments[(size_t)k * NUM_MOMENTS + q];
+      const Splat& s = S.splats[j];
+      const double a = s.a, bb = s.b, c = s.c;
+      const double gu = a * m[1] + bb * m[2];
+      const double gv = bb * m[1] + c * m[2];
+      const double ga = -0.5 * m[3], gb = -m[4], gc = -0.5 * m[5];
+      g_opac[i] = (float)(m[0] / (double)opac[i]);
+      g_colors[3 * i] = (float)m[6];
+      g_colors[3 * i + 1] = (float)m[7];
+      g_colors[3 * i + 2] = (float)m[8];
+      project(cam, means + 3 * i, quats + 4 * i, scales + 3 * i, P);
+      project_backward(cam, P, scales + 3 * i, gu, gv, ga, gb, gc, m[9], gm, gq, gs);
+    }
+  });
+  Stamp t2 = now_us();
+  S.wall_us[5] = t1.wall - t0.wall;
+  S.cpu_us[5] = t1.cpu - t0.cpu;
+  S.wall_us[6] = t2.wall - t1.wall;
+  S.cpu_us[6] = t2.cpu - t1.cpu;
+}
+
+void write_error(char* err, int errlen, const char* msg) {
+  if (err && errlen > 0) std::snprintf(err, (size_t)errlen, "%s", msg);
+}
+
+}  // namespace
+
+// ------------------------------------------------------------------------------------------
+// C ABI. All arrays are contiguous float32 (viewmat, intrinsics float64); every output array
+// is written in full. Functions return 0 / a handle, or -1 / NULL with a message in err.
+
+extern "C" {
+
+int slk_abi_version() { return ABI_VERSION; }
+
+void* slk_forward(int N, const float* means, const float* quats, const float* scales, const float* opac,
+                  const float* colors, const double* viewmat, const double* intr, int W, int H, const float* bg,
+                  int nthreads, float* out_color, float* out_depth, float* out_alpha, int64_t* stats, char* err,
+                  int errlen) {
+  State* S = nullptr;
+  try {
+    S = new State();
+    S->N = N;
+    S->W = W;
+    S->H = H;
+    S->tiles_x = (W + TILE - 1) / TILE;
+    S->tiles_y = (H + TILE - 1) / TILE;
+    S->cam = make_camera(viewmat, intr, W, H);
+    forward(*S, means, quats, scales, opac, colors, bg, std::max(1, nthreads), out_color, out_depth, out_alpha);
+    stats[0] = S->num_pairs;
+    stats[1] = S->M;
+    stats[2] = (int64_t)S->tile_ids.size();
+    stats[3] = S->num_rows;
+    return S;
+  } catch (const std::exception& e) {
+    write_error(err, errlen, e.what());
+  } catch (...) {
+    write_error(err, errlen, "unknown error");
+  }
+  delete S;
+  return nullptr;
+}
+
+int slk_backward(void* state, const float* means, const float* quats, const float* scales, const float* opac,
+                 const float* g_color, const float* g_depth, const float* g_alpha, const float* bg, int nthreads,
+                 float* g_means, float* g_quats, float* g_scales, float* g_opac, float* g_colors, float* g_bg,
+                 char* err, int errlen) {
+  try {
+    State& S = *static_cast<State*>(state);
+    backward(S, means, quats, scales, opac, g_color, g_depth, g_alpha, bg, std::max(1, nthreads), g_means, g_quats,
+             g_scales, g_opac, g_colors, g_bg);
+    return 0;
+  } catch (const std::exception& e) {
+    write_error(err, errlen, e.what());
+  } catch (...) {
+    write_error(err, errlen, "unknown error");
+  }
+  return -1;
+}
+
+// per-phase wall (out[0:8]) and process CPU (out[8:16]) microseconds of the last passes
+void slk_times(void* state, int64_t* out) {
+  const State& S = *static_cast<const State*>(state);
+  for (int i = 0; i < 8; ++i) {
+    out[i] = S.wall_us[i];
+    out[8 + i] = S.cpu_us[i];
+  }
+}
+
+void slk_free(void* state) { delete static_cast<State*>(state); }
+
+}  // extern "C"

@@ -1,0 +1,259 @@
+"""The compiled CPU rasteriser (`rasterizer=cpu`) against the `torch` reference backend:
+images and every gradient on hard random scenes, exact pair selection, determinism across
+thread counts, edge cases, plugin registration, and the build / fallback behaviour."""
+
+from __future__ import annotations
+
+import math
+import threading
+
+import pytest
+import torch
+
+import slamkit_plugins.rasterizers.cpu_rasterizer as cpu_module
+import slamkit_plugins.rasterizers.torch_rasterizer as torch_module
+from slamkit.errors import ConfigError
+from slamkit.registry import Registry, create_rasterizer
+from slamkit.types import Camera
+from slamkit_plugins.rasterizers.cpu_rasterizer import CPURasterizer, CPURasterizerConfig
+from slamkit_plugins.rasterizers.torch_rasterizer import TorchRasterizer
+
+F32, F64 = torch.float32, torch.float64
+NAMES = ("color", "depth", "alpha", "means", "quats", "scales", "opacities", "colors", "background")
+TOL = 1e-4  # relative error (Frobenius norm of the difference / norm of the reference)
+
+
+@pytest.fixture
+def cpu() -> CPURasterizer:
+    rasterizer = CPURasterizer()  # built once per process (in the session's SLAMKIT_CACHE)
+    if not rasterizer.available:  # no compiler on this machine: the fallback has its own test
+        pytest.skip(f"cpu rasteriser not built: {cpu_module.get_library(True).error}")
+    return rasterizer
+
+
+def a_pose() -> torch.Tensor:
+    c, s = math.cos(0.3), math.sin(0.3)
+    w2c = torch.eye(4, dtype=F64)
+    w2c[:3, :3] = torch.tensor([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]], dtype=F64) @ torch.tensor(
+        [[1.0, 0.0, 0.0], [0.0, math.cos(0.2), -math.sin(0.2)], [0.0, math.sin(0.2), math.cos(0.2)]], dtype=F64)
+    w2c[:3, 3] = torch.tensor([0.05, -0.02, 0.1], dtype=F64)
+    return w2c
+
+
+CAM = Camera(width=100, height=75, fx=80.0, fy=84.0, cx=47.3, cy=39.1)  # not tile multiples, off-centre
+
+
+def hard_scene(n: int, seed: int, cam: Camera = CAM, w2c: torch.Tensor | None = None, anisotropy: float = 1.0):
+    """Random Gaussians, in the camera frame: ~10 % behind the camera or at the near plane,
+    ~1/3 off-screen (some far off, with huge extents), log-uniform scales per axis (ratios up
+    to ~`30 * anisotropy`), 5 % needles (ratio 200), opacities from below 1/255 to 0.99.
+    Returned in the world frame of `w2c` (default `a_pose()`), float64."""
+    g = torch.Generator().manual_seed(seed)
+
+    def rand(*shape):
+        return torch.rand(*shape, generator=g, dtype=F64)
+
+    w2c = a_pose() if w2c is None else w2c
+    z = 0.3 + 3.7 * rand(n)
+    k = torch.randperm(n, generator=g)
+    z[k[: n // 20]] = -1.0 + 1.0 * rand(n // 20)  # behind the camera
+    z[k[n // 20 : n // 10]] = 0.011 + 0.1 * rand(n // 10 - n // 20)  # just past the near plane
+    x = ((rand(n) * 2 - 1) * 0.8 * cam.width / cam.fx) * z.abs()
+    y = ((rand(n) * 2 - 1) * 0.8 * cam.height / cam.fy) * z.abs()
+    far = k[n // 10 : n // 10 + n // 20]
+    x[far] *= 4.0  # well off-screen
+    pc = torch.stack([x, y, z], -1)
+    scales = torch.exp(math.log(0.003) + (math.log(0.1) - math.log(0.003)) * anisotropy * rand(n, 3)).clamp(max=2.0)
+    needles = k[n // 5 : n // 5 + n // 20]
+    scales[needles] = torch.tensor([0.001, 0.2, 0.002], dtype=F64)
+    quats = torch.randn(n, 4, generator=g, dtype=F64)
+    opacities = 0.99 * rand(n)
+    opacities[k[-n // 50 :]] = 0.003  # below 1/255: culled
+    colors = rand(n, 3)
+    R, t = w2c[:3, :3], w2c[:3, 3]
+    means = (pc - t) @ R  # so that R m + t = pc
+    return means, quats, scales, opacities, colors, w2c
+
+
+def random_weights(cam: Camera, seed: int = 7):
+    g = torch.Generator().manual_seed(seed)
+    return (torch.randn(cam.height, cam.width, 3, generator=g, dtype=F64),
+            torch.randn(cam.height, cam.width, generator=g, dtype=F64),
+            torch.randn(cam.height, cam.width, generator=g, dtype=F64))
+
+
+def render_and_grads(rasterizer, scene, cam: Camera, background, dtype):
+    """Outputs and the gradients of a random linear loss w.r.t. every input, as float64."""
+    means, quats, scales, opacities, colors, w2c = scene
+    leaves = [x.to(dtype).detach().requires_grad_(True) for x in (means, quats, scales, opacities, colors, background)]
+    out = rasterizer.render(*leaves[:5], w2c.to(dtype), cam, leaves[5])
+    loss = sum((o * w.to(dtype)).sum() for o, w in zip((out.color, out.depth, out.alpha), random_weights(cam)))
+    loss.backward()
+    return [x.detach().to(F64) for x in (out.color, out.depth, out.alpha)] + [x.grad.to(F64) for x in leaves]
+
+
+def rel_err(a: torch.Tensor, b: torch.Tensor) -> float:
+    return float((a - b).norm() / b.norm().clamp(min=1e-30))
+
+
+def errors(out, ref) -> dict[str, float]:
+    return {name: rel_err(a, b) for name, a, b in zip(NAMES, out, ref)}
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("seed,n,anisotropy", [(0, 400, 1.0), (1, 700, 1.0), (2, 500, 2.0)])
+def test_matches_torch_backend_on_hard_scenes(cpu, seed, n, anisotropy):
+    """Colour, depth, alpha and the gradients w.r.t. means, quats, scales, opacities and
+    colours agree with the torch backend in float32 (and both with its float64 result)."""
+    scene = hard_scene(n, seed, anisotropy=anisotropy)
+    background = torch.tensor([0.2, 0.5, 0.1], dtype=F64)
+    ours = render_and_grads(cpu, scene, CAM, background, F32)
+    ref32 = render_and_grads(TorchRasterizer(), scene, CAM, background, F32)
+    ref64 = render_and_grads(TorchRasterizer(), scene, CAM, background, F64)
+    vs32, vs64 = errors(ours, ref32), errors(ours, ref64)
+    assert cpu.last_num_pairs > 10_000  # the scene is not trivially empty
+    for name in NAMES[:-1]:
+        assert vs32[name] < TOL, (name, vs32)
+        assert vs64[name] < TOL, (name, vs64)
+    # d colour / d background = the final transmittance: where most pixels are saturated it is a
+    # small sum that one transmittance cut-off decided differently (T ~ 1e-4) moves by ~1e-4
+    # relative; the float32 reference is itself ~2e-4 off its float64 result on these scenes
+    assert vs64["background"] < 1e-3, vs64
+
+
+def test_same_pixel_gaussian_pairs_as_the_torch_backend(cpu):
+    """The covered pixels of each Gaussian are the torch backend's, to the pair: the row
+    intervals are computed with the same float32 operations."""
+    for seed in range(3):
+        scene = hard_scene(600, 10 + seed)
+        means, quats, scales, opacities, colors, w2c = (x.to(F32) for x in scene)
+        reference = TorchRasterizer()
+        with torch.no_grad():
+            cpu.render(means, quats, scales, opacities, colors, w2c, CAM)
+            reference.render(means, quats, scales, opacities, colors, w2c, CAM)
+        # the projection is computed in float64 here and in float32 there: a pair right on an
+        # ellipse's edge (alpha = 1/255) may differ, very rarely
+        assert abs(cpu.last_num_pairs - reference.last_num_pairs) <= 2, (cpu.last_num_pairs, reference.last_num_pairs)
+
+
+def test_deterministic_across_thread_counts(cpu):
+    scene = hard_scene(700, 3)
+    background = torch.tensor([0.3, 0.3, 0.3], dtype=F64)
+    runs = [render_and_grads(CPURasterizer(CPURasterizerConfig(num_threads=k)), scene, CAM, background, F32)
+            for k in (1, 2, 5)]
+    for other in runs[1:]:
+        for name, a, b in zip(NAMES, runs[0], other):
+            assert torch.equal(a, b), name
+
+
+def test_concurrent_renders_from_threads(cpu):
+    """The compiled code runs without the GIL and keeps no global state."""
+    scene = [x.to(F32) for x in hard_scene(500, 4)]
+    expected = cpu.render(*scene[:5], scene[5], CAM).color
+    results = [None] * 4
+
+    def work(i):
+        results[i] = CPURasterizer(CPURasterizerConfig(num_threads=2)).render(*scene[:5], scene[5], CAM).color
+
+    threads = [threading.Thread(target=work, args=(i,)) for i in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert all(torch.equal(r, expected) for r in results)
+
+
+def test_empty_culled_and_offscreen_scenes_are_background(cpu):
+    background = torch.tensor([0.1, 0.2, 0.3])
+    empty = [torch.zeros(0, 3), torch.zeros(0, 4), torch.zeros(0, 3), torch.zeros(0), torch.zeros(0, 3)]
+    behind = [torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.0, 0.005]]), torch.tensor([[1.0, 0, 0, 0]] * 2),
+              torch.full((2, 3), 0.1), torch.tensor([0.9, 0.9]), torch.rand(2, 3)]
+    offscreen = [torch.tensor([[50.0, 0.0, 1.0], [0.0, 0.0, 2.0]]), torch.tensor([[1.0, 0, 0, 0]] * 2),
+                 torch.full((2, 3), 0.01), torch.tensor([0.9, 0.003]), torch.rand(2, 3)]  # the 2nd: opacity < 1/255
+    for params in (empty, behind, offscreen):
+        leaves = [p.clone().requires_grad_(True) for p in params]
+        out = cpu.render(*leaves, torch.eye(4), CAM, background)
+        assert torch.equal(out.color, background.expand(CAM.height, CAM.width, 3))
+        assert not out.depth.any() and not out.alpha.any()
+        (out.color.sum() + out.depth.sum() + out.alpha.sum()).backward()
+        assert all(not leaf.grad.any() for leaf in leaves)
+        assert cpu.last_num_pairs == 0
+
+
+def test_float64_inputs_and_output_dtype(cpu):
+    means, quats, scales, opacities, colors, w2c = hard_scene(300, 5)
+    leaves = [x.clone().requires_grad_(True) for x in (means, quats, scales, opacities, colors)]
+    out = cpu.render(*leaves, w2c, CAM)
+    assert out.color.dtype == out.depth.dtype == out.alpha.dtype == F64
+    (out.color.sum() + out.depth.sum()).backward()
+    assert all(leaf.grad is not None and leaf.grad.dtype == F64 for leaf in leaves)
+    with torch.no_grad():  # forward only: no state is kept
+        again = cpu.render(*[x.to(F32) for x in (means, quats, scales, opacities, colors)], w2c, CAM)
+    assert torch.equal(again.color, out.color.detach().to(F32))
+
+
+def test_shapes_and_devices_are_checked(cpu):
+    means, quats, scales, opacities, colors, w2c = (x.to(F32) for x in hard_scene(10, 6))
+    with pytest.raises(ValueError, match="quats"):
+        cpu.render(means, quats[:, :3], scales, opacities, colors, w2c, CAM)
+    with pytest.raises(ValueError, match="colors"):
+        cpu.render(means, quats, scales, opacities, colors[:5], w2c, CAM)
+    out = cpu.render(means, quats, scales, opacities[:, None], colors, w2c, CAM)  # (N, 1) opacities are fine
+    assert out.color.shape == (CAM.height, CAM.width, 3)
+
+
+def test_config_is_validated():
+    with pytest.raises(ConfigError, match="num_threads"):
+        CPURasterizerConfig(num_threads=-1)
+
+
+def test_registered_as_cpu_and_picked_by_auto_without_cuda(monkeypatch, cpu):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    registry = Registry()
+    registry.add_module(torch_module, "torch_rasterizer (test)")
+    registry.add_module(cpu_module, "cpu_rasterizer (test)")
+    assert isinstance(create_rasterizer("cpu", registry=registry), CPURasterizer)
+    assert isinstance(create_rasterizer("auto", registry=registry), CPURasterizer)
+
+
+def _fresh_library(monkeypatch):
+    monkeypatch.setattr(cpu_module, "_LIBRARIES", {})
+
+
+def test_without_a_compiler_it_warns_once_and_renders_with_torch(monkeypatch):
+    _fresh_library(monkeypatch)
+    monkeypatch.setenv("CXX", "no-such-compiler-slamkit")
+    means, quats, scales, opacities, colors, w2c = (x.to(F32) for x in hard_scene(200, 7))
+    rasterizer = CPURasterizer()
+    with pytest.warns(RuntimeWarning, match="no C\\+\\+ compiler found.*using the torch backend"):
+        out = rasterizer.render(means, quats, scales, opacities, colors, w2c, CAM)
+    assert not rasterizer.available
+    expected = TorchRasterizer().render(means, quats, scales, opacities, colors, w2c, CAM)
+    assert torch.equal(out.color, expected.color) and torch.equal(out.depth, expected.depth)
+
+
+def test_a_failing_build_falls_back_with_the_compiler_error(monkeypatch, tmp_path):
+    _fresh_library(monkeypatch)
+    monkeypatch.setenv("SLAMKIT_CACHE", str(tmp_path))
+    broken = tmp_path / "broken.cpp"
+    broken.write_text("this is not C++\n")
+    monkeypatch.setattr(cpu_module, "SOURCE", broken)
+    means, quats, scales, opacities, colors, w2c = (x.to(F32) for x in hard_scene(50, 8))
+    with pytest.warns(RuntimeWarning, match="compiling broken.cpp failed"):
+        CPURasterizer().render(means, quats, scales, opacities, colors, w2c, CAM)
+    assert not list((tmp_path / "extensions").glob("*.so"))  # nothing half-built is left behind
+
+
+def test_first_use_compiles_into_the_project_cache_and_says_so(monkeypatch, tmp_path, capfd):
+    _fresh_library(monkeypatch)
+    monkeypatch.setenv("SLAMKIT_CACHE", str(tmp_path))
+    assert CPURasterizer(CPURasterizerConfig(native=False)).available
+    err = capfd.readouterr().err
+    assert "slamkit: compiling the CPU rasteriser (first use" in err
+    built = list((tmp_path / "extensions").glob("slamkit_cpu_rasterizer_*.so"))
+    assert len(built) == 1
+    _fresh_library(monkeypatch)  # a new process: loads the cached build, silently
+    assert CPURasterizer(CPURasterizerConfig(native=False)).available
+    assert "compiling" not in capfd.readouterr().err
