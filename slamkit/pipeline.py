@@ -181,7 +181,7 @@ def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, writer, log_file
     from tqdm import tqdm
 
     writer.writerow(["index", "timestamp", "keyframe", "lost", "tracking_ms", "mapping_ms", "iterations",
-                     "correspondence_ratio", "note"])
+                     "correspondence_ratio", "num_gaussians", "rss_mb", "note"])
     realtime = cfg.mode is Mode.realtime
     clock = InputClock(cfg.fps_limit if realtime else None)
     mapping = MappingThread(slam.mapper) if realtime else None
@@ -194,21 +194,22 @@ def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, writer, log_file
             if isinstance(frame, UnreadableFrame):
                 log.warning("frame %d skipped: %s", frame.index, frame.error)
                 state.record_unreadable(frame.timestamp)
-                writer.writerow([frame.index, f"{frame.timestamp:.6f}", "none", 1, "", "", 0, "", f"unreadable: {frame.error}"])
+                writer.writerow([frame.index, f"{frame.timestamp:.6f}", "none", 1, "", "", 0, "", "", "",
+                                 f"unreadable: {frame.error}"])
                 bar.update(1)
                 continue
             if not state.poses:
                 slam.initialize(frame.gt_pose if frame.gt_pose is not None else np.eye(4))
             if clock.wait(frame.index) and cfg.drop_frames and state.poses:
                 state.record_dropped(frame)
-                writer.writerow([frame.index, f"{frame.timestamp:.6f}", "none", 0, "", "", 0, "", "dropped"])
+                writer.writerow([frame.index, f"{frame.timestamp:.6f}", "none", 0, "", "", 0, "", "", "", "dropped"])
                 bar.update(1)
                 continue
             step = slam.track(frame) if realtime else slam.step(frame)
             if mapping:
                 mapping.check()
             state.record(frame, step)
-            _log_frame(writer, frame, step)
+            _log_frame(writer, frame, step, len(slam.gaussian_map))
             bar.update(1)
             every = cfg.eval.running_ate_every
             if every and len(state.poses) % every == 0:
@@ -228,12 +229,12 @@ def _stop_mapping(mapping: MappingThread, state: RunState) -> None:
         state.mapping_time_s += mapping.busy_time_s
 
 
-def _log_frame(writer, frame: Frame, step: StepResult) -> None:
+def _log_frame(writer, frame: Frame, step: StepResult, num_gaussians: int) -> None:
     result = step.tracking
     writer.writerow([frame.index, f"{frame.timestamp:.6f}", step.keyframe.value, int(result.lost),
                      f"{1e3 * step.tracking_time_s:.2f}", f"{1e3 * step.mapping_time_s:.2f}",
-                     step.mapping_iterations, _fmt(result.correspondence_ratio),
-                     result.stats.get("lost_reason", "")])
+                     step.mapping_iterations, _fmt(result.correspondence_ratio), num_gaussians,
+                     f"{_rss_mb():.1f}", result.stats.get("lost_reason", "")])
     if result.lost:
         log.warning("frame %d lost: %s", frame.index, result.stats.get("lost_reason", "?"))
 
@@ -294,6 +295,15 @@ def finish(cfg: RunConfig, slam: SLAM, dataset, state: RunState, wall_s: float, 
         gt = ate.gt_positions if has_gt else None
         plot_trajectory(out_dir / "trajectory.png", est, gt, title=_summary(metrics))
     return metrics
+
+
+def _rss_mb() -> float:
+    """Current resident memory in MB (Linux /proc; 0 where unavailable)."""
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except (OSError, ValueError, IndexError):
+        return 0.0
 
 
 def _peak_memory_mb() -> float:
