@@ -1,7 +1,8 @@
 """How a keyframe's Gaussians enter the shared map (paper Sec. 3.1 "scale alignment").
 
-A frame's Gaussians carry the covariance G-ICP used (regularised, so its median axis is ~1).
-Entering the map, each scale is divided by an alignment factor that grows with the point's
+A frame's Gaussians carry their raw k-NN covariance (`shape_covariances`; the regularised one
+G-ICP aligns with has a median axis of 1 m and would make 10 cm - 1 m Gaussians). Entering the
+map, each scale (square root of a raw eigenvalue) is divided by an alignment factor that grows with the point's
 camera depth z (metres): none -> 1, constant -> c, z -> max(c z, 1), z_pow -> max(c z^p, 1)
 (the paper's choice, p = 1.5, c = 2). Gaussians close to an existing trackable map Gaussian
 (squared distance <= new_gaussian_overlap, m^2) are added for rendering but not marked
@@ -93,9 +94,10 @@ def add_keyframe_gaussians(
         quats = np.tile([1.0, 0.0, 0.0, 0.0], (len(gaussians), 1))
         return gaussian_map.append(gaussians.means, quats, knn_isotropic_scales(gaussians.means), gaussians.colors,
                                    cfg.initial_opacity, trackable, keyframe_id)
+    shapes = gaussians.shape_covariances if gaussians.shape_covariances is not None else gaussians.covariances
     return gaussian_map.append_covariances(
         gaussians.means,
-        gaussians.covariances,
+        shapes,
         gaussians.colors,
         cfg.initial_opacity,
         trackable,

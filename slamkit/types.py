@@ -82,7 +82,10 @@ class FrameGaussians:
     """Gaussians made from one frame's points, in world coordinates.
 
     means: Nx3 metres (world). covariances: Nx3x3 m^2 (world, already regularised as the
-    tracker uses them). colors: Nx3 in [0, 1]. depths: N camera depths in metres (for scale
+    tracker uses them). shape_covariances: Nx3x3 m^2 (world), the raw covariances that give
+    new map Gaussians their shape before scale alignment (None = use `covariances`; the
+    reference code takes the raw k-NN eigenvalues here, not the regularised ones, whose median
+    is 1 m^2). colors: Nx3 in [0, 1]. depths: N camera depths in metres (for scale
     alignment). trackable: N bool (inside depth_trunc). sq_dist_to_map: N squared distance in
     m^2 to the nearest map Gaussian found by the tracker's last correspondence search
     (inf where none was found).
@@ -94,6 +97,7 @@ class FrameGaussians:
     depths: np.ndarray
     trackable: np.ndarray
     sq_dist_to_map: np.ndarray | None = None
+    shape_covariances: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.means)

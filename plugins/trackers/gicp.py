@@ -282,7 +282,8 @@ class GICPTracker(Tracker):
             stats["lost_reason"] = f"too few valid depth points ({n_track} < {cfg.min_points})"
             return TrackingResult(pose=predicted, lost=True, stats=stats)
 
-        cov_cam = self._regularize(knn_covariances(points, cfg.knn), target=False)
+        raw_cam = knn_covariances(points, cfg.knn)
+        cov_cam = self._regularize(raw_cam, target=False)
         stats["covariance_s"] = time.perf_counter() - t0
 
         src = points[trackable].astype(np.float64)
@@ -307,6 +308,7 @@ class GICPTracker(Tracker):
         gaussians = FrameGaussians(
             means=(points.astype(np.float64) @ R.T + t).astype(np.float32),
             covariances=rotate_covariances(R, cov_cam),
+            shape_covariances=rotate_covariances(R, raw_cam),
             colors=colors,
             depths=z.copy(),
             trackable=trackable,
