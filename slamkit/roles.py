@@ -165,8 +165,15 @@ class KeyframeSampler(ABC):
     """Chooses which keyframe the mapper trains on next."""
 
     @abstractmethod
-    def sample(self, keyframe_ids: list[int], current_pose: np.ndarray | None, rng: np.random.Generator) -> int:
-        """One of `keyframe_ids` (non-empty)."""
+    def sample(
+        self,
+        keyframe_ids: list[int],
+        current_pose: np.ndarray | None,
+        rng: np.random.Generator,
+        keyframe_poses: dict[int, np.ndarray] | None = None,
+    ) -> int:
+        """One of `keyframe_ids` (non-empty). current_pose and keyframe_poses (id -> pose) are
+        camera-to-world 4x4; a sampler that needs no geometry ignores them."""
 
 
 class Mapper(ABC):
