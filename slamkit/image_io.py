@@ -93,6 +93,16 @@ def check_camera_size(rgb: np.ndarray, camera, path: str | Path) -> None:
         )
 
 
+def read_rgbd(rgb_path, depth_path, depth_scale: float, camera, invalid_values: Iterable[float] = ()):
+    """One frame's colour (HxWx3 uint8) and depth (HxW float32 metres), both checked against
+    the camera's size; every problem is a one-line DataError naming the file."""
+    rgb = read_rgb(rgb_path)
+    check_camera_size(rgb, camera, rgb_path)
+    depth = read_depth(depth_path, depth_scale, invalid_values)
+    check_same_size(rgb, depth, depth_path)
+    return rgb, depth
+
+
 def dataset_folder(path: str | Path, expected: str, *markers: str) -> Path:
     """`path` as a folder holding each file in `markers`; DataError naming what is missing."""
     if not str(path):

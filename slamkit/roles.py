@@ -153,6 +153,23 @@ class Tracker(ABC):
         """Called once before the first frame with the pose the trajectory starts from."""
 
 
+@dataclass
+class KeyframeHistory:
+    """Frame indices (`frame.index`) of the last tracking keyframe and of the last keyframe of
+    any kind; None before the first. Policies count their intervals from these."""
+
+    last_tracking: int | None = None
+    last_keyframe: int | None = None
+
+    def record(self, index: int, kind: KeyframeKind) -> KeyframeKind:
+        """Note frame `index`'s decision and return it."""
+        if kind is KeyframeKind.TRACKING:
+            self.last_tracking = index
+        if kind:
+            self.last_keyframe = index
+        return kind
+
+
 class KeyframePolicy(ABC):
     """Decides which frames become keyframes, and of which kind."""
 

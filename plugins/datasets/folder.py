@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from slamkit.errors import DataError
-from slamkit.image_io import check_camera_size, check_same_size, dataset_folder, image_size, read_depth, read_rgb
+from slamkit.image_io import dataset_folder, image_size, read_rgbd
 from slamkit.plugin import PluginSpec, hookimpl
 from slamkit.roles import Dataset, DatasetConfig, require
 from slamkit.tum_format import interpolate_poses, read_float_table, read_tum_trajectory
@@ -258,10 +258,7 @@ class FolderDataset(Dataset):
         return float(self.timestamps[raw_index])
 
     def load(self, raw_index: int) -> Frame:
-        rgb = read_rgb(self.rgb_files[raw_index])
-        check_camera_size(rgb, self._camera, self.rgb_files[raw_index])
-        depth = read_depth(self.depth_files[raw_index], self.depth_scale)
-        check_same_size(rgb, depth, self.depth_files[raw_index])
+        rgb, depth = read_rgbd(self.rgb_files[raw_index], self.depth_files[raw_index], self.depth_scale, self._camera)
         gt = None
         if self.gt_poses is not None and np.isfinite(self.gt_poses[raw_index]).all():
             gt = self.gt_poses[raw_index].copy()

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from slamkit.errors import DataError
-from slamkit.image_io import check_camera_size, check_same_size, dataset_folder, image_size, read_depth, read_rgb
+from slamkit.image_io import dataset_folder, image_size, read_rgbd
 from slamkit.plugin import PluginSpec, hookimpl
 from slamkit.roles import Dataset, DatasetConfig, require
 from slamkit.tum_format import read_float_table
@@ -116,10 +116,8 @@ class SevenScenesDataset(Dataset):
         return float(raw_index)
 
     def load(self, raw_index: int) -> Frame:
-        rgb = read_rgb(self.rgb_files[raw_index])
-        check_camera_size(rgb, self._camera, self.rgb_files[raw_index])
-        depth = read_depth(self.depth_files[raw_index], self.cfg.depth_scale, INVALID_DEPTH)
-        check_same_size(rgb, depth, self.depth_files[raw_index])
+        rgb, depth = read_rgbd(self.rgb_files[raw_index], self.depth_files[raw_index], self.cfg.depth_scale, self._camera,
+                               INVALID_DEPTH)
         pose_file = self.pose_files[raw_index]
         gt = read_pose_file(pose_file) if pose_file.is_file() else None
         return Frame(raw_index, float(self.numbers[raw_index]), rgb, depth, self._camera, gt)

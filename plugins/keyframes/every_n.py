@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import KeyframePolicy, PluginConfig, require
+from slamkit.roles import KeyframeHistory, KeyframePolicy, PluginConfig, require
 from slamkit.types import Frame, KeyframeKind, TrackingResult
 
 
@@ -32,21 +32,16 @@ class EveryNKeyframePolicy(KeyframePolicy):
 
     def __init__(self, cfg: EveryNKeyframeConfig):
         self.cfg = cfg
-        self.last_tracking: int | None = None
-        self.last_keyframe: int | None = None
+        self.history = KeyframeHistory()
 
     def decide(self, frame: Frame, result: TrackingResult) -> KeyframeKind:
         i = frame.index
         kind = KeyframeKind.NONE
-        if self.last_tracking is None or i - self.last_tracking >= self.cfg.tracking_every:
+        if self.history.last_tracking is None or i - self.history.last_tracking >= self.cfg.tracking_every:
             kind = KeyframeKind.TRACKING
-        elif self.cfg.mapping_every and i - self.last_keyframe >= self.cfg.mapping_every:
+        elif self.cfg.mapping_every and i - self.history.last_keyframe >= self.cfg.mapping_every:
             kind = KeyframeKind.MAPPING_ONLY
-        if kind is KeyframeKind.TRACKING:
-            self.last_tracking = i
-        if kind:
-            self.last_keyframe = i
-        return kind
+        return self.history.record(i, kind)
 
 
 @hookimpl

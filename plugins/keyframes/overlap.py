@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import KeyframePolicy, PluginConfig, require
+from slamkit.roles import KeyframeHistory, KeyframePolicy, PluginConfig, require
 from slamkit.types import Frame, KeyframeKind, TrackingResult
 
 #: Used when a field is null and the dataset gave no hint of that name (TUM's values).
@@ -76,27 +76,22 @@ class OverlapKeyframePolicy(KeyframePolicy):
             FALLBACKS["keyframe_threshold"] if cfg.keyframe_threshold is None else cfg.keyframe_threshold
         )
         require(self.overlap_threshold > 0, "keyframe.overlap_threshold", "> 0 m^2", self.overlap_threshold)
-        self.last_tracking: int | None = None
-        self.last_keyframe: int | None = None
+        self.history = KeyframeHistory()
 
     def decide(self, frame: Frame, result: TrackingResult) -> KeyframeKind:
         ratio = correspondence_ratio(result, self.overlap_threshold)
         result.correspondence_ratio = ratio
         i = frame.index
         kind = KeyframeKind.NONE
-        if self.last_tracking is None:
+        if self.history.last_tracking is None:
             kind = KeyframeKind.TRACKING
         elif ratio is not None and ratio < self.keyframe_threshold:
             kind = KeyframeKind.TRACKING
-        elif self.cfg.max_interval and i - self.last_tracking >= self.cfg.max_interval:
+        elif self.cfg.max_interval and i - self.history.last_tracking >= self.cfg.max_interval:
             kind = KeyframeKind.TRACKING
-        elif self.cfg.mapping_every and i - self.last_keyframe >= self.cfg.mapping_every:
+        elif self.cfg.mapping_every and i - self.history.last_keyframe >= self.cfg.mapping_every:
             kind = KeyframeKind.MAPPING_ONLY
-        if kind is KeyframeKind.TRACKING:
-            self.last_tracking = i
-        if kind:
-            self.last_keyframe = i
-        return kind
+        return self.history.record(i, kind)
 
 
 @hookimpl
