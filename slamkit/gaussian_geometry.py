@@ -14,9 +14,8 @@ import enum
 import numpy as np
 from pykdtree.kdtree import KDTree
 
-#: Below this median eigenvalue (m^2) a map Gaussian's covariance becomes this value times I
-#: under ellipse regularisation (the reference code's rule for target covariances).
-TARGET_MIN_MEDIAN = 1e-3
+#: Extra neighbours fetched so that ties at the k-th distance can be broken by index.
+TIE_SPARE = 6
 
 
 class Regularization(enum.Enum):
@@ -32,30 +31,35 @@ class Regularization(enum.Enum):
     none = "none"
 
 
-def knn_covariances(points: np.ndarray, k: int = 10, tree: KDTree | None = None) -> np.ndarray:
+def knn_covariances(points: np.ndarray, k: int = 10, tree: KDTree | None = None,
+                    query: np.ndarray | None = None) -> np.ndarray:
     """Covariance of each point's k nearest neighbours (the point itself included):
     (1/k) sum_j (p_j - mu)(p_j - mu)^T, with mu the neighbours' mean.
 
-    points: (N,3). tree: a pykdtree KDTree over `points` (built here when None). When N < k
-    all N points are used. Returns (N,3,3) float64 (offsets from each point are taken in
-    float64, so thin structures keep their small eigenvalues).
+    points: (N,3). tree: a pykdtree KDTree over `points` (built here when None). query: indices
+    of the points whose covariance is wanted (all when None). When N < k all N points are used.
+    Returns (len(query) or N, 3, 3) float64 (offsets from each point are taken in float64, so
+    thin structures keep their small eigenvalues). Neighbours are ordered by (float64 distance,
+    index), so ties at the k-th distance (common with quantised depth) do not depend on the
+    tree: the compiled tracker kernels pick the same neighbours.
     """
     pts = np.ascontiguousarray(points)
-    n = len(pts)
-    if n == 0:
-        return np.zeros((0, 3, 3))
-    k = max(1, min(int(k), n))
+    rows = np.arange(len(pts)) if query is None else np.asarray(query)
+    n = len(rows)
+    if n == 0 or len(pts) == 0:
+        return np.zeros((n, 3, 3))
+    k = max(1, min(int(k), len(pts)))
     if tree is None:
         tree = KDTree(pts if pts.dtype in (np.float32, np.float64) else pts.astype(np.float64), leafsize=16)
-    query = pts.astype(tree.data.dtype, copy=False) if hasattr(tree, "data") else pts
-    _, idx = tree.query(query, k=k)
-    idx = idx.reshape(n, k)
+    at = pts if query is None else pts[rows]
+    dtype = tree.data.dtype if hasattr(tree, "data") else at.dtype
+    idx = _nearest(pts, rows, tree.query(np.ascontiguousarray(at, dtype=dtype), k=min(k + TIE_SPARE, len(pts)))[1], k)
     # Offsets from the point itself (small numbers, float64), then second moments minus the
     # squared mean: no cancellation worth the name at these magnitudes.
     pt = np.ascontiguousarray(pts.T, dtype=np.float64)  # (3,N)
     g = pt[:, idx]
-    g -= pt[:, :, None]  # (3,N,k)
-    m = g.mean(axis=2)  # (3,N)
+    g -= pt[:, rows, None]  # (3,n,k)
+    m = g.mean(axis=2)  # (3,n)
     cov = np.empty((n, 3, 3))
     for i in range(3):
         for j in range(i, 3):
@@ -63,6 +67,17 @@ def knn_covariances(points: np.ndarray, k: int = 10, tree: KDTree | None = None)
             cov[:, i, j] = cij
             cov[:, j, i] = cij
     return cov
+
+
+def _nearest(pts: np.ndarray, rows: np.ndarray, cand: np.ndarray, k: int) -> np.ndarray:
+    """The k of each row's candidate neighbours (n, >= k) nearest by (float64 squared distance
+    from the float32/64 coordinates, then index)."""
+    cand = cand.reshape(len(rows), -1).astype(np.int64)
+    p = pts.astype(np.float64, copy=False)
+    diff = p[cand] - p[rows][:, None, :]
+    d = (diff[..., 0] * diff[..., 0] + diff[..., 1] * diff[..., 1]) + diff[..., 2] * diff[..., 2]
+    order = np.lexsort((cand, d), axis=1)[:, :k]
+    return np.take_along_axis(cand, order, axis=1)
 
 
 def _trig_eigvals(B: np.ndarray):

@@ -9,9 +9,8 @@ depth = sum w z, alpha = sum w. Gradients reach means, quats, scales, opacities,
 background.
 
 The work is done by `csrc/cpu_rasterizer.cpp`: plain C++17 behind a C ABI, loaded with ctypes.
-It is compiled on first use with the system C++ compiler (`$CXX`, else `c++`; a few seconds)
-and cached by a hash of the source, the flags, the compiler and the CPU under
-`$SLAMKIT_CACHE/extensions/` (else `~/.cache/slamkit/extensions/`). Without a compiler, or if
+It is compiled on first use and cached outside the source tree by `slamkit.native` (the
+exact pixel-coverage arithmetic relies on its -ffp-contract=off). Without a compiler, or if
 the build fails, a one-line warning is given and the `torch` backend renders instead. See
 docs/cpu_rasterizer.md for the design and the measurements.
 """
@@ -19,21 +18,14 @@ docs/cpu_rasterizer.md for the design and the measurements.
 from __future__ import annotations
 
 import ctypes
-import hashlib
-import os
-import platform
-import shutil
-import subprocess
-import sys
-import tempfile
 import threading
-import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
+from slamkit.native import NativeLibrary
 from slamkit.plugin import PluginSpec, hookimpl
 from slamkit.rendering import Rasterizer, RenderOutput
 from slamkit.roles import PluginConfig, require
@@ -41,9 +33,6 @@ from slamkit.types import Camera
 
 SOURCE = Path(__file__).resolve().parent / "csrc" / "cpu_rasterizer.cpp"
 ABI_VERSION = 2
-# -ffp-contract=off and no -ffast-math: the pixel-coverage arithmetic must round exactly as the
-# torch backend's float32 operations do. -fno-math-errno only lets sqrt be inlined.
-BASE_FLAGS = ["-O3", "-std=c++17", "-shared", "-fPIC", "-pthread", "-ffp-contract=off", "-fno-math-errno", "-DNDEBUG"]
 
 
 @dataclass
@@ -59,90 +48,7 @@ class CPURasterizerConfig(PluginConfig):
         require(self.num_threads >= 0, "rasterizer.num_threads", "an integer >= 0", self.num_threads)
 
 
-def cache_root() -> Path:
-    root = os.environ.get("SLAMKIT_CACHE")
-    return Path(root) / "extensions" if root else Path.home() / ".cache" / "slamkit" / "extensions"
-
-
-def _cpu_id() -> str:
-    """The CPU model and feature flags (what -march=native depends on)."""
-    try:
-        text = Path("/proc/cpuinfo").read_text()
-        keep = [ln for ln in text.splitlines() if ln.split(":")[0].strip() in ("model name", "flags", "Features", "CPU part")]
-        return "\n".join(sorted(set(keep)))
-    except OSError:
-        return platform.processor() or platform.machine()
-
-
-class _Library:
-    """The compiled library, built on first use; `error` says why it is not available."""
-
-    def __init__(self, native: bool):
-        self.native = native
-        self.lib = None
-        self.error: str | None = None
-        self._lock = threading.Lock()
-        self._tried = False
-
-    def get(self):
-        with self._lock:
-            if not self._tried:
-                self._tried = True
-                try:
-                    self.lib = self._load()
-                except Exception as exc:  # report in one line, the caller falls back
-                    text = str(exc) if isinstance(exc, RuntimeError) else f"{type(exc).__name__}: {exc}"
-                    self.error = (text.strip().splitlines() or [type(exc).__name__])[0]
-        return self.lib
-
-    def _load(self):
-        compiler = os.environ.get("CXX", "c++")
-        exe = shutil.which(compiler)
-        if exe is None:
-            raise RuntimeError(f"no C++ compiler found ({compiler!r} is not on PATH; set CXX)")
-        version = subprocess.run([exe, "--version"], capture_output=True, text=True, timeout=60).stdout
-        error = None
-        # -march=native first (where asked); a compiler that rejects it gets the portable build
-        for native in ([True, False] if self.native else [False]):
-            flags = BASE_FLAGS + (["-march=native"] if native else [])
-            digest = hashlib.sha256()
-            for part in (SOURCE.read_bytes(), " ".join(flags).encode(), version.encode(), platform.machine().encode()):
-                digest.update(part)
-            if native:  # a cache copied to another CPU is rebuilt, not run with instructions it lacks
-                digest.update(_cpu_id().encode())
-            path = cache_root() / f"slamkit_cpu_rasterizer_{digest.hexdigest()[:16]}.so"
-            if not path.exists():
-                try:
-                    _compile(exe, flags, path)
-                except RuntimeError as exc:
-                    error = error or exc
-                    continue
-            return _open(path)
-        raise error
-
-
-def _compile(exe: str, flags: list[str], path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    print("slamkit: compiling the CPU rasteriser (first use, ~5 s)...", file=sys.stderr, flush=True)
-    t0 = time.perf_counter()
-    fd, tmp = tempfile.mkstemp(suffix=".so.tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        proc = subprocess.run([exe, *flags, str(SOURCE), "-o", tmp], capture_output=True, text=True, timeout=600)
-        if proc.returncode != 0:
-            first = next((ln for ln in proc.stderr.splitlines() if "error" in ln), proc.stderr.strip()[:200])
-            raise RuntimeError(f"compiling {SOURCE.name} failed: {first.strip()}")
-        os.replace(tmp, path)  # atomic: concurrent builders each install a complete file
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    print(f"slamkit: CPU rasteriser compiled in {time.perf_counter() - t0:.1f} s ({path})", file=sys.stderr, flush=True)
-
-
-def _open(path: Path):
-    lib = ctypes.CDLL(str(path))
-    if lib.slk_abi_version() != ABI_VERSION:
-        raise RuntimeError(f"{path} has ABI {lib.slk_abi_version()}, expected {ABI_VERSION}")
+def _declare(lib) -> None:
     P, I = ctypes.c_void_p, ctypes.c_int
     lib.slk_forward.restype = P
     lib.slk_forward.argtypes = [I, P, P, P, P, P, P, P, I, I, P, I, P, P, P, P, ctypes.c_char_p, I]
@@ -152,17 +58,16 @@ def _open(path: Path):
     lib.slk_times.argtypes = [P, P]
     lib.slk_free.restype = None
     lib.slk_free.argtypes = [P]
-    return lib
 
 
-_LIBRARIES: dict[bool, _Library] = {}
+_LIBRARIES: dict[bool, NativeLibrary] = {}
 _LIBRARIES_LOCK = threading.Lock()
 
 
-def get_library(native: bool = True) -> _Library:
+def get_library(native: bool = True) -> NativeLibrary:
     with _LIBRARIES_LOCK:
         if native not in _LIBRARIES:
-            _LIBRARIES[native] = _Library(native)
+            _LIBRARIES[native] = NativeLibrary(SOURCE, "CPU rasteriser", ABI_VERSION, _declare, native=native)
         return _LIBRARIES[native]
 
 

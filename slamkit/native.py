@@ -1,0 +1,129 @@
+"""Compiled helpers built on first use: one C++17 source file behind a C ABI, loaded with ctypes.
+
+A library is compiled with the system C++ compiler (`$CXX`, else `c++`; a few seconds) and
+cached by a hash of the source, the flags, the compiler version and (for -march=native) the CPU
+under `$SLAMKIT_CACHE/extensions/` (else `~/.cache/slamkit/extensions/`), never in the source
+tree. Without a compiler, or if the build fails, `NativeLibrary.get()` returns None and `error`
+says why in one line; the caller falls back to its numpy / torch path.
+
+We use ctypes rather than `torch.utils.cpp_extension`: the same code serves numpy callers, and
+the build takes seconds instead of about a minute (docs/cpu_rasterizer.md).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Callable
+
+#: Flags every library is built with. -ffp-contract=off and no -ffast-math: results must round as
+#: the numpy / torch reference does. -fno-math-errno only lets sqrt be inlined.
+BASE_FLAGS = ("-O3", "-std=c++17", "-shared", "-fPIC", "-pthread", "-ffp-contract=off", "-fno-math-errno",
+              "-DNDEBUG")
+
+
+def cache_root() -> Path:
+    root = os.environ.get("SLAMKIT_CACHE")
+    return Path(root) / "extensions" if root else Path.home() / ".cache" / "slamkit" / "extensions"
+
+
+def _cpu_id() -> str:
+    """The CPU model and feature flags (what -march=native depends on)."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+        keep = [ln for ln in text.splitlines() if ln.split(":")[0].strip() in ("model name", "flags", "Features", "CPU part")]
+        return "\n".join(sorted(set(keep)))
+    except OSError:
+        return platform.processor() or platform.machine()
+
+
+class NativeLibrary:
+    """One C++ source compiled and loaded on the first `get()` (thread-safe, tried once).
+
+    source: the .cpp file. label: what to call it in messages. abi_version: the value its
+    `slk_abi_version()` must return (a stale cached build is refused). declare: sets argtypes /
+    restype on the loaded CDLL. native: also try -march=native (keyed by the CPU model, so a
+    cache copied to another CPU is rebuilt, not run with instructions it lacks)."""
+
+    def __init__(self, source: Path, label: str, abi_version: int, declare: Callable[[ctypes.CDLL], None],
+                 native: bool = True, flags: tuple[str, ...] = BASE_FLAGS):
+        self.source, self.label, self.abi_version = Path(source), label, abi_version
+        self.declare, self.native, self.flags = declare, native, tuple(flags)
+        self.lib = None
+        self.error: str | None = None
+        self._lock = threading.Lock()
+        self._tried = False
+
+    def get(self):
+        """The loaded library, or None (then `error` says why)."""
+        with self._lock:
+            if not self._tried:
+                self._tried = True
+                try:
+                    self.lib = self._load()
+                except Exception as exc:  # reported in one line; the caller falls back
+                    text = str(exc) if isinstance(exc, RuntimeError) else f"{type(exc).__name__}: {exc}"
+                    self.error = (text.strip().splitlines() or [type(exc).__name__])[0]
+        return self.lib
+
+    def _load(self):
+        compiler = os.environ.get("CXX", "c++")
+        exe = shutil.which(compiler)
+        if exe is None:
+            raise RuntimeError(f"no C++ compiler found ({compiler!r} is not on PATH; set CXX)")
+        version = subprocess.run([exe, "--version"], capture_output=True, text=True, timeout=60).stdout
+        error = None
+        # -march=native first (where asked); a compiler that rejects it gets the portable build
+        for native in ([True, False] if self.native else [False]):
+            flags = list(self.flags) + (["-march=native"] if native else [])
+            digest = hashlib.sha256()
+            for part in (self.source.read_bytes(), " ".join(flags).encode(), version.encode(),
+                         platform.machine().encode()):
+                digest.update(part)
+            if native:
+                digest.update(_cpu_id().encode())
+            path = cache_root() / f"slamkit_{self.source.stem}_{digest.hexdigest()[:16]}.so"
+            if not path.exists():
+                try:
+                    self._compile(exe, flags, path)
+                except RuntimeError as exc:
+                    error = error or exc
+                    continue
+            return self._open(path)
+        raise error
+
+    def _compile(self, exe: str, flags: list[str], path: Path) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        print(f"slamkit: compiling the {self.label} (first use, a few seconds)...", file=sys.stderr, flush=True)
+        t0 = time.perf_counter()
+        fd, tmp = tempfile.mkstemp(suffix=".so.tmp", dir=path.parent)
+        os.close(fd)
+        try:
+            proc = subprocess.run([exe, *flags, str(self.source), "-o", tmp], capture_output=True, text=True,
+                                  timeout=600)
+            if proc.returncode != 0:
+                first = next((ln for ln in proc.stderr.splitlines() if "error" in ln), proc.stderr.strip()[:200])
+                raise RuntimeError(f"compiling {self.source.name} failed: {first.strip()}")
+            os.replace(tmp, path)  # atomic: concurrent builders each install a complete file
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+        print(f"slamkit: {self.label} compiled in {time.perf_counter() - t0:.1f} s ({path})", file=sys.stderr,
+              flush=True)
+
+    def _open(self, path: Path):
+        lib = ctypes.CDLL(str(path))
+        lib.slk_abi_version.restype = ctypes.c_int
+        if lib.slk_abi_version() != self.abi_version:
+            raise RuntimeError(f"{path} has ABI {lib.slk_abi_version()}, expected {self.abi_version}")
+        self.declare(lib)
+        return lib

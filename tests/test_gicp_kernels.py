@@ -1,0 +1,131 @@
+"""The G-ICP tracker's compiled kernels agree with the numpy reference: the same k-NN neighbours
+(ties broken by index) and so the same covariances on real frames, the same normal equations and
+trial costs (singular combined covariances included), results independent of the thread count,
+and a clear fallback without a compiler."""
+
+from __future__ import annotations
+
+import os
+import shutil
+
+import numpy as np
+import pytest
+
+import slamkit_plugins.trackers.gicp_kernels as kernels_module
+from slamkit.gaussian_geometry import knn_covariances, regularize
+from slamkit.geometry import backproject, covariance_from_scales, make_pose, so3_exp
+from slamkit.native import NativeLibrary
+from slamkit_plugins.datasets.tum import TUMConfig, TUMDataset
+from slamkit_plugins.trackers.gicp_kernels import CompiledKernels, Kernels, NumpyKernels, create_kernels
+
+
+@pytest.fixture(scope="module")
+def library():
+    lib = kernels_module.LIBRARY.get()
+    if lib is None:
+        if shutil.which(os.environ.get("CXX", "c++")) is None:
+            pytest.skip("no C++ compiler: the numpy kernels are used")
+        pytest.fail(f"a compiler is present but the G-ICP kernels did not build: {kernels_module.LIBRARY.error}")
+    return lib
+
+
+@pytest.fixture(scope="module")
+def tum_frames():
+    from conftest import TUM, require_data
+
+    dataset = TUMDataset(TUMConfig(path=str(require_data(TUM))))
+    return [dataset[i] for i in (0, 40, 120)]
+
+
+def test_knn_ties_go_to_the_lower_index():
+    # A square grid: each point's 4 diagonal neighbours tie; with k = 6 two of them are taken.
+    g = np.stack(np.meshgrid(np.arange(5.0), np.arange(5.0), indexing="ij"), -1).reshape(-1, 2)
+    pts = np.concatenate([g, np.zeros((25, 1))], axis=1).astype(np.float32)
+    centre = 12
+    cov = knn_covariances(pts, k=6, query=np.array([centre]))[0]
+    # self, 4 edge neighbours (rows 7, 11, 13, 17), then diagonals 6 and 8 (lowest indices)
+    chosen = pts[[12, 7, 11, 13, 17, 6]].astype(np.float64)
+    ref = (chosen - chosen.mean(0)).T @ (chosen - chosen.mean(0)) / 6
+    np.testing.assert_allclose(cov, ref, atol=1e-12)
+
+
+def test_frame_covariances_equal_the_reference_on_real_frames(library, tum_frames):
+    compiled = CompiledKernels(library, num_threads=2)
+    for frame in tum_frames:
+        points, pix = backproject(np.asarray(frame.depth), frame.camera, 5)
+        ref = NumpyKernels().frame_covariances(points, pix, frame.camera, 5, 10)
+        got = compiled.frame_covariances(points, pix, frame.camera, 5, 10)
+        np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-18)
+
+
+def test_grid_search_proves_most_points(library, tum_frames):
+    """The window search settles most points itself (else it would only add cost)."""
+    frame = tum_frames[1]
+    points, pix = backproject(np.asarray(frame.depth), frame.camera, 5)
+    n = len(points)
+    gh, gw = -(-frame.camera.height // 5), -(-frame.camera.width // 5)
+    v, u = np.divmod(pix, frame.camera.width)
+    cell = ((v // 5) * gw + u // 5).astype(np.int32)
+    grid = np.full(gh * gw, -1, dtype=np.int32)
+    grid[cell] = np.arange(n, dtype=np.int32)
+    cov, exact = np.empty((n, 3, 3)), np.empty(n, dtype=np.uint8)
+    library.slk_grid_knn_covariances(n, points.ctypes.data, cell.ctypes.data, grid.ctypes.data, gh, gw, 10,
+                                     kernels_module.GRID_HALF_WINDOW, frame.camera.fx, frame.camera.fy, 5.0,
+                                     cov.ctypes.data, exact.ctypes.data, 1)
+    assert exact.mean() > 0.9
+
+
+def _problem(rng, n=3000, n_target=2000, degenerate=50):
+    """Source rows (p, C_s) near target rows (mu, C_t), some targets degenerate (rank 1 or 0)."""
+    mu = rng.uniform(-1, 1, size=(n_target, 3)) + [0, 0, 3]
+    cov_t = regularize(covariance_from_scales(rng.normal(size=(n_target, 4)),
+                                              np.exp(rng.uniform(-6, -2, size=(n_target, 3)))), "ellipse")
+    cov_t[:degenerate] = 0.0
+    cov_t[degenerate:2 * degenerate] = np.einsum("ni,nj->nij", *(2 * [rng.normal(size=(degenerate, 3))]))
+    T = make_pose(so3_exp(np.array([0.1, -0.2, 0.05])), np.array([0.2, 0.1, -0.3]))
+    nn = rng.integers(0, n_target, size=n).astype(np.uint32)
+    nn[rng.random(n) < 0.2] = n_target  # unmatched
+    p_world = mu[np.minimum(nn, n_target - 1)] + rng.normal(scale=0.01, size=(n, 3))
+    p = (p_world - T[:3, 3]) @ T[:3, :3]
+    cov_s = regularize(covariance_from_scales(rng.normal(size=(n, 4)), np.exp(rng.uniform(-6, -2, size=(n, 3)))),
+                       "ellipse")
+    cov_s[:degenerate] = 0.0  # with a zero target covariance: a singular sum
+    src = np.concatenate([p, cov_s.reshape(n, 9)], axis=1)
+    target = np.concatenate([mu, cov_t.reshape(n_target, 9)], axis=1)
+    return src, target, nn, T
+
+
+def test_linearization_equals_the_reference(library):
+    rng = np.random.default_rng(3)
+    src, target, nn, T = _problem(rng)
+    ref = NumpyKernels().linearize(src, target, nn, T)
+    got = CompiledKernels(library).linearize(src, target, nn, T)
+    assert got.matched == ref.matched and got.singular == ref.singular > 0
+    scale = np.abs(ref.H).max()
+    np.testing.assert_allclose(got.H, ref.H, rtol=1e-9, atol=1e-9 * scale)
+    np.testing.assert_allclose(got.g, ref.g, rtol=1e-9, atol=1e-9 * np.abs(ref.g).max())
+    assert got.cost == pytest.approx(ref.cost, rel=1e-9)
+    Tn = T @ make_pose(so3_exp(np.array([0.01, 0.0, -0.02])), np.array([0.005, -0.01, 0.0]))
+    assert got.cost_at(Tn) == pytest.approx(ref.cost_at(Tn), rel=1e-9)
+    assert got.cost_at(T) == pytest.approx(got.cost, rel=1e-12)
+
+
+def test_results_do_not_depend_on_the_thread_count(library):
+    rng = np.random.default_rng(4)
+    src, target, nn, T = _problem(rng, n=5000)
+    one = CompiledKernels(library, num_threads=1).linearize(src, target, nn, T)
+    three = CompiledKernels(library, num_threads=3).linearize(src, target, nn, T)
+    assert np.array_equal(one.H, three.H) and np.array_equal(one.g, three.g) and one.cost == three.cost
+    assert one.cost_at(T @ make_pose(np.eye(3), np.array([0.01, 0, 0]))) == \
+        three.cost_at(T @ make_pose(np.eye(3), np.array([0.01, 0, 0])))
+
+
+def test_without_a_compiler_auto_falls_back_and_compiled_says_why(monkeypatch, tmp_path):
+    monkeypatch.setenv("CXX", str(tmp_path / "no-such-compiler"))
+    monkeypatch.setattr(kernels_module, "LIBRARY", NativeLibrary(kernels_module.SOURCE, "G-ICP kernels",
+                                                                  kernels_module.ABI_VERSION, kernels_module._declare))
+    with pytest.warns(RuntimeWarning, match="numpy kernels"):
+        assert isinstance(create_kernels(Kernels.auto), NumpyKernels)
+    with pytest.raises(RuntimeError, match="no C\\+\\+ compiler found"):
+        create_kernels(Kernels.compiled)
+    assert create_kernels(Kernels.numpy).name == "numpy"
