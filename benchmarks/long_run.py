@@ -1,8 +1,16 @@
 """Long-run memory: resident memory and map size against frame count on a long synthetic
-sequence (default 2000 frames), through the CLI. Prints a table and writes JSON.
+sequence (default 2000 frames), through the CLI. Prints a table every `--every` frames and
+writes JSON.
 
     python benchmarks/long_run.py --frames 2000 --out benchmarks/results/long_run.json
-    python benchmarks/long_run.py --frames 600 --set mapper=gaussian_splatting --set iterations_per_frame=2
+    OMP_NUM_THREADS=1 python benchmarks/long_run.py --frames 2000 --mapper --max-gaussians none,200000 \\
+        --time-limit 1500 --out benchmarks/results/long_run_mapper.json
+
+`--mapper` runs the 3DGS mapper with settings cheap enough for a CPU (`--iterations` steps per
+frame, no final iterations, evaluation of every `--eval-every`-th frame); `--max-gaussians`
+runs one variant per value (`none` = no memory guard). `--time-limit` stops a run that is still
+going after that many seconds (SIGTERM: slamkit writes what it has; the run is reported as
+incomplete, up to the frame it reached). `--set KEY=VALUE` passes any other slamkit override.
 """
 
 from __future__ import annotations
@@ -10,9 +18,12 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import os
+import signal
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 
@@ -20,31 +31,119 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--frames", type=int, default=2000)
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="extra slamkit override")
-    parser.add_argument("--points", type=int, default=8, help="rows of the table")
+    parser.add_argument("--every", type=int, default=250, help="frames between table rows")
+    parser.add_argument("--mapper", action="store_true", help="map with mapper=gaussian_splatting")
+    parser.add_argument("--iterations", type=int, default=4, help="mapping steps per frame (with --mapper)")
+    parser.add_argument("--eval-every", type=int, default=50, help="evaluate every n-th frame (with --mapper)")
+    parser.add_argument("--max-gaussians", default=None,
+                        help="comma-separated memory caps, one run each; none = no guard (with --mapper)")
+    parser.add_argument("--time-limit", type=float, default=None, help="seconds before a run is stopped")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/long_run.json"))
     args = parser.parse_args()
-    run_dir = Path(tempfile.mkdtemp(prefix="slamkit-long-"))
-    cmd = [str(Path(sys.executable).with_name("slamkit")), f"dataset.num_frames={args.frames}", "progress=false",
-           "eval.plot=false", *args.set, f"hydra.run.dir={run_dir}"]
-    proc = subprocess.run(cmd, capture_output=True, text=True)
-    if proc.returncode != 0:
-        print(proc.stderr[-2000:], file=sys.stderr)
-        return 1
-    rows = [r for r in csv.DictReader(open(run_dir / "frames.csv")) if r["rss_mb"]]
-    picks = [rows[min(len(rows) - 1, round(i * (len(rows) - 1) / (args.points - 1)))] for i in range(args.points)]
-    print("| frame | Gaussians | RSS MB |\n|---|---|---|")
-    for r in picks:
-        print(f"| {r['index']} | {r['num_gaussians']} | {r['rss_mb']} |")
-    metrics = json.loads((run_dir / "metrics.json").read_text())
-    half = [float(r["rss_mb"]) for r in rows[len(rows) // 2:]]
-    growth = (half[-1] - half[0]) / max(1, len(half)) * 1000
-    print(f"{metrics['num_frames']} frames, ATE {100 * metrics['ate_rmse_m']:.2f} cm, peak {metrics['peak_memory_mb']:.0f} MB, "
-          f"second-half growth {growth:.1f} MB per 1000 frames")
+    if args.max_gaussians and not args.mapper:
+        parser.error("--max-gaussians needs --mapper")
+    runs = [run_variant(args, label, overrides) for label, overrides in variants(args)]
+    if len(runs) > 1:
+        print_comparison(runs)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"command": " ".join(cmd[1:]), "metrics": metrics,
-                                    "samples": [{k: r[k] for k in ("index", "num_gaussians", "rss_mb")} for r in rows[::10]],
-                                    "second_half_growth_mb_per_1000_frames": growth}, indent=2) + "\n")
-    return 0
+    args.out.write_text(json.dumps({"frames": args.frames, "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
+                                    "runs": runs}, indent=2) + "\n")
+    return 0 if all(r["returncode"] in (0, 130) for r in runs) else 1
+
+
+def variants(args) -> list[tuple[str, list[str]]]:
+    """(label, slamkit overrides) for each run."""
+    base = {"dataset.num_frames": str(args.frames), "progress": "false", "eval.plot": "false"}
+    if args.mapper:
+        base.update({"mapper": "gaussian_splatting", "iterations_per_frame": str(args.iterations),
+                     "mapper.final_iterations": "0", "mapper.eval_every": str(args.eval_every)})
+    for item in args.set:  # the user's values win
+        key, _, value = item.partition("=")
+        base[key] = value
+    caps = [c.strip() for c in args.max_gaussians.split(",")] if args.max_gaussians else [None]
+    out = []
+    for cap in caps:
+        overrides = dict(base)
+        if cap is not None:
+            overrides["mapper.max_gaussians"] = "null" if cap.lower() == "none" else cap
+        label = "tracking only" if not args.mapper else f"max_gaussians={overrides.get('mapper.max_gaussians', 'null')}"
+        out.append((label, [f"{k}={v}" for k, v in overrides.items()]))
+    return out
+
+
+def run_variant(args, label: str, overrides: list[str]) -> dict:
+    """Run slamkit once; print its table; return the record for the JSON."""
+    run_dir = Path(tempfile.mkdtemp(prefix="slamkit-long-"))
+    cmd = [str(Path(sys.executable).with_name("slamkit")), *overrides, f"hydra.run.dir={run_dir}"]
+    print(f"\n## {label}\n\n`slamkit {' '.join(overrides)}`\n", flush=True)
+    start = time.perf_counter()
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    stopped = False
+    try:
+        _, stderr = proc.communicate(timeout=args.time_limit)
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGTERM)  # slamkit writes its outputs and exits with 130
+        _, stderr = proc.communicate()
+        stopped = True
+    wall = time.perf_counter() - start
+    if proc.returncode not in (0, 130) or not (run_dir / "metrics.json").exists():
+        print(stderr[-2000:], file=sys.stderr)
+        return {"label": label, "command": "slamkit " + " ".join(overrides), "returncode": proc.returncode}
+    rows = [r for r in csv.DictReader(open(run_dir / "frames.csv")) if r["rss_mb"]]
+    checkpoints = table(rows, args.every)
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    print(summary(metrics, stopped, wall))
+    return {"label": label, "command": "slamkit " + " ".join(overrides), "returncode": proc.returncode,
+            "stopped_by_time_limit": stopped, "process_wall_s": wall, "run_dir": str(run_dir), "metrics": metrics,
+            "checkpoints": checkpoints,
+            "samples": [{k: r[k] for k in ("index", "num_gaussians", "rss_mb")} for r in rows[::10]]}
+
+
+def table(rows: list[dict], every: int) -> list[dict]:
+    """Print and return, every `every` frames and at the last one: frame, keyframes so far,
+    Gaussians, resident memory (MB) at that frame and the largest so far, and the SLAM time so
+    far (tracking + mapping, s) with its frames/s."""
+    out, peak, slam_s, keyframes = [], 0.0, 0.0, 0
+    for i, r in enumerate(rows):
+        rss = float(r["rss_mb"])
+        peak = max(peak, rss)
+        slam_s += (float(r["tracking_ms"] or 0) + float(r["mapping_ms"] or 0)) / 1e3
+        keyframes += r["keyframe"] != "none"
+        frame = int(r["index"])
+        if (frame + 1) % every == 0 or frame == 0 or i == len(rows) - 1:
+            out.append({"frame": frame + 1, "keyframes": keyframes, "num_gaussians": int(r["num_gaussians"]),
+                        "rss_mb": rss, "peak_rss_mb": peak, "slam_s": slam_s, "fps": (i + 1) / slam_s})
+    print("| frames | keyframes | Gaussians | RSS MB | peak RSS MB so far | SLAM s so far | frames/s so far |")
+    print("|---|---|---|---|---|---|---|")
+    for c in out:
+        print(f"| {c['frame']} | {c['keyframes']} | {c['num_gaussians']:,} | {c['rss_mb']:.0f} | {c['peak_rss_mb']:.0f} "
+              f"| {c['slam_s']:.0f} | {c['fps']:.2f} |")
+    return out
+
+
+def summary(m: dict, stopped: bool, wall: float) -> str:
+    ate = "n/a" if m["ate_rmse_m"] is None else f"{100 * m['ate_rmse_m']:.2f} cm"
+    text = (f"\n{m['num_frames']} frames{' (stopped by the time limit)' if stopped else ''}, "
+            f"ATE RMSE {ate}, {m['fps']:.2f} frames/s, {m['num_gaussians']:,} Gaussians, "
+            f"peak {m['peak_memory_mb']:.0f} MB (ru_maxrss), process {wall:.0f} s")
+    if m.get("psnr") is not None:
+        text += (f", PSNR {m['psnr']:.2f} dB, {m['pruned_by_memory_guard']:,} pruned by the memory guard, "
+                 f"keyframe images {m['keyframe_memory_mb']:.1f} MB")
+    return text
+
+
+def print_comparison(runs: list[dict]) -> None:
+    """Peak resident memory (MB so far) and Gaussians side by side, per frame count."""
+    ok = [r for r in runs if "checkpoints" in r]
+    frames = sorted({c["frame"] for r in ok for c in r["checkpoints"]})
+    print("\n| frames | " + " | ".join(f"{r['label']}: peak MB, Gaussians" for r in ok) + " |")
+    print("|---|" + "---|" * len(ok))
+    for f in frames:
+        cells = []
+        for r in ok:
+            c = next((c for c in r["checkpoints"] if c["frame"] == f), None)
+            cells.append("-" if c is None else f"{c['peak_rss_mb']:.0f}, {c['num_gaussians']:,}")
+        print(f"| {f} | " + " | ".join(cells) + " |")
 
 
 if __name__ == "__main__":

@@ -14,7 +14,13 @@ its estimated pose (camera-to-world, not refined), and trains:
   tensors: means, quats (w,x,y,z), log_scales, opacity_logits, colors);
 - pruning every `prune_every` steps: opacity < `prune_min_opacity` or largest scale >
   `max_scale` metres (the dataset's hint: 0.25 Replica, 1.0 TUM). No densification and no
-  opacity reset unless asked (`densify`, `opacity_reset`, for the paper's Table 8b ablation).
+  opacity reset unless asked (`densify`, `opacity_reset`, for the paper's Table 8b ablation);
+- a memory guard (`max_gaussians`, off by default): when keyframes (or densification) take the
+  map above the cap, the least opaque Gaussians are pruned, through the same path as pruning.
+
+Keyframe images are kept at the training resolution as uint8 colour and uint16 depth (1 mm
+steps), in memory or, with `keyframe_storage=disk`, as .npy files read back when sampled: a
+long run holds hundreds of keyframes.
 
 Shared state. The optimised parameters ARE the GaussianMap's tensors (leaf tensors with
 requires_grad, updated in place), so the tracker's `tracking_target()` at the next tracking
@@ -34,10 +40,14 @@ render | ground-truth images and `map.ply` in the run folder.
 
 from __future__ import annotations
 
+import enum
 import inspect
 import logging
 import math
+import shutil
+import tempfile
 import time
+import weakref
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
@@ -69,6 +79,16 @@ _LR_FIELDS = {
 FALLBACK_MAX_SCALE = 1.0
 #: The depth term is L1(depth / DEPTH_UNIT) (metres / 10, as the reference code).
 DEPTH_UNIT = 10.0
+#: Keyframe depth is stored as uint16 in steps of this many metres (1 mm: at most 0.5 mm of
+#: rounding, up to 65.5 m; deeper pixels are stored as invalid).
+KEYFRAME_DEPTH_STEP = 1e-3
+
+
+class KeyframeStorage(enum.Enum):
+    """Where keyframe training images live: memory, or disk (.npy files)."""
+
+    memory = "memory"
+    disk = "disk"
 
 
 @dataclass
@@ -105,6 +125,21 @@ class GaussianSplattingConfig(PluginConfig):
       Gaussian is dropped when the map rendered at the keyframe's pose (training resolution)
       has alpha > `covered_alpha` at its pixel and an expected depth (depth / alpha) within
       `covered_depth_tolerance` metres of its own.
+    max_gaussians: memory guard, null = unlimited (the paper's behaviour). When a keyframe's
+      Gaussians (or densification) take the map above this many, the least opaque Gaussians
+      (lowest opacity; the keyframe's own new Gaussians, whose opacity is still the initial
+      value and says nothing yet, go last) are pruned until (1 - memory_guard_margin) x
+      max_gaussians remain, so a guarded run does not prune at every keyframe. Off by default:
+      the cap changes the map (and so the results) and the right size depends on the machine;
+      a Gaussian costs about 0.8 kB of resident memory while mapping (docs/results.md), so
+      1,000,000 is about 0.8 GB.
+    memory_guard_margin: fraction of max_gaussians freed below the cap when the guard prunes.
+    keyframe_storage: memory | disk: where keyframe training images live (uint8 colour and
+      uint16 millimetre depth at the training resolution either way; disk = .npy files read
+      back when the keyframe is trained on, for long runs).
+    keyframe_dir: folder for keyframe_storage=disk (null = a temporary folder, removed when the
+      mapper is released; `mapper.keyframe_dir=${hydra:runtime.output_dir}/keyframes` keeps
+      them in the run folder).
     eval_every: evaluate every n-th frame. eval_resolution_scale: resolution of evaluation
       renders (1 = the dataset's). save_images: number of render | ground-truth images written.
     seed: the sampler's random generator.
@@ -136,6 +171,10 @@ class GaussianSplattingConfig(PluginConfig):
     skip_covered: bool = False
     covered_alpha: float = 0.9
     covered_depth_tolerance: float = 0.05
+    max_gaussians: int | None = None
+    memory_guard_margin: float = 0.1
+    keyframe_storage: KeyframeStorage = KeyframeStorage.memory
+    keyframe_dir: str | None = None
     eval_every: int = 1
     eval_resolution_scale: float = 1.0
     save_images: int = 3
@@ -165,16 +204,20 @@ class GaussianSplattingConfig(PluginConfig):
         require(0 < self.covered_alpha < 1, "mapper.covered_alpha", "in (0, 1)", self.covered_alpha)
         require(self.covered_depth_tolerance > 0, "mapper.covered_depth_tolerance", "> 0 metres",
                 self.covered_depth_tolerance)
+        require(self.max_gaussians is None or self.max_gaussians > 0, "mapper.max_gaussians",
+                "null (unlimited) or an integer > 0", self.max_gaussians)
+        require(0 <= self.memory_guard_margin < 1, "mapper.memory_guard_margin", "in [0, 1)",
+                self.memory_guard_margin)
         require(self.eval_every >= 1, "mapper.eval_every", "an integer >= 1", self.eval_every)
         require(self.save_images >= 0, "mapper.save_images", "an integer >= 0", self.save_images)
 
 
 @dataclass
 class Keyframe:
-    """A training view: image (h,w,3) uint8 (kept as bytes: a long run holds hundreds of
-    keyframes) and depth (h,w) float32 metres (0 = invalid) at the training resolution, the
-    camera for that resolution, the pose (camera-to-world) and its inverse as a float32
-    tensor."""
+    """A training view at the training resolution: its camera, pose (camera-to-world, float64)
+    and inverse (float32 tensor), and its image (h,w,3) uint8 and depth (h,w) uint16 in
+    KEYFRAME_DEPTH_STEP metres (0 = invalid), held in `rgbd` or, when `path` is set, in
+    `path`_rgb.npy / `path`_depth.npy (read on each use)."""
 
     id: int
     frame_index: int
@@ -182,12 +225,44 @@ class Keyframe:
     pose: np.ndarray
     world_to_camera: torch.Tensor
     camera: Camera
-    image: torch.Tensor
-    depth: torch.Tensor
+    rgbd: tuple[np.ndarray, np.ndarray] | None = None
+    path: Path | None = None
 
-    def target(self) -> torch.Tensor:
-        """The image as (h,w,3) float32 in [0, 1]."""
-        return self.image.float() / 255.0
+    @classmethod
+    def store(cls, image: torch.Tensor, depth: torch.Tensor, path: Path | None = None, **fields) -> Keyframe:
+        """Quantise `image` (h,w,3) float in [0,1] and `depth` (h,w) metres, and keep them in
+        memory (`path` None) or write them to `path`_rgb.npy / `path`_depth.npy."""
+        rgb = (image * 255.0).round_().clamp_(0, 255).to(torch.uint8).cpu().numpy()
+        steps = torch.round(depth / KEYFRAME_DEPTH_STEP)
+        steps = torch.where((steps > 0) & (steps <= 65535), steps, torch.zeros_like(steps))
+        d = steps.to(torch.int32).cpu().numpy().astype(np.uint16)
+        if path is None:
+            return cls(rgbd=(rgb, d), **fields)
+        np.save(f"{path}_rgb.npy", rgb)
+        np.save(f"{path}_depth.npy", d)
+        return cls(path=path, **fields)
+
+    def _arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        if self.rgbd is not None:
+            return self.rgbd
+        return np.load(f"{self.path}_rgb.npy"), np.load(f"{self.path}_depth.npy")
+
+    def load(self, device=None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(image (h,w,3) float32 in [0,1], depth (h,w) float32 metres, 0 = invalid)."""
+        rgb, d = self._arrays()
+        image = torch.from_numpy(rgb).to(device=device, dtype=torch.float32) / 255.0
+        depth = torch.from_numpy(d).to(device=device, dtype=torch.float32) * KEYFRAME_DEPTH_STEP
+        return image, depth
+
+    @property
+    def depth(self) -> torch.Tensor:
+        """(h,w) float32 metres, 0 = invalid."""
+        return self.load(self.world_to_camera.device)[1]
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of image data held in memory (0 when on disk)."""
+        return sum(a.nbytes for a in self.rgbd) if self.rgbd is not None else 0
 
 
 def resize_rgbd(rgb: np.ndarray, depth: np.ndarray, camera: Camera, scale: float, device=None):
@@ -321,6 +396,9 @@ class GaussianSplattingMapper(Mapper):
         self._grad_accum = torch.zeros(0)
         self._grad_count = torch.zeros(0)
         self._filtered: set[int] = set()
+        self.pruned_by_memory_guard = 0   # Gaussians removed by the max_gaussians guard
+        self.memory_guard_prunings = 0    # times the guard pruned
+        self._keyframe_dir: Path | None = None
         self.gaussian_map = GaussianMap()
 
     # -- the Mapper role -------------------------------------------------------------------
@@ -355,17 +433,21 @@ class GaussianSplattingMapper(Mapper):
                     log.debug("keyframe at frame %d: %d of %d new Gaussians cover mapped pixels, dropped",
                               frame.index, int(covered.sum()), new_rows.stop - new_rows.start)
         self._filtered.discard(frame.index)
+        if self.cfg.max_gaussians is not None and len(gm) > self.cfg.max_gaussians:
+            with gm.lock:
+                self._sync()
+                self.enforce_max_gaussians(protect=slice(min(new_rows.start, len(gm)), len(gm)))
         image, depth, cam = resize_rgbd(frame.rgb, frame.depth, frame.camera, self.cfg.resolution_scale, gm.device)
         pose = np.asarray(result.pose, dtype=np.float64).copy()
-        kf = Keyframe(
-            id=len(self.keyframe_ids),
+        kf_id = len(self.keyframe_ids)
+        kf = Keyframe.store(
+            image, depth, self._keyframe_path(kf_id),
+            id=kf_id,
             frame_index=frame.index,
             kind=kind,
             pose=pose,
             world_to_camera=torch.as_tensor(invert_pose(pose), dtype=torch.float32, device=gm.device),
             camera=cam,
-            image=(image * 255.0).round_().clamp_(0, 255).to(torch.uint8),
-            depth=depth,
         )
         self.keyframes[kf.id] = kf
         self.keyframe_ids.append(kf.id)
@@ -394,6 +476,27 @@ class GaussianSplattingMapper(Mapper):
             with self.gaussian_map.lock:
                 self._sync()
                 self.prune()
+        if self.memory_guard_prunings:
+            log.info("memory guard (max_gaussians %d): %d Gaussians pruned in %d prunings", self.cfg.max_gaussians,
+                     self.pruned_by_memory_guard, self.memory_guard_prunings)
+
+    def _keyframe_path(self, kf_id: int) -> Path | None:
+        """Where keyframe `kf_id`'s images go: None (memory) or a file prefix in the keyframe
+        folder (keyframe_dir, else a temporary folder removed with the mapper)."""
+        if self.cfg.keyframe_storage is not KeyframeStorage.disk:
+            return None
+        if self._keyframe_dir is None:
+            if self.cfg.keyframe_dir is not None:
+                self._keyframe_dir = Path(self.cfg.keyframe_dir)
+                self._keyframe_dir.mkdir(parents=True, exist_ok=True)
+            else:
+                self._keyframe_dir = Path(tempfile.mkdtemp(prefix="slamkit-keyframes-"))
+                weakref.finalize(self, shutil.rmtree, self._keyframe_dir, ignore_errors=True)
+        return self._keyframe_dir / f"keyframe_{kf_id:06d}"
+
+    def keyframe_memory_bytes(self) -> int:
+        """Bytes of keyframe images held in memory (0 with keyframe_storage=disk)."""
+        return sum(kf.nbytes for kf in self.keyframes.values())
 
     # -- training --------------------------------------------------------------------------
     def _sample(self) -> int:
@@ -454,20 +557,20 @@ class GaussianSplattingMapper(Mapper):
         """0.8 L1(rgb) + 0.2 (1 - SSIM) + 0.1 L1(depth / 10) over the pixels with valid depth
         (all pixels for the colour terms when none has depth)."""
         cfg = self.cfg
-        mask = kf.depth > 0
+        image, depth = kf.load(out.color.device)
+        mask = depth > 0
         has_depth = bool(mask.any())
         if not has_depth:
             mask = torch.ones_like(mask)
         m = mask.to(out.color.dtype)
         n = m.sum()
-        image = kf.target()
         l1 = ((out.color - image).abs() * m[..., None]).sum() / (3 * n)
         loss = cfg.weight_l1 * l1
         if cfg.weight_ssim:
             s = image_metrics.ssim(out.color, image, mask, differentiable=True)
             loss = loss + cfg.weight_ssim * (1 - s)
         if cfg.weight_depth and has_depth:
-            ld = ((out.depth - kf.depth).abs() * m).sum() / n / DEPTH_UNIT
+            ld = ((out.depth - depth).abs() * m).sum() / n / DEPTH_UNIT
             loss = loss + cfg.weight_depth * ld
         return loss
 
@@ -554,6 +657,32 @@ class GaussianSplattingMapper(Mapper):
             log.debug("pruned %d Gaussians, %d left", removed, len(self.gaussian_map))
         return removed
 
+    def enforce_max_gaussians(self, protect: slice | None = None) -> int:
+        """The memory guard: when the map holds more than `max_gaussians` Gaussians, remove the
+        least opaque ones (lowest opacity logit, i.e. sigmoid opacity; ties: the older rows
+        first) until floor((1 - memory_guard_margin) max_gaussians) remain. Rows in `protect`
+        (a keyframe's Gaussians just added, at their initial opacity) go only when the others
+        do not make room. Removal is `_keep`, as pruning: map, Adam moments and densification
+        statistics stay aligned, the map's version changes. Call under the lock after `_sync`.
+        Returns the number removed."""
+        cap, gm = self.cfg.max_gaussians, self.gaussian_map
+        n = len(gm)
+        if cap is None or n <= cap:
+            return 0
+        excess = n - max(1, int(cap * (1.0 - self.cfg.memory_guard_margin)))
+        with torch.no_grad():
+            key = torch.nan_to_num(gm.opacity_logits.detach().clone(), nan=-math.inf)
+            if protect is not None:
+                key[protect] = math.inf
+            drop = torch.sort(key, stable=True).indices[:excess]
+            keep = torch.ones(n, dtype=torch.bool, device=gm.device)
+            keep[drop] = False
+        self._keep(keep)
+        self.pruned_by_memory_guard += excess
+        self.memory_guard_prunings += 1
+        log.debug("memory guard: pruned the %d least opaque Gaussians, %d left", excess, len(gm))
+        return excess
+
     def _accumulate_view_gradient(self, grad_means: torch.Tensor, kf: Keyframe) -> None:
         """3DGS's densification statistic, the norm of the gradient with respect to the
         projected mean in NDC units, approximated from the 3D gradient: |dL/d(x,y)_cam| * z * W
@@ -612,6 +741,7 @@ class GaussianSplattingMapper(Mapper):
                 keep[:n0][split] = False
                 self._keep(keep)
         self.prune()
+        self.enforce_max_gaussians()
 
     def _rows_numpy(self, mask: torch.Tensor) -> dict[str, np.ndarray]:
         gm = self.gaussian_map
@@ -715,6 +845,9 @@ class GaussianSplattingMapper(Mapper):
             eval_time_s=elapsed,
             mapping_steps=self.iteration,
             mapping_skipped_steps=self.skipped_steps,
+            pruned_by_memory_guard=self.pruned_by_memory_guard,
+            memory_guard_prunings=self.memory_guard_prunings,
+            keyframe_memory_mb=self.keyframe_memory_bytes() / 2**20,
             train_resolution=[self.keyframes[self.keyframe_ids[0]].camera.width,
                               self.keyframes[self.keyframe_ids[0]].camera.height] if self.keyframe_ids else None,
         )

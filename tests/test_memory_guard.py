@@ -1,0 +1,221 @@
+"""The 3DGS mapper's memory guard (`mapper.max_gaussians`) and keyframe image storage (issue 9)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from slamkit import evaluation
+from slamkit.config import apply_hints
+from slamkit.errors import ConfigError
+from slamkit.gaussian_map import GaussianMap
+from slamkit.map_growth import MapGrowthConfig
+from slamkit.registry import create_rasterizer, default_registry
+from slamkit.slam import SLAM
+from slamkit_plugins.mappers.gaussian_splatting import KEYFRAME_DEPTH_STEP, GaussianSplattingConfig, KeyframeStorage
+from test_mapper import N, add, adam_consistent, make_mapper, plane_scene, render_frame, start_map
+
+
+@pytest.fixture(scope="module")
+def rasterizer():
+    return create_rasterizer("torch")
+
+
+@pytest.fixture(scope="module")
+def frame(rasterizer):
+    from test_mapper import make_map
+
+    return render_frame(rasterizer, make_map(*plane_scene()), np.eye(4))
+
+
+@pytest.mark.parametrize("field, value", [("max_gaussians", 0), ("max_gaussians", -5), ("memory_guard_margin", 1.0),
+                                          ("memory_guard_margin", -0.1)])
+def test_guard_settings_are_validated(field, value):
+    with pytest.raises(ConfigError, match=f"mapper.{field}: expected") as err:
+        GaussianSplattingConfig(**{field: value})
+    assert "\n" not in str(err.value)
+
+
+def test_guard_prunes_the_least_opaque_down_to_the_margin_and_spares_new_rows(rasterizer, frame):
+    gm = start_map()
+    with torch.no_grad():  # distinct opacities, shuffled over the rows
+        gm.opacity_logits.copy_(torch.linspace(-4, 4, N)[torch.randperm(N, generator=torch.Generator().manual_seed(0))])
+    mapper = make_mapper(rasterizer, gm, max_gaussians=320, memory_guard_margin=0.2, prune_every=0)
+    add(mapper, frame)
+    mapper.optimize(3)
+    assert len(gm) == N and mapper.memory_guard_prunings == 0  # within the cap
+    # a keyframe adds 40 Gaussians: 340 > 320, so the guard prunes down to 0.8 x 320 = 256
+    before = gm.opacities.detach().clone()
+    means, quats, scales, colors, _ = plane_scene(seed=5, n=40)
+    rows = gm.append(means, quats, scales, colors, 0.1, np.ones(40, bool), 1)
+    new_means = gm.means.detach()[rows].clone()
+    version = gm.version
+    add(mapper, frame, rows=rows)
+    assert len(gm) == 256 and gm.version > version
+    assert mapper.pruned_by_memory_guard == 84 and mapper.memory_guard_prunings == 1
+    torch.testing.assert_close(gm.means.detach()[-40:], new_means, rtol=0, atol=0)  # the new rows stay
+    old = before[:N]
+    kept = torch.sort(old, descending=True).values[:216]
+    torch.testing.assert_close(torch.sort(gm.opacities.detach()[:216], descending=True).values, kept)
+    adam_consistent(mapper)
+    assert mapper.optimize(2) == 2 and np.isfinite(mapper.last_loss)
+    assert mapper.evaluate([frame], [frame.gt_pose], None)["pruned_by_memory_guard"] == 84
+
+
+def test_guard_prunes_new_rows_only_when_the_old_ones_cannot_make_room(rasterizer, frame):
+    gm = start_map()
+    mapper = make_mapper(rasterizer, gm, max_gaussians=50, memory_guard_margin=0.0)
+    means, quats, scales, colors, _ = plane_scene(seed=5, n=80)
+    rows = gm.append(means, quats, scales, colors, 0.1, np.ones(80, bool), 1)
+    add(mapper, frame, rows=rows)
+    assert len(gm) == 50 and mapper.pruned_by_memory_guard == N + 30
+    assert bool((gm.keyframe_id == 1).all())  # every old row went first
+    adam_consistent(mapper)
+
+
+def test_densification_respects_the_cap(rasterizer, frame):
+    gm = start_map()
+    mapper = make_mapper(rasterizer, gm, densify=True, densify_every=3, densify_grad_threshold=1e-9,
+                         max_gaussians=N + 10, memory_guard_margin=0.0)
+    add(mapper, frame)
+    mapper.optimize(3)
+    assert len(gm) <= N + 10 and mapper.memory_guard_prunings >= 1
+    adam_consistent(mapper)
+
+
+@pytest.mark.parametrize("storage", ["memory", "disk"])
+def test_keyframe_images_are_quantised_and_stored(rasterizer, frame, storage, tmp_path):
+    folder = tmp_path / "kf"
+    mapper = make_mapper(rasterizer, keyframe_storage=KeyframeStorage(storage), keyframe_dir=str(folder))
+    add(mapper, frame)
+    kf = mapper.keyframes[0]
+    image, depth = kf.load()
+    assert image.dtype == depth.dtype == torch.float32 and image.shape == (30, 40, 3)
+    torch.testing.assert_close(image, torch.as_tensor(frame.rgb) / 255.0, rtol=0, atol=1e-6)
+    valid = frame.depth > 0
+    assert torch.equal(depth > 0, torch.as_tensor(valid))
+    err = (depth - torch.as_tensor(frame.depth)).abs().max()
+    assert float(err) <= KEYFRAME_DEPTH_STEP / 2 + 1e-6
+    on_disk = sorted(p.name for p in folder.glob("*.npy")) if folder.exists() else []
+    if storage == "disk":
+        assert on_disk == ["keyframe_000000_depth.npy", "keyframe_000000_rgb.npy"]
+        assert mapper.keyframe_memory_bytes() == 0
+    else:
+        assert on_disk == [] and mapper.keyframe_memory_bytes() == 30 * 40 * (3 + 2)
+    mapper.optimize(3)
+    assert np.isfinite(mapper.last_loss)
+
+
+def test_disk_storage_trains_exactly_as_memory_storage(rasterizer, frame):
+    losses = {}
+    for storage in KeyframeStorage:
+        mapper = make_mapper(rasterizer, keyframe_storage=storage)
+        add(mapper, frame)
+        mapper.optimize(4)
+        losses[storage] = (mapper.last_loss, mapper.gaussian_map.colors.detach().clone())
+        if storage is KeyframeStorage.disk:
+            folder = mapper._keyframe_dir
+            assert folder.is_dir()
+            del mapper
+            import gc
+
+            gc.collect()
+            assert not folder.exists()  # a temporary folder goes with the mapper
+    (a, ca), (b, cb) = losses.values()
+    assert a == b
+    torch.testing.assert_close(ca, cb, rtol=0, atol=0)
+
+
+class RecordingTracker:
+    """Wraps a tracker; at each target rebuild records the map's version and trackable count
+    and the version of the target the tracker took."""
+
+    def __init__(self, tracker):
+        self._tracker = tracker
+        self.rebuilds = []
+
+    def __getattr__(self, name):
+        return getattr(self._tracker, name)
+
+    def update_target(self, gaussian_map):
+        self._tracker.update_target(gaussian_map)
+        with gaussian_map.lock:
+            eligible = gaussian_map.trackable & (gaussian_map.opacities.detach() > self._tracker.min_opacity)
+            self.rebuilds.append((gaussian_map.version, self._tracker.target.version,
+                                  len(self._tracker.target.means), int(eligible.sum())))
+
+
+def test_guarded_replica_run_stays_under_the_cap_keeps_the_most_opaque_and_tracks(replica_path):
+    """Replica room0, 8 frames, a keyframe every 2nd frame (each adds ~8k Gaussians), the map
+    capped at 12,000: after every step the map is within the cap; each guard pruning removed
+    Gaussians no more opaque than the lowest one kept among the older rows; the optimiser state
+    follows; the tracker's target is rebuilt from the pruned map at the next tracking keyframe;
+    tracking stays within the tracking-only bound."""
+    cap = 12_000
+    registry = default_registry()
+    dataset = registry.create("dataset", "replica",
+                              registry.get("dataset", "replica").config(path=str(replica_path), max_frames=8))
+    tcfg = registry.get("tracker", "gicp").config()
+    mcfg = GaussianSplattingConfig(resolution_scale=0.25, final_iterations=0, max_gaussians=cap,
+                                   memory_guard_margin=0.1, eval_resolution_scale=0.25, save_images=0)
+    growth = MapGrowthConfig()
+    for cfg in (tcfg, mcfg, growth):
+        apply_hints(cfg, dataset.hints)
+    tracker = registry.create("tracker", "gicp", tcfg)
+    policy = registry.create("keyframe", "every_n", registry.get("keyframe", "every_n").config(tracking_every=2))
+    mapper = registry.create("mapper", "gaussian_splatting", mcfg)
+    gm = GaussianMap()
+    recorder = RecordingTracker(tracker)
+    slam = SLAM(recorder, policy, mapper, gm, growth, iterations_per_frame=2)
+
+    prunings, kept_masks = [], []
+    guard, keep = mapper.enforce_max_gaussians, mapper._keep
+
+    def guard_spy(protect=None):
+        logits, version, n, first = gm.opacity_logits.detach().clone(), gm.version, len(gm), len(kept_masks)
+        removed = guard(protect)
+        if removed:
+            prunings.append((logits, protect, n, removed, kept_masks[first], version, gm.version))
+        return removed
+
+    def keep_spy(mask):
+        kept_masks.append(mask.clone())
+        keep(mask)
+
+    mapper.enforce_max_gaussians, mapper._keep = guard_spy, keep_spy
+
+    slam.initialize(dataset[0].gt_pose)
+    poses, gts = [], []
+    for i in range(len(dataset)):
+        frame = dataset[i]
+        step = slam.step(frame)
+        poses.append(step.tracking.pose)
+        gts.append(frame.gt_pose)
+        assert len(gm) <= cap, f"frame {i}: {len(gm)} Gaussians"
+        adam_consistent(mapper)
+        assert not step.tracking.lost
+
+    assert len(prunings) >= 2 and mapper.pruned_by_memory_guard == sum(p[3] for p in prunings)
+    for logits, protect, n, removed, mask, v_before, v_after in prunings:
+        assert len(mask) == n and int((~mask).sum()) == removed
+        old = torch.ones(n, dtype=torch.bool)
+        old[protect] = False
+        assert bool(mask[protect].all())  # the new keyframe's rows are spared
+        assert removed == n - int(cap * 0.9)
+        assert float(logits[old & mask].min()) >= float(logits[~mask].max())  # the most opaque stay
+        assert v_after > v_before
+    # each tracking keyframe rebuilds the target from the current (pruned) map
+    assert len(recorder.rebuilds) == 4
+    for map_version, target_version, target_size, eligible in recorder.rebuilds:
+        assert target_version == map_version and target_size == eligible
+    assert recorder.rebuilds[-1][0] > prunings[0][6]
+    ate = evaluation.ate(np.array(poses), gts)
+    assert ate.rmse_m < 0.01
+    metrics = mapper.evaluate(dataset, poses, None)
+    assert metrics["pruned_by_memory_guard"] == mapper.pruned_by_memory_guard > 0
+    assert metrics["num_gaussians"] == len(gm) <= cap and math.isfinite(metrics["psnr"])
+    assert metrics["keyframe_memory_mb"] > 0
+
