@@ -256,6 +256,58 @@ def test_map_growth_and_pruning_keep_optimizer_state_consistent(rasterizer, trut
     assert mapper.optimize(3) == 3 and np.isfinite(mapper.last_loss)
 
 
+def test_rows_appended_during_a_step_are_kept_and_the_step_applies(rasterizer, truth_frames):
+    """Real-time mode: the tracking thread appends a keyframe's Gaussians while a step renders
+    (the lock is not held then). The step updates its own rows; the new rows stay as added."""
+    gm = start_map()
+    mapper = make_mapper(rasterizer, gm, prune_every=0)
+    add(mapper, truth_frames[0])
+    mapper.optimize(1)
+    means, quats, scales, colors, _ = plane_scene(seed=6, n=30)
+    appended = {}
+    render = mapper.render
+
+    def render_then_append(*args, **kwargs):
+        out = render(*args, **kwargs)
+        if not appended:
+            appended["rows"] = gm.append(means, quats, scales, colors, 0.1, np.ones(30, bool), 1)
+            appended["colors"] = gm.colors[appended["rows"]].clone()
+        return out
+
+    mapper.render = render_then_append
+    before = gm.colors.detach()[:N].clone()
+    assert mapper.optimize(1) == 1 and mapper.stale_steps == 0
+    rows = appended["rows"]
+    assert len(gm) == N + 30
+    assert torch.equal(gm.colors.detach()[rows], appended["colors"])  # untouched
+    assert not torch.equal(gm.colors.detach()[:N], before)  # the step's update reached the map
+    mapper.render = render
+    mapper.optimize(2)
+    adam_consistent(mapper)
+
+
+def test_a_step_is_dropped_when_rows_are_removed_during_it(rasterizer, truth_frames):
+    gm = start_map()
+    mapper = make_mapper(rasterizer, gm, prune_every=0)
+    add(mapper, truth_frames[0])
+    render = mapper.render
+
+    def render_then_prune(*args, **kwargs):
+        out = render(*args, **kwargs)
+        with gm.lock:
+            keep = torch.ones(len(gm), dtype=torch.bool)
+            keep[:10] = False
+            mapper._keep(keep)
+        return out
+
+    mapper.render = render_then_prune
+    mapper.optimize(1)
+    assert mapper.stale_steps == 1 and len(gm) == N - 10
+    mapper.render = render
+    assert mapper.optimize(2) == 2 and mapper.stale_steps == 1
+    adam_consistent(mapper)
+
+
 def test_periodic_pruning_uses_the_dataset_scale_limit(rasterizer, truth_frames):
     gm = start_map()
     with torch.no_grad():

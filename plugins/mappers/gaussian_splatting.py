@@ -390,6 +390,8 @@ class GaussianSplattingMapper(Mapper):
         self.pending: deque[int] = deque()
         self.iteration = 0          # optimisation steps taken (skipped ones excluded)
         self.skipped_steps = 0      # steps skipped for a non-finite loss or gradient
+        self.stale_steps = 0        # steps dropped: the optimiser state was rebuilt during them
+        self._generation = 0        # bumped whenever the optimised leaf tensors are replaced
         self.last_loss: float | None = None
         self._adam = _Adam({n: getattr(cfg, f) for n, f in _LR_FIELDS.items()}, cfg.adam_eps)
         self._tensors: dict[str, torch.Tensor] = {}
@@ -527,6 +529,7 @@ class GaussianSplattingMapper(Mapper):
                     setattr(gm, name, t)
                 params[name] = t
             self._tensors = dict(params)
+            self._generation += 1
         if n != len(self._adam) or not self._adam.m:
             self._adam.resize(params)
         if self.cfg.densify and len(self._grad_accum) != n:
@@ -575,28 +578,46 @@ class GaussianSplattingMapper(Mapper):
         return loss
 
     def train_step(self, kf: Keyframe) -> bool:
-        """One optimisation step on keyframe `kf`; False when it was skipped (empty map, or a
-        non-finite loss or gradient)."""
+        """One optimisation step on keyframe `kf`; False when it was skipped (empty map, a
+        non-finite loss or gradient, or the optimiser state changed under it).
+
+        The lock is held while the parameters are taken and while the update is applied, not
+        while rendering and differentiating (most of the step), so that in real-time mode the
+        tracking thread can add a keyframe's Gaussians meanwhile. Those are rows appended at the
+        end (a new tensor): the step updates its own rows and copies them into the new tensors.
+        If the optimiser state was rebuilt meanwhile (a keyframe that pruned or filtered rows),
+        the step is dropped and counted in `stale_steps`."""
         gm = self.gaussian_map
         with gm.lock:
             params = self._sync()
-            if len(gm) == 0:
-                return False
-            out = self.render(kf.world_to_camera, kf.camera, params=params)
-            loss = self.loss(out, kf)
-            if not bool(torch.isfinite(loss)):
+            n, generation = len(gm), self._generation
+        if n == 0:
+            return False
+        out = self.render(kf.world_to_camera, kf.camera, params=params)
+        loss = self.loss(out, kf)
+        if not bool(torch.isfinite(loss)):
+            with gm.lock:
                 return self._skip(f"loss {float(loss.detach())}")
-            names = list(params)
-            grads = torch.autograd.grad(loss, [params[k] for k in names], allow_unused=True)
-            grads = {k: g for k, g in zip(names, grads) if g is not None}
-            if not all(bool(torch.isfinite(g).all()) for g in grads.values()):
+        names = list(params)
+        grads = torch.autograd.grad(loss, [params[k] for k in names], allow_unused=True)
+        grads = {k: g for k, g in zip(names, grads) if g is not None}
+        if not all(bool(torch.isfinite(g).all()) for g in grads.values()):
+            with gm.lock:
                 return self._skip("non-finite gradient")
+        with gm.lock:
+            if self._generation != generation:
+                self.stale_steps += 1
+                return False
             self.last_loss = float(loss.detach())
             if self.cfg.densify and "means" in grads:
                 self._accumulate_view_gradient(grads["means"], kf)
             self._adam.step(params, grads)
             with torch.no_grad():
                 params["colors"].clamp_(0.0, 1.0)
+                for name, t in params.items():  # rows appended meanwhile live in new tensors
+                    live = getattr(gm, name)
+                    if live is not t:
+                        live[:n] = t.detach()
             gm.version += 1
             self.iteration += 1
             it = self.iteration
@@ -845,6 +866,7 @@ class GaussianSplattingMapper(Mapper):
             eval_time_s=elapsed,
             mapping_steps=self.iteration,
             mapping_skipped_steps=self.skipped_steps,
+            mapping_stale_steps=self.stale_steps,
             pruned_by_memory_guard=self.pruned_by_memory_guard,
             memory_guard_prunings=self.memory_guard_prunings,
             keyframe_memory_mb=self.keyframe_memory_bytes() / 2**20,
