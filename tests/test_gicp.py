@@ -328,18 +328,19 @@ def test_frame_without_overlap_is_lost_with_reason():
     np.testing.assert_allclose(result.pose, far)
 
 
-def test_kdtree_built_only_in_update_target(monkeypatch):
-    built = []
-    real = gicp_module.KDTree
-
-    def counting(*args, **kwargs):
-        built.append(1)
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(gicp_module, "KDTree", counting)
+@pytest.mark.parametrize("kernels", ["numpy", "auto"])
+def test_kdtree_built_only_in_update_target(kernels):
     frame = make_frame(POSE)
     gmap = map_from_frame(frame, POSE)
-    tracker = GICPTracker(tight_config(rotation_tolerance=2e-3, translation_tolerance=5e-4))
+    tracker = GICPTracker(tight_config(rotation_tolerance=2e-3, translation_tolerance=5e-4, kernels=kernels))
+    built = []
+    real = tracker.kernels.nearest_index
+
+    def counting(means):
+        built.append(1)
+        return real(means)
+
+    tracker.kernels.nearest_index = counting
     tracker.initialize(POSE)
     assert tracker.tree_builds == 0
     tracker.update_target(gmap)

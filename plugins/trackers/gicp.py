@@ -31,7 +31,6 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from pykdtree.kdtree import KDTree
 
 from slamkit.gaussian_geometry import Regularization, regularize, rotate_covariances
 from slamkit.gaussian_map import GaussianMap
@@ -170,15 +169,15 @@ def orthonormalize(T: np.ndarray) -> np.ndarray:
 
 
 class _Target:
-    """The aligned-to map Gaussians: means (float32 for the tree and float64 for residuals),
-    regularised covariances (float64) and the KD-tree over the means."""
+    """The aligned-to map Gaussians: means (float32 for the search and float64 for residuals),
+    regularised covariances (float64) and the nearest-neighbour index over the means."""
 
-    def __init__(self, means: np.ndarray, covariances: np.ndarray, version: int):
+    def __init__(self, means: np.ndarray, covariances: np.ndarray, version: int, kernels):
         self.means32 = np.ascontiguousarray(means, dtype=np.float32)
         # Means and covariances side by side: one gather per iteration.
         self.packed = np.concatenate([self.means32.astype(np.float64), covariances.reshape(-1, 9)], axis=1)
         self.version = version
-        self.tree = KDTree(self.means32, leafsize=16)
+        self.index = kernels.nearest_index(self.means32)
 
     @property
     def means(self) -> np.ndarray:
@@ -230,7 +229,7 @@ class GICPTracker(Tracker):
             self.target = None
             return
         cov = self._regularize(snap.covariances, target=True)
-        self.target = _Target(snap.means, cov, snap.version)
+        self.target = _Target(snap.means, cov, snap.version, self.kernels)
         self.tree_builds += 1
 
     def predict(self) -> np.ndarray:
@@ -361,18 +360,18 @@ class GICPTracker(Tracker):
         lam = None
         nu = 2.0
         sq = np.full(len(src), np.inf)
+        idx = None  # the last matches: each search starts from them
         converged = False
         for it in range(cfg.max_iterations):
             stats["iterations"] = it + 1
             R, t = T[:3, :3], T[:3, 3]
             query = (src @ R.T + t).astype(np.float32)
             ts = time.perf_counter()
-            d2, idx = target.tree.query(query, k=1, distance_upper_bound=self.max_corr, sqr_dists=True)
+            d2, idx = target.index.nearest(query, self.max_corr, hint=idx)
             te = time.perf_counter()
             stats["nn_search_s"] += te - ts
-            valid = idx < n_target
-            sq = np.where(valid, d2, np.inf).astype(np.float64)
-            m = int(np.count_nonzero(valid))
+            sq = d2.astype(np.float64)
+            m = int(np.count_nonzero(idx < n_target))
             stats["num_correspondences"] = m
             if m < cfg.min_correspondences:
                 stats["lost_reason"] = f"too few correspondences ({m} < {cfg.min_correspondences})"

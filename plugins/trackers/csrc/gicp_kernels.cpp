@@ -15,6 +15,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <limits>
 #include <thread>
 #include <vector>
 
@@ -159,11 +160,138 @@ void add_correspondence(const double* s, const double* u, const double* R, const
     A[24] -= Wr0, A[25] -= Wr1, A[26] -= Wr2;
     A[27] += r0 * Wr0 + r1 * Wr1 + r2 * Wr2;}
 
+
+// ---------------------------------------------------------------------------------------------
+// A KD-tree over the target means for the per-iteration nearest-neighbour search.
+// Squared distances are summed in float32 dimension by dimension, as pykdtree does for float32
+// data, and an equal distance goes to the lower index, so the result does not depend on the
+// tree's shape. A hint (the previous iteration's match) starts the search with a small radius.
+struct KDNode {
+  float split;
+  int32_t dim;       // -1: leaf
+  int32_t lo, hi;    // leaf: range in `order`
+  int32_t child[2];  // inner: below / above split
+};
+
+struct KDTree {
+  std::vector<float> points;   // (N,3) as given
+  std::vector<float> sorted;   // (N,3) in leaf order
+  std::vector<int32_t> order;  // leaf order -> index
+  std::vector<KDNode> nodes;
+  int leaf_size = 16;
+
+  int build(int lo, int hi) {
+    const int id = int(nodes.size());
+    nodes.push_back(KDNode{0.f, -1, lo, hi, {-1, -1}});
+    if (hi - lo <= leaf_size) return id;
+    float mn[3] = {1e30f, 1e30f, 1e30f}, mx[3] = {-1e30f, -1e30f, -1e30f};
+    for (int i = lo; i < hi; ++i)
+      for (int d = 0; d < 3; ++d) {
+        const float v = points[3 * size_t(order[i]) + d];
+        mn[d] = std::min(mn[d], v);
+        mx[d] = std::max(mx[d], v);
+      }
+    int dim = 0;
+    for (int d = 1; d < 3; ++d)
+      if (mx[d] - mn[d] > mx[dim] - mn[dim]) dim = d;
+    if (!(mx[dim] > mn[dim])) return id;  // all points equal: one leaf
+    const int mid = lo + (hi - lo) / 2;
+    std::nth_element(order.begin() + lo, order.begin() + mid, order.begin() + hi, [&](int32_t a, int32_t b) {
+      return points[3 * size_t(a) + dim] < points[3 * size_t(b) + dim];
+    });
+    const float split = points[3 * size_t(order[mid]) + dim];
+    const int left = build(lo, mid);
+    const int right = build(mid, hi);
+    nodes[id].dim = dim;
+    nodes[id].split = split;
+    nodes[id].child[0] = left;
+    nodes[id].child[1] = right;
+    return id;
+  }
+};
+
+inline float dist2(const float* a, const float* b) {
+  const float dx = a[0] - b[0], dy = a[1] - b[1], dz = a[2] - b[2];
+  float d = dx * dx;
+  d += dy * dy;
+  d += dz * dz;
+  return d;
+}
+
+void nearest(const KDTree& tree, const float* q, float& best_d, int32_t& best_i) {
+  int32_t stack[128];
+  float stack_gap[128];
+  int top = 0;
+  stack[top] = 0;
+  stack_gap[top++] = 0.f;
+  while (top > 0) {
+    --top;
+    const KDNode& node = tree.nodes[stack[top]];
+    const float gap = stack_gap[top];  // a lower bound on the squared distance to the node's cell
+    if (gap > best_d) continue;
+    if (node.dim < 0) {
+      for (int k = node.lo; k < node.hi; ++k) {
+        const float d = dist2(q, &tree.sorted[3 * size_t(k)]);
+        const int32_t i = tree.order[k];
+        if (d < best_d || (d == best_d && i < best_i)) best_d = d, best_i = i;
+      }
+      continue;
+    }
+    const float diff = q[node.dim] - node.split;
+    const int near = diff < 0 ? 0 : 1;
+    if (top + 2 > 128) continue;  // cannot happen for trees of < 2^60 points
+    stack[top] = node.child[1 - near];  // the far side, visited later if still within reach
+    stack_gap[top++] = std::max(gap, diff * diff);
+    stack[top] = node.child[near];
+    stack_gap[top++] = gap;
+  }
+}
+
 }  // namespace
 
 extern "C" {
 
-int slk_abi_version() { return 1; }
+void* slk_kdtree_build(int n, const float* points, int leaf_size) {
+  auto* tree = new KDTree();
+  tree->leaf_size = std::max(1, leaf_size);
+  tree->points.assign(points, points + 3 * size_t(n));
+  tree->order.resize(n);
+  for (int i = 0; i < n; ++i) tree->order[i] = i;
+  if (n > 0) tree->build(0, n);
+  tree->sorted.resize(3 * size_t(n));
+  for (int k = 0; k < n; ++k)
+    for (int d = 0; d < 3; ++d) tree->sorted[3 * size_t(k) + d] = tree->points[3 * size_t(tree->order[k]) + d];
+  return tree;
+}
+
+void slk_kdtree_free(void* tree) { delete static_cast<KDTree*>(tree); }
+
+// For each query (float32 (m,3)), the nearest point within squared distance max_d2 (inclusive
+// bound as `<=`): index in out_idx (n = tree size where none) and squared distance in out_d2
+// (float32). hint: (m) a candidate index per query (>= n: none), e.g. the last match.
+void slk_kdtree_nearest(const void* handle, int m, const float* queries, float max_d2, const uint32_t* hint,
+                        uint32_t* out_idx, float* out_d2, int nthreads) {
+  const KDTree& tree = *static_cast<const KDTree*>(handle);
+  const int n = int(tree.order.size());
+  parallel_for(m, nthreads, [&](int, int lo, int hi) {
+    for (int j = lo; j < hi; ++j) {
+      const float* q = queries + 3 * size_t(j);
+      // best_d starts just above the bound so that a point exactly at it is accepted
+      float best_d = std::nextafter(max_d2, 3.4e38f);
+      int32_t best_i = n;
+      if (hint != nullptr && hint[j] < uint32_t(n)) {
+        const float d = dist2(q, &tree.points[3 * size_t(hint[j])]);
+        if (d < best_d) best_d = d, best_i = int32_t(hint[j]);
+      }
+      if (n > 0) nearest(tree, q, best_d, best_i);
+      out_idx[j] = uint32_t(best_i);
+      out_d2[j] = best_i < n ? best_d : std::numeric_limits<float>::infinity();
+    }
+  });
+}
+
+
+int slk_abi_version() { return 2; }
 
 // points: (n,3) float32, camera frame, metres. cell: (n) the grid cell (row * gw + col) of each
 // point; grid: (gh*gw) the point in each cell or -1. fx, fy: focal lengths in pixels; stride:
