@@ -10,7 +10,13 @@ TORCH ?= torch==2.13.0
 export TORCH_EXTENSIONS_DIR := $(CURDIR)/.cache/torch_extensions
 export SLAMKIT_CACHE ?= $(CURDIR)/.cache/slamkit
 
-.PHONY: run test setup setup-test clean
+# Debian packages whose libraries open3d (the `mesh` extra, used by `slamkit-export mesh` and its
+# test) loads: libgl1 libx11-6 libudev1 libgomp1 are linked; libusb-1.0-0 serves its RealSense
+# camera support. `make setup-test` installs the missing ones with apt-get (as root); without apt
+# or root it only warns, and everything but the mesh export still works.
+MESH_DEBS ?= libusb-1.0-0 libgl1 libx11-6 libudev1 libgomp1
+
+.PHONY: run test setup setup-test system-libs clean
 
 run: setup
 	$(VENV)/bin/slamkit $(ARGS)
@@ -19,7 +25,20 @@ test: setup-test
 	$(PY) -m pytest $(PYTEST_ARGS)
 
 setup: $(VENV)/.installed
-setup-test: $(VENV)/.installed-test
+setup-test: system-libs $(VENV)/.installed-test
+
+system-libs:
+	@command -v dpkg >/dev/null 2>&1 || exit 0; \
+	missing=$$(for p in $(MESH_DEBS); do dpkg -s $$p >/dev/null 2>&1 || echo $$p; done); \
+	[ -z "$$missing" ] && exit 0; \
+	echo "installing Debian packages for open3d: $$missing"; \
+	if command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then \
+	  apt-get install -y -qq $$missing >/dev/null 2>&1 || \
+	  { apt-get update -qq >/dev/null 2>&1 && apt-get install -y -qq $$missing >/dev/null 2>&1; } || \
+	  echo "warning: apt-get could not install $$missing; slamkit-export mesh may fail to import open3d"; \
+	else \
+	  echo "warning: missing $$missing (as root: apt-get install -y $$missing); slamkit-export mesh may fail to import open3d"; \
+	fi
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -34,7 +53,7 @@ $(VENV)/.installed: pyproject.toml $(VENV)/.torch
 	touch $@
 
 $(VENV)/.installed-test: pyproject.toml examples/slamkit-p2plane/pyproject.toml $(VENV)/.torch
-	$(PY) -m pip install --quiet -e ".[test]"
+	$(PY) -m pip install --quiet -e ".[test]"  # includes the extras viewer (rerun-sdk) and mesh (open3d)
 	$(PY) -m pip install --quiet --no-deps -e examples/slamkit-p2plane  # the example third-party plugin
 	touch $(VENV)/.installed $@
 

@@ -82,11 +82,11 @@ def _task(cfg) -> None:
     from hydra.core.hydra_config import HydraConfig
 
     from slamkit import pipeline
-    from slamkit.config import validate_config
+    from slamkit.config import PLUGIN_GROUPS, validate_config
 
     registry = _registry or default_registry()  # launchers run jobs in fresh processes
     hydra_cfg = HydraConfig.get()
-    names = {role: hydra_cfg.runtime.choices[role] for role in ("dataset", "tracker", "mapper", "keyframe")}
+    names = {role: hydra_cfg.runtime.choices[role] for role in PLUGIN_GROUPS}
     out_dir = Path(hydra_cfg.runtime.output_dir)
     try:
         run_cfg = validate_config(cfg)

@@ -17,7 +17,7 @@ from slamkit.errors import ConfigError
 from slamkit.map_growth import MapGrowthConfig
 from slamkit.roles import PluginConfig, require
 
-PLUGIN_GROUPS = ("dataset", "tracker", "mapper", "keyframe")
+PLUGIN_GROUPS = ("dataset", "tracker", "mapper", "keyframe", "viewer")
 
 
 class Mode(enum.Enum):
@@ -47,6 +47,7 @@ class RunConfig(PluginConfig):
     tracker: Any = MISSING
     mapper: Any = MISSING
     keyframe: Any = MISSING
+    viewer: Any = MISSING
     map: MapGrowthConfig = field(default_factory=MapGrowthConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     mode: Mode = Mode.sequential

@@ -44,3 +44,10 @@ def slamkit_rasterizers() -> list[PluginSpec]:
     """Gaussian rasteriser backends: subclasses of `slamkit.rendering.Rasterizer`. Selected by
     a mapper's ``rasterizer`` option (``auto`` picks gsplat on CUDA, else ``cpu``, else
     ``torch``)."""
+
+
+@hookspec
+def slamkit_viewers() -> list[PluginSpec]:
+    """Live display or recording of a run: subclasses of `slamkit.roles.Viewer`, configs
+    ideally deriving from `slamkit.roles.ViewerConfig`. Selected with ``viewer=NAME``
+    (``none`` by default)."""

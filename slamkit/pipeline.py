@@ -1,5 +1,6 @@
-"""Running SLAM on a dataset: building the roles from config, the progress bar, the run
-outputs (trajectory.txt, metrics.json, frames.csv, trajectory.png) and evaluation.
+"""Running SLAM on a dataset: building the roles from config, the progress bar, the viewer, the
+run outputs (trajectory.txt, keyframes.txt, camera.json, metrics.json, frames.csv,
+trajectory.png) and evaluation.
 
 The algorithm itself is `slamkit.slam.SLAM`; this module is the I/O around it.
 """
@@ -28,6 +29,7 @@ from slamkit.registry import Registry
 from slamkit.slam import SLAM, MappingThread, StepResult
 from slamkit.tum_format import write_tum_trajectory
 from slamkit.types import Frame, KeyframeKind
+from slamkit.viewing import ViewerFeed
 
 log = logging.getLogger(__name__)
 
@@ -39,6 +41,7 @@ class RunState:
     timestamps: list[float] = field(default_factory=list)
     poses: list[np.ndarray] = field(default_factory=list)
     gt_poses: list[np.ndarray | None] = field(default_factory=list)
+    keyframe_rows: list[int] = field(default_factory=list)  # indices into poses of the keyframes
     num_keyframes: int = 0
     lost_frames: int = 0
     dropped_frames: int = 0
@@ -67,6 +70,8 @@ class RunState:
         self.timestamps.append(frame.timestamp)
         self.poses.append(step.tracking.pose)
         self.gt_poses.append(frame.gt_pose)
+        if step.keyframe:
+            self.keyframe_rows.append(len(self.poses) - 1)
         self.num_keyframes += bool(step.keyframe)
         self.lost_frames += step.tracking.lost
         self.mapping_iterations += step.mapping_iterations
@@ -135,13 +140,17 @@ def run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Path
     out_dir.mkdir(parents=True, exist_ok=True)
     np.random.seed(cfg.seed)
     dataset, slam = build(cfg, registry, names)
+    viewer = ViewerFeed(registry.create("viewer", names["viewer"], cfg.viewer), names["viewer"], slam.gaussian_map,
+                        slam.mapper)
     log.info("%s: %d frames, camera %s; tracker %s, mapper %s, keyframes %s", names["dataset"], len(dataset),
              dataset.camera, names["tracker"], names["mapper"], names["keyframe"])
+    write_camera(out_dir / "camera.json", dataset.camera, dataset.depth_trunc)
     state = RunState()
+    viewer.start(dataset.camera, out_dir)
     start = time.perf_counter()
     try:
         with _sigterm_as_interrupt(), open(out_dir / "frames.csv", "w", newline="") as frames_log:
-            _loop(cfg, dataset, slam, state, csv.writer(frames_log), frames_log)
+            _loop(cfg, dataset, slam, state, csv.writer(frames_log), frames_log, viewer)
         slam.mapper.finish()
         state.completed = True
     except KeyboardInterrupt as exc:
@@ -152,8 +161,19 @@ def run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Path
         log.error("run failed after %d frames: %s; writing what it has", len(state.poses), state.error)
         raise
     finally:
-        metrics = finish(cfg, slam, dataset, state, time.perf_counter() - start, out_dir)
+        try:
+            metrics = finish(cfg, slam, dataset, state, time.perf_counter() - start, out_dir)
+        finally:
+            viewer.close()
     return metrics
+
+
+def write_camera(path: Path, camera, depth_trunc: float) -> None:
+    """The run's camera as JSON: width, height (pixels), fx, fy, cx, cy (pixels) and
+    depth_trunc (metres, null = none), for tools that render the map later (slamkit-export)."""
+    data = {"width": camera.width, "height": camera.height, "fx": camera.fx, "fy": camera.fy, "cx": camera.cx,
+            "cy": camera.cy, "depth_trunc": depth_trunc if np.isfinite(depth_trunc) else None}
+    _write_json_atomic(path, data)
 
 
 class InputClock:
@@ -177,7 +197,7 @@ class InputClock:
         return now >= arrival + self.period
 
 
-def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, writer, log_file) -> None:
+def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, writer, log_file, viewer: ViewerFeed) -> None:
     from tqdm import tqdm
 
     writer.writerow(["index", "timestamp", "keyframe", "lost", "tracking_ms", "mapping_ms", "iterations",
@@ -210,6 +230,7 @@ def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, writer, log_file
                 mapping.check()
             state.record(frame, step)
             _log_frame(writer, frame, step, len(slam.gaussian_map))
+            viewer.show(frame, step.tracking.pose, step.keyframe, step.tracking.lost)
             bar.update(1)
             every = cfg.eval.running_ate_every
             if every and len(state.poses) % every == 0:
@@ -255,6 +276,8 @@ def finish(cfg: RunConfig, slam: SLAM, dataset, state: RunState, wall_s: float, 
     finite = np.flatnonzero(np.isfinite(poses).all(axis=(1, 2)))
     poses[: finite[0] if len(finite) else n] = poses[finite[0]] if len(finite) else np.eye(4)  # unreadable first frames
     write_tum_trajectory(out_dir / "trajectory.txt", state.timestamps, poses)
+    write_tum_trajectory(out_dir / "keyframes.txt", [state.timestamps[i] for i in state.keyframe_rows],
+                         poses[state.keyframe_rows].reshape(-1, 4, 4))
     has_gt = [i for i, p in enumerate(state.gt_poses) if p is not None and np.all(np.isfinite(p))]
     if has_gt:  # beside the estimate, for evo and slamkit-report
         write_tum_trajectory(out_dir / "groundtruth.txt", [state.timestamps[i] for i in has_gt],

@@ -90,7 +90,7 @@ def markdown_reference(registry: Registry) -> str:
     def table(prefix: str, cls: type) -> None:
         out.extend(["| key | type | default | meaning |", "|---|---|---|---|"])
         for name, ftype, default, doc in config_fields(cls):
-            if name in ("dataset", "tracker", "mapper", "keyframe", "map", "eval"):
+            if name in ("dataset", "tracker", "mapper", "keyframe", "viewer", "map", "eval"):
                 continue
             out.append(f"| `{prefix}{name}` | {ftype} | `{default}` | {doc} |")
         out.append("")

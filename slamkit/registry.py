@@ -30,6 +30,7 @@ ROLE_HOOKS = {
     "keyframe": "slamkit_keyframe_policies",
     "sampler": "slamkit_keyframe_samplers",
     "rasterizer": "slamkit_rasterizers",
+    "viewer": "slamkit_viewers",
 }
 
 

@@ -10,8 +10,11 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
+from slamkit.gaussian_map import GaussianMap
+from slamkit.geometry import invert_pose
 from slamkit.types import Camera
 
 
@@ -23,6 +26,19 @@ class RenderOutput:
     color: torch.Tensor
     depth: torch.Tensor
     alpha: torch.Tensor
+
+    def expected_depth(self, min_alpha: float = 0.5) -> torch.Tensor:
+        """(H,W) metres: depth / alpha where alpha >= min_alpha (the surface the pixel sees),
+        0 elsewhere (too transparent to trust)."""
+        solid = self.alpha >= min_alpha
+        return torch.where(solid, self.depth / self.alpha.clamp_min(1e-6), torch.zeros_like(self.depth))
+
+    def expected_color(self, min_alpha: float = 0.5) -> torch.Tensor:
+        """(H,W,3) in [0,1]: colour / alpha (the Gaussians' colour without the black background)
+        where alpha >= min_alpha, 0 elsewhere."""
+        solid = (self.alpha >= min_alpha)[..., None]
+        color = (self.color / self.alpha.clamp_min(1e-6)[..., None]).clamp(0, 1)
+        return torch.where(solid, color, torch.zeros_like(color))
 
 
 class Rasterizer(ABC):
@@ -57,3 +73,25 @@ class Rasterizer(ABC):
         metres (standard deviations); opacities (N,) in [0,1]; colors (N,3); world_to_camera
         (4,4) (the inverse of the camera-to-world pose); background (3,) or None for black.
         Gradients flow to means, quats, scales, opacities and colors."""
+
+
+def render_map(rasterizer: Rasterizer, gaussian_map: GaussianMap, pose: np.ndarray, camera: Camera) -> RenderOutput:
+    """Render the whole map from `pose` (4x4 camera-to-world, metres, OpenCV axes) with
+    `camera`, without gradients, under the map's lock (safe beside a mapping thread). An empty
+    map renders black with zero depth and alpha."""
+    world_to_camera = torch.as_tensor(invert_pose(np.asarray(pose, dtype=np.float64)), dtype=torch.float32,
+                                      device=gaussian_map.device)
+    with gaussian_map.lock, torch.no_grad():
+        if len(gaussian_map) == 0:
+            zeros = torch.zeros((camera.height, camera.width), device=gaussian_map.device)
+            return RenderOutput(torch.zeros((camera.height, camera.width, 3), device=zeros.device), zeros, zeros.clone())
+        out = rasterizer.render(
+            gaussian_map.means.detach(),
+            gaussian_map.quats.detach(),
+            gaussian_map.scales.detach(),
+            gaussian_map.opacities.detach(),
+            gaussian_map.colors.detach(),
+            world_to_camera,
+            camera,
+        )
+    return RenderOutput(out.color.detach(), out.depth.detach(), out.alpha.detach())

@@ -61,7 +61,7 @@ from slamkit import image_metrics
 from slamkit.gaussian_map import GaussianMap
 from slamkit.geometry import invert_pose, quat_to_rotmat
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.rendering import Rasterizer, RenderOutput
+from slamkit.rendering import Rasterizer, RenderOutput, render_map
 from slamkit.roles import Mapper, PluginConfig, require
 from slamkit.types import Camera, Frame, KeyframeKind, TrackingResult
 
@@ -555,6 +555,10 @@ class GaussianSplattingMapper(Mapper):
             world_to_camera,
             camera,
         )
+
+    def render_view(self, pose: np.ndarray, camera: Camera) -> RenderOutput:
+        """The map from `pose` (camera-to-world) with the mapper's rasteriser, no gradients (viewers)."""
+        return render_map(self.rasterizer, self.gaussian_map, pose, camera)
 
     def loss(self, out: RenderOutput, kf: Keyframe) -> torch.Tensor:
         """0.8 L1(rgb) + 0.2 (1 - SSIM) + 0.1 L1(depth / 10) over the pixels with valid depth

@@ -1,0 +1,216 @@
+"""`slamkit-export`: turn a run's outputs into other formats.
+
+`slamkit-export mesh RUN_DIR [--voxel 0.01] [--out RUN_DIR/mesh.ply]` makes a triangle mesh of
+the Gaussian map: it renders depth and colour from every keyframe pose (`keyframes.txt`,
+camera-to-world) with the run's camera (`camera.json`) and a rasteriser backend (`auto`: the
+compiled CPU one, else the torch reference), fuses the renders into a TSDF volume
+(open3d's ScalableTSDFVolume, voxel size in metres) and writes the marching-cubes mesh as PLY
+(vertex positions in world metres, vertex colours and normals). The map comes from `map.ply`,
+which runs with `mapper=gaussian_splatting` write. Needs the optional extra `mesh`
+(`pip install -e '.[mesh]'`, open3d).
+
+Only pixels whose rendered opacity reaches `--min-alpha` are fused, with their expected depth
+(depth / alpha) and colour (colour / alpha), so half-transparent edges do not smear the surface.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from slamkit.errors import DataError, SlamkitError
+from slamkit.types import Camera
+
+#: The TSDF truncation distance is this many voxels unless --sdf-trunc is given.
+SDF_TRUNC_VOXELS = 4.0
+#: Depth cut-off for fusion (metres) when the run's camera.json has none.
+FALLBACK_DEPTH_TRUNC = 10.0
+
+
+@dataclass
+class MeshResult:
+    """What `export_mesh` made: the file, its size and the work done (seconds)."""
+
+    path: Path
+    num_vertices: int
+    num_triangles: int
+    num_views: int
+    seconds: float
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}") from None
+    if not (value > 0 and np.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}")
+    return value
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}")
+    return value
+
+
+def _unit_interval(text: str) -> float:
+    value = _positive_float(text)
+    if value > 1:
+        raise argparse.ArgumentTypeError(f"expected a number in (0, 1], got {text!r}")
+    return value
+
+
+def import_open3d():
+    """open3d, or a one-line SlamkitError saying how to install it."""
+    try:
+        import open3d
+    except ImportError as exc:
+        raise SlamkitError(f"open3d is not installed ({exc}); install it with pip install -e '.[mesh]'") from None
+    return open3d
+
+
+def read_camera(path: Path) -> tuple[Camera, float | None]:
+    """(camera in pixels, depth_trunc in metres or None) from a run's camera.json."""
+    if not path.is_file():
+        raise DataError(f"{path} not found (runs write it since slamkit-export exists; re-run slamkit)")
+    try:
+        data = json.loads(path.read_text())
+        camera = Camera(int(data["width"]), int(data["height"]), float(data["fx"]), float(data["fy"]),
+                        float(data["cx"]), float(data["cy"]))
+        depth_trunc = None if data.get("depth_trunc") is None else float(data["depth_trunc"])
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+        raise DataError(f"{path}: expected JSON with width, height, fx, fy, cx, cy ({type(exc).__name__}: {exc})") from None
+    if camera.width < 1 or camera.height < 1 or camera.fx <= 0 or camera.fy <= 0:
+        raise DataError(f"{path}: expected a positive image size and focal lengths, got {data}")
+    return camera, depth_trunc
+
+
+def read_keyframe_poses(path: Path) -> np.ndarray:
+    """(K,4,4) camera-to-world keyframe poses (metres) from a run's keyframes.txt (TUM format)."""
+    from slamkit.tum_format import read_tum_trajectory
+
+    if not path.is_file():
+        raise DataError(f"{path} not found (runs write it since slamkit-export exists; re-run slamkit)")
+    if not path.read_text().strip():
+        raise DataError(f"{path}: no keyframes (the run made none, so there is no view to fuse)")
+    _, poses = read_tum_trajectory(path)
+    return poses
+
+
+def check_run_dir(run_dir: Path) -> Path:
+    """The run's map.ply; DataError when RUN_DIR or its map is missing."""
+    if not run_dir.is_dir():
+        raise DataError(f"run directory {run_dir} not found (expected a slamkit run folder)")
+    map_ply = run_dir / "map.ply"
+    if not map_ply.is_file():
+        raise DataError(f"{map_ply} not found: the mesh is made from the Gaussian map; run slamkit with "
+                        "mapper=gaussian_splatting")
+    return map_ply
+
+
+def export_mesh(run_dir: Path, out: Path | None = None, voxel: float = 0.01, sdf_trunc: float | None = None,
+                depth_trunc: float | None = None, min_alpha: float = 0.5, scale: float = 1.0,
+                every: int = 1, rasterizer: str = "auto") -> MeshResult:
+    """Fuse renders of RUN_DIR's map.ply at its keyframe poses into a TSDF mesh written to `out`
+    (default RUN_DIR/mesh.ply). voxel, sdf_trunc, depth_trunc: metres (sdf_trunc default 4
+    voxels; depth_trunc default the run's, else 10 m). scale: render resolution relative to the
+    run's camera. every: use every n-th keyframe."""
+    from slamkit.ply import load_ply
+    from slamkit.registry import create_rasterizer
+
+    run_dir = Path(run_dir)
+    map_ply = check_run_dir(run_dir)
+    camera, run_depth_trunc = read_camera(run_dir / "camera.json")
+    poses = read_keyframe_poses(run_dir / "keyframes.txt")[::every]
+    o3d = import_open3d()
+    out = Path(out) if out is not None else run_dir / "mesh.ply"
+    depth_trunc = depth_trunc or run_depth_trunc or FALLBACK_DEPTH_TRUNC
+    camera = camera if scale == 1.0 else camera.scaled(scale)
+    start = time.perf_counter()
+    gaussian_map = load_ply(map_ply)
+    backend = create_rasterizer(rasterizer)
+    volume = o3d.pipelines.integration.ScalableTSDFVolume(
+        voxel_length=voxel, sdf_trunc=sdf_trunc or SDF_TRUNC_VOXELS * voxel,
+        color_type=o3d.pipelines.integration.TSDFVolumeColorType.RGB8)
+    intrinsic = o3d.camera.PinholeCameraIntrinsic(camera.width, camera.height, camera.fx, camera.fy, camera.cx,
+                                                  camera.cy)
+    for pose in poses:
+        rgbd = _render_rgbd(o3d, backend, gaussian_map, pose, camera, min_alpha, depth_trunc)
+        volume.integrate(rgbd, intrinsic, _world_to_camera(pose))
+    mesh = volume.extract_triangle_mesh()
+    mesh.compute_vertex_normals()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if not o3d.io.write_triangle_mesh(str(out), mesh):
+        raise DataError(f"cannot write the mesh to {out}")
+    return MeshResult(out, len(mesh.vertices), len(mesh.triangles), len(poses), time.perf_counter() - start)
+
+
+def _world_to_camera(pose: np.ndarray) -> np.ndarray:
+    from slamkit.geometry import invert_pose
+
+    return invert_pose(np.asarray(pose, dtype=np.float64))
+
+
+def _render_rgbd(o3d, backend, gaussian_map, pose: np.ndarray, camera: Camera, min_alpha: float, depth_trunc: float):
+    """open3d RGBD image of the map rendered from `pose` (camera-to-world): expected colour
+    (uint8) and expected depth (float32 metres, 0 where alpha < min_alpha)."""
+    from slamkit.rendering import render_map
+
+    out = render_map(backend, gaussian_map, pose, camera)
+    depth = np.ascontiguousarray(out.expected_depth(min_alpha).cpu().numpy().astype(np.float32))
+    color = np.ascontiguousarray((out.expected_color(min_alpha).cpu().numpy() * 255 + 0.5).astype(np.uint8))
+    return o3d.geometry.RGBDImage.create_from_color_and_depth(
+        o3d.geometry.Image(color), o3d.geometry.Image(depth), depth_scale=1.0, depth_trunc=depth_trunc,
+        convert_rgb_to_intensity=False)
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="slamkit-export", description=__doc__.split("\n")[0])
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    mesh = commands.add_parser("mesh", help="TSDF mesh of a run's Gaussian map (needs open3d: pip install -e '.[mesh]')",
+                               description="Fuse renders of RUN_DIR/map.ply at the keyframe poses into a TSDF mesh.")
+    mesh.add_argument("run_dir", type=Path, metavar="RUN_DIR", help="a slamkit run folder (mapper=gaussian_splatting)")
+    mesh.add_argument("--out", type=Path, default=None, help="mesh file (.ply, .obj, ...; default RUN_DIR/mesh.ply)")
+    mesh.add_argument("--voxel", type=_positive_float, default=0.01, help="TSDF voxel size in metres (default 0.01)")
+    mesh.add_argument("--sdf-trunc", type=_positive_float, default=None,
+                      help="TSDF truncation in metres (default 4 voxels)")
+    mesh.add_argument("--depth-trunc", type=_positive_float, default=None,
+                      help="fuse rendered depth up to this many metres (default: the run's depth_trunc, else 10)")
+    mesh.add_argument("--min-alpha", type=_unit_interval, default=0.5,
+                      help="fuse only pixels whose rendered opacity reaches this (default 0.5)")
+    mesh.add_argument("--scale", type=_unit_interval, default=1.0,
+                      help="render resolution relative to the run's camera (default 1)")
+    mesh.add_argument("--every", type=_positive_int, default=1, help="use every n-th keyframe (default 1)")
+    mesh.add_argument("--rasterizer", default="auto", help="rasteriser backend: auto | cpu | torch | gsplat")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    try:
+        result = export_mesh(args.run_dir, args.out, args.voxel, args.sdf_trunc, args.depth_trunc, args.min_alpha,
+                             args.scale, args.every, args.rasterizer)
+    except SlamkitError as exc:
+        if os.environ.get("SLAMKIT_DEBUG"):
+            raise
+        print(f"slamkit-export: error: {exc}", file=sys.stderr)
+        return 2
+    print(f"slamkit-export: mesh with {result.num_vertices} vertices, {result.num_triangles} triangles from "
+          f"{result.num_views} keyframe views in {result.seconds:.1f} s: {result.path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
