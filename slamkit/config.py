@@ -41,7 +41,9 @@ class RunConfig(PluginConfig):
     input frames per second in realtime mode (null = as fast as possible). drop_frames: in
     realtime mode, skip a frame when the next one has already arrived (a live camera's
     behaviour) instead of processing every frame late. seed: for every
-    random choice. progress: show a progress bar."""
+    random choice. progress: show a progress bar. mapping_threads: torch threads for mapping
+    (0: every CPU in sequential mode; every CPU but one in realtime mode, where the tracking
+    thread runs beside the mapping thread)."""
 
     dataset: Any = MISSING
     tracker: Any = MISSING
@@ -56,10 +58,12 @@ class RunConfig(PluginConfig):
     drop_frames: bool = False
     seed: int = 0
     progress: bool = True
+    mapping_threads: int = 0
 
     def validate(self) -> None:
         require(self.iterations_per_frame >= 0, "iterations_per_frame", ">= 0", self.iterations_per_frame)
         require(self.fps_limit is None or self.fps_limit > 0, "fps_limit", "null or > 0", self.fps_limit)
+        require(self.mapping_threads >= 0, "mapping_threads", "an integer >= 0 (0: automatic)", self.mapping_threads)
 
 
 def register_run_config() -> None:

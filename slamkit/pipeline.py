@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from slamkit import evaluation
 from slamkit.config import Mode, RunConfig, apply_hints
@@ -137,6 +138,15 @@ def _sigterm_as_interrupt():
 
 def run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Path) -> dict[str, Any]:
     """Run SLAM as configured and write the outputs into `out_dir`; return the metrics."""
+    threads_before = torch.get_num_threads()
+    torch.set_num_threads(mapping_threads(cfg))
+    try:
+        return _run(cfg, registry, names, out_dir)
+    finally:
+        torch.set_num_threads(threads_before)
+
+
+def _run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Path) -> dict[str, Any]:
     out_dir.mkdir(parents=True, exist_ok=True)
     np.random.seed(cfg.seed)
     dataset, slam = build(cfg, registry, names)
@@ -166,6 +176,16 @@ def run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Path
         finally:
             viewer.close()
     return metrics
+
+
+def mapping_threads(cfg: RunConfig) -> int:
+    """Torch threads for mapping: `cfg.mapping_threads`, else torch's default (every CPU, or
+    $OMP_NUM_THREADS), less one in real-time mode for the tracking thread (on 2 cores, sharing
+    both made the tracker wait)."""
+    if cfg.mapping_threads:
+        return cfg.mapping_threads
+    default = torch.get_num_threads()
+    return max(1, default - 1) if cfg.mode is Mode.realtime else default
 
 
 def write_camera(path: Path, camera, depth_trunc: float) -> None:
@@ -296,6 +316,7 @@ def finish(cfg: RunConfig, slam: SLAM, dataset, state: RunState, wall_s: float, 
         "lost_frames": state.lost_frames,
         "dropped_frames": state.dropped_frames,
         "mode": cfg.mode.value,
+        "mapping_threads": torch.get_num_threads(),
         "completed": state.completed,
         "error": state.error,
         "ate_rmse_m": ate.rmse_m if ate else None,

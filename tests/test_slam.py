@@ -35,3 +35,17 @@ def test_tracking_only_map_keeps_only_trackable_gaussians_without_changing_track
     assert bool(lean.gaussian_map.trackable.all())
     assert len(lean.gaussian_map) < 0.8 * len(full.gaussian_map)
     np.testing.assert_allclose(lean_poses, full_poses, atol=1e-9)  # the target is the same
+
+
+def test_mapping_threads_leave_one_cpu_to_the_tracker_in_realtime_mode(monkeypatch):
+    import torch
+
+    from slamkit.config import Mode, RunConfig
+    from slamkit.pipeline import mapping_threads
+
+    monkeypatch.setattr(torch, "get_num_threads", lambda: 4)
+    assert mapping_threads(RunConfig(mode=Mode.sequential)) == 4
+    assert mapping_threads(RunConfig(mode=Mode.realtime)) == 3
+    assert mapping_threads(RunConfig(mode=Mode.realtime, mapping_threads=2)) == 2
+    monkeypatch.setattr(torch, "get_num_threads", lambda: 1)
+    assert mapping_threads(RunConfig(mode=Mode.realtime)) == 1
