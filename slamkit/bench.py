@@ -33,7 +33,8 @@ SYSTEMS: dict[str, list[str]] = {
 }
 DEFAULT_SYSTEMS = "gicp,gicp_plane,gicp_none,kiss_icp,small_gicp"
 COLUMNS = [("ate_rmse_m", "ATE RMSE cm", 100), ("ate_mean_m", "ATE mean cm", 100),
-           ("tracking_fps", "track fps", 1), ("fps", "system fps", 1), ("psnr", "PSNR dB", 1),
+           ("tracking_fps", "track fps", 1), ("stream_fps", "stream fps", 1), ("fps", "system fps", 1),
+           ("mapping_iterations", "map iters", 1), ("psnr", "PSNR dB", 1),
            ("num_gaussians", "Gaussians", 1), ("peak_memory_mb", "peak MB", 1), ("lost_frames", "lost", 1)]
 
 

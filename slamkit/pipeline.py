@@ -49,6 +49,7 @@ class RunState:
     mapping_iterations: int = 0
     tracking_time_s: float = 0.0
     mapping_time_s: float = 0.0
+    stream_time_s: float = 0.0  # from the first frame to the last one tracked
     completed: bool = False
     error: str | None = None
 
@@ -226,6 +227,7 @@ def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, writer, log_file
     clock = InputClock(cfg.fps_limit if realtime else None)
     mapping = MappingThread(slam.mapper) if realtime else None
     bar = tqdm(total=len(dataset), unit="frame", disable=None if cfg.progress else True, dynamic_ncols=True)
+    start = time.perf_counter()
     try:
         if mapping:
             mapping.start()
@@ -257,6 +259,7 @@ def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, writer, log_file
                 bar.set_postfix_str(_running_ate(state), refresh=False)
                 log_file.flush()
     finally:
+        state.stream_time_s = time.perf_counter() - start
         bar.close()
         if mapping:
             _stop_mapping(mapping, state)
@@ -309,6 +312,8 @@ def finish(cfg: RunConfig, slam: SLAM, dataset, state: RunState, wall_s: float, 
         "num_keyframes": state.num_keyframes,
         "fps": n / wall_s if wall_s > 0 else None,
         "tracking_fps": n / state.tracking_time_s if state.tracking_time_s > 0 else None,
+        "stream_fps": n / state.stream_time_s if state.stream_time_s > 0 else None,
+        "stream_time_s": state.stream_time_s,
         "tracking_time_s": state.tracking_time_s,
         "mapping_time_s": state.mapping_time_s,
         "wall_time_s": wall_s,
