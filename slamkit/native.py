@@ -31,6 +31,15 @@ BASE_FLAGS = ("-O3", "-std=c++17", "-shared", "-fPIC", "-pthread", "-ffp-contrac
               "-DNDEBUG")
 
 
+def available_threads() -> int:
+    """$OMP_NUM_THREADS when set (as torch and OpenMP libraries read it), else the CPUs this
+    process may use."""
+    try:
+        return max(1, int(os.environ["OMP_NUM_THREADS"]))
+    except (KeyError, ValueError):
+        return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
 def cache_root() -> Path:
     root = os.environ.get("SLAMKIT_CACHE")
     return Path(root) / "extensions" if root else Path.home() / ".cache" / "slamkit" / "extensions"

@@ -25,11 +25,12 @@ from slamkit import evaluation
 from slamkit.config import Mode, RunConfig, apply_hints
 from slamkit.errors import DataError, PluginError, SlamkitError
 from slamkit.gaussian_map import GaussianMap
+from slamkit.native import available_threads
 from slamkit.prefetch import UnreadableFrame, prefetched
 from slamkit.registry import Registry
 from slamkit.slam import SLAM, MappingThread, StepResult
 from slamkit.tum_format import write_tum_trajectory
-from slamkit.types import Frame, KeyframeKind
+from slamkit.types import Frame
 from slamkit.viewing import ViewerFeed
 
 log = logging.getLogger(__name__)
@@ -113,6 +114,7 @@ def build(cfg: RunConfig, registry: Registry, names: dict[str, str]):
         raise DataError(f"dataset {names['dataset']!r} at {cfg.dataset.path!r}: no frames selected")
     for group in (cfg.tracker, cfg.keyframe, cfg.mapper, cfg.map):
         apply_hints(group, dataset.hints)
+    apply_hints(cfg.tracker, {"num_threads": tracking_threads(cfg)})
     tracker, policy, mapper = (Blamed(registry.create(role, names[role], getattr(cfg, role)), role, names[role])
                                for role in ("tracker", "keyframe", "mapper"))
     slam = SLAM(tracker, policy, mapper, GaussianMap(), cfg.map, cfg.iterations_per_frame)
@@ -187,6 +189,12 @@ def mapping_threads(cfg: RunConfig) -> int:
         return cfg.mapping_threads
     default = torch.get_num_threads()
     return max(1, default - 1) if cfg.mode is Mode.realtime else default
+
+
+def tracking_threads(cfg: RunConfig) -> int:
+    """Threads for a tracker whose `num_threads` is null: one in real-time mode (the mapping
+    thread has the other CPUs), else every CPU this process may use (or $OMP_NUM_THREADS)."""
+    return 1 if cfg.mode is Mode.realtime else available_threads()
 
 
 def write_camera(path: Path, camera, depth_trunc: float) -> None:

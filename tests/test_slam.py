@@ -49,3 +49,12 @@ def test_mapping_threads_leave_one_cpu_to_the_tracker_in_realtime_mode(monkeypat
     assert mapping_threads(RunConfig(mode=Mode.realtime, mapping_threads=2)) == 2
     monkeypatch.setattr(torch, "get_num_threads", lambda: 1)
     assert mapping_threads(RunConfig(mode=Mode.realtime)) == 1
+
+
+def test_tracking_threads_default_to_one_in_realtime_mode(monkeypatch):
+    from slamkit.config import Mode, RunConfig
+    from slamkit.pipeline import tracking_threads
+
+    monkeypatch.setenv("OMP_NUM_THREADS", "3")
+    assert tracking_threads(RunConfig(mode=Mode.sequential)) == 3
+    assert tracking_threads(RunConfig(mode=Mode.realtime)) == 1

@@ -85,10 +85,9 @@ class GICPConfig(PluginConfig):
     kernels: auto | compiled | numpy: the covariance and linearisation loops compiled from
       csrc/gicp_kernels.cpp (built on first use; auto falls back to numpy without a compiler)
       or the numpy reference. Same results either way.
-    num_threads: threads of the compiled kernels (0: $OMP_NUM_THREADS, else every CPU). One by
-      default: they take a few ms per frame, and on a loaded machine (the mapper beside the
-      tracker in real-time mode) waiting for a second thread costs more than it saves. Results
-      do not depend on it.
+    num_threads: threads of the compiled kernels (results do not depend on it). Null: the run's
+      choice, one in real-time mode (the mapper has the other CPUs: waiting for a thread it has
+      descheduled costs more than the thread saves) and every CPU otherwise; 0: every CPU.
     """
 
     pixel_stride: int | None = None
@@ -109,7 +108,7 @@ class GICPConfig(PluginConfig):
     lm_lambda: float = 1e-9
     lm_max_tries: int = 10
     kernels: Kernels = Kernels.auto
-    num_threads: int = 1
+    num_threads: int | None = None
 
     def validate(self) -> None:
         require(self.pixel_stride is None or self.pixel_stride >= 1,
@@ -136,7 +135,8 @@ class GICPConfig(PluginConfig):
         require(self.fallback_slide > 0, "tracker.fallback_slide", "> 0", self.fallback_slide)
         require(self.lm_lambda >= 0, "tracker.lm_lambda", ">= 0", self.lm_lambda)
         require(self.lm_max_tries >= 1, "tracker.lm_max_tries", "an integer >= 1", self.lm_max_tries)
-        require(self.num_threads >= 0, "tracker.num_threads", "an integer >= 0 (0: all CPUs)", self.num_threads)
+        require(self.num_threads is None or self.num_threads >= 0,
+                "tracker.num_threads", "null or an integer >= 0 (0: all CPUs)", self.num_threads)
 
 
 def se3_exp(xi: np.ndarray) -> np.ndarray:
@@ -206,7 +206,7 @@ class GICPTracker(Tracker):
         require(self.max_corr > 0, "tracker.max_correspondence_distance", "> 0 metres", self.max_corr)
         self.regularization = Regularization(cfg.regularization)
         self.initial_guess = InitialGuess(cfg.initial_guess)
-        self.kernels = create_kernels(cfg.kernels, cfg.num_threads)
+        self.kernels = create_kernels(cfg.kernels, cfg.num_threads or 0)
         self.target: _Target | None = None
         self.tree_builds = 0
         self.poses: list[np.ndarray] = []

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import ctypes
 import enum
-import os
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,7 +28,7 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 
 from slamkit.gaussian_geometry import knn_covariances, whitening_sym3
-from slamkit.native import NativeLibrary
+from slamkit.native import NativeLibrary, available_threads
 
 SOURCE = Path(__file__).resolve().parent / "csrc" / "gicp_kernels.cpp"
 ABI_VERSION = 2
@@ -245,20 +244,12 @@ def _rotate_rows(R: np.ndarray, cov_rows: np.ndarray, m: int) -> np.ndarray:
     return (R.T @ CR.transpose(1, 0, 2).reshape(3, m * 3)).reshape(3, m, 3).transpose(1, 0, 2)
 
 
-def default_threads() -> int:
-    """$OMP_NUM_THREADS when set (as for pykdtree's search), else the CPUs this process may use."""
-    try:
-        return max(1, int(os.environ["OMP_NUM_THREADS"]))
-    except (KeyError, ValueError):
-        return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-
-
 def create_kernels(choice: Kernels, num_threads: int = 0) -> NumpyKernels:
-    """The kernels `choice` asks for, with `num_threads` threads (0: `default_threads()`).
+    """The kernels `choice` asks for, with `num_threads` threads (0: `available_threads()`).
     `auto` without a working compiler warns once and gives numpy; `compiled` without one raises
     RuntimeError with the reason."""
     choice = Kernels(choice)
-    num_threads = num_threads or default_threads()
+    num_threads = num_threads or available_threads()
     if choice is Kernels.numpy:
         return NumpyKernels(num_threads)
     lib = LIBRARY.get()
