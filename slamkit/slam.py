@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from dataclasses import dataclass
@@ -90,6 +91,21 @@ class SLAM:
         self.num_keyframes += 1
 
 
+#: How much lower the mapping thread's scheduling priority is than tracking's (Linux nice
+#: steps): where the two compete for a core, the tracker that paces the system goes first.
+MAPPING_NICE = 5
+
+
+def _lower_priority(steps: int) -> None:
+    """Lower the calling thread's priority by `steps` nice levels (Linux: per thread; elsewhere,
+    or without permission, nothing)."""
+    try:
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + steps)
+    except (AttributeError, OSError):
+        pass
+
+
 class MappingThread(threading.Thread):
     """Runs `mapper.optimize(1)` in a loop beside tracking (real-time mode).
 
@@ -107,6 +123,7 @@ class MappingThread(threading.Thread):
         self._stop_event = threading.Event()
 
     def run(self) -> None:
+        _lower_priority(MAPPING_NICE)
         try:
             while not self._stop_event.is_set():
                 start = time.perf_counter()

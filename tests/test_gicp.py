@@ -440,3 +440,22 @@ def test_fallback_to_previous_pose_after_a_sudden_stop():
             assert np.linalg.norm(E[:3, 3]) < 1e-4
         else:
             assert result.lost and "retried" not in result.stats
+
+
+def test_coarse_to_fine_recovers_a_motion_beyond_the_correspondence_distance():
+    """The prediction is 7 cm off with a 3 cm correspondence distance and no previous pose to
+    retry from: the fine alignment alone fails; aligning at 3x the distance first recovers."""
+    frame = make_frame(POSE)
+    gmap = map_from_frame(frame, POSE)
+    start = POSE @ make_pose(so3_exp(np.radians([0, 3.0, 0])), [0.07, 0.0, 0.0])
+    errors = {}
+    for factor in (1.0, 3.0):
+        tracker = GICPTracker(tight_config(max_correspondence_distance=0.03, coarse_factor=factor))
+        tracker.update_target(gmap)
+        tracker.initialize(start)
+        result = tracker.track(frame, gmap)
+        E = invert_pose(POSE) @ result.pose
+        errors[factor] = np.linalg.norm(E[:3, 3])
+        if factor > 1:
+            assert not result.lost and result.stats["fallback"] == "coarse to fine"
+    assert errors[3.0] < 1e-4 < 0.01 < errors[1.0]

@@ -41,6 +41,10 @@ from slamkit.types import Frame, FrameGaussians, TrackingResult
 from slamkit_plugins.trackers.gicp_kernels import Kernels, create_kernels
 
 
+#: Stats summed over all attempts at a frame.
+_EFFORT = ("nn_search_s", "solve_s", "iterations")
+
+
 class InitialGuess(enum.Enum):
     """Where the optimisation starts: the previous pose, or the previous pose moved by the
     last inter-frame motion (constant velocity)."""
@@ -78,6 +82,8 @@ class GICPConfig(PluginConfig):
       displacement of the points) from its start (it slid, e.g. after a sudden stop), run it
       again from the previous pose and keep the result with more correspondences.
     fallback_slide: that distance, in units of max_correspondence_distance.
+    coarse_factor: then also try coarse to fine: align from the prediction with this times the
+      correspondence distance, then with the distance itself (1 disables).
     min_points: fewer valid trackable depth points -> the frame is lost.
     min_correspondences: fewer matched points in an iteration -> the frame is lost.
     lm_lambda: initial damping relative to the largest diagonal entry of the normal matrix.
@@ -105,6 +111,7 @@ class GICPConfig(PluginConfig):
     min_correspondences: int = 50
     fallback_to_previous: bool = True
     fallback_slide: float = 2.0
+    coarse_factor: float = 3.0
     lm_lambda: float = 1e-9
     lm_max_tries: int = 10
     kernels: Kernels = Kernels.auto
@@ -133,6 +140,7 @@ class GICPConfig(PluginConfig):
         require(self.min_correspondences >= 6,
                 "tracker.min_correspondences", "an integer >= 6", self.min_correspondences)
         require(self.fallback_slide > 0, "tracker.fallback_slide", "> 0", self.fallback_slide)
+        require(self.coarse_factor >= 1, "tracker.coarse_factor", ">= 1 (1 disables)", self.coarse_factor)
         require(self.lm_lambda >= 0, "tracker.lm_lambda", ">= 0", self.lm_lambda)
         require(self.lm_max_tries >= 1, "tracker.lm_max_tries", "an integer >= 1", self.lm_max_tries)
         require(self.num_threads is None or self.num_threads >= 0,
@@ -323,29 +331,58 @@ class GICPTracker(Tracker):
         return {"covariance_s": 0.0, "nn_search_s": 0.0, "solve_s": 0.0, "iterations": 0}
 
     def _solve(self, src: np.ndarray, src_cov: np.ndarray, predicted: np.ndarray, stats: dict):
-        """G-ICP from the prediction; with a motion-model prediction that did not converge,
-        lost the frame or slid (ended more than fallback_slide * max_correspondence_distance
-        RMS from its start), again from the previous pose, keeping the result matching more
-        points."""
+        """G-ICP from the prediction. When that does not converge, loses the frame or slides
+        (ends more than fallback_slide * max_correspondence_distance RMS from its start), it is
+        tried again from the previous pose and, with coarse_factor > 1, from the prediction
+        first aligned with a coarse_factor times larger correspondence distance (a motion the
+        prediction missed by more than the fine distance); the result matching more points wins."""
         pose, ok, sq = self._align(src, src_cov, predicted, stats)
-        start = self._fallback_start(predicted)
         slide_limit = self.cfg.fallback_slide * self.max_corr
-        if start is None or (ok and stats["converged"] and self._moved(src, predicted, pose) <= slide_limit):
+        if ok and stats["converged"] and self._moved(src, predicted, pose) <= slide_limit:
             return pose, ok, sq
-        retry = self._new_stats()
-        pose2, ok2, sq2 = self._align(src, src_cov, start, retry)
-        stats["retried"] = True
-        summed = ("nn_search_s", "solve_s", "iterations")
-        for key in summed:
-            stats[key] += retry[key]
-        if ok2 and (not ok or retry["num_correspondences"] > stats["num_correspondences"]):
-            stats.pop("lost_reason", None)
-            stats.update({k: v for k, v in retry.items() if k not in summed and k != "covariance_s"})
-            stats["fallback"] = "previous pose"
-            return pose2, ok2, sq2
-        return pose, ok, sq
+        best = (pose, ok, sq, stats.get("num_correspondences", 0) if ok else -1)
+        for name, start, coarse in self._fallback_starts(predicted):
+            retry = self._new_stats()
+            if coarse:
+                start, ok_coarse, _ = self._align(src, src_cov, start, retry, self.max_corr * self.cfg.coarse_factor)
+                if not ok_coarse:
+                    self._add_effort(stats, retry)
+                    continue
+            pose2, ok2, sq2 = self._align(src, src_cov, start, retry)
+            if coarse and ok2 and self._moved(src, start, pose2) > slide_limit:
+                # the fine stage slid away from the coarse alignment: keep the coarse pose
+                pose2, sq2 = start, self._match(src, start)
+                retry["num_correspondences"] = int(np.isfinite(sq2).sum())
+            self._add_effort(stats, retry)
+            stats.setdefault("retried", []).append(name)
+            if ok2 and retry["num_correspondences"] > best[3]:
+                stats.pop("lost_reason", None)
+                stats.update({k: v for k, v in retry.items() if k not in _EFFORT and k != "covariance_s"})
+                stats["fallback"] = name
+                best = (pose2, ok2, sq2, retry["num_correspondences"])
+        return best[:3]
 
-    def _align(self, src: np.ndarray, src_cov: np.ndarray, T0: np.ndarray, stats: dict):
+    def _fallback_starts(self, predicted: np.ndarray):
+        """(name, start pose, coarse first?) of the attempts after the first one failed."""
+        previous = self._fallback_start(predicted)
+        if previous is not None:
+            yield "previous pose", previous, False
+        if self.cfg.coarse_factor > 1:
+            yield "coarse to fine", predicted, True
+
+    def _match(self, src: np.ndarray, pose: np.ndarray) -> np.ndarray:
+        """Squared distance (m^2) of each source point at `pose` to its nearest target mean
+        within max_correspondence_distance (inf where none)."""
+        query = (src @ pose[:3, :3].T + pose[:3, 3]).astype(np.float32)
+        return self.target.index.nearest(query, self.max_corr)[0].astype(np.float64)
+
+    @staticmethod
+    def _add_effort(stats: dict, retry: dict) -> None:
+        for key in _EFFORT:
+            stats[key] += retry[key]
+
+    def _align(self, src: np.ndarray, src_cov: np.ndarray, T0: np.ndarray, stats: dict,
+               max_corr: float | None = None):
         """Levenberg-Marquardt G-ICP from T0. Returns (pose, ok, squared NN distances of the
         last correspondence search (inf where none)).
 
@@ -367,7 +404,7 @@ class GICPTracker(Tracker):
             R, t = T[:3, :3], T[:3, 3]
             query = (src @ R.T + t).astype(np.float32)
             ts = time.perf_counter()
-            d2, idx = target.index.nearest(query, self.max_corr, hint=idx)
+            d2, idx = target.index.nearest(query, max_corr or self.max_corr, hint=idx)
             te = time.perf_counter()
             stats["nn_search_s"] += te - ts
             sq = d2.astype(np.float64)
