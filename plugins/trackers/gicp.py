@@ -16,8 +16,12 @@ Only trackable points (depth <= the frame's depth_trunc) are aligned; all get co
 
 The optimisation starts from a constant-velocity prediction (measured better than the
 reference code's previous pose on TUM fr1/rpy: 4.5 vs 6.2 cm mean ATE over seven start
-frames; equal on Replica); if it slides away or fails from there (a sudden stop), it is run
-again from the previous pose and the result matching more points is kept.
+frames; equal on Replica). If it slides away or fails from there, it is run again from the
+previous pose (a sudden stop) and coarse to fine from the prediction (a motion the prediction
+missed by more than the correspondence distance), and the result matching more points is kept.
+
+The loops over points (k-NN covariances, nearest-neighbour search, normal equations) run in
+compiled kernels or their numpy reference (`gicp_kernels`); both give the same trajectory.
 
 The frame's Gaussians (world means at the final pose, regularised covariances rotated to the
 world, colours, depths, squared distance to the nearest target mean from the last
