@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slamkit.gaussian_map import GaussianMap
+from slamkit.heap import release_free_memory
 from slamkit.map_growth import MapGrowthConfig, add_keyframe_gaussians
 from slamkit.roles import KeyframePolicy, Mapper, Tracker
 from slamkit.types import Frame, KeyframeKind, TrackingResult
@@ -32,7 +33,8 @@ class SLAM:
     Each frame is tracked against the map; keyframes add their Gaussians to the map (a tracking
     keyframe also rebuilds the tracker's target from the map, which by then holds the mapper's
     optimised values); then the mapper runs a fixed number of iterations, so the run is
-    deterministic.
+    deterministic. After each keyframe the C heap's free pages go back to the OS
+    (`slamkit.heap`), so that a long run's resident memory follows what it holds.
     """
 
     def __init__(
@@ -89,6 +91,7 @@ class SLAM:
             self.tracker.update_target(self.gaussian_map)
         self.mapper.add_keyframe(frame, result, kind, rows)
         self.num_keyframes += 1
+        release_free_memory()
 
 
 #: How much lower the mapping thread's scheduling priority is than tracking's (Linux nice

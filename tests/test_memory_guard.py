@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -219,3 +220,52 @@ def test_guarded_replica_run_stays_under_the_cap_keeps_the_most_opaque_and_track
     assert metrics["num_gaussians"] == len(gm) <= cap and math.isfinite(metrics["psnr"])
     assert metrics["keyframe_memory_mb"] > 0
 
+
+
+FRAGMENTED_HEAP = """
+import os, numpy as np
+from slamkit.heap import release_free_memory
+def rss():
+    return int(open("/proc/self/statm").read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+a = np.ones(1 << 20); del a         # freeing an mmapped 8 MB chunk raises glibc's mmap threshold
+big, small = [], []
+for _ in range(200):
+    big.append(np.ones(1 << 17))     # 1 MB each, now from the heap
+    small.append(np.ones(16))        # pinning the heap between them
+top = np.ones(4096)                  # and above them
+big.clear()
+freed = rss()
+print(release_free_memory(), freed, rss())
+"""
+
+
+def test_release_free_memory_returns_a_fragmented_heap_to_the_os():
+    """200 MB freed inside the heap stay resident until `release_free_memory`."""
+    import subprocess
+    import sys
+
+    if not Path("/proc/self/statm").exists():
+        pytest.skip("needs Linux /proc")
+    out = subprocess.run([sys.executable, "-c", FRAGMENTED_HEAP], capture_output=True, text=True, check=True).stdout
+    available, freed, after = out.split()
+    if available != "True":
+        pytest.skip("not glibc: malloc_trim is not available")
+    assert float(freed) > 200 and float(freed) - float(after) > 150
+
+
+def test_slam_releases_free_memory_at_each_keyframe(monkeypatch, rasterizer):
+    import slamkit.slam
+    from slamkit_plugins.keyframes.every_n import EveryNKeyframeConfig, EveryNKeyframePolicy
+    from test_mapper import GroundTruthTracker
+
+    calls = []
+    monkeypatch.setattr(slamkit.slam, "release_free_memory", lambda: calls.append(1) or True)
+    mapper = make_mapper(rasterizer, max_gaussians=100)
+    slam = SLAM(GroundTruthTracker(), EveryNKeyframePolicy(EveryNKeyframeConfig(tracking_every=2)), mapper,
+                GaussianMap(), MapGrowthConfig(), iterations_per_frame=1)
+    frame = render_frame(rasterizer, start_map(), np.eye(4))
+    slam.initialize(np.eye(4))
+    for i in range(5):
+        slam.step(frame.__class__(i, float(i), frame.rgb, frame.depth, frame.camera, frame.gt_pose))
+        assert len(slam.gaussian_map) <= 100
+    assert slam.num_keyframes == 3 and len(calls) == 3
