@@ -130,9 +130,10 @@ class GaussianSplattingConfig(PluginConfig):
       (lowest opacity; the keyframe's own new Gaussians, whose opacity is still the initial
       value and says nothing yet, go last) are pruned until (1 - memory_guard_margin) x
       max_gaussians remain, so a guarded run does not prune at every keyframe. Off by default:
-      the cap changes the map (and so the results) and the right size depends on the machine;
-      a Gaussian costs about 0.8 kB of resident memory while mapping (docs/results.md), so
-      1,000,000 is about 0.8 GB.
+      the cap changes the map (and so the results) and the right size depends on the machine:
+      a Gaussian costs up to ~1 kB of resident memory while mapping (parameters, Adam moments,
+      the rasteriser's per-step buffers; 0.7-0.9 kB measured, docs/results.md), so 1,000,000
+      is about 1 GB.
     memory_guard_margin: fraction of max_gaussians freed below the cap when the guard prunes.
     keyframe_storage: memory | disk: where keyframe training images live (uint8 colour and
       uint16 millimetre depth at the training resolution either way; disk = .npy files read
