@@ -269,3 +269,28 @@ def test_slam_releases_free_memory_at_each_keyframe(monkeypatch, rasterizer):
         slam.step(frame.__class__(i, float(i), frame.rgb, frame.depth, frame.camera, frame.gt_pose))
         assert len(slam.gaussian_map) <= 100
     assert slam.num_keyframes == 3 and len(calls) == 3
+
+
+@pytest.mark.parametrize("mode", ["sequential", "realtime"])
+def test_cli_run_with_the_guard_reports_pruning_and_stays_under_the_cap(tmp_path, mode):
+    """End to end: frames.csv never shows more Gaussians than the cap after a frame, and
+    metrics.json counts what the guard pruned (real-time mode: the guard prunes in the tracking
+    thread while the mapping thread trains)."""
+    import csv
+    import json
+
+    from conftest import run_slamkit
+
+    out = tmp_path / "run"
+    proc = run_slamkit(
+        "dataset=synthetic", "dataset.num_frames=12", "dataset.width=64", "dataset.height=48", "tracker=gicp",
+        "keyframe=every_n", "keyframe.tracking_every=2", "mapper=gaussian_splatting", "mapper.max_gaussians=1000",
+        "mapper.final_iterations=2", "mapper.save_images=0", "iterations_per_frame=2", f"mode={mode}",
+        "progress=false", "eval.plot=false", f"hydra.run.dir={out}", cwd=tmp_path, timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["completed"] and metrics["num_keyframes"] == 6
+    assert metrics["pruned_by_memory_guard"] > 0 and metrics["num_gaussians"] <= 1000
+    sizes = [int(r["num_gaussians"]) for r in csv.DictReader(open(out / "frames.csv"))]
+    assert len(sizes) == 12 and max(sizes) <= 1000 and metrics["ate_rmse_m"] < 0.05
