@@ -4,9 +4,10 @@ torch's CPU tensors and numpy arrays come from malloc. A mapping step allocates 
 tensors of 0.1-10 MB whose sizes change with the map; glibc raises its mmap threshold after such
 frees, so later ones come from the heap, and the freed holes stay resident. Measured on the
 2000-frame synthetic sequence with the map capped at 200,000 Gaussians (docs/results.md, issue
-9): live tensors stay at ~38 MB while the heap's free bytes grow from 60 to 150 MB over 800
-frames. `malloc_trim(0)` gives those free pages back; called once per keyframe it cost no
-measurable time.
+9; benchmarks/heap.py): live tensors stay at ~38 MB while the heap's free bytes grow from 60 to
+150 MB over 500-800 frames. `malloc_trim(0)` (~5 ms) gives free pages back: called once per
+keyframe it left 47-66 MB less resident at frame 500, with run times within the shared machine's
+noise (a fixed mmap threshold saved more but made mapping 40-100% slower).
 """
 
 from __future__ import annotations
