@@ -19,11 +19,7 @@ import time
 import torch
 
 import slamkit.slam
-from slamkit.config import apply_hints
-from slamkit.gaussian_map import GaussianMap
-from slamkit.map_growth import MapGrowthConfig
-from slamkit.registry import default_registry
-from slamkit.slam import SLAM
+from slamkit.compose import build_run
 
 
 class MallInfo2(ctypes.Structure):
@@ -47,17 +43,11 @@ def tensor_mb() -> float:
 
 
 def build(frames: int, cap: int | None, iterations: int) -> tuple:
-    registry = default_registry()
-    dataset = registry.create("dataset", "synthetic",
-                              registry.get("dataset", "synthetic").config(num_frames=2000, max_frames=frames))
-    cfgs = {"tracker": registry.get("tracker", "gicp").config(), "keyframe": registry.get("keyframe", "overlap").config(),
-            "mapper": registry.get("mapper", "gaussian_splatting").config(final_iterations=0, max_gaussians=cap)}
-    growth = MapGrowthConfig()
-    for c in (*cfgs.values(), growth):
-        apply_hints(c, dataset.hints)
-    names = {"tracker": "gicp", "keyframe": "overlap", "mapper": "gaussian_splatting"}
-    roles = [registry.create(role, names[role], cfgs[role]) for role in ("tracker", "keyframe", "mapper")]
-    return dataset, SLAM(*roles, GaussianMap(), growth, iterations_per_frame=iterations)
+    dataset, slam, _ = build_run(["dataset=synthetic", "dataset.num_frames=2000", f"dataset.max_frames={frames}",
+                                  "tracker=gicp", "keyframe=overlap", "mapper=gaussian_splatting",
+                                  "mapper.final_iterations=0", f"strategy.max_gaussians={cap or 'null'}",
+                                  f"iterations_per_frame={iterations}"])
+    return dataset, slam
 
 
 def main() -> None:

@@ -1,5 +1,5 @@
 """End-to-end mapping time with each rasteriser backend: the same `slamkit` run (sequential
-GS-ICP SLAM, 3DGS mapper) with `mapper.rasterizer=torch` and `=cpu`, on each shared sequence.
+GS-ICP SLAM, 3DGS mapper) with `rasterizer=torch` and `=cpu`, on each shared sequence.
 Prints a table (whole-run wall time, mapping time, PSNR, ATE, and the speed-up of cpu over
 torch measured in the same invocation) and writes JSON.
 
@@ -30,7 +30,7 @@ KEYS = ("wall_time_s", "mapping_time_s", "mapping_steps", "psnr", "ssim", "ate_r
 def run(sequence: str, backend: str, extra: list[str], out: Path) -> dict:
     exe = Path(sys.executable).with_name("slamkit")
     run_dir = out / f"{sequence}_{backend}"
-    cmd = [str(exe), *SEQUENCES[sequence], "mapper=gaussian_splatting", f"mapper.rasterizer={backend}", *extra,
+    cmd = [str(exe), *SEQUENCES[sequence], "mapper=gaussian_splatting", f"rasterizer={backend}", *extra,
            "progress=false", "eval.plot=false", f"hydra.run.dir={run_dir}"]
     start = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True)

@@ -15,21 +15,16 @@ by ~1 cm with any change that alters rounding, so one number is a weak compariso
 from __future__ import annotations
 
 import argparse
-import enum
 import json
 import platform
 import time
-import typing
 from pathlib import Path
 
 import numpy as np
 
 from slamkit import evaluation
-from slamkit.config import apply_hints
-from slamkit.gaussian_map import GaussianMap
-from slamkit.map_growth import MapGrowthConfig
+from slamkit.compose import build_run
 from slamkit.registry import default_registry
-from slamkit.slam import SLAM
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 SEQUENCES = {"tum": DATA / "tum_fr1_rpy_first150", "replica": DATA / "replica_room0_first20"}
@@ -43,25 +38,17 @@ SYSTEMS = {  # name -> (tracker, tracker overrides, keyframe policy)
 SPLIT = ("covariance_s", "nn_search_s", "solve_s")
 
 
-def load_frames(name: str, path: Path):
+def load_frames(sequence: str) -> list:
     registry = default_registry()
-    spec = registry.get("dataset", name)
-    dataset = spec.cls(spec.config(path=str(path)))
-    return dataset, [dataset[i] for i in range(len(dataset))]
+    dataset = registry.create("dataset", sequence, registry.get("dataset", sequence).config(path=str(SEQUENCES[sequence])))
+    return [dataset[i] for i in range(len(dataset))]
 
 
-def run_system(system: str, dataset, frames) -> dict:
-    registry = default_registry()
+def run_system(system: str, sequence: str, frames) -> dict:
     tracker_name, overrides, policy_name = SYSTEMS[system]
-    tracker_spec = registry.get("tracker", tracker_name)
-    tracker_cfg = tracker_spec.config(**{k: _enum(tracker_spec.config, k, v) for k, v in overrides.items()})
-    policy_cfg = registry.get("keyframe", policy_name).config()
-    growth = MapGrowthConfig()
-    for cfg in (tracker_cfg, policy_cfg, growth):
-        apply_hints(cfg, dataset.hints)
-    mapper = registry.create("mapper", "none", registry.get("mapper", "none").config())
-    slam = SLAM(tracker_spec.cls(tracker_cfg), registry.create("keyframe", policy_name, policy_cfg), mapper,
-                GaussianMap(), growth)
+    _, slam, _ = build_run([f"dataset={sequence}", f"dataset.path={SEQUENCES[sequence]}", f"tracker={tracker_name}",
+                            *(f"tracker.{k}={v}" for k, v in overrides.items()), f"keyframe={policy_name}",
+                            "mapper=none"])
     slam.initialize(frames[0].gt_pose)
     poses, per_frame, split, lost = [], [], {k: 0.0 for k in SPLIT}, 0
     for frame in frames:
@@ -83,22 +70,16 @@ def run_system(system: str, dataset, frames) -> dict:
     return result
 
 
-def _enum(cfg_cls, field: str, value):
-    """Config values given as strings become the field's Enum member."""
-    tp = typing.get_type_hints(cfg_cls)[field]
-    return tp(value) if isinstance(tp, type) and issubclass(tp, enum.Enum) else value
-
-
-def best_of(system, dataset, frames, repeats: int) -> dict:
+def best_of(system, sequence, frames, repeats: int) -> dict:
     """ATE from the first run (all runs are deterministic); times from the fastest run."""
-    runs = [run_system(system, dataset, frames) for _ in range(repeats)]
+    runs = [run_system(system, sequence, frames) for _ in range(repeats)]
     best = min(runs, key=lambda r: r["ms_per_frame"])
     return {**best, "ate_rmse_m": runs[0]["ate_rmse_m"], "ate_mean_m": runs[0]["ate_mean_m"], "repeats": repeats}
 
 
-def over_starts(system, dataset, frames, starts: list[int]) -> dict:
+def over_starts(system, sequence, frames, starts: list[int]) -> dict:
     """Mean and worst ATE RMSE of runs from each start frame to the end."""
-    ates = [run_system(system, dataset, frames[s:])["ate_rmse_m"] for s in starts]
+    ates = [run_system(system, sequence, frames[s:])["ate_rmse_m"] for s in starts]
     return {"starts": starts, "ate_rmse_by_start_m": ates, "ate_rmse_starts_mean_m": float(np.mean(ates)),
             "ate_rmse_starts_max_m": float(np.max(ates))}
 
@@ -126,12 +107,12 @@ def main() -> None:
     args = parser.parse_args()
     rows = []
     for name in args.datasets.split(","):
-        dataset, frames = load_frames(name, SEQUENCES[name])
+        frames = load_frames(name)
         starts = [int(v) for v in args.starts.split(",")]
-        results = [best_of(s, dataset, frames, args.repeats) for s in args.systems.split(",")]
+        results = [best_of(s, name, frames, args.repeats) for s in args.systems.split(",")]
         if len(starts) > 1:
             for r in results:
-                r.update(over_starts(r["system"], dataset, frames, [s for s in starts if s < len(frames) - 10]))
+                r.update(over_starts(r["system"], name, frames, [s for s in starts if s < len(frames) - 10]))
         anchors = {r["system"]: r for r in results}
         for r in results:
             r["dataset"] = name

@@ -1,23 +1,22 @@
 """The top-level run configuration (Hydra structured config) and its validation.
 
-Each role's group (dataset, tracker, mapper, keyframe) holds the selected plugin's config
-dataclass, registered by `slamkit.registry.register_configs`. Validation turns every group into
+The schema is RunConfig's keys plus one group per role of `slamkit.roles.ROLES`, each holding
+the selected plugin's config dataclass (registered by `slamkit.registry.register_configs`),
+and a defaults list that selects each role's default plugin. Validation turns every group into
 its dataclass (running its `validate`) before any work starts.
 """
 
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass, field, fields, is_dataclass
+from dataclasses import dataclass, field, is_dataclass, make_dataclass
 from typing import Any
 
 from omegaconf import MISSING, DictConfig, OmegaConf
 
 from slamkit.errors import ConfigError
 from slamkit.map_growth import MapGrowthConfig
-from slamkit.roles import PluginConfig, require
-
-PLUGIN_GROUPS = ("dataset", "tracker", "mapper", "keyframe", "viewer")
+from slamkit.roles import ROLES, PluginConfig, require
 
 
 class Mode(enum.Enum):
@@ -36,8 +35,8 @@ class EvalConfig:
 
 @dataclass
 class RunConfig(PluginConfig):
-    """Top-level keys. mode: sequential (fixed mapping iterations per frame, deterministic) or
-    realtime. iterations_per_frame: mapper steps per frame in sequential mode. fps_limit:
+    """Top-level keys (`run_schema` adds one group per role). mode: sequential (fixed mapping
+    iterations per frame, deterministic) or realtime. iterations_per_frame: mapper steps per frame in sequential mode. fps_limit:
     input frames per second in realtime mode (null = as fast as possible). drop_frames: in
     realtime mode, skip a frame when the next one has already arrived (a live camera's
     behaviour) instead of processing every frame late. seed: for every
@@ -45,11 +44,6 @@ class RunConfig(PluginConfig):
     (0: every CPU in sequential mode; every CPU but one in realtime mode, where the tracking
     thread runs beside the mapping thread)."""
 
-    dataset: Any = MISSING
-    tracker: Any = MISSING
-    mapper: Any = MISSING
-    keyframe: Any = MISSING
-    viewer: Any = MISSING
     map: MapGrowthConfig = field(default_factory=MapGrowthConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     mode: Mode = Mode.sequential
@@ -66,10 +60,19 @@ class RunConfig(PluginConfig):
         require(self.mapping_threads >= 0, "mapping_threads", "an integer >= 0 (0: automatic)", self.mapping_threads)
 
 
+def run_schema() -> type:
+    """RunConfig with one field per role (`slamkit.roles.ROLES`), each the selected plugin's
+    config, and a Hydra defaults list that selects each role's default plugin."""
+    defaults = [{r.key: r.default} for r in ROLES] + ["_self_"]
+    role_fields = [(r.key, Any, field(default=MISSING)) for r in ROLES]
+    return make_dataclass("SlamkitConfig", [("defaults", list[Any], field(default_factory=lambda: list(defaults)))]
+                          + role_fields, bases=(RunConfig,))
+
+
 def register_run_config() -> None:
     from hydra.core.config_store import ConfigStore
 
-    ConfigStore.instance().store(name="slamkit_schema", node=RunConfig)
+    ConfigStore.instance().store(name="slamkit_schema", node=run_schema())
 
 
 def validate_config(cfg: DictConfig) -> RunConfig:
@@ -83,21 +86,7 @@ def validate_config(cfg: DictConfig) -> RunConfig:
         raise ConfigError(str(exc).splitlines()[0]) from exc
     if not isinstance(run, RunConfig):
         raise ConfigError(f"expected the slamkit run config, got {type(run).__name__}")
-    for group in PLUGIN_GROUPS:
-        if not is_dataclass(getattr(run, group)):
-            raise ConfigError(f"{group}: no plugin selected (use {group}=NAME)")
+    for r in ROLES:
+        if not is_dataclass(getattr(run, r.key)):
+            raise ConfigError(f"{r.key}: no plugin selected (use {r.key}=NAME)")
     return run
-
-
-def apply_hints(config: Any, hints: dict[str, Any]) -> list[str]:
-    """Fill the None fields of a config dataclass whose names appear in a dataset's `hints`.
-
-    Returns the names filled. Nested dataclasses are not searched."""
-    filled = []
-    if not is_dataclass(config):
-        return filled
-    for f in fields(config):
-        if getattr(config, f.name) is None and f.name in hints:
-            setattr(config, f.name, hints[f.name])
-            filled.append(f.name)
-    return filled

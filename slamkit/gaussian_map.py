@@ -1,57 +1,117 @@
-"""The Gaussian map shared by tracking and mapping."""
+"""The Gaussian map shared by tracking and mapping, and the rows that enter it."""
 
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 import torch
 
 from slamkit.geometry import covariance_from_scales, scales_from_covariance
 
-_PARAMS = ("means", "quats", "log_scales", "opacity_logits", "colors")
+#: The optimisable parameters, in this order everywhere (GaussianMap, GaussianRows, optimisers).
+PARAMETERS = ("means", "quats", "log_scales", "opacity_logits", "colors")
+
+
+def _logit(p: np.ndarray) -> np.ndarray:
+    return np.log(p / (1 - p))
 
 
 @dataclass
-class TrackingTarget:
-    """A read-only copy of the map Gaussians a tracker aligns to (world frame).
+class GaussianRows:
+    """Gaussians that are not (or not yet) rows of a map, in the map's parameterisation: torch
+    tensors with one row each. means (N,3) world metres; quats (N,4) (w, x, y, z); log_scales
+    (N,3) log of standard deviations in metres; opacity_logits (N,); colors (N,3) RGB in [0, 1];
+    trackable (N,) bool; keyframe_id (N,) int64 (the keyframe that added it, -1 = none)."""
 
-    means: Nx3 float32 metres. covariances: Nx3x3 float32 m^2 (raw, not regularised).
-    version: the map version it was taken from.
-    """
+    means: torch.Tensor
+    quats: torch.Tensor
+    log_scales: torch.Tensor
+    opacity_logits: torch.Tensor
+    colors: torch.Tensor
+    trackable: torch.Tensor
+    keyframe_id: torch.Tensor
 
-    means: np.ndarray
-    covariances: np.ndarray
-    version: int
+    @classmethod
+    def from_shapes(cls, means, quats, scales, colors, opacity, trackable, keyframe_id, device=None) -> GaussianRows:
+        """From numpy arrays in natural units: scales (N,3) metres (clamped at 1e-8), opacity
+        (N,) or a scalar in (0, 1), keyframe_id an int or (N,) ints."""
+        n = len(means)
+        opacity = np.broadcast_to(np.asarray(opacity, dtype=np.float64), (n,))
+
+        def f32(a, width):
+            return torch.as_tensor(np.asarray(a, dtype=np.float32), device=device).reshape((n, width) if width else n)
+
+        return cls(
+            means=f32(means, 3),
+            quats=f32(quats, 4),
+            log_scales=f32(np.log(np.maximum(np.asarray(scales, dtype=np.float64), 1e-8)), 3),
+            opacity_logits=f32(_logit(opacity), 0),
+            colors=f32(colors, 3),
+            trackable=torch.as_tensor(np.asarray(trackable, dtype=bool), device=device).reshape(n),
+            keyframe_id=torch.as_tensor(np.broadcast_to(np.asarray(keyframe_id, dtype=np.int64), (n,)).copy(),
+                                        device=device),
+        )
+
+    @classmethod
+    def from_covariances(cls, means, covariances, colors, opacity, trackable, keyframe_id, scale_factors=None,
+                         device=None) -> GaussianRows:
+        """From world covariances (N,3,3) m^2; each standard deviation optionally divided by
+        `scale_factors` (N,) (the scale alignment of Gaussians entering the map)."""
+        quats, scales = scales_from_covariance(np.asarray(covariances, dtype=np.float64))
+        if scale_factors is not None:
+            scales = scales / np.asarray(scale_factors, dtype=np.float64)[:, None]
+        return cls.from_shapes(means, quats, scales, colors, opacity, trackable, keyframe_id, device)
+
+    def __len__(self) -> int:
+        return int(self.means.shape[0])
+
+    def select(self, index) -> GaussianRows:
+        """The rows at `index` (a bool mask or integer indices, numpy or torch)."""
+        index = torch.as_tensor(np.asarray(index) if not isinstance(index, torch.Tensor) else index,
+                                device=self.means.device)
+        return GaussianRows(**{f.name: getattr(self, f.name)[index] for f in fields(self)})
+
+    def parameters(self) -> dict[str, torch.Tensor]:
+        return {name: getattr(self, name) for name in PARAMETERS}
+
+
+def _leaf(t: torch.Tensor) -> torch.Tensor:
+    """`t` as a new leaf tensor that autograd differentiates (the map's parameters)."""
+    return t.detach().requires_grad_(True)
 
 
 class GaussianMap:
     """3D Gaussians in world coordinates, stored as the 3DGS optimiser sees them.
 
-    Parameters (torch float32 tensors, one row per Gaussian):
+    Parameters (float32 leaf tensors with requires_grad, one row per Gaussian; see PARAMETERS):
       means (N,3) metres; quats (N,4) (w, x, y, z), not necessarily unit (normalised where
-      used); log_scales (N,3) log of standard deviations in metres; opacity_logits (N,)
-      logit of opacity; colors (N,3) RGB in [0, 1] (SH degree 0).
-    Per-Gaussian flags (torch): trackable (N,) bool, keyframe_id (N,) int64 (the keyframe that
-    added it).
+      used); log_scales (N,3) log of standard deviations in metres; opacity_logits (N,) logit
+      of opacity; colors (N,3) RGB in [0, 1] (SH degree 0).
+    Per-Gaussian flags: trackable (N,) bool, keyframe_id (N,) int64 (the keyframe that added it).
 
-    Concurrency: the mapper changes parameters only while holding `lock`; every structural
-    change or optimiser step bumps `version`. The tracker never reads the live tensors: it
-    takes a `tracking_target()` copy under the lock, and only at a tracking keyframe.
+    Concurrency: whoever changes the map holds `lock`. Every change bumps `version`; removing or
+    overwriting rows also bumps `structure_version` (appending does not), so a training step
+    that started before can tell that its rows no longer hold the same Gaussians. Rows are
+    appended only at the end. The tracker never reads the live tensors: it
+    takes a `tracking_target()` copy under the lock, at a tracking keyframe.
     """
 
     def __init__(self, device: str | torch.device = "cpu"):
         self.device = torch.device(device)
         self.lock = threading.RLock()
         self.version = 0
-        self.means = torch.zeros((0, 3), device=self.device)
-        self.quats = torch.zeros((0, 4), device=self.device)
-        self.log_scales = torch.zeros((0, 3), device=self.device)
-        self.opacity_logits = torch.zeros((0,), device=self.device)
-        self.colors = torch.zeros((0, 3), device=self.device)
-        self.trackable = torch.zeros((0,), dtype=torch.bool, device=self.device)
-        self.keyframe_id = torch.zeros((0,), dtype=torch.int64, device=self.device)
+        self.structure_version = 0
+        empty = GaussianRows.from_shapes(np.zeros((0, 3)), np.zeros((0, 4)), np.zeros((0, 3)), np.zeros((0, 3)),
+                                         0.5, np.zeros(0, bool), 0, self.device)
+        self._set(empty)
+
+    def _set(self, rows: GaussianRows) -> None:
+        for name in PARAMETERS:
+            setattr(self, name, _leaf(getattr(rows, name)))
+        self.trackable = rows.trackable
+        self.keyframe_id = rows.keyframe_id
 
     def __len__(self) -> int:
         return int(self.means.shape[0])
@@ -67,59 +127,46 @@ class GaussianMap:
         return torch.sigmoid(self.opacity_logits)
 
     def parameters(self) -> dict[str, torch.Tensor]:
-        """The optimisable tensors by name."""
-        return {name: getattr(self, name) for name in _PARAMS}
+        """The optimisable leaf tensors by name (PARAMETERS order)."""
+        return {name: getattr(self, name) for name in PARAMETERS}
 
-    def append(
-        self,
-        means: np.ndarray,
-        quats: np.ndarray,
-        scales: np.ndarray,
-        colors: np.ndarray,
-        opacity: float | np.ndarray,
-        trackable: np.ndarray,
-        keyframe_id: int,
-    ) -> slice:
-        """Add Gaussians (world frame, scales in metres, opacity in (0,1)); returns their rows."""
-        n = len(means)
-        opacity = np.broadcast_to(np.asarray(opacity, dtype=np.float32), (n,))
-        new = {
-            "means": means,
-            "quats": quats,
-            "log_scales": np.log(np.maximum(scales, 1e-8)),
-            "opacity_logits": np.log(opacity / (1 - opacity)),
-            "colors": colors,
-        }
+    def _columns(self) -> dict[str, torch.Tensor]:
+        """Every per-row tensor by GaussianRows field name (detached, not copied)."""
+        return {f.name: getattr(self, f.name).detach() for f in fields(GaussianRows)}
+
+    def rows(self, index=None) -> GaussianRows:
+        """A detached copy of the rows at `index` (all rows when None)."""
+        with self.lock:
+            sel = slice(None) if index is None else index
+            return GaussianRows(**{k: v[sel].clone() for k, v in self._columns().items()})
+
+    def append(self, rows: GaussianRows) -> slice:
+        """Add `rows` at the end; returns the rows they occupy."""
         with self.lock:
             start = len(self)
-            for name, value in new.items():
-                t = torch.as_tensor(np.asarray(value, dtype=np.float32), device=self.device)
-                setattr(self, name, torch.cat([getattr(self, name).detach(), t]))
-            self.trackable = torch.cat(
-                [self.trackable, torch.as_tensor(np.asarray(trackable, dtype=bool), device=self.device)]
-            )
-            self.keyframe_id = torch.cat(
-                [self.keyframe_id, torch.full((n,), keyframe_id, dtype=torch.int64, device=self.device)]
-            )
+            merged = {k: torch.cat([v, getattr(rows, k).to(self.device)]) for k, v in self._columns().items()}
+            self._set(GaussianRows(**merged))
             self.version += 1
-        return slice(start, start + n)
-
-    def append_covariances(
-        self, means, covariances, colors, opacity, trackable, keyframe_id, scale_factors=None
-    ) -> slice:
-        """Add Gaussians given as covariances (Nx3x3, m^2), each scale optionally divided by
-        `scale_factors` (N,) (the scale alignment of Gaussians entering the map)."""
-        quats, scales = scales_from_covariance(np.asarray(covariances, dtype=np.float64))
-        if scale_factors is not None:
-            scales = scales / np.asarray(scale_factors)[:, None]
-        return self.append(means, quats, scales, colors, opacity, trackable, keyframe_id)
+        return slice(start, start + len(rows))
 
     def keep(self, mask: torch.Tensor) -> None:
-        """Keep only the Gaussians where `mask` is true (pruning)."""
+        """Keep only the Gaussians where `mask` is true (the others are removed)."""
         with self.lock:
-            for name in _PARAMS + ("trackable", "keyframe_id"):
-                setattr(self, name, getattr(self, name).detach()[mask])
+            mask = torch.as_tensor(mask, device=self.device)
+            self._set(GaussianRows(**{k: v[mask] for k, v in self._columns().items()}))
             self.version += 1
+            self.structure_version += 1
+
+    def write_back(self, params: dict[str, torch.Tensor], rows: int) -> None:
+        """After an update applied to parameter tensors taken from this map when it had `rows`
+        rows: where rows were appended meanwhile (new tensors), copy the updated first `rows`
+        rows into them. Call under the lock; the caller checks that no row was removed."""
+        with torch.no_grad():
+            for name, t in params.items():
+                live = getattr(self, name)
+                if live is not t:
+                    live[:rows] = t.detach()
+        self.version += 1
 
     def covariances(self) -> torch.Tensor:
         """(N,3,3) world-frame covariances R diag(s^2) R^T in m^2."""
@@ -134,3 +181,16 @@ class GaussianMap:
             return TrackingTarget(
                 means=means.cpu().numpy().copy(), covariances=cov.cpu().numpy().copy(), version=self.version
             )
+
+
+@dataclass
+class TrackingTarget:
+    """A read-only copy of the map Gaussians a tracker aligns to (world frame).
+
+    means: Nx3 float32 metres. covariances: Nx3x3 float32 m^2 (raw, not regularised).
+    version: the map version it was taken from.
+    """
+
+    means: np.ndarray
+    covariances: np.ndarray
+    version: int

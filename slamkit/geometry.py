@@ -150,3 +150,13 @@ def backproject(depth: np.ndarray, camera, stride: int = 1) -> tuple[np.ndarray,
     x = (u - camera.cx) / camera.fx * z
     y = (v - camera.cy) / camera.fy * z
     return np.stack([x, y, z], axis=-1).astype(np.float32), v * camera.width + u
+
+
+def project_points(points, world_to_camera, camera):
+    """Pinhole projection of (N,3) world points (metres) through a (4,4) world-to-camera
+    transform: (u, v, z), pixel coordinates with pixel centres at integers (column, row) and the
+    camera depth z in metres (u, v are meaningless where z <= 0)."""
+    pc = points @ world_to_camera[:3, :3].T + world_to_camera[:3, 3]
+    z = pc[..., 2]
+    zs = np.where(z > 0, z, 1.0) if _xp(z) is np else torch.where(z > 0, z, torch.ones_like(z))
+    return camera.fx * pc[..., 0] / zs + camera.cx, camera.fy * pc[..., 1] / zs + camera.cy, z

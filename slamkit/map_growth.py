@@ -7,6 +7,9 @@ camera depth z (metres): none -> 1, constant -> c, z -> max(c z, 1), z_pow -> ma
 (the paper's choice, p = 1.5, c = 2). Gaussians close to an existing trackable map Gaussian
 (squared distance <= new_gaussian_overlap, m^2) are added for rendering but not marked
 trackable, so the tracking target is not duplicated.
+
+`new_gaussians` makes a keyframe's candidate rows; which of them enter the map is the mapper's
+decision (`Mapper.admit`, in `slamkit.slam.SLAM.grow_map`).
 """
 
 from __future__ import annotations
@@ -16,8 +19,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slamkit.gaussian_map import GaussianMap
-from slamkit.roles import PluginConfig, require
+from slamkit.gaussian_map import GaussianRows
+from slamkit.roles.config import PluginConfig, require
+from slamkit.roles.dataset import SensorProfile
 from slamkit.types import FrameGaussians
 
 
@@ -42,7 +46,7 @@ class MapGrowthConfig(PluginConfig):
     """initial_shape: gicp | knn (see InitialShape). scale_alignment: none | constant | z |
     z_pow (paper Table 6), applied to gicp shapes. scale_c, scale_p: the c
     and p of max(c z^p, 1). initial_opacity: opacity of new Gaussians in (0, 1).
-    new_gaussian_overlap: m^2, null = the dataset's hint."""
+    new_gaussian_overlap: m^2, null = the dataset's (`SensorProfile.new_gaussian_overlap`)."""
 
     initial_shape: InitialShape = InitialShape.gicp
     scale_alignment: ScaleAlignment = ScaleAlignment.z_pow
@@ -58,6 +62,9 @@ class MapGrowthConfig(PluginConfig):
             self.new_gaussian_overlap is None or self.new_gaussian_overlap >= 0,
             "map.new_gaussian_overlap", "null or >= 0 m^2", self.new_gaussian_overlap,
         )
+
+    def with_sensor(self, sensor: SensorProfile) -> MapGrowthConfig:
+        return self.fill_nulls(new_gaussian_overlap=sensor.new_gaussian_overlap)
 
 
 def scale_alignment_factors(depths: np.ndarray, cfg: MapGrowthConfig) -> np.ndarray:
@@ -83,24 +90,18 @@ def knn_isotropic_scales(points: np.ndarray, k: int = 3) -> np.ndarray:
     return np.repeat(np.maximum(rms, 1e-4)[:, None], 3, axis=1)
 
 
-def add_keyframe_gaussians(
-    gaussian_map: GaussianMap, gaussians: FrameGaussians, keyframe_id: int, cfg: MapGrowthConfig
-) -> slice:
-    """Append a keyframe's Gaussians to the map; return the rows they occupy."""
+def new_gaussians(gaussians: FrameGaussians, keyframe_id: int, cfg: MapGrowthConfig, device=None) -> GaussianRows:
+    """A keyframe's Gaussians as map rows (scale-aligned, opacity `initial_opacity`), not yet in
+    the map."""
     trackable = gaussians.trackable
     if gaussians.sq_dist_to_map is not None and cfg.new_gaussian_overlap is not None:
         trackable = trackable & (gaussians.sq_dist_to_map > cfg.new_gaussian_overlap)
     if cfg.initial_shape is InitialShape.knn:
         quats = np.tile([1.0, 0.0, 0.0, 0.0], (len(gaussians), 1))
-        return gaussian_map.append(gaussians.means, quats, knn_isotropic_scales(gaussians.means), gaussians.colors,
-                                   cfg.initial_opacity, trackable, keyframe_id)
+        return GaussianRows.from_shapes(gaussians.means, quats, knn_isotropic_scales(gaussians.means),
+                                        gaussians.colors, cfg.initial_opacity, trackable, keyframe_id, device)
     shapes = gaussians.shape_covariances if gaussians.shape_covariances is not None else gaussians.covariances
-    return gaussian_map.append_covariances(
-        gaussians.means,
-        shapes,
-        gaussians.colors,
-        cfg.initial_opacity,
-        trackable,
-        keyframe_id,
-        scale_factors=scale_alignment_factors(gaussians.depths.astype(np.float64), cfg),
+    return GaussianRows.from_covariances(
+        gaussians.means, shapes, gaussians.colors, cfg.initial_opacity, trackable, keyframe_id,
+        scale_factors=scale_alignment_factors(gaussians.depths.astype(np.float64), cfg), device=device,
     )

@@ -69,6 +69,8 @@ class NativeLibrary:
         self.declare, self.native, self.flags = declare, native, tuple(flags)
         self.lib = None
         self.error: str | None = None
+        self.path: Path | None = None  # the loaded library
+        self.built_flags: tuple[str, ...] = ()  # the compiler flags it was built with
         self._lock = threading.Lock()
         self._tried = False
 
@@ -107,7 +109,9 @@ class NativeLibrary:
                 except RuntimeError as exc:
                     error = error or exc
                     continue
-            return self._open(path)
+            lib = self._open(path)
+            self.path, self.built_flags = path, tuple(flags)
+            return lib
         raise error
 
     def _compile(self, exe: str, flags: list[str], path: Path) -> None:

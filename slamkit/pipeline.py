@@ -8,6 +8,7 @@ The algorithm itself is `slamkit.slam.SLAM`; this module is the I/O around it.
 from __future__ import annotations
 
 import csv
+import inspect
 import json
 import logging
 import os
@@ -22,7 +23,7 @@ import numpy as np
 import torch
 
 from slamkit import evaluation
-from slamkit.config import Mode, RunConfig, apply_hints
+from slamkit.config import Mode, RunConfig
 from slamkit.errors import DataError, PluginError, SlamkitError
 from slamkit.gaussian_map import GaussianMap
 from slamkit.native import available_threads
@@ -91,7 +92,7 @@ class Blamed:
 
     def __getattr__(self, attr):
         value = getattr(self._plugin, attr)
-        if not callable(value):
+        if not inspect.ismethod(value):  # data, and parts held as attributes (a mapper's loss)
             return value
 
         def call(*args, **kwargs):
@@ -108,17 +109,25 @@ class Blamed:
 
 
 def build(cfg: RunConfig, registry: Registry, names: dict[str, str]):
-    """Dataset and SLAM system from a validated config; `names` maps role -> plugin name."""
+    """Dataset, SLAM system and viewer from a validated config; `names` maps each role key to
+    the selected plugin's name. Every part reads the dataset's sensor profile for its null
+    fields; the mapper gets the parts it names (`Mapper.parts`), built from their own groups."""
     dataset = registry.create("dataset", names["dataset"], cfg.dataset)
     if len(dataset) == 0:
         raise DataError(f"dataset {names['dataset']!r} at {cfg.dataset.path!r}: no frames selected")
-    for group in (cfg.tracker, cfg.keyframe, cfg.mapper, cfg.map):
-        apply_hints(group, dataset.hints)
-    apply_hints(cfg.tracker, {"num_threads": tracking_threads(cfg)})
-    tracker, policy, mapper = (Blamed(registry.create(role, names[role], getattr(cfg, role)), role, names[role])
-                               for role in ("tracker", "keyframe", "mapper"))
-    slam = SLAM(tracker, policy, mapper, GaussianMap(), cfg.map, cfg.iterations_per_frame)
-    return dataset, slam
+    sensor = dataset.sensor
+
+    def create(role: str, **parts):
+        return registry.create(role, names[role], getattr(cfg, role), sensor, **parts)
+
+    parts = {role: create(role) for role in registry.get("mapper", names["mapper"]).cls.parts}
+    tracker, policy = create("tracker"), create("keyframe")
+    tracker.use_threads(tracking_threads(cfg))
+    mapper = create("mapper", **parts)
+    slam = SLAM(Blamed(tracker, "tracker", names["tracker"]), Blamed(policy, "keyframe", names["keyframe"]),
+                Blamed(mapper, "mapper", names["mapper"]), GaussianMap(), cfg.map.with_sensor(sensor),
+                cfg.iterations_per_frame)
+    return dataset, slam, create("viewer")
 
 
 @contextmanager
@@ -152,9 +161,8 @@ def run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Path
 def _run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Path) -> dict[str, Any]:
     out_dir.mkdir(parents=True, exist_ok=True)
     np.random.seed(cfg.seed)
-    dataset, slam = build(cfg, registry, names)
-    viewer = ViewerFeed(registry.create("viewer", names["viewer"], cfg.viewer), names["viewer"], slam.gaussian_map,
-                        slam.mapper)
+    dataset, slam, viewer = build(cfg, registry, names)
+    viewer = ViewerFeed(viewer, names["viewer"], slam.gaussian_map, slam.mapper)
     log.info("%s: %d frames, camera %s; tracker %s, mapper %s, keyframes %s", names["dataset"], len(dataset),
              dataset.camera, names["tracker"], names["mapper"], names["keyframe"])
     write_camera(out_dir / "camera.json", dataset.camera, dataset.depth_trunc)

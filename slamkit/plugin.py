@@ -5,13 +5,15 @@ A plugin module is any importable module named by an entry point in the group ``
     [project.entry-points.slamkit]
     my_tracker = "my_package.my_tracker"
 
-and implementing one or more hooks of `slamkit.hookspecs`::
+and implementing the hook of `slamkit.hookspecs`::
 
     from slamkit.plugin import PluginSpec, hookimpl
 
     @hookimpl
-    def slamkit_trackers():
+    def slamkit_plugins():
         return [PluginSpec("my_tracker", MyTracker, MyTrackerConfig)]
+
+The class's base (`slamkit.roles.Tracker` here) says which role the plugin fills.
 """
 
 from __future__ import annotations
@@ -29,8 +31,9 @@ hookspec = pluggy.HookspecMarker(PROJECT)
 class PluginSpec:
     """One implementation of a role.
 
-    name: what users select it by (``tracker=NAME``). cls: a subclass of the role's base class
-    (`slamkit.roles`), constructed as ``cls(config)``. config: a dataclass (ideally a
+    name: what users select it by (``tracker=NAME``). cls: a subclass of exactly one role's
+    base class (`slamkit.roles.ROLES`), constructed as ``cls(config)`` (a mapper also gets the
+    parts it names in `Mapper.parts` as keyword arguments). config: a dataclass (ideally a
     `slamkit.roles.PluginConfig` subclass) whose fields all have defaults; it becomes the
     role's structured config group entry, so its fields are type-checked overrides.
     """

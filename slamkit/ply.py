@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from slamkit.errors import DataError
-from slamkit.gaussian_map import GaussianMap
+from slamkit.gaussian_map import GaussianMap, GaussianRows
 
 #: The degree-0 real spherical harmonic, 1 / (2 sqrt(pi)).
 C0 = 0.28209479177387814
@@ -185,10 +185,7 @@ def load_ply(path: str | Path, device: str | torch.device = "cpu") -> GaussianMa
         "opacity_logits": np.asarray(data["opacity"], dtype=np.float32).reshape(n),
         "colors": cols("f_dc_0", "f_dc_1", "f_dc_2") * np.float32(C0) + np.float32(0.5),
     }
-    with gm.lock:
-        for name, value in values.items():
-            setattr(gm, name, torch.tensor(np.ascontiguousarray(value), device=gm.device))
-        gm.trackable = torch.ones(n, dtype=torch.bool, device=gm.device)
-        gm.keyframe_id = torch.full((n,), -1, dtype=torch.int64, device=gm.device)
-        gm.version += 1
+    rows = {name: torch.tensor(np.ascontiguousarray(value), device=gm.device) for name, value in values.items()}
+    gm.append(GaussianRows(**rows, trackable=torch.ones(n, dtype=torch.bool, device=gm.device),
+                           keyframe_id=torch.full((n,), -1, dtype=torch.int64, device=gm.device)))
     return gm

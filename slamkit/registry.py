@@ -1,8 +1,9 @@
-"""Plugin discovery: entry points in the group ``slamkit``, hooks from `slamkit.hookspecs`.
+"""Plugin discovery: entry points in the group ``slamkit``, the hook of `slamkit.hookspecs`.
 
-Built-in plugins are found exactly like third-party ones. A plugin that fails to import, or
-whose hook raises or returns something malformed, is reported by name (a warning) and left
-out; the others keep working.
+Built-in plugins are found exactly like third-party ones. Each spec's role is the role whose
+base class its class subclasses (`slamkit.roles.ROLES`). A plugin that fails to import, whose
+hook raises or returns something malformed, or whose config Hydra cannot hold, is reported by
+name (a warning) and left out; the others keep working.
 """
 
 from __future__ import annotations
@@ -18,20 +19,9 @@ import pluggy
 from slamkit import hookspecs
 from slamkit.errors import PluginError
 from slamkit.plugin import PROJECT, PluginSpec
-from slamkit.roles import ROLES
+from slamkit.roles import ROLE_KEYS, SensorProfile, role_of
 
 log = logging.getLogger(__name__)
-
-# role (config group) -> the hook that lists its implementations
-ROLE_HOOKS = {
-    "dataset": "slamkit_datasets",
-    "tracker": "slamkit_trackers",
-    "mapper": "slamkit_mappers",
-    "keyframe": "slamkit_keyframe_policies",
-    "sampler": "slamkit_keyframe_samplers",
-    "rasterizer": "slamkit_rasterizers",
-    "viewer": "slamkit_viewers",
-}
 
 
 @dataclass
@@ -42,9 +32,9 @@ class Registered:
 
 @dataclass
 class Registry:
-    """All plugins by role and name, plus the ones that failed (name -> reason)."""
+    """All plugins by role key and name, plus the ones that failed (source -> reason)."""
 
-    plugins: dict[str, dict[str, Registered]] = field(default_factory=lambda: {r: {} for r in ROLE_HOOKS})
+    plugins: dict[str, dict[str, Registered]] = field(default_factory=lambda: {k: {} for k in ROLE_KEYS})
     failed: dict[str, str] = field(default_factory=dict)
 
     def get(self, role: str, name: str) -> PluginSpec:
@@ -56,46 +46,61 @@ class Registry:
             raise PluginError(f"unknown {role} {name!r}; available: {available}{failed}")
         return found.spec
 
-    def create(self, role: str, name: str, config):
-        """Build plugin `name` of `role` with its (validated) config object."""
-        return self.get(role, name).cls(config)
+    def create(self, role: str, name: str, config=None, sensor: SensorProfile | None = None, **parts):
+        """Build plugin `name` of `role` from `config` (None: its defaults), whose null
+        sensor-dependent fields are first filled from `sensor` (None: the generic
+        `SensorProfile()`); `parts` are a mapper's parts, passed as keyword arguments."""
+        spec = self.get(role, name)
+        config = spec.config() if config is None else config
+        if hasattr(config, "with_sensor"):
+            config = config.with_sensor(sensor or SensorProfile())
+        return spec.cls(config, **parts)
 
     def add_module(self, module, source: str, manager: pluggy.PluginManager | None = None) -> None:
-        """Register the hooks of one plugin module; failures become warnings."""
+        """Register the hook of one plugin module; failures become warnings."""
         manager = manager or _manager()
         try:
             manager.register(module, name=source)
-        except Exception as exc:  # a malformed hookimpl: report, keep the others
+            impls = [i for i in manager.hook.slamkit_plugins.get_hookimpls() if i.plugin is module]
+            specs = [spec for impl in impls for spec in (impl.function() or [])]
+            checked = [(self._check(spec), spec) for spec in specs]
+        except Exception as exc:  # a malformed hookimpl or spec: report, keep the others
             self._fail(source, exc)
             return
-        for role, hook in ROLE_HOOKS.items():
-            for impl in getattr(manager.hook, hook).get_hookimpls():
-                if impl.plugin is not module:
-                    continue
-                try:
-                    specs = impl.function() or []
-                    for spec in specs:
-                        self._add(role, spec, source)
-                except Exception as exc:
-                    self._fail(source, exc)
+        for role, spec in checked:
+            if spec.name in self.plugins[role]:
+                previous = self.plugins[role][spec.name].source
+                warnings.warn(f"slamkit: {role} {spec.name!r} from {source} replaces the one from {previous}",
+                              stacklevel=2)
+            self.plugins[role][spec.name] = Registered(spec, source)
 
-    def _add(self, role: str, spec: PluginSpec, source: str) -> None:
-        base = ROLES[role]
+    @staticmethod
+    def _check(spec: PluginSpec) -> str:
+        """The role key of a well-formed spec; PluginError otherwise."""
         if not isinstance(spec, PluginSpec):
             raise PluginError(f"hook returned {spec!r}, expected slamkit.plugin.PluginSpec")
-        if not (isinstance(spec.cls, type) and issubclass(spec.cls, base)):
-            raise PluginError(f"{role} {spec.name!r}: {spec.cls!r} is not a subclass of {base.__name__}")
+        role = role_of(spec.cls).key
         if not dataclasses.is_dataclass(spec.config):
             raise PluginError(f"{role} {spec.name!r}: config {spec.config!r} is not a dataclass")
-        if spec.name in self.plugins[role]:
-            previous = self.plugins[role][spec.name].source
-            warnings.warn(f"slamkit: {role} {spec.name!r} from {source} replaces the one from {previous}", stacklevel=2)
-        self.plugins[role][spec.name] = Registered(spec, source)
+        _check_hydra_can_hold(spec.config, f"{role} {spec.name!r}")
+        return role
 
     def _fail(self, source: str, exc: BaseException) -> None:
         reason = f"{type(exc).__name__}: {exc}".splitlines()[0]
         self.failed[source] = reason
         warnings.warn(f"slamkit: plugin {source!r} was not loaded: {reason}", stacklevel=2)
+
+
+def _check_hydra_can_hold(config: type, label: str) -> None:
+    """PluginError unless OmegaConf can make a structured config of `config` (every field of a
+    type Hydra supports, with defaults it can hold)."""
+    from omegaconf import OmegaConf
+
+    try:
+        OmegaConf.structured(config)
+    except Exception as exc:
+        raise PluginError(f"{label}: config {config.__name__} cannot be a Hydra config: "
+                          f"{str(exc).strip().splitlines()[0]}") from None
 
 
 def _manager() -> pluggy.PluginManager:
@@ -141,16 +146,6 @@ def default_registry() -> Registry:
 
 
 def create_rasterizer(name: str = "auto", registry: Registry | None = None):
-    """A rasteriser backend by name; `auto` = gsplat with CUDA, else cpu, else torch
-    (the first of those that is registered)."""
-    registry = registry or default_registry()
-    if name == "auto":
-        import torch
-
-        order = (["gsplat"] if torch.cuda.is_available() else []) + ["cpu", "torch"]
-        available = [n for n in order if n in registry.plugins["rasterizer"]]
-        if not available:
-            registry.get("rasterizer", "torch")  # raises, listing what is there
-        name = available[0]
-    spec = registry.get("rasterizer", name)
-    return spec.cls(spec.config())
+    """A rasteriser backend by name with its default config (``auto``: the first backend
+    available here, see `slamkit_plugins.rasterizers.auto`)."""
+    return (registry or default_registry()).create("rasterizer", name)

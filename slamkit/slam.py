@@ -11,7 +11,7 @@ import numpy as np
 
 from slamkit.gaussian_map import GaussianMap
 from slamkit.heap import release_free_memory
-from slamkit.map_growth import MapGrowthConfig, add_keyframe_gaussians
+from slamkit.map_growth import MapGrowthConfig, new_gaussians
 from slamkit.roles import KeyframePolicy, Mapper, Tracker
 from slamkit.types import Frame, KeyframeKind, TrackingResult
 
@@ -30,10 +30,10 @@ class StepResult:
 class SLAM:
     """GS-ICP SLAM: a tracker and a mapper sharing one GaussianMap (sequential mode).
 
-    Each frame is tracked against the map; keyframes add their Gaussians to the map (a tracking
-    keyframe also rebuilds the tracker's target from the map, which by then holds the mapper's
-    optimised values); then the mapper runs a fixed number of iterations, so the run is
-    deterministic. After each keyframe the C heap's free pages go back to the OS
+    Each frame is tracked against the map; a keyframe's Gaussians that the mapper admits enter
+    the map (a tracking keyframe also rebuilds the tracker's target from the map, which by then
+    holds the mapper's optimised values); then the mapper runs a fixed number of iterations, so
+    the run is deterministic. After each keyframe the C heap's free pages go back to the OS
     (`slamkit.heap`), so that a long run's resident memory follows what it holds.
     """
 
@@ -84,14 +84,23 @@ class SLAM:
         return StepResult(result, kind, time.perf_counter() - start, 0.0, 0)
 
     def add_keyframe(self, frame: Frame, result: TrackingResult, kind: KeyframeKind) -> None:
-        rows = slice(len(self.gaussian_map), len(self.gaussian_map))
-        if result.gaussians is not None:
-            rows = add_keyframe_gaussians(self.gaussian_map, result.gaussians, self.num_keyframes, self.map_growth)
+        rows = self.grow_map(frame, result)
         if kind is KeyframeKind.TRACKING:
             self.tracker.update_target(self.gaussian_map)
         self.mapper.add_keyframe(frame, result, kind, rows)
         self.num_keyframes += 1
         release_free_memory()
+
+    def grow_map(self, frame: Frame, result: TrackingResult) -> slice:
+        """The keyframe's Gaussians (scale-aligned, paper Sec. 3.1) that the mapper admits enter
+        the map; returns the rows they occupy."""
+        gm = self.gaussian_map
+        if result.gaussians is None:
+            return slice(len(gm), len(gm))
+        new = new_gaussians(result.gaussians, self.num_keyframes, self.map_growth, gm.device)
+        with gm.lock:
+            admitted = self.mapper.admit(frame, result.pose, new)
+            return gm.append(new if admitted is None else new.select(admitted))
 
 
 #: How much lower the mapping thread's scheduling priority is than tracking's (Linux nice

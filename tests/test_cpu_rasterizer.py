@@ -13,9 +13,8 @@ import pytest
 import torch
 
 import slamkit_plugins.rasterizers.cpu_rasterizer as cpu_module
-import slamkit_plugins.rasterizers.torch_rasterizer as torch_module
 from slamkit.errors import ConfigError
-from slamkit.registry import Registry, create_rasterizer
+from slamkit.registry import create_rasterizer
 from slamkit.types import Camera
 from slamkit_plugins.rasterizers.cpu_rasterizer import CPURasterizer, CPURasterizerConfig
 from slamkit_plugins.rasterizers.torch_rasterizer import TorchRasterizer
@@ -27,13 +26,12 @@ TOL = 1e-4  # relative error (Frobenius norm of the difference / norm of the ref
 
 @pytest.fixture
 def cpu() -> CPURasterizer:
-    rasterizer = CPURasterizer()  # built once per process (in the session's SLAMKIT_CACHE)
-    if not rasterizer.available:
-        error = cpu_module.get_library(True).error
+    try:
+        return CPURasterizer()  # built once per process (in the session's SLAMKIT_CACHE)
+    except ConfigError as exc:
         if shutil.which(os.environ.get("CXX", "c++")):  # a compiler is there: a failed build is a bug
-            pytest.fail(f"cpu rasteriser failed to build: {error}")
-        pytest.skip(f"no C++ compiler on this machine ({error}); the torch fallback is tested separately")
-    return rasterizer
+            pytest.fail(f"cpu rasteriser failed to build: {exc}")
+        pytest.skip(f"no C++ compiler on this machine ({exc}); the auto fallback is tested separately")
 
 
 def a_pose() -> torch.Tensor:
@@ -216,49 +214,82 @@ def test_config_is_validated():
 
 def test_registered_as_cpu_and_picked_by_auto_without_cuda(monkeypatch, cpu):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
-    registry = Registry()
-    registry.add_module(torch_module, "torch_rasterizer (test)")
-    registry.add_module(cpu_module, "cpu_rasterizer (test)")
-    assert isinstance(create_rasterizer("cpu", registry=registry), CPURasterizer)
-    assert isinstance(create_rasterizer("auto", registry=registry), CPURasterizer)
+    assert isinstance(create_rasterizer("cpu"), CPURasterizer)
+    auto = create_rasterizer("auto")
+    assert auto.name == "cpu" and isinstance(auto.backend, CPURasterizer)
 
 
 def _fresh_library(monkeypatch):
     monkeypatch.setattr(cpu_module, "_LIBRARIES", {})
 
 
-def test_without_a_compiler_it_warns_once_and_renders_with_torch(monkeypatch):
+def test_without_a_compiler_cpu_is_a_one_line_error_and_auto_renders_with_torch(monkeypatch, caplog):
     _fresh_library(monkeypatch)
     monkeypatch.setenv("CXX", "no-such-compiler-slamkit")
+    with pytest.raises(ConfigError, match="rasterizer cpu: .*no C\\+\\+ compiler found") as err:
+        CPURasterizer()
+    assert "\n" not in str(err.value)
+    with caplog.at_level("INFO"):
+        auto = create_rasterizer("auto")
+    assert auto.name == "torch" and "not using cpu" in caplog.text
     means, quats, scales, opacities, colors, w2c = (x.to(F32) for x in hard_scene(200, 7))
-    rasterizer = CPURasterizer()
-    with pytest.warns(RuntimeWarning, match="no C\\+\\+ compiler found.*using the torch backend"):
-        out = rasterizer.render(means, quats, scales, opacities, colors, w2c, CAM)
-    assert not rasterizer.available
+    out = auto.render(means, quats, scales, opacities, colors, w2c, CAM)
     expected = TorchRasterizer().render(means, quats, scales, opacities, colors, w2c, CAM)
     assert torch.equal(out.color, expected.color) and torch.equal(out.depth, expected.depth)
 
 
-def test_a_failing_build_falls_back_with_the_compiler_error(monkeypatch, tmp_path):
+def test_a_failing_build_is_an_error_naming_the_compiler_message(monkeypatch, tmp_path):
     _fresh_library(monkeypatch)
     monkeypatch.setenv("SLAMKIT_CACHE", str(tmp_path))
     broken = tmp_path / "broken.cpp"
     broken.write_text("this is not C++\n")
     monkeypatch.setattr(cpu_module, "SOURCE", broken)
-    means, quats, scales, opacities, colors, w2c = (x.to(F32) for x in hard_scene(50, 8))
-    with pytest.warns(RuntimeWarning, match="compiling broken.cpp failed"):
-        CPURasterizer().render(means, quats, scales, opacities, colors, w2c, CAM)
+    with pytest.raises(ConfigError, match="compiling broken.cpp failed"):
+        CPURasterizer()
     assert not list((tmp_path / "extensions").glob("*.so"))  # nothing half-built is left behind
 
 
 def test_first_use_compiles_into_the_project_cache_and_says_so(monkeypatch, tmp_path, capfd):
     _fresh_library(monkeypatch)
     monkeypatch.setenv("SLAMKIT_CACHE", str(tmp_path))
-    assert CPURasterizer(CPURasterizerConfig(native=False)).available
+    CPURasterizer(CPURasterizerConfig(native=False))
     err = capfd.readouterr().err
     assert "slamkit: compiling the CPU rasteriser (first use" in err
     built = list((tmp_path / "extensions").glob("slamkit_cpu_rasterizer_*.so"))
     assert len(built) == 1
     _fresh_library(monkeypatch)  # a new process: loads the cached build, silently
-    assert CPURasterizer(CPURasterizerConfig(native=False)).available
+    CPURasterizer(CPURasterizerConfig(native=False))
     assert "compiling" not in capfd.readouterr().err
+
+
+def test_native_chooses_whether_the_library_is_built_for_this_cpu(monkeypatch, tmp_path):
+    """`rasterizer.native=false` loads a portable build (no -march=native), through the CLI's
+    composition."""
+    from slamkit.compose import build_run
+
+    _fresh_library(monkeypatch)
+    monkeypatch.setenv("SLAMKIT_CACHE", str(tmp_path))
+    portable = build_run(["mapper=gaussian_splatting", "rasterizer=cpu", "rasterizer.native=false"])[1].mapper.rasterizer
+    native = build_run(["mapper=gaussian_splatting", "rasterizer=cpu"])[1].mapper.rasterizer
+    assert "-march=native" not in portable.library.built_flags
+    assert "-march=native" in native.library.built_flags
+    assert portable.library.path != native.library.path
+    means, quats, scales, opacities, colors, w2c = (x.to(F32) for x in hard_scene(300, 4))
+    a = portable.render(means, quats, scales, opacities, colors, w2c, CAM)
+    b = native.render(means, quats, scales, opacities, colors, w2c, CAM)
+    torch.testing.assert_close(a.color, b.color, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_num_threads_is_how_many_threads_render(cpu, threads):
+    """A large render (640x480, 20k Gaussians) composited by exactly `rasterizer.num_threads`
+    threads."""
+    from slamkit.compose import build_run
+
+    rasterizer = build_run(["mapper=gaussian_splatting", "rasterizer=cpu",
+                            f"rasterizer.num_threads={threads}"])[1].mapper.rasterizer
+    assert rasterizer.cfg.num_threads == threads
+    big = Camera(640, 480, 500.0, 500.0, 319.5, 239.5)
+    means, quats, scales, opacities, colors, w2c = (x.to(F32) for x in hard_scene(20_000, 5, big))
+    rasterizer.render(means, quats, scales, opacities, colors, w2c, big)
+    assert rasterizer.last_num_threads == threads

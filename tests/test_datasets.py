@@ -50,7 +50,7 @@ def assert_rigid(T: np.ndarray) -> None:
 @pytest.mark.parametrize("module, name, cls", [(tum, "tum", TUMDataset), (replica, "replica", ReplicaDataset),
                                                (sevenscenes, "sevenscenes", SevenScenesDataset)])
 def test_hook_and_entry_point(module, name, cls):
-    (spec,) = module.slamkit_datasets()
+    (spec,) = module.slamkit_plugins()
     assert spec.name == name and spec.cls is cls
     assert spec.config().path == ""  # every field has a default
     assert any(e.name == name and e.value == module.__name__ for e in entry_points(group="slamkit"))
@@ -71,7 +71,7 @@ def test_tum_real(data):
     ds = TUMDataset(TUMConfig(path=str(TUM_DIR)))
     assert len(ds) == 150
     assert ds.camera == tum.CAMERAS["fr1"]
-    assert ds.depth_trunc == 3.0 and ds.hints["pixel_stride"] == 5
+    assert ds.depth_trunc == 3.0 and ds.sensor.tracking_pixel_stride == 5 and ds.sensor.depth_scale == 5000
     f = ds[0]
     assert f.index == 0 and f.rgb.shape == (480, 640, 3) and f.rgb.dtype == np.uint8
     assert f.depth.shape == (480, 640) and f.depth.dtype == np.float32

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from slamkit.export import main as export_main
-from slamkit.gaussian_map import GaussianMap
+from slamkit.gaussian_map import GaussianMap, GaussianRows
 from slamkit.geometry import backproject, make_pose, so3_exp, transform_points
 from slamkit.pipeline import write_camera
 from slamkit.ply import save_ply
@@ -35,8 +35,8 @@ def _plane_run(run_dir: Path) -> None:
     n = xs.size
     means = np.column_stack([xs.ravel(), ys.ravel(), np.full(n, PLANE_Z)])
     gm = GaussianMap()
-    gm.append(means, np.tile([1.0, 0, 0, 0], (n, 1)), np.tile([0.03, 0.03, 0.003], (n, 1)),
-              np.tile(PLANE_COLOR, (n, 1)), 0.95, np.ones(n, bool), 0)
+    gm.append(GaussianRows.from_shapes(means, np.tile([1.0, 0, 0, 0], (n, 1)), np.tile([0.03, 0.03, 0.003], (n, 1)),
+              np.tile(PLANE_COLOR, (n, 1)), 0.95, np.ones(n, bool), 0))
     save_ply(run_dir / "map.ply", gm)
     write_camera(run_dir / "camera.json", Camera(64, 48, 40.0, 40.0, 31.5, 23.5), float("inf"))
     turned = make_pose(so3_exp(np.array([0.0, np.radians(10), 0.0])), np.array([0.2, -0.1, 0.3]))

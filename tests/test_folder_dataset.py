@@ -57,7 +57,7 @@ def one_line(excinfo, *needles: str) -> str:
 
 
 def test_hook_and_entry_point():
-    (spec,) = folder.slamkit_datasets()
+    (spec,) = folder.slamkit_plugins()
     assert spec.name == "folder" and spec.cls is FolderDataset and spec.config is FolderConfig
     assert spec.config().intrinsics == "intrinsics.yaml"
     assert any(e.name == "folder" and e.value == folder.__name__ for e in entry_points(group="slamkit"))

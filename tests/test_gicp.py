@@ -7,7 +7,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import slamkit_plugins.trackers.gicp as gicp_module
 from slamkit.errors import ConfigError
 from slamkit.gaussian_geometry import (
     Regularization,
@@ -18,7 +17,7 @@ from slamkit.gaussian_geometry import (
     sym3_eigh,
     sym3_eigvals,
 )
-from slamkit.gaussian_map import GaussianMap
+from slamkit.gaussian_map import GaussianMap, GaussianRows
 from slamkit.geometry import (
     backproject,
     covariance_from_scales,
@@ -30,8 +29,9 @@ from slamkit.geometry import (
     so3_exp,
     transform_points,
 )
-from slamkit.map_growth import MapGrowthConfig, ScaleAlignment, add_keyframe_gaussians, scale_alignment_factors
-from slamkit_plugins.trackers.gicp import GICPConfig, GICPTracker, InitialGuess, se3_exp, slamkit_trackers
+from slamkit.map_growth import MapGrowthConfig, ScaleAlignment, new_gaussians, scale_alignment_factors
+from slamkit.roles import SensorProfile
+from slamkit_plugins.trackers.gicp import GICPConfig, GICPTracker, InitialGuess, se3_exp, slamkit_plugins
 from slamkit.types import Camera, Frame
 
 CAMERA = Camera(160, 120, 120.0, 120.0, 79.5, 59.5)
@@ -223,7 +223,7 @@ def map_from_frame(frame: Frame, pose: np.ndarray, stride: int = 2, k: int = 10)
     world = transform_points(pose, pts.astype(np.float64))
     cov = knn_covariances(world, k)
     gmap = GaussianMap()
-    gmap.append_covariances(world, cov, np.full((len(world), 3), 0.5), 0.5, np.ones(len(world), bool), 0)
+    gmap.append(GaussianRows.from_covariances(world, cov, np.full((len(world), 3), 0.5), 0.5, np.ones(len(world), bool), 0))
     return gmap
 
 
@@ -294,7 +294,7 @@ def test_gicp_tracks_a_moving_camera_with_map_growth():
         E = invert_pose(P) @ result.pose
         assert np.linalg.norm(E[:3, 3]) < 2e-3 and rotation_angle_deg(E[:3, :3]) < 0.1
         if k == 0:
-            add_keyframe_gaussians(gmap, result.gaussians, 0, growth)
+            gmap.append(new_gaussians(result.gaussians, 0, growth))
             tracker.update_target(gmap)
 
 
@@ -360,8 +360,8 @@ def test_target_takes_trackable_opaque_gaussians_only():
     n = len(world)
     cov = knn_covariances(world, 10)
     trackable = np.arange(n) % 2 == 0
-    gmap.append_covariances(world, cov, np.zeros((n, 3)), 0.5, trackable, 0)
-    gmap.append_covariances(world + 5.0, cov, np.zeros((n, 3)), 0.01, np.ones(n, bool), 1)
+    gmap.append(GaussianRows.from_covariances(world, cov, np.zeros((n, 3)), 0.5, trackable, 0))
+    gmap.append(GaussianRows.from_covariances(world + 5.0, cov, np.zeros((n, 3)), 0.01, np.ones(n, bool), 1))
     tracker = GICPTracker(tight_config(min_target_opacity=0.05))
     tracker.update_target(gmap)
     assert len(tracker.target) == trackable.sum()
@@ -408,18 +408,17 @@ def test_config_validation_and_hints():
         GICPConfig(pixel_stride=0)
     cfg = GICPConfig()
     assert cfg.pixel_stride is None and cfg.max_correspondence_distance is None and cfg.min_target_opacity is None
-    tracker = GICPTracker(cfg)  # unhinted nulls fall back to documented values
-    assert tracker.pixel_stride == gicp_module.FALLBACKS["pixel_stride"]
-    from slamkit.config import apply_hints
-
-    cfg = GICPConfig()
-    apply_hints(cfg, {"pixel_stride": 10, "max_correspondence_distance": 0.02, "min_target_opacity": 0.05})
-    tracker = GICPTracker(cfg)
+    with pytest.raises(ConfigError, match="tracker.pixel_stride"):
+        GICPTracker(cfg)  # nulls are the dataset's to fill
+    replica = SensorProfile(tracking_pixel_stride=10, correspondence_distance=0.02, min_target_opacity=0.05)
+    tracker = GICPTracker(cfg.with_sensor(replica))
     assert (tracker.pixel_stride, tracker.max_corr, tracker.min_opacity) == (10, 0.02, 0.05)
+    tracker = GICPTracker(GICPConfig(pixel_stride=3).with_sensor(replica))  # a value given wins
+    assert (tracker.pixel_stride, tracker.max_corr) == (3, 0.02)
 
 
 def test_hook_registers_gicp():
-    (spec,) = slamkit_trackers()
+    (spec,) = slamkit_plugins()
     assert spec.name == "gicp" and spec.cls is GICPTracker and spec.config is GICPConfig
 
 

@@ -5,18 +5,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from slamkit.config import apply_hints
 from slamkit.errors import ConfigError
 from slamkit.types import Camera, Frame, FrameGaussians, KeyframeKind, TrackingResult
 from slamkit_plugins.keyframes.every_n import EveryNKeyframeConfig, EveryNKeyframePolicy
-from slamkit_plugins.keyframes.every_n import slamkit_keyframe_policies as every_n_hook
+from slamkit_plugins.keyframes.every_n import slamkit_plugins as every_n_hook
+from slamkit.roles import SensorProfile
 from slamkit_plugins.keyframes.overlap import (
-    FALLBACKS,
     OverlapKeyframeConfig,
     OverlapKeyframePolicy,
     correspondence_ratio,
 )
-from slamkit_plugins.keyframes.overlap import slamkit_keyframe_policies as overlap_hook
+from slamkit_plugins.keyframes.overlap import slamkit_plugins as overlap_hook
 
 N, T, M = KeyframeKind.NONE, KeyframeKind.TRACKING, KeyframeKind.MAPPING_ONLY
 CAMERA = Camera(4, 4, 1.0, 1.0, 1.5, 1.5)
@@ -92,16 +91,16 @@ def test_overlap_policy_max_interval_forces_tracking_keyframe():
     assert [i for i, k in enumerate(got) if k is M] == [10, 20, 40, 50]
 
 
-def test_overlap_policy_hints_and_fallbacks():
+def test_overlap_policy_reads_its_null_thresholds_from_the_sensor_profile():
     cfg = OverlapKeyframeConfig()
     assert cfg.overlap_threshold is None and cfg.keyframe_threshold is None and cfg.mapping_every == 10
-    policy = OverlapKeyframePolicy(cfg)
-    assert policy.overlap_threshold == FALLBACKS["overlap_threshold"]
-    assert policy.keyframe_threshold == FALLBACKS["keyframe_threshold"]
-    cfg = OverlapKeyframeConfig()
-    apply_hints(cfg, {"overlap_threshold": 5e-4, "keyframe_threshold": 0.7, "pixel_stride": 10})
-    policy = OverlapKeyframePolicy(cfg)
+    policy = OverlapKeyframePolicy(cfg.with_sensor(SensorProfile()))
+    assert (policy.overlap_threshold, policy.keyframe_threshold) == (1e-3, 0.81)  # a hand-held camera (TUM)
+    replica = SensorProfile(keyframe_overlap=5e-4, keyframe_threshold=0.7)
+    policy = OverlapKeyframePolicy(cfg.with_sensor(replica))
     assert (policy.overlap_threshold, policy.keyframe_threshold) == (5e-4, 0.7)
+    policy = OverlapKeyframePolicy(OverlapKeyframeConfig(keyframe_threshold=0.5).with_sensor(replica))
+    assert (policy.overlap_threshold, policy.keyframe_threshold) == (5e-4, 0.5)
     with pytest.raises(ConfigError, match="keyframe.keyframe_threshold"):
         OverlapKeyframeConfig(keyframe_threshold=1.5)
     with pytest.raises(ConfigError, match="keyframe.mapping_every"):

@@ -1,4 +1,5 @@
-"""The 3DGS mapper's memory guard (`mapper.max_gaussians`) and keyframe image storage (issue 9)."""
+"""The memory guard every strategy has (`strategy.max_gaussians`) and the 3DGS mapper's keyframe
+image storage (issue 9)."""
 
 from __future__ import annotations
 
@@ -9,15 +10,17 @@ import numpy as np
 import pytest
 import torch
 
+from mapping_scenes import N, add, make_map, make_mapper, plane_scene, render_frame, rows, start_map, state_follows_map
 from slamkit import evaluation
-from slamkit.config import apply_hints
+from slamkit.compose import build_run
 from slamkit.errors import ConfigError
 from slamkit.gaussian_map import GaussianMap
 from slamkit.map_growth import MapGrowthConfig
-from slamkit.registry import create_rasterizer, default_registry
+from slamkit.registry import create_rasterizer
 from slamkit.slam import SLAM
-from slamkit_plugins.mappers.gaussian_splatting import KEYFRAME_DEPTH_STEP, GaussianSplattingConfig, KeyframeStorage
-from test_mapper import N, add, adam_consistent, make_mapper, plane_scene, render_frame, start_map
+from slamkit_plugins.mappers.gaussian_splatting import KeyframeStorage
+from slamkit_plugins.mappers.gaussian_splatting.keyframes import KEYFRAME_DEPTH_STEP
+from slamkit_plugins.strategies.gsicp import PruneConfig
 
 
 @pytest.fixture(scope="module")
@@ -27,16 +30,18 @@ def rasterizer():
 
 @pytest.fixture(scope="module")
 def frame(rasterizer):
-    from test_mapper import make_map
-
     return render_frame(rasterizer, make_map(*plane_scene()), np.eye(4))
+
+
+def guarded(cap: int, margin: float = 0.1, **fields):
+    return ("gsicp", {"max_gaussians": cap, "memory_guard_margin": margin, **fields})
 
 
 @pytest.mark.parametrize("field, value", [("max_gaussians", 0), ("max_gaussians", -5), ("memory_guard_margin", 1.0),
                                           ("memory_guard_margin", -0.1)])
 def test_guard_settings_are_validated(field, value):
-    with pytest.raises(ConfigError, match=f"mapper.{field}: expected") as err:
-        GaussianSplattingConfig(**{field: value})
+    with pytest.raises(ConfigError, match=f"strategy.{field}: expected") as err:
+        PruneConfig(**{field: value})
     assert "\n" not in str(err.value)
 
 
@@ -44,56 +49,55 @@ def test_guard_prunes_the_least_opaque_down_to_the_margin_and_spares_new_rows(ra
     gm = start_map()
     with torch.no_grad():  # distinct opacities, shuffled over the rows
         gm.opacity_logits.copy_(torch.linspace(-4, 4, N)[torch.randperm(N, generator=torch.Generator().manual_seed(0))])
-    mapper = make_mapper(rasterizer, gm, max_gaussians=320, memory_guard_margin=0.2, prune_every=0)
+    mapper = make_mapper(gm, strategy=guarded(320, 0.2, prune_every=0))
     add(mapper, frame)
     mapper.optimize(3)
-    assert len(gm) == N and mapper.memory_guard_prunings == 0  # within the cap
+    assert len(gm) == N and mapper.strategy.stats["memory_guard_prunings"] == 0  # within the cap
     # a keyframe adds 40 Gaussians: 340 > 320, so the guard prunes down to 0.8 x 320 = 256
     before = gm.opacities.detach().clone()
-    means, quats, scales, colors, _ = plane_scene(seed=5, n=40)
-    rows = gm.append(means, quats, scales, colors, 0.1, np.ones(40, bool), 1)
-    new_means = gm.means.detach()[rows].clone()
+    new = gm.append(rows(*plane_scene(seed=5, n=40)[:4], 0.1, keyframe_id=1))
+    new_means = gm.means.detach()[new].clone()
     version = gm.version
-    add(mapper, frame, rows=rows)
+    add(mapper, frame, new_rows=new)
     assert len(gm) == 256 and gm.version > version
-    assert mapper.pruned_by_memory_guard == 84 and mapper.memory_guard_prunings == 1
+    assert mapper.strategy.stats == {"pruned_by_memory_guard": 84, "memory_guard_prunings": 1}
     torch.testing.assert_close(gm.means.detach()[-40:], new_means, rtol=0, atol=0)  # the new rows stay
     old = before[:N]
     kept = torch.sort(old, descending=True).values[:216]
     torch.testing.assert_close(torch.sort(gm.opacities.detach()[:216], descending=True).values, kept)
-    adam_consistent(mapper)
     assert mapper.optimize(2) == 2 and np.isfinite(mapper.last_loss)
+    state_follows_map(mapper)
     assert mapper.evaluate([frame], [frame.gt_pose], None)["pruned_by_memory_guard"] == 84
 
 
 def test_guard_prunes_new_rows_only_when_the_old_ones_cannot_make_room(rasterizer, frame):
     gm = start_map()
-    mapper = make_mapper(rasterizer, gm, max_gaussians=50, memory_guard_margin=0.0)
-    means, quats, scales, colors, _ = plane_scene(seed=5, n=80)
-    rows = gm.append(means, quats, scales, colors, 0.1, np.ones(80, bool), 1)
-    add(mapper, frame, rows=rows)
-    assert len(gm) == 50 and mapper.pruned_by_memory_guard == N + 30
+    mapper = make_mapper(gm, strategy=guarded(50, 0.0))
+    new = gm.append(rows(*plane_scene(seed=5, n=80)[:4], 0.1, keyframe_id=1))
+    add(mapper, frame, new_rows=new)
+    assert len(gm) == 50 and mapper.strategy.stats["pruned_by_memory_guard"] == N + 30
     assert bool((gm.keyframe_id == 1).all())  # every old row went first
-    adam_consistent(mapper)
+    mapper.optimize(1)
+    state_follows_map(mapper)
 
 
 def test_densification_respects_the_cap(rasterizer, frame):
     gm = start_map()
-    mapper = make_mapper(rasterizer, gm, densify=True, densify_every=3, densify_grad_threshold=1e-9,
-                         max_gaussians=N + 10, memory_guard_margin=0.0)
+    mapper = make_mapper(gm, strategy=("3dgs", {"densify_every": 3, "grad_threshold": 1e-9, "max_gaussians": N + 10,
+                                                "memory_guard_margin": 0.0}))
     add(mapper, frame)
     mapper.optimize(3)
-    assert len(gm) <= N + 10 and mapper.memory_guard_prunings >= 1
-    adam_consistent(mapper)
+    assert len(gm) <= N + 10 and mapper.strategy.stats["memory_guard_prunings"] >= 1
+    state_follows_map(mapper)
 
 
 @pytest.mark.parametrize("storage", ["memory", "disk"])
 def test_keyframe_images_are_quantised_and_stored(rasterizer, frame, storage, tmp_path):
     folder = tmp_path / "kf"
-    mapper = make_mapper(rasterizer, keyframe_storage=KeyframeStorage(storage), keyframe_dir=str(folder))
+    mapper = make_mapper(mapper={"keyframe_storage": KeyframeStorage(storage), "keyframe_dir": str(folder)})
     add(mapper, frame)
-    kf = mapper.keyframes[0]
-    image, depth = kf.load()
+    view = mapper.keyframes[0].view()
+    image, depth = view.image, view.depth
     assert image.dtype == depth.dtype == torch.float32 and image.shape == (30, 40, 3)
     torch.testing.assert_close(image, torch.as_tensor(frame.rgb) / 255.0, rtol=0, atol=1e-6)
     valid = frame.depth > 0
@@ -103,9 +107,9 @@ def test_keyframe_images_are_quantised_and_stored(rasterizer, frame, storage, tm
     on_disk = sorted(p.name for p in folder.glob("*.npy")) if folder.exists() else []
     if storage == "disk":
         assert on_disk == ["keyframe_000000_depth.npy", "keyframe_000000_rgb.npy"]
-        assert mapper.keyframe_memory_bytes() == 0
+        assert mapper.keyframes.memory_bytes() == 0
     else:
-        assert on_disk == [] and mapper.keyframe_memory_bytes() == 30 * 40 * (3 + 2)
+        assert on_disk == [] and mapper.keyframes.memory_bytes() == 30 * 40 * (3 + 2)
     mapper.optimize(3)
     assert np.isfinite(mapper.last_loss)
 
@@ -113,12 +117,12 @@ def test_keyframe_images_are_quantised_and_stored(rasterizer, frame, storage, tm
 def test_disk_storage_trains_exactly_as_memory_storage(rasterizer, frame):
     losses = {}
     for storage in KeyframeStorage:
-        mapper = make_mapper(rasterizer, keyframe_storage=storage)
+        mapper = make_mapper(mapper={"keyframe_storage": storage})
         add(mapper, frame)
         mapper.optimize(4)
         losses[storage] = (mapper.last_loss, mapper.gaussian_map.colors.detach().clone())
         if storage is KeyframeStorage.disk:
-            folder = mapper._keyframe_dir
+            folder = mapper.keyframes.folder
             assert folder.is_dir()
             del mapper
             import gc
@@ -149,6 +153,7 @@ class RecordingTracker:
                                   len(self._tracker.target.means), int(eligible.sum())))
 
 
+@pytest.mark.slow
 def test_guarded_replica_run_stays_under_the_cap_keeps_the_most_opaque_and_tracks(replica_path):
     """Replica room0, 8 frames, a keyframe every 2nd frame (each adds ~8k Gaussians), the map
     capped at 12,000: after every step the map is within the cap; each guard pruning removed
@@ -156,37 +161,30 @@ def test_guarded_replica_run_stays_under_the_cap_keeps_the_most_opaque_and_track
     follows; the tracker's target is rebuilt from the pruned map at the next tracking keyframe;
     tracking stays within the tracking-only bound."""
     cap = 12_000
-    registry = default_registry()
-    dataset = registry.create("dataset", "replica",
-                              registry.get("dataset", "replica").config(path=str(replica_path), max_frames=8))
-    tcfg = registry.get("tracker", "gicp").config()
-    mcfg = GaussianSplattingConfig(resolution_scale=0.25, final_iterations=0, max_gaussians=cap,
-                                   memory_guard_margin=0.1, eval_resolution_scale=0.25, save_images=0)
-    growth = MapGrowthConfig()
-    for cfg in (tcfg, mcfg, growth):
-        apply_hints(cfg, dataset.hints)
-    tracker = registry.create("tracker", "gicp", tcfg)
-    policy = registry.create("keyframe", "every_n", registry.get("keyframe", "every_n").config(tracking_every=2))
-    mapper = registry.create("mapper", "gaussian_splatting", mcfg)
-    gm = GaussianMap()
-    recorder = RecordingTracker(tracker)
-    slam = SLAM(recorder, policy, mapper, gm, growth, iterations_per_frame=2)
+    dataset, slam, _ = build_run(["dataset=replica", f"dataset.path={replica_path}", "dataset.max_frames=8",
+                                  "tracker=gicp", "keyframe=every_n", "keyframe.tracking_every=2",
+                                  "mapper=gaussian_splatting", "mapper.resolution_scale=0.25", "mapper.final_iterations=0",
+                                  "mapper.eval_resolution_scale=0.25", "mapper.save_images=0",
+                                  f"strategy.max_gaussians={cap}", "strategy.memory_guard_margin=0.1",
+                                  "iterations_per_frame=2"])
+    gm, mapper = slam.gaussian_map, slam.mapper
+    recorder = slam.tracker = RecordingTracker(slam.tracker)
 
     prunings, kept_masks = [], []
-    guard, keep = mapper.enforce_max_gaussians, mapper._keep
+    guard, remove = mapper.strategy.enforce_memory_guard, mapper.edit.remove
 
-    def guard_spy(protect=None):
+    def guard_spy(edit, protect=None):
         logits, version, n, first = gm.opacity_logits.detach().clone(), gm.version, len(gm), len(kept_masks)
-        removed = guard(protect)
+        removed = guard(edit, protect)
         if removed:
             prunings.append((logits, protect, n, removed, kept_masks[first], version, gm.version))
         return removed
 
-    def keep_spy(mask):
-        kept_masks.append(mask.clone())
-        keep(mask)
+    def remove_spy(drop):
+        kept_masks.append(~drop.clone())
+        return remove(drop)
 
-    mapper.enforce_max_gaussians, mapper._keep = guard_spy, keep_spy
+    mapper.strategy.enforce_memory_guard, mapper.edit.remove = guard_spy, remove_spy
 
     slam.initialize(dataset[0].gt_pose)
     poses, gts = [], []
@@ -196,10 +194,10 @@ def test_guarded_replica_run_stays_under_the_cap_keeps_the_most_opaque_and_track
         poses.append(step.tracking.pose)
         gts.append(frame.gt_pose)
         assert len(gm) <= cap, f"frame {i}: {len(gm)} Gaussians"
-        adam_consistent(mapper)
+        state_follows_map(mapper)
         assert not step.tracking.lost
 
-    assert len(prunings) >= 2 and mapper.pruned_by_memory_guard == sum(p[3] for p in prunings)
+    assert len(prunings) >= 2 and mapper.strategy.stats["pruned_by_memory_guard"] == sum(p[3] for p in prunings)
     for logits, protect, n, removed, mask, v_before, v_after in prunings:
         assert len(mask) == n and int((~mask).sum()) == removed
         old = torch.ones(n, dtype=torch.bool)
@@ -216,7 +214,7 @@ def test_guarded_replica_run_stays_under_the_cap_keeps_the_most_opaque_and_track
     ate = evaluation.ate(np.array(poses), gts)
     assert ate.rmse_m < 0.01
     metrics = mapper.evaluate(dataset, poses, None)
-    assert metrics["pruned_by_memory_guard"] == mapper.pruned_by_memory_guard > 0
+    assert metrics["pruned_by_memory_guard"] == mapper.strategy.stats["pruned_by_memory_guard"] > 0
     assert metrics["num_gaussians"] == len(gm) <= cap and math.isfinite(metrics["psnr"])
     assert metrics["keyframe_memory_mb"] > 0
 
@@ -260,7 +258,7 @@ def test_slam_releases_free_memory_at_each_keyframe(monkeypatch, rasterizer):
 
     calls = []
     monkeypatch.setattr(slamkit.slam, "release_free_memory", lambda: calls.append(1) or True)
-    mapper = make_mapper(rasterizer, max_gaussians=100)
+    mapper = make_mapper(strategy=guarded(100))
     slam = SLAM(GroundTruthTracker(), EveryNKeyframePolicy(EveryNKeyframeConfig(tracking_every=2)), mapper,
                 GaussianMap(), MapGrowthConfig(), iterations_per_frame=1)
     frame = render_frame(rasterizer, start_map(), np.eye(4))
@@ -271,6 +269,7 @@ def test_slam_releases_free_memory_at_each_keyframe(monkeypatch, rasterizer):
     assert slam.num_keyframes == 3 and len(calls) == 3
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", ["sequential", "realtime"])
 def test_cli_run_with_the_guard_reports_pruning_and_stays_under_the_cap(tmp_path, mode):
     """End to end: frames.csv never shows more Gaussians than the cap after a frame, and
@@ -284,7 +283,7 @@ def test_cli_run_with_the_guard_reports_pruning_and_stays_under_the_cap(tmp_path
     out = tmp_path / "run"
     proc = run_slamkit(
         "dataset=synthetic", "dataset.num_frames=12", "dataset.width=64", "dataset.height=48", "tracker=gicp",
-        "keyframe=every_n", "keyframe.tracking_every=2", "mapper=gaussian_splatting", "mapper.max_gaussians=1000",
+        "keyframe=every_n", "keyframe.tracking_every=2", "mapper=gaussian_splatting", "strategy.max_gaussians=1000",
         "mapper.final_iterations=2", "mapper.save_images=0", "iterations_per_frame=2", f"mode={mode}",
         "progress=false", "eval.plot=false", f"hydra.run.dir={out}", cwd=tmp_path, timeout=300,
     )

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from slamkit.errors import DataError
-from slamkit.gaussian_map import GaussianMap
+from slamkit.gaussian_map import GaussianMap, GaussianRows
 from slamkit.ply import C0, PROPERTIES, load_ply, save_ply
 
 
@@ -16,7 +16,7 @@ def random_map(n: int = 50, seed: int = 0) -> GaussianMap:
     gm = GaussianMap()
     q = rng.normal(size=(n, 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
-    gm.append(
+    gm.append(GaussianRows.from_shapes(
         rng.normal(size=(n, 3)),
         q,
         rng.uniform(0.001, 0.2, size=(n, 3)),
@@ -24,7 +24,7 @@ def random_map(n: int = 50, seed: int = 0) -> GaussianMap:
         rng.uniform(0.01, 0.99, size=n),
         rng.uniform(size=n) > 0.5,
         3,
-    )
+    ))
     return gm
 
 
@@ -58,11 +58,11 @@ def test_file_is_the_standard_3dgs_layout(tmp_path):
     assert all(p[1] == "float" for p in props)
     data = np.frombuffer(raw, dtype="<f4", offset=offset).reshape(7, len(PROPERTIES))
     col = {name: data[:, i] for i, name in enumerate(PROPERTIES)}
-    np.testing.assert_allclose(np.c_[col["x"], col["y"], col["z"]], gm.means.numpy(), atol=1e-7)
-    np.testing.assert_allclose(col["f_dc_0"], (gm.colors[:, 0].numpy() - 0.5) / C0, rtol=1e-6)
-    np.testing.assert_allclose(col["opacity"], gm.opacity_logits.numpy(), atol=1e-6)  # logit
-    np.testing.assert_allclose(col["scale_2"], gm.log_scales[:, 2].numpy(), atol=1e-6)  # log
-    np.testing.assert_allclose(col["rot_0"], gm.quats[:, 0].numpy(), atol=1e-7)  # w first
+    np.testing.assert_allclose(np.c_[col["x"], col["y"], col["z"]], gm.means.detach().numpy(), atol=1e-7)
+    np.testing.assert_allclose(col["f_dc_0"], (gm.colors.detach()[:, 0].numpy() - 0.5) / C0, rtol=1e-6)
+    np.testing.assert_allclose(col["opacity"], gm.opacity_logits.detach().numpy(), atol=1e-6)  # logit
+    np.testing.assert_allclose(col["scale_2"], gm.log_scales.detach()[:, 2].numpy(), atol=1e-6)  # log
+    np.testing.assert_allclose(col["rot_0"], gm.quats.detach()[:, 0].numpy(), atol=1e-7)  # w first
     assert (col["nx"] == 0).all()
 
 
@@ -81,8 +81,8 @@ def test_reads_ascii_doubles_and_extra_properties(tmp_path):
     (tmp_path / "a.ply").write_text(text)
     gm = load_ply(tmp_path / "a.ply")
     assert len(gm) == 2
-    torch.testing.assert_close(gm.means[0], torch.tensor([1.0, 2.0, 3.0]))
-    torch.testing.assert_close(gm.colors[0], torch.tensor([0.5, 0.5 + C0, 0.5 - C0]))
+    torch.testing.assert_close(gm.means.detach()[0], torch.tensor([1.0, 2.0, 3.0]))
+    torch.testing.assert_close(gm.colors.detach()[0], torch.tensor([0.5, 0.5 + C0, 0.5 - C0]))
     # big endian binary, float
     dt = np.dtype([(p, ">f4") for p in props])
     data = np.array([tuple(row)], dtype=dt)

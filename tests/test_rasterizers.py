@@ -258,12 +258,16 @@ def _registry_with_backends() -> Registry:
     return registry
 
 
-def test_auto_picks_torch_without_cuda_or_cpu_backend(monkeypatch):
+def test_auto_takes_the_first_backend_it_can_build(monkeypatch):
+    from slamkit_plugins.rasterizers.auto import AutoRasterizer, AutoRasterizerConfig
+
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
-    registry = _registry_with_backends()
-    assert "cpu" not in registry.plugins["rasterizer"]
-    assert isinstance(create_rasterizer("auto", registry=registry), TorchRasterizer)
-    assert isinstance(create_rasterizer("torch", registry=registry), TorchRasterizer)
+    auto = AutoRasterizer(AutoRasterizerConfig(prefer=["gsplat", "torch"]))  # no CUDA: gsplat is skipped
+    assert auto.name == "torch" and isinstance(auto.backend, TorchRasterizer)
+    with pytest.raises(ConfigError, match="rasterizer auto: no backend could be built"):
+        AutoRasterizer(AutoRasterizerConfig(prefer=["gsplat"]))
+    with pytest.raises(ConfigError, match="rasterizer.prefer"):
+        AutoRasterizerConfig(prefer=[])
 
 
 def test_gsplat_without_cuda_is_a_config_error(monkeypatch):

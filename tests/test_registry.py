@@ -39,7 +39,7 @@ FAKE_TRACKER = """
             return TrackingResult(pose=self.pose)
 
     @hookimpl
-    def slamkit_trackers():
+    def slamkit_plugins():
         return [PluginSpec("still", StillTracker, StillConfig)]
 """
 
@@ -52,8 +52,29 @@ NOT_A_TRACKER = """
         x: int = 1
 
     @hookimpl
-    def slamkit_trackers():
+    def slamkit_plugins():
         return [PluginSpec("wrong", dict, Cfg)]
+"""
+
+ODD_CONFIG = """
+    from dataclasses import dataclass, field
+    import numpy as np
+    from slamkit.plugin import PluginSpec, hookimpl
+    from slamkit.roles import Tracker
+
+    @dataclass
+    class OddConfig:
+        weights: np.ndarray = field(default_factory=lambda: np.ones(3))
+
+    class OddTracker(Tracker):
+        def __init__(self, cfg):
+            self.cfg = cfg
+        def track(self, frame, gaussian_map):
+            raise NotImplementedError
+
+    @hookimpl
+    def slamkit_plugins():
+        return [PluginSpec("odd", OddTracker, OddConfig)]
 """
 
 
@@ -63,8 +84,8 @@ def plugin_dir(tmp_path, monkeypatch):
         tmp_path / "site",
         "slamkit-test-plugins",
         {"still_tracker": FAKE_TRACKER, "broken_plugin": "raise ImportError('needs libfoo')\n",
-         "wrong_plugin": NOT_A_TRACKER},
-        {"still": "still_tracker", "broken": "broken_plugin", "wrong": "wrong_plugin"},
+         "wrong_plugin": NOT_A_TRACKER, "odd_plugin": ODD_CONFIG},
+        {"still": "still_tracker", "broken": "broken_plugin", "wrong": "wrong_plugin", "odd": "odd_plugin"},
     )
     monkeypatch.syspath_prepend(str(root))
     return root
@@ -84,8 +105,10 @@ def test_third_party_plugin_found_and_broken_ones_reported(plugin_dir):
     assert registry.get("tracker", "still").cls.__name__ == "StillTracker"
     messages = " ".join(str(w.message) for w in warned)
     assert "broken" in messages and "needs libfoo" in messages
-    assert "wrong" in messages and "not a subclass of Tracker" in messages
+    assert "wrong" in messages and "must subclass exactly one role base class" in messages
     assert "wrong" not in registry.plugins["tracker"]
+    assert "odd" in messages and "cannot be a Hydra config" in messages  # a config Hydra cannot hold
+    assert "odd" not in registry.plugins["tracker"]
     assert "kiss_icp" in registry.plugins["tracker"]  # the others keep working
 
 

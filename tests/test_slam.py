@@ -4,25 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from slamkit.config import apply_hints
-from slamkit.gaussian_map import GaussianMap
-from slamkit.map_growth import MapGrowthConfig
-from slamkit.registry import default_registry
-from slamkit.slam import SLAM
+from slamkit.compose import build_run
 
 
 def _run(keep_untrackable: bool, frames: int = 30):
-    registry = default_registry()
-    dataset = registry.create("dataset", "synthetic", registry.get("dataset", "synthetic").config(num_frames=frames))
-    configs = {role: registry.get(role, name).config() for role, name in
-               [("tracker", "gicp"), ("keyframe", "overlap"), ("mapper", "none")]}
-    configs["mapper"].keep_untrackable = keep_untrackable
-    growth = MapGrowthConfig()
-    for cfg in [*configs.values(), growth]:
-        apply_hints(cfg, dataset.hints)
-    names = {"tracker": "gicp", "keyframe": "overlap", "mapper": "none"}
-    slam = SLAM(*(registry.create(role, names[role], configs[role]) for role in ("tracker", "keyframe", "mapper")),
-                GaussianMap(), growth)
+    dataset, slam, _ = build_run(["dataset=synthetic", f"dataset.num_frames={frames}", "tracker=gicp",
+                                  "keyframe=overlap", "mapper=none", f"mapper.keep_untrackable={keep_untrackable}"])
     slam.initialize(dataset[0].gt_pose)
     poses = [slam.step(dataset[i]).tracking.pose for i in range(len(dataset))]
     return np.array(poses), slam

@@ -200,7 +200,7 @@ def test_invalid_config(values):
 
 
 def test_hook_returns_the_plugin():
-    (spec,) = synthetic.slamkit_datasets()
+    (spec,) = synthetic.slamkit_plugins()
     assert spec.name == "synthetic" and spec.cls is SyntheticDataset and spec.config is SyntheticConfig
 
 

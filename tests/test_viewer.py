@@ -14,7 +14,7 @@ import torch
 import yaml
 
 from slamkit.errors import ConfigError
-from slamkit.gaussian_map import GaussianMap
+from slamkit.gaussian_map import GaussianMap, GaussianRows
 from slamkit.registry import discover
 from slamkit.roles import Mapper, PluginConfig, Viewer, ViewerConfig, ViewerFrame
 from slamkit.types import Camera, Frame, KeyframeKind
@@ -57,7 +57,7 @@ def _small_map(n: int) -> GaussianMap:
     rng = np.random.default_rng(0)
     means = np.column_stack([rng.uniform(-0.3, 0.3, (n, 2)), rng.uniform(1.5, 2.5, n)])
     quats = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
-    gm.append(means, quats, np.full((n, 3), 0.05), rng.uniform(0, 1, (n, 3)), 0.8, np.ones(n, bool), 0)
+    gm.append(GaussianRows.from_shapes(means, quats, np.full((n, 3), 0.05), rng.uniform(0, 1, (n, 3)), 0.8, np.ones(n, bool), 0))
     return gm
 
 
@@ -79,21 +79,19 @@ def test_map_points_is_an_even_subsample_within_the_limit():
     gm = _small_map(10)
     points = _view(gm, _no_mapper(gm)).map_points(max_points=3)
     assert points.total == 10 and len(points.positions) == 3
-    np.testing.assert_allclose(points.positions, gm.means.numpy()[::4])
+    np.testing.assert_allclose(points.positions, gm.means.detach().numpy()[::4])
     assert points.colors.dtype == np.uint8
-    np.testing.assert_allclose(points.colors, np.round(gm.colors.numpy()[::4] * 255), atol=1)
+    np.testing.assert_allclose(points.colors, np.round(gm.colors.detach().numpy()[::4] * 255), atol=1)
     np.testing.assert_allclose(points.radii, 0.05, rtol=1e-5)
 
 
 def test_render_view_is_none_by_default_and_the_3dgs_map_render_otherwise():
-    from slamkit_plugins.mappers.gaussian_splatting import GaussianSplattingConfig, GaussianSplattingMapper
-    from slamkit_plugins.rasterizers.torch_rasterizer import TorchRasterizer, TorchRasterizerConfig
+    from mapping_scenes import make_mapper
 
     gm = _small_map(50)
     assert _view(gm, _no_mapper(gm)).render() is None
 
-    mapper = GaussianSplattingMapper(GaussianSplattingConfig(), rasterizer=TorchRasterizer(TorchRasterizerConfig()))
-    mapper.bind(gm)
+    mapper = make_mapper(gm, rasterizer="torch")
     pose = np.eye(4)
     pose[:3, 3] = [0.05, -0.02, 0.1]
     view = _view(gm, mapper)
@@ -193,7 +191,7 @@ class BrokenViewer(Viewer):
         (self.out_dir / "shown.txt").write_text(",".join(map(str, self.shown)))
 
 @hookimpl
-def slamkit_viewers():
+def slamkit_plugins():
     return [PluginSpec("broken", BrokenViewer, BrokenConfig)]
 """
 

@@ -7,9 +7,9 @@ How the plugin is wired (the whole of it; see docs/plugin_guide.md)
 2. `P2PlaneConfig` subclasses `slamkit.roles.PluginConfig`. slamkit stores this dataclass in
    Hydra's ConfigStore under the group ``tracker``, so ``tracker=p2plane tracker.knn=20`` is
    type-checked without any YAML, and `validate` rejects out-of-range values before any work.
-   Fields left ``None`` take the dataset's hint of the same name (`Dataset.hints`, e.g.
-   ``pixel_stride`` is 5 on TUM and 10 on Replica), else `FALLBACKS`.
-3. The hook `slamkit_trackers` returns ``PluginSpec("p2plane", P2PlaneTracker, P2PlaneConfig)``.
+   Fields left ``None`` are filled by `with_sensor` from the dataset's `SensorProfile`
+   (``pixel_stride`` from its ``tracking_pixel_stride``: 5 on TUM, 10 on Replica).
+3. The hook `slamkit_plugins` returns ``PluginSpec("p2plane", P2PlaneTracker, P2PlaneConfig)``.
 4. pyproject.toml names this module in the entry-point group ``slamkit``::
 
        [project.entry-points.slamkit]
@@ -59,19 +59,18 @@ from slamkit.geometry import (
     transform_points,
 )
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import PluginConfig, Tracker, require
+from slamkit.roles import PluginConfig, SensorProfile, Tracker, require
 from slamkit.types import Frame, TrackingResult
-
-#: Values of the fields left None when the dataset gives no hint of that name.
-FALLBACKS = {"pixel_stride": 4, "max_correspondence_distance": 0.05}
 
 
 @dataclass
 class P2PlaneConfig(PluginConfig):
     """Options of ``tracker=p2plane`` (lengths in metres).
 
-    pixel_stride: back-project every n-th pixel in x and y (null = the dataset's hint).
-    max_correspondence_distance: farther matches are ignored (null = the dataset's hint).
+    pixel_stride: back-project every n-th pixel in x and y (null = the dataset's
+      `SensorProfile.tracking_pixel_stride`).
+    max_correspondence_distance: farther matches are ignored (null = the profile's
+      `correspondence_distance`).
     voxel_size: the model's downsampling grid. knn: neighbours of each model normal.
     huber: residuals beyond this are down-weighted (Huber loss; 0 = plain least squares).
     max_iterations, tolerance: Gauss-Newton stops after max_iterations steps, or when the norm
@@ -112,6 +111,11 @@ class P2PlaneConfig(PluginConfig):
         ]
         for name, ok, expected in checks:
             require(ok, f"tracker.{name}", expected, getattr(self, name))
+
+    def with_sensor(self, sensor: SensorProfile) -> P2PlaneConfig:
+        """The nulls filled from what the dataset knows of its camera (slamkit calls it)."""
+        return self.fill_nulls(pixel_stride=sensor.tracking_pixel_stride,
+                               max_correspondence_distance=sensor.correspondence_distance)
 
 
 def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
@@ -167,10 +171,11 @@ class P2PlaneTracker(Tracker):
 
     def __init__(self, cfg: P2PlaneConfig):
         self.cfg = cfg
-        # slamkit filled the None fields from the dataset's hints before building the tracker;
-        # a field still None had no hint (validate rejects 0, so `or` only replaces None).
-        self.pixel_stride = cfg.pixel_stride or FALLBACKS["pixel_stride"]
-        self.max_distance = cfg.max_correspondence_distance or FALLBACKS["max_correspondence_distance"]
+        # slamkit filled the nulls from the dataset's sensor profile (`with_sensor`) before this
+        require(cfg.pixel_stride is not None and cfg.max_correspondence_distance is not None, "tracker",
+                "pixel_stride and max_correspondence_distance (P2PlaneConfig.with_sensor fills them)", cfg)
+        self.pixel_stride = cfg.pixel_stride
+        self.max_distance = cfg.max_correspondence_distance
         self.pose = np.eye(4)
         self.velocity = np.eye(4)  # the last frame-to-frame motion
         self.model: Model | None = None
@@ -220,5 +225,5 @@ class P2PlaneTracker(Tracker):
 
 
 @hookimpl
-def slamkit_trackers():
+def slamkit_plugins():
     return [PluginSpec("p2plane", P2PlaneTracker, P2PlaneConfig)]

@@ -28,6 +28,8 @@ told by the number of fields per line:
 
 from __future__ import annotations
 
+import dataclasses
+
 import json
 import logging
 import math
@@ -40,7 +42,7 @@ import numpy as np
 from slamkit.errors import DataError
 from slamkit.image_io import dataset_folder, image_size, read_rgbd
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import Dataset, DatasetConfig, require
+from slamkit.roles import Dataset, DatasetConfig, SensorProfile, require
 from slamkit.tum_format import interpolate_poses, read_float_table, read_tum_trajectory
 from slamkit.types import Camera, Frame
 
@@ -160,16 +162,6 @@ class FolderDataset(Dataset):
     """A folder of colour + depth images with an intrinsics file (see the module docstring).
     Depth in metres; gt_pose camera-to-world or None."""
 
-    hints = {  # values for a hand-held depth camera, as TUM's
-        "pixel_stride": 5,
-        "max_correspondence_distance": 0.03,
-        "overlap_threshold": 1e-3,
-        "keyframe_threshold": 0.81,
-        "new_gaussian_overlap": 1e-3,
-        "min_target_opacity": 0.09,
-        "max_scale": 1.0,
-    }
-
     def __init__(self, cfg: FolderConfig):
         super().__init__(cfg)
         self.root = dataset_folder(cfg.path, "a folder with color/ (or rgb/), depth/ and an intrinsics file")
@@ -178,8 +170,10 @@ class FolderDataset(Dataset):
             others = (self.root / n for n in ("intrinsics.yml", "intrinsics.json"))
             self.intrinsics_file = next((p for p in others if p.is_file()), self.intrinsics_file)
         self._camera, self.depth_scale, depth_trunc = read_intrinsics(self.intrinsics_file, cfg.depth_scale)
-        if depth_trunc is not None:
-            self.default_depth_trunc = depth_trunc
+        # a hand-held depth camera: the generic profile, with the intrinsics file's depth facts
+        self.default_sensor = dataclasses.replace(
+            SensorProfile(), depth_scale=self.depth_scale,
+            depth_trunc=depth_trunc if depth_trunc is not None else SensorProfile.depth_trunc)
 
         default_color = next((d for d in ("color", "rgb") if (self.root / d).is_dir()), "color")
         color_dir = self.root / (cfg.color_dir or default_color)
@@ -275,5 +269,5 @@ def _read_lines(path: Path):
 
 
 @hookimpl
-def slamkit_datasets():
+def slamkit_plugins():
     return [PluginSpec("folder", FolderDataset, FolderConfig)]

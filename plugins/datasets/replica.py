@@ -9,6 +9,8 @@ timestamps are the frame numbers.
 
 from __future__ import annotations
 
+import dataclasses
+
 import json
 import logging
 import re
@@ -20,7 +22,7 @@ import numpy as np
 from slamkit.errors import DataError
 from slamkit.image_io import dataset_folder, find_ground_truth, read_rgbd
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import Dataset, DatasetConfig, require
+from slamkit.roles import Dataset, DatasetConfig, SensorProfile, require
 from slamkit.tum_format import read_float_table
 from slamkit.types import Camera, Frame
 
@@ -61,16 +63,10 @@ def read_cam_params(path: Path) -> tuple[Camera, float | None]:
 class ReplicaDataset(Dataset):
     """Replica (NICE-SLAM layout). Depth in metres; gt_pose camera-to-world from traj.txt."""
 
-    default_depth_trunc = 12.0
-    hints = {
-        "pixel_stride": 10,
-        "max_correspondence_distance": 0.02,
-        "overlap_threshold": 5e-4,
-        "keyframe_threshold": 0.7,
-        "new_gaussian_overlap": 5e-5,
-        "min_target_opacity": 0.05,
-        "max_scale": 0.25,
-    }
+    # rendered, noiseless depth of 1200x680 frames: the reference code's Replica settings
+    default_sensor = SensorProfile(depth_trunc=12.0, max_gaussian_scale=0.25,
+                                   tracking_pixel_stride=10, correspondence_distance=0.02, min_target_opacity=0.05,
+                                   new_gaussian_overlap=5e-5, keyframe_overlap=5e-4, keyframe_threshold=0.7)
 
     def __init__(self, cfg: ReplicaConfig):
         super().__init__(cfg)
@@ -94,6 +90,7 @@ class ReplicaDataset(Dataset):
         if params is not None:
             self._camera, scale = read_cam_params(params)
             self.depth_scale = scale if scale is not None else cfg.depth_scale
+        self.default_sensor = dataclasses.replace(self.default_sensor, depth_scale=self.depth_scale)
 
         self.gt_poses = None
         gt_file = find_ground_truth(self.root, cfg.gt_path, "traj.txt")
@@ -131,5 +128,5 @@ class ReplicaDataset(Dataset):
 
 
 @hookimpl
-def slamkit_datasets():
+def slamkit_plugins():
     return [PluginSpec("replica", ReplicaDataset, ReplicaConfig)]

@@ -13,6 +13,8 @@ Only the given folder is read: for a scene with several seq-NN subfolders, point
 
 from __future__ import annotations
 
+import dataclasses
+
 import logging
 import re
 from dataclasses import dataclass
@@ -23,7 +25,7 @@ import numpy as np
 from slamkit.errors import DataError
 from slamkit.image_io import dataset_folder, image_size, read_rgbd
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import Dataset, DatasetConfig, require
+from slamkit.roles import Dataset, DatasetConfig, SensorProfile, require
 from slamkit.tum_format import read_float_table
 from slamkit.types import Camera, Frame
 
@@ -64,19 +66,11 @@ def read_intrinsics(path: Path) -> tuple[float, float, float, float]:
 class SevenScenesDataset(Dataset):
     """7-Scenes / 3DMatch sequence. Depth in metres (0 = invalid); gt_pose camera-to-world."""
 
-    default_depth_trunc = 4.0
-    hints = {
-        "pixel_stride": 5,
-        "max_correspondence_distance": 0.03,
-        "overlap_threshold": 1e-3,
-        "keyframe_threshold": 0.81,
-        "new_gaussian_overlap": 1e-3,
-        "min_target_opacity": 0.09,
-        "max_scale": 1.0,
-    }
+    default_sensor = SensorProfile(depth_trunc=4.0)  # a Kinect v1, like TUM's (depth_scale: the config's)
 
     def __init__(self, cfg: SevenScenesConfig):
         super().__init__(cfg)
+        self.default_sensor = dataclasses.replace(self.default_sensor, depth_scale=cfg.depth_scale)
         expected = "a 7-Scenes sequence folder with frame-%06d.color.(jpg|png) and frame-%06d.depth.png"
         self.root = dataset_folder(cfg.path, expected)
         colour = {}
@@ -124,5 +118,5 @@ class SevenScenesDataset(Dataset):
 
 
 @hookimpl
-def slamkit_datasets():
+def slamkit_plugins():
     return [PluginSpec("sevenscenes", SevenScenesDataset, SevenScenesConfig)]

@@ -45,7 +45,7 @@ import numpy as np
 from slamkit.errors import DataError
 from slamkit.geometry import so3_exp
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import Dataset, DatasetConfig, require
+from slamkit.roles import Dataset, DatasetConfig, SensorProfile, require
 from slamkit.types import Camera, Frame
 
 log = logging.getLogger(__name__)
@@ -948,16 +948,9 @@ class SyntheticDataset(Dataset):
     uint8, depth HxW float32 metres (exact unless depth_noise / depth_dropout), gt_pose
     camera-to-world, timestamp raw_index / 30 s."""
 
-    default_depth_trunc = 6.0
-    hints = {
-        "pixel_stride": 2,
-        "max_correspondence_distance": 0.03,
-        "overlap_threshold": 1e-3,
-        "keyframe_threshold": 0.81,
-        "new_gaussian_overlap": 1e-3,
-        "min_target_opacity": 0.05,
-        "max_scale": 0.5,
-    }
+    # small frames (320x240 by default) of a 6 x 5 x 3 m room: a dense sample stride
+    default_sensor = SensorProfile(depth_scale=DEPTH_SCALE, depth_trunc=6.0, max_gaussian_scale=0.5,
+                                   tracking_pixel_stride=2, min_target_opacity=0.05)
 
     def __init__(self, cfg: SyntheticConfig):
         super().__init__(cfg)
@@ -1102,5 +1095,5 @@ class SyntheticDataset(Dataset):
 
 
 @hookimpl
-def slamkit_datasets():
+def slamkit_plugins():
     return [PluginSpec("synthetic", SyntheticDataset, SyntheticConfig)]

@@ -10,6 +10,8 @@ dropped. Ground truth is interpolated at the colour timestamp.
 
 from __future__ import annotations
 
+import dataclasses
+
 import logging
 import re
 from dataclasses import dataclass
@@ -20,7 +22,7 @@ import numpy as np
 from slamkit.errors import DataError
 from slamkit.image_io import dataset_folder, find_ground_truth, read_rgbd
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import Dataset, DatasetConfig, require
+from slamkit.roles import Dataset, DatasetConfig, SensorProfile, require
 from slamkit.tum_format import associate, interpolate_poses, read_tum_list, read_tum_trajectory
 from slamkit.types import Camera, Frame
 
@@ -71,19 +73,11 @@ class TUMDataset(Dataset):
     """TUM RGB-D sequence. Frame timestamps are the colour images' (seconds); depth in metres;
     gt_pose camera-to-world (None where ground truth does not cover the frame)."""
 
-    default_depth_trunc = 3.0
-    hints = {
-        "pixel_stride": 5,
-        "max_correspondence_distance": 0.03,
-        "overlap_threshold": 1e-3,
-        "keyframe_threshold": 0.81,
-        "new_gaussian_overlap": 1e-3,
-        "min_target_opacity": 0.09,
-        "max_scale": 1.0,
-    }
+    default_sensor = SensorProfile(depth_trunc=3.0)  # a Kinect v1 in an office (depth_scale: the config's)
 
     def __init__(self, cfg: TUMConfig):
         super().__init__(cfg)
+        self.default_sensor = dataclasses.replace(self.default_sensor, depth_scale=cfg.depth_scale)
         expected = "a TUM RGB-D folder with rgb.txt, depth.txt and their images"
         self.root = dataset_folder(cfg.path, expected, "rgb.txt", "depth.txt")
         rgb_ts, rgb_files = read_tum_list(self.root / "rgb.txt")
@@ -128,5 +122,5 @@ class TUMDataset(Dataset):
 
 
 @hookimpl
-def slamkit_datasets():
+def slamkit_plugins():
     return [PluginSpec("tum", TUMDataset, TUMConfig)]

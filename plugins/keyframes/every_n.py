@@ -45,5 +45,5 @@ class EveryNKeyframePolicy(KeyframePolicy):
 
 
 @hookimpl
-def slamkit_keyframe_policies():
+def slamkit_plugins():
     return [PluginSpec("every_n", EveryNKeyframePolicy, EveryNKeyframeConfig)]

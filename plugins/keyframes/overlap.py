@@ -16,12 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import KeyframeHistory, KeyframePolicy, PluginConfig, require
+from slamkit.roles import KeyframeHistory, KeyframePolicy, PluginConfig, SensorProfile, require
 from slamkit.types import Frame, KeyframeKind, TrackingResult
-
-#: Used when a field is null and the dataset gave no hint of that name (TUM's values).
-FALLBACKS = {"overlap_threshold": 1e-3, "keyframe_threshold": 0.81}
-
 
 def correspondence_ratio(result: TrackingResult, overlap_threshold: float) -> float | None:
     """Fraction of the trackable frame points with a map Gaussian closer than
@@ -42,8 +38,9 @@ def correspondence_ratio(result: TrackingResult, overlap_threshold: float) -> fl
 class OverlapKeyframeConfig(PluginConfig):
     """overlap_threshold: m^2, a frame point overlaps the map when its squared distance to the
     nearest map Gaussian is below this (reference: 1e-3 TUM, 5e-4 Replica; null = the
-    dataset's hint). keyframe_threshold: a tracking keyframe when the overlapping fraction is
-    below this (reference: 0.81 TUM, 0.7 Replica; null = the hint). mapping_every: a
+    dataset's `SensorProfile.keyframe_overlap`). keyframe_threshold: a tracking keyframe when
+    the overlapping fraction is below this (reference: 0.81 TUM, 0.7 Replica; null = the
+    profile's `keyframe_threshold`). mapping_every: a
     mapping-only keyframe every N frames after the last keyframe (0 = none; reference 10).
     max_interval: force a tracking keyframe when none was chosen for this many frames (the
     paper's "30th frame" rule of its Fig. 5; 0 = never, as the reference code)."""
@@ -61,6 +58,9 @@ class OverlapKeyframeConfig(PluginConfig):
         require(self.mapping_every >= 0, "keyframe.mapping_every", "an integer >= 0", self.mapping_every)
         require(self.max_interval >= 0, "keyframe.max_interval", "an integer >= 0", self.max_interval)
 
+    def with_sensor(self, sensor: SensorProfile) -> OverlapKeyframeConfig:
+        return self.fill_nulls(overlap_threshold=sensor.keyframe_overlap, keyframe_threshold=sensor.keyframe_threshold)
+
 
 class OverlapKeyframePolicy(KeyframePolicy):
     """Tracking keyframes where the frame overlaps the map too little; mapping-only keyframes
@@ -69,13 +69,10 @@ class OverlapKeyframePolicy(KeyframePolicy):
 
     def __init__(self, cfg: OverlapKeyframeConfig):
         self.cfg = cfg
-        self.overlap_threshold = float(
-            FALLBACKS["overlap_threshold"] if cfg.overlap_threshold is None else cfg.overlap_threshold
-        )
-        self.keyframe_threshold = float(
-            FALLBACKS["keyframe_threshold"] if cfg.keyframe_threshold is None else cfg.keyframe_threshold
-        )
-        require(self.overlap_threshold > 0, "keyframe.overlap_threshold", "> 0 m^2", self.overlap_threshold)
+        require(cfg.overlap_threshold is not None and cfg.keyframe_threshold is not None, "keyframe",
+                "overlap_threshold and keyframe_threshold (OverlapKeyframeConfig.with_sensor fills them)", cfg)
+        self.overlap_threshold = float(cfg.overlap_threshold)
+        self.keyframe_threshold = float(cfg.keyframe_threshold)
         self.history = KeyframeHistory()
 
     def decide(self, frame: Frame, result: TrackingResult) -> KeyframeKind:
@@ -95,5 +92,5 @@ class OverlapKeyframePolicy(KeyframePolicy):
 
 
 @hookimpl
-def slamkit_keyframe_policies():
+def slamkit_plugins():
     return [PluginSpec("overlap", OverlapKeyframePolicy, OverlapKeyframeConfig)]

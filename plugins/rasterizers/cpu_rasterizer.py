@@ -9,22 +9,23 @@ depth = sum w z, alpha = sum w. Gradients reach means, quats, scales, opacities,
 background.
 
 The work is done by `csrc/cpu_rasterizer.cpp`: plain C++17 behind a C ABI, loaded with ctypes.
-It is compiled on first use and cached outside the source tree by `slamkit.native` (the
-exact pixel-coverage arithmetic relies on its -ffp-contract=off). Without a compiler, or if
-the build fails, a one-line warning is given and the `torch` backend renders instead. See
-docs/cpu_rasterizer.md for the design and the measurements.
+It is compiled when the backend is built (first use; cached outside the source tree by
+`slamkit.native`; the exact pixel-coverage arithmetic relies on its -ffp-contract=off).
+Without a compiler, or if the build fails, building the backend raises a one-line ConfigError
+(`rasterizer=auto` then takes the `torch` backend). See docs/cpu_rasterizer.md for the design
+and the measurements.
 """
 
 from __future__ import annotations
 
 import ctypes
 import threading
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
+from slamkit.errors import ConfigError
 from slamkit.native import NativeLibrary
 from slamkit.plugin import PluginSpec, hookimpl
 from slamkit.rendering import Rasterizer, RenderOutput
@@ -32,14 +33,14 @@ from slamkit.roles import PluginConfig, require
 from slamkit.types import Camera
 
 SOURCE = Path(__file__).resolve().parent / "csrc" / "cpu_rasterizer.cpp"
-ABI_VERSION = 2
+ABI_VERSION = 3
 
 
 @dataclass
 class CPURasterizerConfig(PluginConfig):
-    """num_threads: worker threads (0 = torch.get_num_threads()). native: compile for this
-    machine's CPU (-march=native; the cached library is keyed by the CPU model, so a copied cache
-    is rebuilt rather than crashing on another CPU)."""
+    """num_threads: threads that render (0 = torch.get_num_threads(), the run's mapping
+    threads). native: compile for this machine's CPU (-march=native; the cached library is keyed
+    by the CPU model, so a copied cache is rebuilt rather than crashing on another CPU)."""
 
     num_threads: int = 0
     native: bool = True
@@ -113,7 +114,7 @@ class _Render(torch.autograd.Function):
         color = torch.empty(H, W, 3, dtype=torch.float32)
         depth = torch.empty(H, W, dtype=torch.float32)
         alpha = torch.empty(H, W, dtype=torch.float32)
-        stats = torch.zeros(4, dtype=torch.int64)
+        stats = torch.zeros(5, dtype=torch.int64)
         err = ctypes.create_string_buffer(512)
         ptr = lib.slk_forward(
             means.shape[0], _ptr(means), _ptr(quats), _ptr(scales), _ptr(opacities), _ptr(colors), _ptr(viewmat),
@@ -123,7 +124,8 @@ class _Render(torch.autograd.Function):
         if not ptr:
             raise RuntimeError(f"cpu rasteriser: {err.value.decode(errors='replace')}")
         handle = _Handle(lib, ptr)
-        owner.last_num_pairs, owner.last_num_visible, owner.last_num_entries, owner.last_num_rows = stats.tolist()
+        (owner.last_num_pairs, owner.last_num_visible, owner.last_num_entries, owner.last_num_rows,
+         owner.last_num_threads) = stats.tolist()
         owner.last_times = _times(lib, ptr)
         if keep_state:
             ctx.handle, ctx.lib, ctx.nthreads, ctx.owner = handle, lib, nthreads, owner
@@ -166,33 +168,24 @@ def _check_shapes(means, quats, scales, opacities, colors, background) -> int:
 
 
 class CPURasterizer(Rasterizer):
-    """Compiled tile-based CPU rasteriser; falls back to the `torch` backend (with a warning)
-    where it cannot be compiled. Computes in float32 on CPU tensors; other floating dtypes are
-    cast, and the outputs are returned in the input dtype. Thread-safe: each render owns its
-    state, and the compiled code runs without the GIL."""
+    """Compiled tile-based CPU rasteriser. Computes in float32 on CPU tensors; other floating
+    dtypes are cast, and the outputs are returned in the input dtype. Thread-safe: each render
+    owns its state, and the compiled code runs without the GIL. Building it compiles the library
+    if needed; ConfigError (one line) where that is impossible."""
 
     def __init__(self, cfg: CPURasterizerConfig | None = None):
         self.cfg = cfg or CPURasterizerConfig()
+        self.library = get_library(self.cfg.native)
+        self.lib = self.library.get()
+        if self.lib is None:
+            raise ConfigError(f"rasterizer cpu: the compiled library is not available ({self.library.error}); "
+                              "rasterizer=torch needs no compiler")
         self.last_num_pairs = 0  # (pixel, Gaussian) pairs composited by the last render
         self.last_num_visible = 0  # Gaussians that cover at least one pixel row span
         self.last_num_entries = 0  # (tile, Gaussian) entries
         self.last_num_rows = 0  # (entry, tile row) spans composited: 16-pixel vector steps
+        self.last_num_threads = 0  # threads that composited tiles in the last forward pass
         self.last_times: dict[str, float] = {}  # seconds per phase of the last forward (+ backward)
-        self._fallback = None
-
-    @property
-    def available(self) -> bool:
-        """Whether the compiled library is (or could now be) loaded; builds it if needed."""
-        return get_library(self.cfg.native).get() is not None
-
-    def _torch_fallback(self, reason: str):
-        if self._fallback is None:
-            from slamkit_plugins.rasterizers.torch_rasterizer import TorchRasterizer
-
-            warnings.warn(f"slamkit: the cpu rasteriser is not available ({reason}); using the torch backend",
-                          RuntimeWarning, stacklevel=3)
-            self._fallback = TorchRasterizer()
-        return self._fallback
 
     def render(
         self,
@@ -205,13 +198,7 @@ class CPURasterizer(Rasterizer):
         camera: Camera,
         background: torch.Tensor | None = None,
     ) -> RenderOutput:
-        library = get_library(self.cfg.native)
-        lib = library.get()
-        if lib is None:
-            fallback = self._torch_fallback(library.error or "unknown reason")
-            out = fallback.render(means, quats, scales, opacities, colors, world_to_camera, camera, background)
-            self.last_num_pairs = fallback.last_num_pairs
-            return out
+        lib = self.lib
         dtype = means.dtype
         tensors = [means, quats, scales, opacities, colors] + ([background] if background is not None else [])
         for t in tensors:
@@ -242,5 +229,5 @@ class CPURasterizer(Rasterizer):
 
 
 @hookimpl
-def slamkit_rasterizers():
+def slamkit_plugins():
     return [PluginSpec("cpu", CPURasterizer, CPURasterizerConfig)]

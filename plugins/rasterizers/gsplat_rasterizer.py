@@ -2,7 +2,11 @@
 
 Needs CUDA and the gsplat package (``pip install 'slamkit[cuda]'``). It is registered
 everywhere; building it where either is missing raises a one-line ConfigError. gsplat is
-imported only when the backend is built, so this module imports on any machine.
+imported only when the backend is built, so this module imports on any machine. gsplat's CUDA
+extension is compiled (or loaded from its cache, `TORCH_EXTENSIONS_DIR`) at its first call, not
+at import: building the backend renders one Gaussian (`probe`) so that a missing or unbuildable
+extension is a ConfigError here, not an exception deep in a run (`rasterizer=auto` then falls
+back to the cpu backend).
 
 How slamkit's conventions map onto `gsplat.rasterization`:
 - gsplat puts pixel centres at (j + 0.5, i + 0.5); slamkit at (j, i). The principal point is
@@ -35,17 +39,20 @@ from slamkit.types import Camera
 
 NEAR_PLANE = 0.01
 EPS_2D = 0.3
+MAX_TILE_SIZE = 32  # tile_size^2 threads per CUDA block, at most 1024
 NEEDS = "rasterizer gsplat needs CUDA and the gsplat package (pip install 'slamkit[cuda]')"
 
 
 @dataclass
 class GsplatRasterizerConfig(PluginConfig):
-    """tile_size: gsplat's tile edge in pixels (speed only; the render does not depend on it)."""
+    """tile_size: gsplat's tile edge in pixels (speed only; the render does not depend on it).
+    Its CUDA kernels run tile_size^2 threads per block, at most 1024: 32 at most."""
 
     tile_size: int = 16
 
     def validate(self) -> None:
-        require(self.tile_size >= 1, "rasterizer.tile_size", "an integer >= 1", self.tile_size)
+        require(1 <= self.tile_size <= MAX_TILE_SIZE, "rasterizer.tile_size",
+                f"an integer in [1, {MAX_TILE_SIZE}] (tile_size^2 CUDA threads per block)", self.tile_size)
 
 
 class GsplatRasterizer(Rasterizer):
@@ -57,10 +64,24 @@ class GsplatRasterizer(Rasterizer):
             raise ConfigError(NEEDS)
         try:
             from gsplat import rasterization
-        except Exception as exc:  # not installed, or its CUDA extension cannot load
+        except Exception as exc:  # not installed, or a broken install
             reason = f"{type(exc).__name__}: {exc}".splitlines()[0]
             raise ConfigError(f"{NEEDS}; {reason}") from None
         self._rasterization = rasterization
+        self.probe()
+
+    def probe(self) -> None:
+        """Render one Gaussian on an 8x8 image, so gsplat builds or loads its CUDA extension now;
+        ConfigError (one line) when it cannot."""
+        one = torch.ones(1, 3, device="cuda")
+        try:
+            self.render(torch.tensor([[0.0, 0.0, 1.0]], device="cuda"), torch.tensor([[1.0, 0, 0, 0]], device="cuda"),
+                        0.1 * one, torch.full((1,), 0.5, device="cuda"), 0.5 * one, torch.eye(4, device="cuda"),
+                        Camera(8, 8, 8.0, 8.0, 3.5, 3.5))
+            torch.cuda.synchronize()
+        except Exception as exc:
+            reason = f"{type(exc).__name__}: {exc}".strip().splitlines()[0]
+            raise ConfigError(f"rasterizer gsplat: its CUDA extension could not be built or loaded ({reason})") from None
 
     def render(
         self,
@@ -112,5 +133,5 @@ class GsplatRasterizer(Rasterizer):
 
 
 @hookimpl
-def slamkit_rasterizers():
+def slamkit_plugins():
     return [PluginSpec("gsplat", GsplatRasterizer, GsplatRasterizerConfig)]

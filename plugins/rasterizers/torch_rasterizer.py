@@ -392,5 +392,5 @@ def _band_backward(ch: _Chunk, rows_g, pix_grads, feats, acc_rows, acc_g) -> Non
 
 
 @hookimpl
-def slamkit_rasterizers():
+def slamkit_plugins():
     return [PluginSpec("torch", TorchRasterizer, TorchRasterizerConfig)]

@@ -8,12 +8,11 @@
   also lie inside the keyframe's frustum, so it needs the keyframes' poses.
 - `recent` (26.85 dB in the paper): always the newest keyframe.
 
-A sampler is selected with the mapper's ``sampler`` option (``mapper.sampler=covisible``).
+A sampler is a part of the 3DGS mapper, selected with ``sampler=covisible sampler.top_k=3``.
 """
 
 from __future__ import annotations
 
-import logging
 import math
 from dataclasses import dataclass
 from typing import Mapping
@@ -22,9 +21,6 @@ import numpy as np
 
 from slamkit.plugin import PluginSpec, hookimpl
 from slamkit.roles import KeyframeSampler, PluginConfig, require
-
-log = logging.getLogger(__name__)
-
 
 @dataclass
 class RandomSamplerConfig(PluginConfig):
@@ -37,7 +33,7 @@ class RandomSampler(KeyframeSampler):
     def __init__(self, cfg: RandomSamplerConfig | None = None):
         self.cfg = cfg or RandomSamplerConfig()
 
-    def sample(self, keyframe_ids, current_pose, rng, keyframe_poses=None) -> int:
+    def sample(self, keyframe_ids, current_pose, rng, keyframe_poses) -> int:
         _check(keyframe_ids)
         return keyframe_ids[int(rng.integers(len(keyframe_ids)))]
 
@@ -53,7 +49,7 @@ class RecentSampler(KeyframeSampler):
     def __init__(self, cfg: RecentSamplerConfig | None = None):
         self.cfg = cfg or RecentSamplerConfig()
 
-    def sample(self, keyframe_ids, current_pose, rng, keyframe_poses=None) -> int:
+    def sample(self, keyframe_ids, current_pose, rng, keyframe_poses) -> int:
         _check(keyframe_ids)
         return keyframe_ids[-1]
 
@@ -76,7 +72,7 @@ class CovisibleSamplerConfig(PluginConfig):
 
 class CovisibleSampler(KeyframeSampler):
     """Uniform among the `top_k` keyframes with the largest frustum overlap with the current
-    pose. Without poses (a caller of the 3-argument interface) it falls back to uniform."""
+    pose."""
 
     def __init__(self, cfg: CovisibleSamplerConfig | None = None):
         self.cfg = cfg or CovisibleSamplerConfig()
@@ -87,7 +83,6 @@ class CovisibleSampler(KeyframeSampler):
         depths = np.linspace(self.cfg.max_depth / 4, self.cfg.max_depth, 4)
         self._probe = (rays[None] * depths[:, None, None]).reshape(-1, 3)  # camera frame
         self._tan = t
-        self._warned = False
 
     def scores(self, current_pose: np.ndarray, poses: list[np.ndarray]) -> np.ndarray:
         """Overlap in [0, 1] of each pose's frustum with the current one's."""
@@ -101,13 +96,8 @@ class CovisibleSampler(KeyframeSampler):
             out[i] = inside.mean()
         return out
 
-    def sample(self, keyframe_ids, current_pose, rng, keyframe_poses: Mapping[int, np.ndarray] | None = None) -> int:
+    def sample(self, keyframe_ids, current_pose, rng, keyframe_poses: Mapping[int, np.ndarray]) -> int:
         _check(keyframe_ids)
-        if current_pose is None or keyframe_poses is None or any(k not in keyframe_poses for k in keyframe_ids):
-            if not self._warned:
-                log.warning("covisible sampler: no keyframe poses given; sampling uniformly")
-                self._warned = True
-            return keyframe_ids[int(rng.integers(len(keyframe_ids)))]
         s = self.scores(np.asarray(current_pose), [np.asarray(keyframe_poses[k]) for k in keyframe_ids])
         k = min(self.cfg.top_k, len(keyframe_ids))
         best = np.argsort(-s, kind="stable")[:k]
@@ -120,7 +110,7 @@ def _check(keyframe_ids) -> None:
 
 
 @hookimpl
-def slamkit_keyframe_samplers():
+def slamkit_plugins():
     return [
         PluginSpec("random", RandomSampler, RandomSamplerConfig),
         PluginSpec("covisible", CovisibleSampler, CovisibleSamplerConfig),

@@ -40,7 +40,7 @@ from slamkit.gaussian_geometry import Regularization, regularize, rotate_covaria
 from slamkit.gaussian_map import GaussianMap
 from slamkit.geometry import backproject, invert_pose, so3_exp
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import PluginConfig, Tracker, require
+from slamkit.roles import PluginConfig, SensorProfile, Tracker, require
 from slamkit.types import Frame, FrameGaussians, TrackingResult
 from slamkit_plugins.trackers.gicp_kernels import Kernels, create_kernels
 
@@ -57,14 +57,11 @@ class InitialGuess(enum.Enum):
     constant_velocity = "constant_velocity"
 
 
-#: Used when a field is null and the dataset gave no hint of that name (TUM-like values).
-FALLBACKS = {"pixel_stride": 5, "max_correspondence_distance": 0.03, "min_target_opacity": 0.05}
-
-
 @dataclass
 class GICPConfig(PluginConfig):
-    """G-ICP tracker options. Null fields take the dataset's hint of the same name, else
-    `FALLBACKS`.
+    """G-ICP tracker options. pixel_stride, max_correspondence_distance and min_target_opacity
+    left null take the dataset's `SensorProfile` values (tracking_pixel_stride,
+    correspondence_distance, min_target_opacity).
 
     pixel_stride: back-project every n-th pixel in x and y (reference: 5 TUM, 10 Replica).
     knn: neighbours (the point included) of each point's covariance.
@@ -96,8 +93,9 @@ class GICPConfig(PluginConfig):
       csrc/gicp_kernels.cpp (built on first use; auto falls back to numpy without a compiler)
       or the numpy reference. Same results either way.
     num_threads: threads of the compiled kernels (results do not depend on it). Null: the run's
-      choice, one in real-time mode (the mapper has the other CPUs: waiting for a thread it has
-      descheduled costs more than the thread saves) and every CPU otherwise; 0: every CPU.
+      choice (`Tracker.use_threads`), one in real-time mode (the mapper has the other CPUs:
+      waiting for a thread it has descheduled costs more than the thread saves) and every CPU
+      otherwise; 0: every CPU.
     """
 
     pixel_stride: int | None = None
@@ -149,6 +147,11 @@ class GICPConfig(PluginConfig):
         require(self.lm_max_tries >= 1, "tracker.lm_max_tries", "an integer >= 1", self.lm_max_tries)
         require(self.num_threads is None or self.num_threads >= 0,
                 "tracker.num_threads", "null or an integer >= 0 (0: all CPUs)", self.num_threads)
+
+    def with_sensor(self, sensor: SensorProfile) -> GICPConfig:
+        return self.fill_nulls(pixel_stride=sensor.tracking_pixel_stride,
+                               max_correspondence_distance=sensor.correspondence_distance,
+                               min_target_opacity=sensor.min_target_opacity)
 
 
 def se3_exp(xi: np.ndarray) -> np.ndarray:
@@ -211,11 +214,11 @@ class GICPTracker(Tracker):
 
     def __init__(self, cfg: GICPConfig):
         self.cfg = cfg
-        self.pixel_stride = int(self._resolve("pixel_stride"))
-        self.max_corr = float(self._resolve("max_correspondence_distance"))
-        self.min_opacity = float(self._resolve("min_target_opacity"))
-        require(self.pixel_stride >= 1, "tracker.pixel_stride", "an integer >= 1", self.pixel_stride)
-        require(self.max_corr > 0, "tracker.max_correspondence_distance", "> 0 metres", self.max_corr)
+        for name in ("pixel_stride", "max_correspondence_distance", "min_target_opacity"):
+            require(getattr(cfg, name) is not None, f"tracker.{name}", "a value (GICPConfig.with_sensor fills it from the dataset)", None)
+        self.pixel_stride = int(cfg.pixel_stride)
+        self.max_corr = float(cfg.max_correspondence_distance)
+        self.min_opacity = float(cfg.min_target_opacity)
         self.regularization = Regularization(cfg.regularization)
         self.initial_guess = InitialGuess(cfg.initial_guess)
         self.kernels = create_kernels(cfg.kernels, cfg.num_threads or 0)
@@ -224,14 +227,14 @@ class GICPTracker(Tracker):
         self.poses: list[np.ndarray] = []
         self.first_pose = np.eye(4)
 
-    def _resolve(self, name: str):
-        value = getattr(self.cfg, name)
-        return FALLBACKS[name] if value is None else value
-
     # ---------------------------------------------------------------- role API
     def initialize(self, first_pose: np.ndarray) -> None:
         self.first_pose = orthonormalize(np.asarray(first_pose, dtype=np.float64))
         self.poses = []
+
+    def use_threads(self, threads: int) -> None:
+        if self.cfg.num_threads is None:
+            self.kernels.num_threads = threads
 
     def update_target(self, gaussian_map: GaussianMap) -> None:
         """Take the map's trackable Gaussians as the new target; regularise their covariances
@@ -464,5 +467,5 @@ class GICPTracker(Tracker):
 
 
 @hookimpl
-def slamkit_trackers():
+def slamkit_plugins():
     return [PluginSpec("gicp", GICPTracker, GICPConfig)]

@@ -97,5 +97,5 @@ class KissICPTracker(Tracker):
 
 
 @hookimpl
-def slamkit_trackers():
+def slamkit_plugins():
     return [PluginSpec("kiss_icp", KissICPTracker, KissICPConfig)]

@@ -111,5 +111,5 @@ class SmallGICPTracker(Tracker):
 
 
 @hookimpl
-def slamkit_trackers():
+def slamkit_plugins():
     return [PluginSpec("small_gicp", SmallGICPTracker, SmallGICPConfig)]

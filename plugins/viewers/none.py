@@ -24,5 +24,5 @@ class NoViewer(Viewer):
 
 
 @hookimpl
-def slamkit_viewers():
+def slamkit_plugins():
     return [PluginSpec("none", NoViewer, NoViewerConfig)]

@@ -186,5 +186,5 @@ class RerunViewer(Viewer):
 
 
 @hookimpl
-def slamkit_viewers():
+def slamkit_plugins():
     return [PluginSpec("rerun", RerunViewer, RerunViewerConfig)]

@@ -17,6 +17,7 @@ import slamkit_p2plane
 from slamkit.errors import ConfigError
 from slamkit.geometry import invert_pose, make_pose, rotation_angle_deg, so3_exp, transform_points
 from slamkit.registry import discover
+from slamkit.roles import SensorProfile
 from slamkit.tum_format import read_tum_trajectory
 from slamkit_p2plane import Model, P2PlaneConfig, P2PlaneTracker, point_to_plane
 
@@ -53,8 +54,8 @@ def test_config_validation_names_the_field():
         P2PlaneConfig(voxel_size=0)
     with pytest.raises(ConfigError, match="tracker.knn"):
         P2PlaneConfig(knn=2)
-    tracker = P2PlaneTracker(P2PlaneConfig())  # null fields fall back without dataset hints
-    assert tracker.pixel_stride == slamkit_p2plane.FALLBACKS["pixel_stride"]
+    tracker = P2PlaneTracker(P2PlaneConfig().with_sensor(SensorProfile()))  # nulls: the sensor's values
+    assert tracker.pixel_stride == SensorProfile().tracking_pixel_stride
 
 
 def test_registered_through_the_entry_point():

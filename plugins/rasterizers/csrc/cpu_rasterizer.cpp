@@ -60,7 +60,7 @@
 
 namespace {
 
-constexpr int ABI_VERSION = 2;
+constexpr int ABI_VERSION = 3;
 constexpr int TILE = 16;
 constexpr int TILE_PIX = TILE * TILE;
 constexpr double NEAR_PLANE = 0.01;
@@ -551,6 +551,7 @@ struct State {
   std::vector<int32_t> last;            // H*W: last composited position in the tile list, -1 none
   int64_t num_pairs = 0;
   int64_t num_rows = 0;  // (entry, tile row) iterations of the forward pass
+  int threads_used = 0;  // threads that composited at least one tile in the forward pass
   // per phase (forward: project, sort, bin, lists, composite; backward: tiles, reduce): wall, CPU
   int64_t wall_us[8] = {0}, cpu_us[8] = {0};
 };
@@ -726,7 +727,8 @@ void forward(State& S, const float* means, const float* quats, const float* scal
   // 5. composite each tile
   S.T_final.resize((size_t)W * H);
   S.last.resize((size_t)W * H);
-  std::vector<int64_t> pairs_per_thread(std::max(nthreads, 1), 0), rows_per_thread(std::max(nthreads, 1), 0);
+  std::vector<int64_t> pairs_per_thread(std::max(nthreads, 1), 0), rows_per_thread(std::max(nthreads, 1), 0),
+      tiles_per_thread(std::max(nthreads, 1), 0);
   parallel_for(nthreads, tiles, 1, [&](int64_t b, int64_t e, int tid) {
     std::unique_ptr<ChunkEntry[]> ents(new ChunkEntry[CHUNK]);
     for (int64_t ti = b; ti < e; ++ti) {
@@ -831,12 +833,15 @@ void forward(State& S, const float* means, const float* quats, const float* scal
       for (int i = 0; i < TILE; ++i) pairs += count[i];
       pairs_per_thread[tid] += pairs;
       rows_per_thread[tid] += rows;
+      tiles_per_thread[tid] += 1;
     }
   });
   S.num_pairs = 0;
   for (int64_t p : pairs_per_thread) S.num_pairs += p;
   S.num_rows = 0;
   for (int64_t r : rows_per_thread) S.num_rows += r;
+  S.threads_used = 0;
+  for (int64_t t : tiles_per_thread) S.threads_used += t > 0;
   Stamp t5 = now_us();
   S.wall_us[0] = t1.wall - t0.wall;
   S.cpu_us[0] = t1.cpu - t0.cpu;
@@ -1050,6 +1055,7 @@ void* slk_forward(int N, const float* means, const float* quats, const float* sc
     stats[1] = S->M;
     stats[2] = (int64_t)S->tile_ids.size();
     stats[3] = S->num_rows;
+    stats[4] = S->threads_used;
     return S;
   } catch (const std::exception& e) {
     write_error(err, errlen, e.what());

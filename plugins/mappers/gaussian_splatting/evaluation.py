@@ -1,0 +1,76 @@
+"""Rendering metrics of a trained map: every `every`-th frame rendered from its estimated pose.
+
+PSNR / SSIM are masked by valid depth (`slamkit.image_metrics`) and reported for the keyframes
+(training views: psnr_train, ssim_train), the other frames (held-out views: psnr_test,
+ssim_test) and all (psnr, ssim); depth L1 in cm over valid pixels. A few render | ground-truth
+images and map.ply go into the run folder.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from slamkit import image_metrics
+from slamkit.gaussian_map import GaussianMap
+from slamkit.rendering import RenderOutput
+from slamkit.types import Camera
+from slamkit_plugins.mappers.gaussian_splatting.keyframes import resize_rgbd
+
+
+def evaluate_renders(render: Callable[[np.ndarray, Camera], RenderOutput], gaussian_map: GaussianMap, dataset,
+                     poses: list[np.ndarray], train_frames: set[int], every: int = 1, scale: float = 1.0,
+                     save_images: int = 0, out_dir: Path | None = None) -> dict[str, Any]:
+    """Metrics of `render(pose, camera)` (no gradients) against every `every`-th frame of
+    `dataset`, at `scale` of its resolution; `train_frames` are the keyframes' frame indices.
+    Writes `save_images` render | ground-truth images and map.ply into `out_dir` (when given)."""
+    n = min(len(dataset), len(poses))
+    indices = list(range(0, n, every))
+    n_img = min(save_images, len(indices))
+    save_at = set(np.linspace(0, len(indices) - 1, n_img).round().astype(int).tolist()) if n_img else set()
+    rows: dict[str, list[tuple[float, float]]] = {"all": [], "train": [], "test": []}
+    depth_l1 = []
+    start = time.perf_counter()
+    for k, i in enumerate(indices):
+        frame = dataset[i]
+        image, depth, cam = resize_rgbd(frame.rgb, frame.depth, frame.camera, scale, gaussian_map.device)
+        out = render(poses[i], cam)
+        color = out.color.clamp(0, 1)
+        mask = depth > 0
+        scores = (image_metrics.psnr(color, image, mask), image_metrics.ssim(color, image, mask))
+        depth_l1.append(image_metrics.l1_depth(out.depth, depth, mask))
+        rows["all"].append(scores)
+        rows["train" if frame.index in train_frames else "test"].append(scores)
+        if out_dir is not None and k in save_at:
+            _save_side_by_side(Path(out_dir) / f"render_{i:04d}.png", color, image)
+    metrics: dict[str, Any] = {}
+    for group, suffix in (("all", ""), ("train", "_train"), ("test", "_test")):
+        metrics[f"psnr{suffix}"] = _finite_mean([p for p, _ in rows[group]])
+        metrics[f"ssim{suffix}"] = _finite_mean([s for _, s in rows[group]])
+    l1 = _finite_mean(depth_l1)
+    metrics.update(depth_l1_cm=None if l1 is None else 100.0 * l1, num_gaussians=len(gaussian_map),
+                   eval_frames=len(indices), eval_train_frames=len(rows["train"]),
+                   eval_time_s=time.perf_counter() - start)
+    if out_dir is not None:
+        from slamkit.ply import save_ply
+
+        Path(out_dir).mkdir(parents=True, exist_ok=True)
+        save_ply(Path(out_dir) / "map.ply", gaussian_map)
+    return metrics
+
+
+def _finite_mean(values: list[float]) -> float | None:
+    values = [v for v in values if math.isfinite(v)]
+    return float(np.mean(values)) if values else None
+
+
+def _save_side_by_side(path: Path, render: torch.Tensor, truth: torch.Tensor) -> None:
+    from PIL import Image
+
+    both = torch.cat([render, truth], dim=1).clamp(0, 1)
+    Image.fromarray((both.cpu().numpy() * 255 + 0.5).astype(np.uint8)).save(path)

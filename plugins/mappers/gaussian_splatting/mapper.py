@@ -1,0 +1,197 @@
+"""`mapper=gaussian_splatting`: 3D Gaussian Splatting training of the shared map (paper Sec. 3.2).
+
+The mapper is a trainer composed of parts, each a plugin chosen and configured on the command
+line: the rasteriser (`rasterizer=`), the training-view sampler (`sampler=`), the densification
+strategy (`strategy=`), the optimiser (`optimizer=`) and the loss (`loss=`). It owns the
+keyframes and the training loop; the map's parameters are the GaussianMap's own leaf tensors
+(the tracker's next target is taken from the values it optimised: that exchange is the method),
+the optimiser owns its per-row state, and the strategy edits rows only through the shared row
+operations (`slamkit.map_editing.MapEdit`).
+
+A training step, as in 3DGS: take a keyframe (the ones not yet trained on first, once each, then
+the sampler's choice), render it, the loss, its gradient, the optimiser's update, then the
+strategy's post-backward hook (statistics, densification, pruning on its schedule).
+
+Threads (real-time mode): `admit` and `add_keyframe` (tracking thread) may run beside
+`optimize` (mapping thread). A step holds the map's lock only to take the parameters and to
+apply its update, not while rendering and differentiating, so a keyframe's Gaussians can be
+appended meanwhile (the step then gives them no gradient); a step during which rows were
+removed or overwritten is dropped (`stale_steps`).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import deque
+from typing import Any
+
+import numpy as np
+import torch
+
+from slamkit.gaussian_map import GaussianMap
+from slamkit.geometry import invert_pose
+from slamkit.map_editing import MapEdit
+from slamkit.rendering import RenderOutput, render_map
+from slamkit.roles import (DensifyStrategy, KeyframeSampler, KeyframeView, Mapper, MapOptimizer, MappingLoss,
+                           Rasterizer, StepInfo, TrainingView)
+from slamkit.types import Camera
+from slamkit_plugins.mappers.gaussian_splatting.config import GaussianSplattingConfig
+from slamkit_plugins.mappers.gaussian_splatting.evaluation import evaluate_renders
+from slamkit_plugins.mappers.gaussian_splatting.keyframes import KeyframeStore
+
+log = logging.getLogger(__name__)
+
+
+class GaussianSplattingMapper(Mapper):
+    """3DGS mapping of the shared GaussianMap from keyframe images (see the module docstring)."""
+
+    parts = ("rasterizer", "sampler", "strategy", "optimizer", "loss")
+
+    def __init__(self, cfg: GaussianSplattingConfig, rasterizer: Rasterizer, sampler: KeyframeSampler,
+                 strategy: DensifyStrategy, optimizer: MapOptimizer, loss: MappingLoss):
+        self.cfg = cfg
+        self.rasterizer, self.sampler, self.strategy, self.optimizer, self.loss = (
+            rasterizer, sampler, strategy, optimizer, loss)
+        self.keyframes = KeyframeStore(cfg.resolution_scale, cfg.keyframe_storage, cfg.keyframe_dir)
+        self.pending: deque[int] = deque()  # keyframes not trained on yet
+        self.rng = np.random.default_rng(cfg.seed)
+        self.steps = 0  # training steps taken (skipped and dropped ones excluded)
+        self.skipped_steps = 0  # steps skipped for a non-finite loss or gradient
+        self.stale_steps = 0  # steps dropped: rows were removed or overwritten during them
+        self.last_loss: float | None = None
+        self.bind(GaussianMap())
+
+    def bind(self, gaussian_map: GaussianMap) -> None:
+        self.gaussian_map = gaussian_map
+        self.optimizer.reset()
+        self.edit = MapEdit(gaussian_map, self.optimizer, self.strategy.state)
+
+    # -- the Mapper role ---------------------------------------------------------------------
+    def admit(self, frame, pose, new):
+        camera = self.keyframes.training_camera(frame.camera)
+        w2c = torch.as_tensor(invert_pose(np.asarray(pose, dtype=np.float64)), dtype=torch.float32,
+                              device=self.gaussian_map.device)
+        return self.strategy.admit(new, KeyframeView(camera, w2c, lambda: self.render(w2c, camera)))
+
+    def add_keyframe(self, frame, result, kind, new_rows) -> None:
+        keyframe = self.keyframes.add(frame, result.pose, kind)
+        self.pending.append(keyframe.id)
+        with self.gaussian_map.lock:
+            self.strategy.after_keyframe(self.edit, new_rows)
+
+    def optimize(self, iterations: int) -> int:
+        """Up to `iterations` steps; returns the steps attempted (skipped and dropped ones
+        included); 0 while there is no keyframe or no Gaussian, so a real-time mapping loop
+        waits instead of spinning."""
+        done = 0
+        while done < iterations and len(self.keyframes) and len(self.gaussian_map):
+            kf_id = self.pending.popleft() if self.pending else self._sample()
+            self.train_step(self.keyframes[kf_id].view(self.gaussian_map.device))
+            done += 1
+        return done
+
+    def finish(self) -> None:
+        if self.cfg.final_iterations:
+            start = time.perf_counter()
+            done = self.optimize(self.cfg.final_iterations)
+            log.info("final mapping: %d steps in %.1f s", done, time.perf_counter() - start)
+        with self.gaussian_map.lock:
+            self.edit.sync()
+            self.strategy.finish(self.edit)
+        stats = self.strategy.metrics()
+        if stats.get("memory_guard_prunings"):
+            log.info("memory guard (max_gaussians %s): %d Gaussians pruned in %d prunings",
+                     self.strategy.cfg.max_gaussians, stats["pruned_by_memory_guard"], stats["memory_guard_prunings"])
+
+    def render_view(self, pose: np.ndarray, camera: Camera) -> RenderOutput:
+        """The map from `pose` (camera-to-world) with the mapper's rasteriser, no gradients."""
+        return render_map(self.rasterizer, self.gaussian_map, pose, camera)
+
+    def evaluate(self, dataset, poses: list[np.ndarray], out_dir) -> dict[str, Any]:
+        cfg = self.cfg
+        train_frames = {kf.frame_index for kf in self.keyframes.values()}
+        metrics = evaluate_renders(self.render_view, self.gaussian_map, dataset, poses, train_frames,
+                                   cfg.eval_every, cfg.eval_resolution_scale, cfg.save_images, out_dir)
+        first = self.keyframes[self.keyframes.ids[0]].camera if len(self.keyframes) else None
+        metrics.update(self.strategy.metrics(), mapping_steps=self.steps, mapping_skipped_steps=self.skipped_steps,
+                       mapping_stale_steps=self.stale_steps,
+                       keyframe_memory_mb=self.keyframes.memory_bytes() / 2**20,
+                       train_resolution=[first.width, first.height] if first else None)
+        return metrics
+
+    # -- training ----------------------------------------------------------------------------
+    def _sample(self) -> int:
+        ids = list(self.keyframes.ids)
+        poses = {k: self.keyframes[k].pose for k in ids}
+        return self.sampler.sample(ids, poses[ids[-1]], self.rng, poses)
+
+    def render(self, world_to_camera: torch.Tensor, camera: Camera,
+               params: dict[str, torch.Tensor] | None = None) -> RenderOutput:
+        """Render the map (or `params`, the map's parameters taken earlier) differentiably."""
+        p = params if params is not None else self.gaussian_map.parameters()
+        return self.rasterizer.render(p["means"], p["quats"], torch.exp(p["log_scales"]),
+                                      torch.sigmoid(p["opacity_logits"]), p["colors"], world_to_camera, camera)
+
+    def train_step(self, view: TrainingView) -> bool:
+        """One optimisation step on `view`; False when it was skipped (empty map, a non-finite
+        loss or gradient) or dropped (rows removed during it)."""
+        gm = self.gaussian_map
+        with gm.lock:
+            params, rows, structure = gm.parameters(), len(gm), gm.structure_version
+        if rows == 0:
+            return False
+        render = self.render(view.world_to_camera, view.camera, params)
+        loss = self.loss(render, view)
+        grads, problem = _gradients(loss, params)
+        with gm.lock:
+            if problem:
+                return self._skip(problem)
+            if gm.structure_version != structure:
+                self.stale_steps += 1
+                return False
+            live = gm.parameters()  # rows appended during the step had no part in it
+            grads = {k: _pad_rows(g, len(gm)) for k, g in grads.items()}
+            self.edit.sync()
+            self.optimizer.step(live, grads)
+            with torch.no_grad():
+                live["colors"].clamp_(0.0, 1.0)
+            gm.version += 1
+            self.steps += 1
+            self.last_loss = float(loss.detach())
+            self.strategy.step_post_backward(self.edit, StepInfo(self.steps, view, render, grads, self.last_loss))
+        return True
+
+    def _skip(self, why: str) -> bool:
+        """Skip a step (parameters and moments unchanged), removing at once the Gaussians whose
+        parameters are not finite (they would make every later step on their views fail).
+        Call under the lock."""
+        self.skipped_steps += 1
+        params = self.edit.params
+        finite = torch.ones(len(self.edit), dtype=torch.bool, device=self.gaussian_map.device)
+        for t in params.values():
+            finite &= torch.isfinite(t).reshape(len(t), -1).all(dim=1)
+        dropped = self.edit.remove(~finite)
+        if self.skipped_steps <= 5 or self.skipped_steps % 100 == 0:
+            extra = f"; removed {dropped} Gaussians with non-finite parameters" if dropped else ""
+            log.warning("mapping step skipped (%s)%s; %d skipped so far", why, extra, self.skipped_steps)
+        return False
+
+
+def _gradients(loss: torch.Tensor, params: dict[str, torch.Tensor]) -> tuple[dict[str, torch.Tensor], str | None]:
+    """The loss's gradient with respect to each parameter that has one, and what made the step
+    unusable (a non-finite loss or gradient), else None."""
+    if not bool(torch.isfinite(loss)):
+        return {}, f"loss {float(loss.detach())}"
+    names = list(params)
+    grads = torch.autograd.grad(loss, [params[k] for k in names], allow_unused=True)
+    grads = {k: g for k, g in zip(names, grads) if g is not None}
+    if not all(bool(torch.isfinite(g).all()) for g in grads.values()):
+        return grads, "non-finite gradient"
+    return grads, None
+
+
+def _pad_rows(g: torch.Tensor, rows: int) -> torch.Tensor:
+    """`g` with zero rows appended up to `rows` rows."""
+    extra = rows - g.shape[0]
+    return g if extra <= 0 else torch.cat([g, g.new_zeros((extra,) + tuple(g.shape[1:]))])

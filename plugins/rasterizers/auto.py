@@ -1,0 +1,66 @@
+"""`rasterizer=auto` (the default): the first backend of `prefer` that can be built here.
+
+gsplat needs CUDA, the gsplat package and its compiled extension; cpu needs a C++ compiler
+(the library is built on first use); torch always works. A backend that cannot be built is
+skipped with a log line saying why. Each is built with its default config: to configure a
+backend, select it by name (`rasterizer=cpu rasterizer.num_threads=2`).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+from slamkit.errors import ConfigError, PluginError
+from slamkit.plugin import PluginSpec, hookimpl
+from slamkit.rendering import Rasterizer
+from slamkit.roles import PluginConfig, require
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class AutoRasterizerConfig(PluginConfig):
+    """prefer: the backends tried, in order (each with its default config)."""
+
+    prefer: list[str] = field(default_factory=lambda: ["gsplat", "cpu", "torch"])
+
+    def validate(self) -> None:
+        require(len(self.prefer) > 0 and "auto" not in self.prefer, "rasterizer.prefer",
+                "a non-empty list of backend names other than auto", self.prefer)
+
+
+class AutoRasterizer(Rasterizer):
+    """Renders with `backend`, the first of `prefer` that could be built (its name: `name`);
+    other attributes are the backend's."""
+
+    def __init__(self, cfg: AutoRasterizerConfig):
+        from slamkit.registry import default_registry
+
+        self.cfg = cfg
+        reasons = []
+        for name in cfg.prefer:
+            try:
+                self.backend = default_registry().create("rasterizer", name)
+                self.name = name
+                break
+            except (ConfigError, PluginError) as exc:
+                reasons.append(f"{name}: {exc}")
+                log.info("rasterizer auto: not using %s (%s)", name, exc)
+        else:
+            raise ConfigError("rasterizer auto: no backend could be built (" + "; ".join(reasons) + ")")
+        if reasons:
+            log.info("rasterizer auto: using %s", self.name)
+
+    def render(self, *args, **kwargs):
+        return self.backend.render(*args, **kwargs)
+
+    def __getattr__(self, attr):  # counters and timings of the backend (last_num_pairs, ...)
+        if attr == "backend":
+            raise AttributeError(attr)
+        return getattr(self.backend, attr)
+
+
+@hookimpl
+def slamkit_plugins():
+    return [PluginSpec("auto", AutoRasterizer, AutoRasterizerConfig)]

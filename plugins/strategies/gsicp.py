@@ -1,0 +1,71 @@
+"""`strategy=gsicp`: GS-ICP SLAM's map upkeep (paper Sec. 3.2, Table 8b): no densification
+(keyframes add the Gaussians), only pruning: every `prune_every` training steps and after the
+last one, the Gaussians that are nearly transparent, larger than the scene allows, or have a
+non-finite parameter are removed."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from slamkit.map_editing import MapEdit
+from slamkit.plugin import PluginSpec, hookimpl
+from slamkit.roles import DensifyStrategy, SensorProfile, StepInfo, StrategyConfig, require
+
+
+@dataclass
+class PruneConfig(StrategyConfig):
+    """prune_every: training steps between prunings (0 = never). prune_min_opacity: prune
+    Gaussians less opaque than this. max_scale: metres; prune Gaussians whose largest standard
+    deviation exceeds it (null = the dataset's `SensorProfile.max_gaussian_scale`: 0.25 Replica,
+    1.0 TUM)."""
+
+    prune_every: int = 200
+    prune_min_opacity: float = 0.005
+    max_scale: float | None = None
+
+    def validate(self) -> None:
+        super().validate()
+        require(self.prune_every >= 0, "strategy.prune_every", "an integer >= 0 (0 = never)", self.prune_every)
+        require(0 <= self.prune_min_opacity < 1, "strategy.prune_min_opacity", "in [0, 1)", self.prune_min_opacity)
+        require(self.max_scale is None or self.max_scale > 0, "strategy.max_scale", "null or > 0 metres",
+                self.max_scale)
+
+    def with_sensor(self, sensor: SensorProfile) -> PruneConfig:
+        return self.fill_nulls(max_scale=sensor.max_gaussian_scale)
+
+
+class PruneStrategy(DensifyStrategy):
+    """Pruning on a schedule (see the module docstring)."""
+
+    def __init__(self, cfg: PruneConfig):
+        super().__init__(cfg)
+        require(cfg.max_scale is not None, "strategy.max_scale", "a value (PruneConfig.with_sensor fills it)", None)
+
+    def prune_mask(self, edit: MapEdit) -> torch.Tensor:
+        """True for the Gaussians to remove: opacity < prune_min_opacity, largest scale >
+        max_scale, or a parameter that is not finite."""
+        p = edit.params
+        drop = torch.sigmoid(p["opacity_logits"]) < self.cfg.prune_min_opacity
+        drop |= torch.exp(p["log_scales"]).max(dim=1).values > self.cfg.max_scale
+        for t in p.values():
+            drop |= ~torch.isfinite(t).reshape(len(t), -1).all(dim=1)
+        return drop
+
+    def prune(self, edit: MapEdit) -> int:
+        """Prune now; returns the number of Gaussians removed."""
+        return edit.remove(self.prune_mask(edit))
+
+    def step_post_backward(self, edit: MapEdit, info: StepInfo) -> None:
+        if self.cfg.prune_every and info.step % self.cfg.prune_every == 0:
+            self.prune(edit)
+
+    def finish(self, edit: MapEdit) -> None:
+        if self.cfg.prune_every:
+            self.prune(edit)
+
+
+@hookimpl
+def slamkit_plugins():
+    return [PluginSpec("gsicp", PruneStrategy, PruneConfig)]

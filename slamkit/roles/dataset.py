@@ -1,0 +1,155 @@
+"""The dataset role: a finite RGB-D sequence with random access, and what it knows of its sensor."""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import math
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+from slamkit.roles.config import PluginConfig, require
+from slamkit.types import Camera, Frame
+
+
+@dataclass(frozen=True)
+class SensorProfile:
+    """What a dataset knows of its depth camera and scenes. Other parts read it by field to
+    fill their settings left null (`PluginConfig.with_sensor`): G-ICP's sample stride and
+    correspondence distance, the keyframe thresholds, the largest Gaussian a strategy keeps.
+    The defaults describe a hand-held structured-light camera in a room (TUM RGB-D's values,
+    as the reference code tunes them).
+
+    depth_scale: raw depth-image units per metre (TUM 5000, Replica 6553.5; 0 = depth not
+      stored as integers). depth_trunc: metres, depth beyond is not used for tracking (inf =
+      no limit). max_gaussian_scale: metres, the largest plausible Gaussian standard deviation
+      in these scenes (larger ones are pruned). tracking_pixel_stride: a tracker samples every
+      n-th pixel in x and y at the native resolution (reference: 5 TUM, 10 Replica).
+      correspondence_distance: metres, G-ICP's largest correspondence distance for this depth
+      noise (0.03 TUM, 0.02 Replica). min_target_opacity: map Gaussians at or below this
+      opacity are not tracked against. new_gaussian_overlap: m^2, a keyframe Gaussian this close
+      to a trackable map Gaussian is not made trackable (no duplicate targets).
+      keyframe_overlap: m^2, a frame point overlaps the map when its squared distance to the
+      nearest map Gaussian is below this (1e-3 TUM, 5e-4 Replica). keyframe_threshold: a
+      tracking keyframe when the overlapping fraction drops below this (0.81 TUM, 0.7 Replica).
+    """
+
+    depth_scale: float = 0.0
+    depth_trunc: float = math.inf
+    max_gaussian_scale: float = 1.0
+    tracking_pixel_stride: int = 5
+    correspondence_distance: float = 0.03
+    min_target_opacity: float = 0.09
+    new_gaussian_overlap: float = 1e-3
+    keyframe_overlap: float = 1e-3
+    keyframe_threshold: float = 0.81
+
+
+#: What a frame that fails to load does: stop the run (raise) or become a lost frame (skip).
+#: (Functional form: `raise` is a keyword, and Hydra matches enum members by name.)
+OnError = enum.Enum("OnError", {"raise": "raise", "skip": "skip"}, module=__name__)
+
+
+@dataclass
+class DatasetConfig(PluginConfig):
+    """Options every dataset takes.
+
+    path: folder of the sequence. start, stride, max_frames: which frames are used (frame i of
+    the run is raw frame start + i * stride); max_frames null = all. depth_trunc: metres,
+    points beyond are not used for tracking (null = the dataset's default). fx, fy, cx, cy:
+    override the intrinsics in pixels (null = from the dataset). prefetch: frames read ahead
+    in a background thread. on_error: raise (default) stops the run at a frame that cannot be
+    read, with a one-line error naming the file; skip logs a warning, marks the frame lost
+    (it keeps the previous pose) and counts it in lost_frames.
+    """
+
+    path: str = ""
+    start: int = 0
+    stride: int = 1
+    max_frames: int | None = None
+    depth_trunc: float | None = None
+    fx: float | None = None
+    fy: float | None = None
+    cx: float | None = None
+    cy: float | None = None
+    prefetch: int = 8
+    on_error: OnError = OnError["raise"]
+
+    def validate(self) -> None:
+        require(self.start >= 0, "dataset.start", "an integer >= 0", self.start)
+        require(self.stride >= 1, "dataset.stride", "an integer >= 1", self.stride)
+        require(self.max_frames is None or self.max_frames >= 1, "dataset.max_frames", "null or >= 1", self.max_frames)
+        require(self.depth_trunc is None or self.depth_trunc > 0, "dataset.depth_trunc", "null or > 0 metres", self.depth_trunc)
+        require(self.prefetch >= 0, "dataset.prefetch", "an integer >= 0", self.prefetch)
+        for name in ("fx", "fy"):
+            v = getattr(self, name)
+            require(v is None or v > 0, f"dataset.{name}", "null or > 0 pixels", v)
+
+
+class Dataset(ABC):
+    """A finite RGB-D sequence with random access.
+
+    Subclasses set `camera` (before intrinsics overrides) and implement `num_available` and
+    `load`; the base class applies start / stride / max_frames, intrinsics overrides and
+    depth_trunc. `default_sensor` describes the sensor (a class attribute, or an instance
+    attribute when it depends on the files, e.g. their depth scale); `sensor` is it with the
+    user's depth_trunc applied.
+    """
+
+    default_sensor: SensorProfile = SensorProfile()
+
+    def __init__(self, cfg: DatasetConfig):
+        self.cfg = cfg
+
+    @property
+    @abstractmethod
+    def native_camera(self) -> Camera:
+        """The dataset's own intrinsics."""
+
+    @abstractmethod
+    def num_available(self) -> int:
+        """Number of frames in the sequence on disk."""
+
+    @abstractmethod
+    def load(self, raw_index: int) -> Frame:
+        """Read raw frame `raw_index` (0-based over the whole sequence) from disk."""
+
+    @property
+    def camera(self) -> Camera:
+        c = self.cfg
+        return self.native_camera.with_overrides(fx=c.fx, fy=c.fy, cx=c.cx, cy=c.cy)
+
+    @property
+    def sensor(self) -> SensorProfile:
+        """The sensor profile other parts read (`default_sensor`, with `dataset.depth_trunc`)."""
+        if self.cfg.depth_trunc is None:
+            return self.default_sensor
+        return dataclasses.replace(self.default_sensor, depth_trunc=float(self.cfg.depth_trunc))
+
+    @property
+    def depth_trunc(self) -> float:
+        """Metres; depth beyond is not used for tracking (inf = no limit)."""
+        return self.sensor.depth_trunc
+
+    def raw_timestamp(self, raw_index: int) -> float:
+        """Seconds; must not read image files (used for frames that fail to load). Datasets
+        whose timestamps are not raw_index / 30 override it."""
+        return raw_index / 30.0
+
+    def timestamp(self, i: int) -> float:
+        return self.raw_timestamp(self.raw_indices()[i])
+
+    def raw_indices(self) -> range:
+        r = range(self.cfg.start, self.num_available(), self.cfg.stride)
+        return r if self.cfg.max_frames is None else r[: self.cfg.max_frames]
+
+    def __len__(self) -> int:
+        return len(self.raw_indices())
+
+    def __getitem__(self, i: int) -> Frame:
+        raw = self.raw_indices()[i]
+        frame = self.load(raw)
+        frame.index = i
+        frame.camera = self.camera
+        frame.depth_trunc = self.depth_trunc
+        return frame

@@ -1,0 +1,64 @@
+"""The one table of roles. The registry, the Hydra config groups, the run's defaults, the plugin
+listing (`slamkit-plugins`) and the configuration reference (docs/configuration.md) all come
+from it: a new role is a base class and a line here."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from slamkit.errors import PluginError
+from slamkit.rendering import Rasterizer
+from slamkit.roles.dataset import Dataset
+from slamkit.roles.mapping import KeyframeSampler, Mapper, MapOptimizer, MappingLoss
+from slamkit.roles.strategy import DensifyStrategy
+from slamkit.roles.tracking import KeyframePolicy, Tracker
+from slamkit.roles.viewer import Viewer
+
+
+@dataclass(frozen=True)
+class Role:
+    """A kind of plugin. key: its config group and command-line key (``tracker=NAME``,
+    ``tracker.FIELD=VALUE``). base: the class its plugins subclass (how a plugin says which role
+    it fills). default: the plugin a run uses unless told otherwise. part_of: the role whose
+    plugins are composed of this one (the mapper's parts), None for the run's own roles.
+    summary: one line for listings and the docs."""
+
+    key: str
+    base: type
+    default: str
+    summary: str
+    part_of: str | None = None
+
+
+ROLES: tuple[Role, ...] = (
+    Role("dataset", Dataset, "synthetic", "the RGB-D sequence"),
+    Role("tracker", Tracker, "gicp", "estimates each frame's camera pose"),
+    Role("keyframe", KeyframePolicy, "overlap", "decides which frames become keyframes"),
+    Role("mapper", Mapper, "none", "optimises the shared Gaussian map"),
+    Role("rasterizer", Rasterizer, "auto", "renders the Gaussians, differentiably", "mapper"),
+    Role("sampler", KeyframeSampler, "random", "chooses the keyframe each training step uses", "mapper"),
+    Role("strategy", DensifyStrategy, "gsicp", "grows, prunes and bounds the map while it trains", "mapper"),
+    Role("optimizer", MapOptimizer, "adam", "updates the Gaussians' parameters from gradients", "mapper"),
+    Role("loss", MappingLoss, "l1_ssim_depth", "compares a render with its keyframe", "mapper"),
+    Role("viewer", Viewer, "none", "shows or records the run as it goes"),
+)
+
+ROLE_KEYS: tuple[str, ...] = tuple(r.key for r in ROLES)
+
+
+def role(key: str) -> Role:
+    """The role with config key `key`."""
+    for r in ROLES:
+        if r.key == key:
+            return r
+    raise KeyError(key)
+
+
+def role_of(cls: type) -> Role:
+    """The role whose base class `cls` subclasses; PluginError if none or several."""
+    matches = [r for r in ROLES if isinstance(cls, type) and issubclass(cls, r.base)]
+    if len(matches) != 1:
+        bases = ", ".join(r.base.__name__ for r in ROLES)
+        found = "none" if not matches else " and ".join(r.base.__name__ for r in matches)
+        raise PluginError(f"{cls!r} must subclass exactly one role base class ({bases}); it subclasses {found}")
+    return matches[0]

@@ -1,0 +1,56 @@
+"""The tracking roles: the tracker (a pose per frame) and the keyframe policy."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+import numpy as np
+
+from slamkit.gaussian_map import GaussianMap
+from slamkit.types import Frame, KeyframeKind, TrackingResult
+
+
+class Tracker(ABC):
+    """Estimates each frame's camera-to-world pose."""
+
+    @abstractmethod
+    def track(self, frame: Frame, gaussian_map: GaussianMap) -> TrackingResult:
+        """Pose of `frame` (camera-to-world). Must not raise on a bad frame: return
+        `lost=True` with the predicted pose instead."""
+
+    def update_target(self, gaussian_map: GaussianMap) -> None:
+        """Called after a tracking keyframe added its Gaussians: rebuild what is aligned to."""
+
+    def initialize(self, first_pose: np.ndarray) -> None:
+        """Called once before the first frame with the pose the trajectory starts from."""
+
+    def use_threads(self, threads: int) -> None:
+        """The run's CPU threads for this tracker (one in real-time mode, where mapping has the
+        others; every CPU otherwise), given before the first frame. A tracker whose config fixes
+        its thread count keeps it. The default ignores it."""
+
+
+@dataclass
+class KeyframeHistory:
+    """Frame indices (`frame.index`) of the last tracking keyframe and of the last keyframe of
+    any kind; None before the first. Policies count their intervals from these."""
+
+    last_tracking: int | None = None
+    last_keyframe: int | None = None
+
+    def record(self, index: int, kind: KeyframeKind) -> KeyframeKind:
+        """Note frame `index`'s decision and return it."""
+        if kind is KeyframeKind.TRACKING:
+            self.last_tracking = index
+        if kind:
+            self.last_keyframe = index
+        return kind
+
+
+class KeyframePolicy(ABC):
+    """Decides which frames become keyframes, and of which kind."""
+
+    @abstractmethod
+    def decide(self, frame: Frame, result: TrackingResult) -> KeyframeKind:
+        """The keyframe kind of `frame` given its tracking result."""

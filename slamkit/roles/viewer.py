@@ -1,0 +1,111 @@
+"""The viewer role: shows or records a run as it happens (optional: `viewer=none`)."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from slamkit.gaussian_map import GaussianMap
+from slamkit.rendering import RenderOutput
+from slamkit.roles.config import PluginConfig, require
+from slamkit.roles.mapping import Mapper
+from slamkit.types import Camera, Frame, KeyframeKind
+
+
+@dataclass
+class ViewerConfig(PluginConfig):
+    """Options every viewer takes (a viewer's config may derive from this one).
+
+    render_every: frames between renders of the map from the current pose (0 = never; a
+    render costs about one mapping step). render_scale: resolution of those renders relative
+    to the frame's, in (0, 1]. map_every: frames between logs of the Gaussian centres (0 =
+    only after the last frame). map_max_points: at most this many Gaussian centres per log
+    (an even subsample of the map).
+    """
+
+    render_every: int = 10
+    render_scale: float = 0.5
+    map_every: int = 10
+    map_max_points: int = 200_000
+
+    def validate(self) -> None:
+        require(self.render_every >= 0, "viewer.render_every", "an integer >= 0 (0 = never)", self.render_every)
+        require(0 < self.render_scale <= 1, "viewer.render_scale", "in (0, 1]", self.render_scale)
+        require(self.map_every >= 0, "viewer.map_every", "an integer >= 0 (0 = at the end only)", self.map_every)
+        require(self.map_max_points >= 1, "viewer.map_max_points", "an integer >= 1", self.map_max_points)
+
+
+@dataclass
+class MapPoints:
+    """Gaussian centres for display: positions (N,3) float32 world metres, colors (N,3) uint8
+    RGB, radii (N,) float32 metres (the geometric mean of each Gaussian's standard deviations),
+    out of `total` Gaussians in the map."""
+
+    positions: np.ndarray
+    colors: np.ndarray
+    radii: np.ndarray
+    total: int
+
+
+@dataclass
+class ViewerFrame:
+    """What a viewer sees of one processed frame.
+
+    frame: the input (rgb, depth in metres, camera, gt_pose camera-to-world or None). pose:
+    the estimated camera-to-world pose (4x4, metres, OpenCV axes). keyframe, lost: the
+    tracker's and keyframe policy's outcome. trajectory, gt_trajectory: (n,3) camera centres
+    in world metres of the frames so far (gt: the frames that have ground truth). The map and
+    the mapper are shared with the running SLAM: use `map_points` and `render`, which copy
+    under the map's lock.
+    """
+
+    frame: Frame
+    pose: np.ndarray
+    keyframe: KeyframeKind
+    lost: bool
+    trajectory: np.ndarray
+    gt_trajectory: np.ndarray
+    gaussian_map: GaussianMap
+    mapper: Mapper
+
+    def map_points(self, max_points: int) -> MapPoints:
+        """An even subsample (every k-th row) of at most `max_points` Gaussian centres."""
+        gm = self.gaussian_map
+        with gm.lock:
+            total = len(gm)
+            step = max(1, -(-total // max_points))
+            means = gm.means.detach()[::step].cpu().numpy().astype(np.float32)
+            colors = gm.colors.detach()[::step].clamp(0, 1).cpu().numpy()
+            log_scales = gm.log_scales.detach()[::step].cpu().numpy()
+        radii = np.exp(log_scales.mean(axis=1)).astype(np.float32) if len(log_scales) else np.zeros(0, np.float32)
+        return MapPoints(means, (colors * 255 + 0.5).astype(np.uint8), radii, total)
+
+    def render(self, scale: float = 1.0) -> RenderOutput | None:
+        """The mapper's render from the estimated pose at `scale` of the frame's resolution,
+        or None when the mapper cannot render."""
+        camera = self.frame.camera if scale == 1.0 else self.frame.camera.scaled(scale)
+        return self.mapper.render_view(self.pose, camera)
+
+
+class Viewer(ABC):
+    """Shows (or records) a run as it happens. Optional: `viewer=none` does nothing.
+
+    slamkit calls `start` once before the first frame, `show` after every processed frame
+    (in the tracking thread; keep it cheap, do expensive things every n-th frame) and `close`
+    once at the end, also when the run stops early. An exception from any of them is reported
+    as a warning and the viewer is switched off: a viewer never stops a run.
+    """
+
+    def start(self, camera: Camera, out_dir: Path) -> None:
+        """Called before the first frame with the dataset's camera (pixels) and the run folder."""
+
+    @abstractmethod
+    def show(self, view: ViewerFrame) -> None:
+        """Log one processed frame."""
+
+    def close(self, view: ViewerFrame | None) -> None:
+        """Called after the last frame with its view (None if no frame was processed)."""
+

@@ -1,0 +1,36 @@
+"""PSNR, SSIM and depth L1, with and without a mask (slamkit.image_metrics)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from pytorch_msssim import ssim as ms_ssim
+
+from slamkit import image_metrics
+
+
+def test_psnr_ssim_l1_and_masks():
+    rng = np.random.default_rng(0)
+    a = torch.as_tensor(rng.uniform(size=(20, 24, 3)), dtype=torch.float32)
+    b = a.clone()
+    assert image_metrics.psnr(a, b) == math.inf
+    assert image_metrics.ssim(a, b) == pytest.approx(1.0, abs=1e-6)
+    b += 0.1
+    assert image_metrics.psnr(a, b) == pytest.approx(20.0, abs=1e-4)
+    mask = torch.zeros(20, 24, dtype=torch.bool)
+    mask[:, :12] = True
+    b[:, 12:] = 0.9  # outside the mask: does not count
+    assert image_metrics.psnr(a, b, mask) == pytest.approx(20.0, abs=1e-4)
+    # masked SSIM = SSIM of both images with the outside pixels zeroed (the reference's way)
+    m = mask[..., None].float()
+    expected = ms_ssim((a * m).permute(2, 0, 1)[None], (b * m).permute(2, 0, 1)[None], data_range=1.0)
+    assert image_metrics.ssim(a, b, mask) == pytest.approx(float(expected), abs=1e-6)
+    d_obs = torch.full((20, 24), 2.0)
+    d_obs[0] = 0  # invalid
+    d_ren = torch.full((20, 24), 2.05)
+    d_ren[0] = 100.0
+    assert image_metrics.l1_depth(d_ren, d_obs) == pytest.approx(0.05, abs=1e-6)
+    assert math.isnan(image_metrics.psnr(a, b, torch.zeros_like(mask)))

@@ -1,0 +1,69 @@
+"""Training-view samplers (`sampler=random|covisible|recent`), and what their settings change."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from slamkit.compose import build_run
+from slamkit.errors import ConfigError
+from slamkit_plugins.samplers.keyframe_samplers import (CovisibleSampler, CovisibleSamplerConfig, RandomSampler,
+                                                        RecentSampler)
+
+
+def look(yaw_deg: float, x: float = 0.0, z: float = 0.0) -> np.ndarray:
+    a = math.radians(yaw_deg)
+    T = np.eye(4)
+    T[:3, :3] = [[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]]
+    T[0, 3], T[2, 3] = x, z
+    return T
+
+
+def draws(sampler, poses: dict, current: np.ndarray, n: int = 300) -> set:
+    rng = np.random.default_rng(0)
+    return {sampler.sample(list(poses), current, rng, poses) for _ in range(n)}
+
+
+def test_random_recent_and_covisible_choices():
+    rng = np.random.default_rng(0)
+    ids = [3, 4, 5, 6, 7]
+    poses = {k: np.eye(4) for k in ids}
+    counts = np.bincount([RandomSampler().sample(ids, None, rng, poses) for _ in range(2000)], minlength=8)[3:]
+    assert counts.min() > 300 and counts.max() < 500  # uniform: 400 each
+    assert RecentSampler().sample(ids, None, rng, poses) == 7
+    poses = {0: look(0), 1: look(180), 2: look(5, 0.1), 3: look(170), 4: look(-5), 5: look(90)}
+    sampler = CovisibleSampler()
+    scores = sampler.scores(look(0), [poses[k] for k in range(6)])
+    assert scores[0] == pytest.approx(1.0) and scores[1] == 0 and scores[3] == 0
+    assert draws(sampler, poses, look(0)) == {0, 2, 4}  # the three looking the same way, each drawn
+    with pytest.raises(ValueError):
+        RandomSampler().sample([], None, rng, {})
+
+
+def test_top_k_is_how_many_of_the_most_covisible_are_drawn_from():
+    poses = {0: look(0), 1: look(3), 2: look(-20), 3: look(40), 4: look(180)}
+    assert draws(CovisibleSampler(CovisibleSamplerConfig(top_k=1)), poses, look(0)) == {0}
+    assert draws(CovisibleSampler(CovisibleSamplerConfig(top_k=2)), poses, look(0)) == {0, 1}
+    assert draws(CovisibleSampler(CovisibleSamplerConfig(top_k=4)), poses, look(0)) == {0, 1, 2, 3}
+
+
+def test_fov_deg_sets_the_frustums_compared():
+    """A keyframe turned 40 degrees away shares part of a 90-degree view, none of a 20-degree one."""
+    current, turned = look(0), [look(40)]
+    assert CovisibleSampler(CovisibleSamplerConfig(fov_deg=90)).scores(current, turned)[0] > 0.2
+    assert CovisibleSampler(CovisibleSamplerConfig(fov_deg=20)).scores(current, turned)[0] == 0
+
+
+def test_max_depth_sets_how_far_the_probe_points_reach():
+    """A keyframe 4 m ahead sees the current view's points only when they reach beyond it."""
+    current, ahead = look(0), [look(0, z=4.0)]
+    assert CovisibleSampler(CovisibleSamplerConfig(max_depth=3.0)).scores(current, ahead)[0] == 0
+    assert CovisibleSampler(CovisibleSamplerConfig(max_depth=12.0)).scores(current, ahead)[0] > 0.1
+
+
+@pytest.mark.parametrize("key, value", [("top_k", -1), ("top_k", 0), ("fov_deg", 180), ("max_depth", 0)])
+def test_bad_settings_name_the_key(key, value):
+    with pytest.raises(ConfigError, match=f"sampler.{key}: expected"):
+        build_run(["mapper=gaussian_splatting", "sampler=covisible", f"sampler.{key}={value}"])

@@ -1,0 +1,130 @@
+"""Densification strategies (`strategy=gsicp|3dgs`) through the mapper's hooks, and the growth
+control every strategy has (`strategy.skip_covered`)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from mapping_scenes import N, add, make_map, make_mapper, plane_scene, pose_x, render_frame, start_map, state_follows_map
+from slamkit.errors import ConfigError
+from slamkit.gaussian_map import GaussianMap
+from slamkit.map_growth import MapGrowthConfig
+from slamkit.registry import create_rasterizer
+from slamkit.roles import SensorProfile, Tracker
+from slamkit.slam import SLAM
+from slamkit.types import FrameGaussians, KeyframeKind, TrackingResult
+from slamkit_plugins.keyframes.every_n import EveryNKeyframeConfig, EveryNKeyframePolicy
+from slamkit_plugins.strategies.densify_3dgs import Densify3DGSConfig
+
+
+@pytest.fixture(scope="module")
+def frame():
+    return render_frame(create_rasterizer("torch"), make_map(*plane_scene()), pose_x(0.0))
+
+
+def test_gsicp_prunes_on_schedule_with_the_sensors_scale_limit(frame):
+    gm = start_map()
+    with torch.no_grad():
+        gm.log_scales[:7, 0] = math.log(0.3)  # above Replica's 0.25 m, below TUM's 1 m
+        gm.opacity_logits[7:10] = math.log(0.001 / 0.999)  # nearly transparent
+    replica = SensorProfile(max_gaussian_scale=0.25)
+    mapper = make_mapper(gm, sensor=replica, strategy=("gsicp", {"prune_every": 3}))
+    add(mapper, frame)
+    mapper.optimize(2)
+    assert len(gm) == N  # not yet
+    mapper.optimize(1)
+    assert len(gm) == N - 10
+    state_follows_map(mapper)
+    tum = start_map()
+    with torch.no_grad():
+        tum.log_scales[:7, 0] = math.log(0.3)
+    mapper = make_mapper(tum, strategy=("gsicp", {"prune_every": 3}))  # the generic profile: 1 m
+    add(mapper, frame)
+    mapper.optimize(3)
+    assert len(tum) == N
+
+
+def test_gsicp_without_a_schedule_never_prunes(frame):
+    gm = start_map()
+    with torch.no_grad():
+        gm.opacity_logits[:5] = math.log(0.001 / 0.999)
+    mapper = make_mapper(gm, strategy=("gsicp", {"prune_every": 0}))
+    add(mapper, frame)
+    mapper.optimize(6)
+    mapper.finish()
+    assert len(gm) == N
+    mapper = make_mapper(gm, strategy=("gsicp", {"prune_every": 100}))
+    mapper.finish()  # the last prune after the final steps
+    assert len(gm) == N - 5
+
+
+def test_3dgs_clones_small_splits_large_and_resets_opacity(frame):
+    gm = start_map()
+    with torch.no_grad():
+        gm.log_scales[:150] = math.log(0.1)  # half of them above the split scale
+    mapper = make_mapper(gm, strategy=("3dgs", {"densify_every": 3, "grad_threshold": 1e-9,
+                                                "split_above_scale": 0.09, "reset_opacity_every": 4,
+                                                "prune_every": 0}))
+    add(mapper, frame)
+    mapper.optimize(3)
+    seen = int((gm.keyframe_id == 0).sum())
+    assert len(gm) > N  # the ones it saw: cloned (small) or split in two (large)
+    assert float(gm.scales.detach().max()) < 0.1  # every large one it saw was split
+    state_follows_map(mapper)
+    mapper.optimize(1)
+    assert float(gm.opacities.detach().max()) <= 0.01 + 1e-6
+    mapper.optimize(2)
+    state_follows_map(mapper)
+    assert all(torch.isfinite(p).all() for p in gm.parameters().values()) and seen > 0
+
+
+def test_3dgs_densification_stays_within_its_budget(frame):
+    gm = start_map()
+    mapper = make_mapper(gm, strategy=("3dgs", {"densify_every": 3, "grad_threshold": 1e-9,
+                                                "densify_max_gaussians": N + 20, "prune_every": 0}))
+    add(mapper, frame)
+    mapper.optimize(3)
+    assert N < len(gm) <= N + 20
+
+
+def test_strategy_settings_are_validated():
+    with pytest.raises(ConfigError, match="strategy.densify_every"):
+        Densify3DGSConfig(densify_every=0)
+    with pytest.raises(ConfigError, match="strategy.covered_alpha"):
+        Densify3DGSConfig(covered_alpha=1.0)
+
+
+class PlaneTracker(Tracker):
+    """Ground-truth poses; its keyframe Gaussians: 20 on the map's wall, 10 floating in front."""
+
+    def track(self, frame, gaussian_map):
+        rng = np.random.default_rng(3)
+        on = np.c_[rng.uniform(-0.6, 0.6, (20, 2)), np.full(20, 2.0)]
+        front = np.c_[rng.uniform(-0.6, 0.6, (10, 2)), np.full(10, 1.4)]
+        new = np.r_[on, front].astype(np.float32)
+        g = FrameGaussians(new, np.tile(np.eye(3) * 1e-4, (30, 1, 1)), np.full((30, 3), 0.5), new[:, 2],
+                           np.ones(30, bool))
+        return TrackingResult(frame.gt_pose, gaussians=g)
+
+
+@pytest.mark.parametrize("skip_covered", [True, False])
+def test_skip_covered_admits_only_what_the_map_does_not_explain(frame, skip_covered):
+    """Map growth is one step: the strategy decides before anything is appended."""
+    means, quats, scales, colors, _ = plane_scene(opacity=0.99)
+    gm = make_map(means, quats, scales * 2, colors, 0.99)  # an opaque wall at z = 2 m
+    mapper = make_mapper(gm, strategy=("gsicp", {"skip_covered": skip_covered}))
+    slam = SLAM(PlaneTracker(), EveryNKeyframePolicy(EveryNKeyframeConfig(tracking_every=1)), mapper, gm,
+                MapGrowthConfig(), iterations_per_frame=0)
+    slam.initialize(np.eye(4))
+    structure = gm.structure_version
+    slam.step(frame)
+    if skip_covered:
+        assert len(gm) == N + 10  # only the floating ones
+        assert bool((gm.means.detach()[N:, 2] < 1.5).all())
+    else:
+        assert len(gm) == N + 30
+    assert gm.structure_version == structure  # nothing was added and then removed
