@@ -1,6 +1,6 @@
 """Where a long mapping run's resident memory goes: resident set vs live torch tensors vs
 glibc's heap (bytes in use, bytes free but still resident, mmapped), every `--every` frames of
-the synthetic sequence, in-process, with or without `slamkit.heap.release_free_memory` at
+the synthetic sequence, in-process, with or without `slamkit.run.heap.release_free_memory` at
 keyframes (`--no-trim` turns it off). Linux / glibc only.
 
     OMP_NUM_THREADS=1 python benchmarks/heap.py --frames 500 --max-gaussians 200000
@@ -18,8 +18,8 @@ import time
 
 import torch
 
-import slamkit.slam
-from slamkit.compose import build_run
+import slamkit.run.slam
+from slamkit.registry.compose import build_run
 
 
 class MallInfo2(ctypes.Structure):
@@ -59,7 +59,7 @@ def main() -> None:
     parser.add_argument("--no-trim", action="store_true", help="do not return free heap pages at keyframes")
     args = parser.parse_args()
     if args.no_trim:
-        slamkit.slam.release_free_memory = lambda: False
+        slamkit.run.slam.release_free_memory = lambda: False
     mallinfo2 = ctypes.CDLL("libc.so.6").mallinfo2
     mallinfo2.restype = MallInfo2
     dataset, slam = build(args.frames, args.max_gaussians, args.iterations)

@@ -31,8 +31,8 @@ import numpy as np
 import torch
 
 from slamkit.errors import SlamkitError
-from slamkit.geometry import rotmat_to_quat
-from slamkit.registry import create_rasterizer
+from slamkit.geometry.transforms import rotmat_to_quat
+from slamkit.registry.discovery import create_rasterizer
 from slamkit.types import Camera
 
 SCENES = {"small": (20_000, 320, 240), "large": (100_000, 640, 480)}

@@ -22,9 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from slamkit import evaluation
-from slamkit.compose import build_run
-from slamkit.registry import default_registry
+from slamkit.metrics import trajectory as evaluation
+from slamkit.registry.compose import build_run
+from slamkit.registry.discovery import default_registry
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 SEQUENCES = {"tum": DATA / "tum_fr1_rpy_first150", "replica": DATA / "replica_room0_first20"}

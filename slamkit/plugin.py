@@ -5,7 +5,7 @@ A plugin module is any importable module named by an entry point in the group ``
     [project.entry-points.slamkit]
     my_tracker = "my_package.my_tracker"
 
-and implementing the hook of `slamkit.hookspecs`::
+and implementing the hook of `slamkit.registry.hookspecs`::
 
     from slamkit.plugin import PluginSpec, hookimpl
 

@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from slamkit.gaussian_map import GaussianMap, GaussianRows
-from slamkit.registry import default_registry
+from slamkit.map.gaussian_map import GaussianMap, GaussianRows
+from slamkit.registry.discovery import default_registry
 from slamkit.roles import SensorProfile
 from slamkit.types import Camera, Frame, KeyframeKind, TrackingResult
 

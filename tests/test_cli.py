@@ -8,9 +8,11 @@ import shutil
 import numpy as np
 import pytest
 
-from slamkit.tum_format import read_tum_trajectory
+from slamkit.formats.tum import read_tum_trajectory
 
 from conftest import run_slamkit
+
+pytestmark = pytest.mark.slow  # every test here starts the slamkit command
 
 CONTRACT_KEYS = {"num_frames", "num_keyframes", "fps", "tracking_fps", "tracking_time_s", "mapping_time_s",
                  "lost_frames", "completed", "ate_rmse_m", "ate_mean_m"}

@@ -14,7 +14,7 @@ import torch
 
 import slamkit_plugins.rasterizers.cpu_rasterizer as cpu_module
 from slamkit.errors import ConfigError
-from slamkit.registry import create_rasterizer
+from slamkit.registry.discovery import create_rasterizer
 from slamkit.types import Camera
 from slamkit_plugins.rasterizers.cpu_rasterizer import CPURasterizer, CPURasterizerConfig
 from slamkit_plugins.rasterizers.torch_rasterizer import TorchRasterizer
@@ -265,7 +265,7 @@ def test_first_use_compiles_into_the_project_cache_and_says_so(monkeypatch, tmp_
 def test_native_chooses_whether_the_library_is_built_for_this_cpu(monkeypatch, tmp_path):
     """`rasterizer.native=false` loads a portable build (no -march=native), through the CLI's
     composition."""
-    from slamkit.compose import build_run
+    from slamkit.registry.compose import build_run
 
     _fresh_library(monkeypatch)
     monkeypatch.setenv("SLAMKIT_CACHE", str(tmp_path))
@@ -284,7 +284,7 @@ def test_native_chooses_whether_the_library_is_built_for_this_cpu(monkeypatch, t
 def test_num_threads_is_how_many_threads_render(cpu, threads):
     """A large render (640x480, 20k Gaussians) composited by exactly `rasterizer.num_threads`
     threads."""
-    from slamkit.compose import build_run
+    from slamkit.registry.compose import build_run
 
     rasterizer = build_run(["mapper=gaussian_splatting", "rasterizer=cpu",
                             f"rasterizer.num_threads={threads}"])[1].mapper.rasterizer

@@ -5,8 +5,8 @@ import copy
 import numpy as np
 import pytest
 
-from slamkit.evaluation import ate, rpe, umeyama_alignment
-from slamkit.geometry import make_pose, so3_exp
+from slamkit.metrics.trajectory import ate, rpe, umeyama_alignment
+from slamkit.geometry.transforms import make_pose, so3_exp
 
 
 def random_rotation(rng):
@@ -129,7 +129,7 @@ def test_missing_ground_truth_excluded():
 
 def test_plot_writes_png(tmp_path):
     rng = np.random.default_rng(4)
-    from slamkit.plots import plot_trajectory
+    from slamkit.formats.plots import plot_trajectory
 
     gt = smooth_trajectory(30)
     res = ate(perturbed(gt, rng), gt)

@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import pytest
+
 import csv
 
-from slamkit.report import main as report_main
+from slamkit.cli.report import main as report_main
 
 from conftest import run_slamkit
+
+pytestmark = pytest.mark.slow  # every test here starts the slamkit command
 
 
 def test_two_job_sweep_with_submitit_local_then_report(tmp_path):

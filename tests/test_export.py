@@ -12,12 +12,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from slamkit.export import main as export_main
-from slamkit.gaussian_map import GaussianMap, GaussianRows
-from slamkit.geometry import backproject, make_pose, so3_exp, transform_points
-from slamkit.pipeline import write_camera
-from slamkit.ply import save_ply
-from slamkit.tum_format import read_tum_trajectory, write_tum_trajectory
+from slamkit.cli.export import main as export_main
+from slamkit.map.gaussian_map import GaussianMap, GaussianRows
+from slamkit.geometry.transforms import backproject, make_pose, so3_exp, transform_points
+from slamkit.run.pipeline import write_camera
+from slamkit.formats.ply import save_ply
+from slamkit.formats.tum import read_tum_trajectory, write_tum_trajectory
 from slamkit.types import Camera
 
 from conftest import run_slamkit
@@ -43,6 +43,7 @@ def _plane_run(run_dir: Path) -> None:
     write_tum_trajectory(run_dir / "keyframes.txt", [0.0, 1.0], np.stack([np.eye(4), turned]))
 
 
+@pytest.mark.slow
 def test_mesh_of_a_plane_lies_on_the_plane(tmp_path, capsys):
     pytest.importorskip("open3d", reason="open3d is the optional extra `mesh`")
     import open3d as o3d
@@ -60,6 +61,7 @@ def test_mesh_of_a_plane_lies_on_the_plane(tmp_path, capsys):
     assert vertices[:, 0].max() > 1.7
 
 
+@pytest.mark.slow
 def test_errors_are_one_line(tmp_path, capsys, monkeypatch):
     def fails(args: list[str], *expected: str) -> None:
         assert export_main(args) == 2
@@ -87,6 +89,7 @@ def test_errors_are_one_line(tmp_path, capsys, monkeypatch):
     assert stop.value.code == 2 and "--voxel: expected a number > 0, got '-1'" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_run_writes_its_camera_and_keyframe_poses(tmp_path):
     out = tmp_path / "run"
     proc = run_slamkit("dataset=synthetic", "dataset.num_frames=12", "dataset.width=64", "dataset.height=48",
@@ -105,6 +108,7 @@ def test_run_writes_its_camera_and_keyframe_poses(tmp_path):
     np.testing.assert_allclose(kf_poses, poses[keyframe_rows], atol=1e-8)
 
 
+@pytest.mark.slow
 def test_mesh_of_a_replica_mapping_run_matches_the_true_depth(tmp_path, replica_path):
     """5 real frames mapped (3 keyframes, ~300 steps at quarter resolution), then the mesh: its
     vertices must lie on the surfaces the ground-truth depth sees, and cover most of them."""
@@ -112,7 +116,7 @@ def test_mesh_of_a_replica_mapping_run_matches_the_true_depth(tmp_path, replica_
     import open3d as o3d
     from pykdtree.kdtree import KDTree
 
-    from slamkit.registry import discover
+    from slamkit.registry.discovery import discover
 
     out = tmp_path / "run"
     proc = run_slamkit(

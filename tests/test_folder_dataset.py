@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from slamkit.errors import ConfigError, DataError
-from slamkit.tum_format import read_tum_trajectory, write_tum_trajectory
+from slamkit.formats.tum import read_tum_trajectory, write_tum_trajectory
 from slamkit_plugins.datasets import folder
 from slamkit_plugins.datasets.folder import FolderConfig, FolderDataset
 from slamkit_plugins.datasets.tum import CAMERAS, TUMConfig, TUMDataset
@@ -105,6 +105,7 @@ def test_timestamps_file_and_depth_scale_override(scene):
     np.testing.assert_allclose(ds[0].depth, 2 * ref[0].depth)
 
 
+@pytest.mark.slow
 def test_slamkit_runs_on_a_folder(scene, tmp_path):
     out = tmp_path / "run"
     proc = run_slamkit("dataset=folder", f"dataset.path={scene}", "dataset.trajectory=gt.txt", "mapper=none",
@@ -116,6 +117,7 @@ def test_slamkit_runs_on_a_folder(scene, tmp_path):
     assert metrics["ate_rmse_m"] is not None and metrics["ate_rmse_m"] < 0.1
 
 
+@pytest.mark.slow
 def test_missing_intrinsics_is_one_line_naming_the_file(scene, tmp_path):
     (scene / "intrinsics.yaml").unlink()
     with pytest.raises(DataError) as e:

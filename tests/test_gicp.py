@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from slamkit.errors import ConfigError
-from slamkit.gaussian_geometry import (
+from slamkit.geometry.gaussians import (
     Regularization,
     inverse_sym3,
     knn_covariances,
@@ -17,8 +17,8 @@ from slamkit.gaussian_geometry import (
     sym3_eigh,
     sym3_eigvals,
 )
-from slamkit.gaussian_map import GaussianMap, GaussianRows
-from slamkit.geometry import (
+from slamkit.map.gaussian_map import GaussianMap, GaussianRows
+from slamkit.geometry.transforms import (
     backproject,
     covariance_from_scales,
     invert_pose,
@@ -29,7 +29,7 @@ from slamkit.geometry import (
     so3_exp,
     transform_points,
 )
-from slamkit.map_growth import MapGrowthConfig, ScaleAlignment, new_gaussians, scale_alignment_factors
+from slamkit.map.growth import MapGrowthConfig, ScaleAlignment, new_gaussians, scale_alignment_factors
 from slamkit.roles import SensorProfile
 from slamkit_plugins.trackers.gicp import GICPConfig, GICPTracker, InitialGuess, se3_exp, slamkit_plugins
 from slamkit.types import Camera, Frame

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 import slamkit_plugins.trackers.gicp_kernels as kernels_module
-from slamkit.gaussian_geometry import knn_covariances, regularize
-from slamkit.geometry import backproject, covariance_from_scales, make_pose, so3_exp
+from slamkit.geometry.gaussians import knn_covariances, regularize
+from slamkit.geometry.transforms import backproject, covariance_from_scales, make_pose, so3_exp
 from slamkit.native import NativeLibrary
 from slamkit_plugins.datasets.tum import TUMConfig, TUMDataset
 from slamkit_plugins.trackers.gicp_kernels import CompiledKernels, Kernels, NumpyKernels, create_kernels
@@ -151,10 +151,10 @@ def test_compiled_nearest_neighbours_equal_pykdtree(library, tum_frames):
 
 def test_compiled_tracking_equals_numpy_tracking_on_real_frames(tum_frames):
     """Same trajectory from both kernel sets over a few real frames (map = first frame)."""
-    from slamkit.gaussian_map import GaussianMap
-    from slamkit.map_growth import MapGrowthConfig
-    from slamkit.registry import default_registry
-    from slamkit.slam import SLAM
+    from slamkit.map.gaussian_map import GaussianMap
+    from slamkit.map.growth import MapGrowthConfig
+    from slamkit.registry.discovery import default_registry
+    from slamkit.run.slam import SLAM
     from conftest import TUM
 
     dataset = TUMDataset(TUMConfig(path=str(TUM), max_frames=12))

@@ -1,4 +1,4 @@
-"""PSNR, SSIM and depth L1, with and without a mask (slamkit.image_metrics)."""
+"""PSNR, SSIM and depth L1, with and without a mask (slamkit.metrics.images)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 import torch
 from pytorch_msssim import ssim as ms_ssim
 
-from slamkit import image_metrics
+from slamkit.metrics import images as image_metrics
 
 
 def test_psnr_ssim_l1_and_masks():

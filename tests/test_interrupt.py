@@ -12,7 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from slamkit.tum_format import read_tum_trajectory
+from slamkit.formats.tum import read_tum_trajectory
+
+pytestmark = pytest.mark.slow  # every test here starts the slamkit command
 
 
 def _start(out: Path, *args: str) -> subprocess.Popen:

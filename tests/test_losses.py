@@ -7,7 +7,7 @@ import pytest
 import torch
 from pytorch_msssim import ssim
 
-from slamkit.rendering import RenderOutput
+from slamkit.map.rendering import RenderOutput
 from slamkit.roles import TrainingView
 from slamkit.types import Camera
 from slamkit_plugins.losses.l1_ssim_depth import L1SSIMDepthConfig, L1SSIMDepthLoss

@@ -1,4 +1,4 @@
-"""The shared row operations (slamkit.map_editing.MapEdit) keep the optimiser's and the strategy's
+"""The shared row operations (slamkit.map.editing.MapEdit) keep the optimiser's and the strategy's
 per-row state aligned with the map, whatever the optimiser."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from mapping_scenes import N, plane_scene, rows, start_map
-from slamkit.gaussian_map import PARAMETERS
-from slamkit.map_editing import MapEdit
+from slamkit.map.gaussian_map import PARAMETERS
+from slamkit.map.editing import MapEdit
 from slamkit_plugins.optimizers.adam import AdamConfig, TorchAdam
 from slamkit_plugins.optimizers.visible_adam import VisibleAdam, VisibleAdamConfig
 

@@ -14,14 +14,14 @@ import torch
 
 from mapping_scenes import (CAM, N, add, make_map, make_mapper, plane_scene, pose_x, render_frame, rows, start_map,
                             state_follows_map)
-from slamkit.compose import build_run
+from slamkit.registry.compose import build_run
 from slamkit.errors import ConfigError
-from slamkit.gaussian_map import GaussianMap
-from slamkit.map_growth import MapGrowthConfig
-from slamkit.ply import load_ply
-from slamkit.registry import create_rasterizer
+from slamkit.map.gaussian_map import GaussianMap
+from slamkit.map.growth import MapGrowthConfig
+from slamkit.formats.ply import load_ply
+from slamkit.registry.discovery import create_rasterizer
 from slamkit.roles import Tracker
-from slamkit.slam import SLAM
+from slamkit.run.slam import SLAM
 from slamkit.types import Camera, Frame, FrameGaussians, KeyframeKind, TrackingResult
 from slamkit_plugins.keyframes.every_n import EveryNKeyframeConfig, EveryNKeyframePolicy
 from slamkit_plugins.mappers.gaussian_splatting import GaussianSplattingConfig, resize_rgbd

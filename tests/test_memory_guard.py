@@ -11,13 +11,13 @@ import pytest
 import torch
 
 from mapping_scenes import N, add, make_map, make_mapper, plane_scene, render_frame, rows, start_map, state_follows_map
-from slamkit import evaluation
-from slamkit.compose import build_run
+from slamkit.metrics import trajectory as evaluation
+from slamkit.registry.compose import build_run
 from slamkit.errors import ConfigError
-from slamkit.gaussian_map import GaussianMap
-from slamkit.map_growth import MapGrowthConfig
-from slamkit.registry import create_rasterizer
-from slamkit.slam import SLAM
+from slamkit.map.gaussian_map import GaussianMap
+from slamkit.map.growth import MapGrowthConfig
+from slamkit.registry.discovery import create_rasterizer
+from slamkit.run.slam import SLAM
 from slamkit_plugins.mappers.gaussian_splatting import KeyframeStorage
 from slamkit_plugins.mappers.gaussian_splatting.keyframes import KEYFRAME_DEPTH_STEP
 from slamkit_plugins.strategies.gsicp import PruneConfig
@@ -222,7 +222,7 @@ def test_guarded_replica_run_stays_under_the_cap_keeps_the_most_opaque_and_track
 
 FRAGMENTED_HEAP = """
 import os, numpy as np
-from slamkit.heap import release_free_memory
+from slamkit.run.heap import release_free_memory
 def rss():
     return int(open("/proc/self/statm").read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
 a = np.ones(1 << 20); del a         # freeing an mmapped 8 MB chunk raises glibc's mmap threshold
@@ -237,6 +237,7 @@ print(release_free_memory(), freed, rss())
 """
 
 
+@pytest.mark.slow
 def test_release_free_memory_returns_a_fragmented_heap_to_the_os():
     """200 MB freed inside the heap stay resident until `release_free_memory`."""
     import subprocess
@@ -252,12 +253,12 @@ def test_release_free_memory_returns_a_fragmented_heap_to_the_os():
 
 
 def test_slam_releases_free_memory_at_each_keyframe(monkeypatch, rasterizer):
-    import slamkit.slam
+    import slamkit.run.slam
     from slamkit_plugins.keyframes.every_n import EveryNKeyframeConfig, EveryNKeyframePolicy
     from test_mapper import GroundTruthTracker
 
     calls = []
-    monkeypatch.setattr(slamkit.slam, "release_free_memory", lambda: calls.append(1) or True)
+    monkeypatch.setattr(slamkit.run.slam, "release_free_memory", lambda: calls.append(1) or True)
     mapper = make_mapper(strategy=guarded(100))
     slam = SLAM(GroundTruthTracker(), EveryNKeyframePolicy(EveryNKeyframeConfig(tracking_every=2)), mapper,
                 GaussianMap(), MapGrowthConfig(), iterations_per_frame=1)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from slamkit.gaussian_map import PARAMETERS
+from slamkit.map.gaussian_map import PARAMETERS
 from slamkit_plugins.optimizers.adam import AdamConfig, TorchAdam
 from slamkit_plugins.optimizers.visible_adam import VisibleAdam, VisibleAdamConfig
 

@@ -11,7 +11,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from slamkit.errors import DataError
-from slamkit.tum_format import associate, read_float_table, read_tum_list, read_tum_trajectory
+from slamkit.formats.tum import associate, read_float_table, read_tum_list, read_tum_trajectory
 from slamkit_plugins.datasets.replica import read_cam_params
 from slamkit_plugins.datasets.sevenscenes import read_intrinsics, read_pose_file
 

@@ -2,16 +2,19 @@
 
 from __future__ import annotations
 
+import pytest
+
 import subprocess
 import sys
 from pathlib import Path
 
-from slamkit.plugin_info import markdown_reference
-from slamkit.registry import discover
+from slamkit.cli.plugins import markdown_reference
+from slamkit.registry.discovery import discover
 
 from conftest import REPO
 
 
+@pytest.mark.slow
 def test_listing_shows_every_builtin_with_its_fields():
     exe = Path(sys.executable).with_name("slamkit-plugins")
     out = subprocess.run([str(exe)], capture_output=True, text=True, check=True).stdout

@@ -11,8 +11,8 @@ import torch
 import slamkit_plugins.rasterizers.gsplat_rasterizer as gsplat_module
 import slamkit_plugins.rasterizers.torch_rasterizer as torch_module
 from slamkit.errors import ConfigError
-from slamkit.geometry import covariance_from_scales
-from slamkit.registry import Registry, create_rasterizer
+from slamkit.geometry.transforms import covariance_from_scales
+from slamkit.registry.discovery import Registry, create_rasterizer
 from slamkit.types import Camera
 from slamkit_plugins.rasterizers.torch_rasterizer import TorchRasterizer, TorchRasterizerConfig
 
@@ -48,7 +48,7 @@ def a_pose() -> torch.Tensor:
 
 def brute_force_render(means, quats, scales, opacities, colors, w2c, cam, background):
     """Every pixel against every Gaussian, composited in a Python loop over depth order, with
-    plain autograd: the conventions of `slamkit.rendering` written as directly as possible."""
+    plain autograd: the conventions of `slamkit.map.rendering` written as directly as possible."""
     R, t = w2c[:3, :3], w2c[:3, 3]
     x, y, z = (means @ R.T + t).unbind(-1)
     u, v = cam.fx * x / z + cam.cx, cam.fy * y / z + cam.cy

@@ -7,7 +7,7 @@ import json
 import pytest
 
 from slamkit.errors import PluginError
-from slamkit.registry import discover
+from slamkit.registry.discovery import discover
 
 from conftest import make_plugin_dist, run_slamkit
 
@@ -122,6 +122,7 @@ def test_unknown_plugin_lists_available(plugin_dir):
     assert "\n" not in message
 
 
+@pytest.mark.slow
 def test_third_party_plugin_runs_from_the_cli_with_its_config(plugin_dir, tmp_path):
     out = tmp_path / "run"
     env = {"PYTHONPATH": str(plugin_dir)}
@@ -134,6 +135,7 @@ def test_third_party_plugin_runs_from_the_cli_with_its_config(plugin_dir, tmp_pa
     assert metrics["num_frames"] == 8 and metrics["ate_rmse_m"] > 0
 
 
+@pytest.mark.slow
 def test_third_party_config_validation_and_unknown_name_from_the_cli(plugin_dir, tmp_path):
     env = {"PYTHONPATH": str(plugin_dir)}
     bad = run_slamkit("tracker=still", "tracker.offset=-1", f"hydra.run.dir={tmp_path / 'x'}", cwd=tmp_path, env_extra=env)
@@ -145,6 +147,7 @@ def test_third_party_config_validation_and_unknown_name_from_the_cli(plugin_dir,
     assert "unknown tracker 'nope'; available:" in unknown.stderr and "still" in unknown.stderr
 
 
+@pytest.mark.slow
 def test_a_plugin_that_raises_stops_the_run_cleanly_naming_it(plugin_dir, tmp_path):
     out = tmp_path / "run"
     proc = run_slamkit("tracker=still", "tracker.fail_at=3", "dataset.num_frames=8", f"hydra.run.dir={out}",

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from slamkit.compose import build_run
+from slamkit.registry.compose import build_run
 from slamkit.errors import ConfigError
 from slamkit_plugins.samplers.keyframe_samplers import (CovisibleSampler, CovisibleSamplerConfig, RandomSampler,
                                                         RecentSampler)

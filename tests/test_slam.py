@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from slamkit.compose import build_run
+from slamkit.registry.compose import build_run
 
 
 def _run(keep_untrackable: bool, frames: int = 30):
@@ -27,8 +27,8 @@ def test_tracking_only_map_keeps_only_trackable_gaussians_without_changing_track
 def test_mapping_threads_leave_one_cpu_to_the_tracker_in_realtime_mode(monkeypatch):
     import torch
 
-    from slamkit.config import Mode, RunConfig
-    from slamkit.pipeline import mapping_threads
+    from slamkit.registry.schema import Mode, RunConfig
+    from slamkit.run.pipeline import mapping_threads
 
     monkeypatch.setattr(torch, "get_num_threads", lambda: 4)
     assert mapping_threads(RunConfig(mode=Mode.sequential)) == 4
@@ -39,8 +39,8 @@ def test_mapping_threads_leave_one_cpu_to_the_tracker_in_realtime_mode(monkeypat
 
 
 def test_tracking_threads_default_to_one_in_realtime_mode(monkeypatch):
-    from slamkit.config import Mode, RunConfig
-    from slamkit.pipeline import tracking_threads
+    from slamkit.registry.schema import Mode, RunConfig
+    from slamkit.run.pipeline import tracking_threads
 
     monkeypatch.setenv("OMP_NUM_THREADS", "3")
     assert tracking_threads(RunConfig(mode=Mode.sequential)) == 3

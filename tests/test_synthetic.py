@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from slamkit.errors import ConfigError
-from slamkit.geometry import backproject, invert_pose, rotation_angle_deg, transform_points
+from slamkit.geometry.transforms import backproject, invert_pose, rotation_angle_deg, transform_points
 from slamkit_plugins.datasets import synthetic
 from slamkit_plugins.datasets.synthetic import SyntheticConfig, SyntheticDataset
 

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from slamkit.errors import DataError
-from slamkit.geometry import make_pose, quat_to_rotmat, rotation_angle_deg, so3_exp
-from slamkit.tum_format import (
+from slamkit.geometry.transforms import make_pose, quat_to_rotmat, rotation_angle_deg, so3_exp
+from slamkit.formats.tum import (
     associate,
     interpolate_poses,
     read_float_table,

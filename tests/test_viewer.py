@@ -14,8 +14,8 @@ import torch
 import yaml
 
 from slamkit.errors import ConfigError
-from slamkit.gaussian_map import GaussianMap, GaussianRows
-from slamkit.registry import discover
+from slamkit.map.gaussian_map import GaussianMap, GaussianRows
+from slamkit.registry.discovery import discover
 from slamkit.roles import Mapper, PluginConfig, Viewer, ViewerConfig, ViewerFrame
 from slamkit.types import Camera, Frame, KeyframeKind
 
@@ -124,6 +124,7 @@ def _rrd_rows(path: Path) -> tuple[Counter, dict[int, int]]:
     return rows, map_sizes
 
 
+@pytest.mark.slow
 def test_rerun_records_a_tum_run_to_rrd(tmp_path, tum_path):
     """viewer=rerun viewer.save=x.rrd on 8 real frames with 3DGS mapping, no display."""
     pytest.importorskip("rerun", reason="rerun-sdk is the optional extra `viewer`")
@@ -150,6 +151,7 @@ def test_rerun_records_a_tum_run_to_rrd(tmp_path, tum_path):
     assert map_sizes[7] == metrics["num_gaussians"] > map_sizes[0] > 0
 
 
+@pytest.mark.slow
 def test_default_viewer_is_none_and_rerun_defaults_to_the_run_folder(tmp_path):
     pytest.importorskip("rerun", reason="rerun-sdk is the optional extra `viewer`")
     common = ["dataset=synthetic", "dataset.num_frames=4", "dataset.width=64", "dataset.height=48", "mapper=none",
@@ -196,6 +198,7 @@ def slamkit_plugins():
 """
 
 
+@pytest.mark.slow
 def test_a_failing_viewer_warns_and_the_run_goes_on(tmp_path):
     site = make_plugin_dist(tmp_path / "site", "slamkit-broken-viewer", {"broken_viewer": BROKEN_VIEWER},
                             {"broken": "broken_viewer"})

@@ -47,9 +47,9 @@ from dataclasses import dataclass
 import numpy as np
 from pykdtree.kdtree import KDTree
 
-from slamkit.gaussian_geometry import knn_covariances
-from slamkit.gaussian_map import GaussianMap
-from slamkit.geometry import (
+from slamkit.geometry.gaussians import knn_covariances
+from slamkit.map.gaussian_map import GaussianMap
+from slamkit.geometry.transforms import (
     backproject,
     invert_pose,
     make_pose,

@@ -40,10 +40,10 @@ from pathlib import Path
 import numpy as np
 
 from slamkit.errors import DataError
-from slamkit.image_io import dataset_folder, image_size, read_rgbd
+from slamkit.formats.images import dataset_folder, image_size, read_rgbd
 from slamkit.plugin import PluginSpec, hookimpl
 from slamkit.roles import Dataset, DatasetConfig, SensorProfile, require
-from slamkit.tum_format import interpolate_poses, read_float_table, read_tum_trajectory
+from slamkit.formats.tum import interpolate_poses, read_float_table, read_tum_trajectory
 from slamkit.types import Camera, Frame
 
 log = logging.getLogger(__name__)

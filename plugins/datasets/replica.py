@@ -20,10 +20,10 @@ from pathlib import Path
 import numpy as np
 
 from slamkit.errors import DataError
-from slamkit.image_io import dataset_folder, find_ground_truth, read_rgbd
+from slamkit.formats.images import dataset_folder, find_ground_truth, read_rgbd
 from slamkit.plugin import PluginSpec, hookimpl
 from slamkit.roles import Dataset, DatasetConfig, SensorProfile, require
-from slamkit.tum_format import read_float_table
+from slamkit.formats.tum import read_float_table
 from slamkit.types import Camera, Frame
 
 log = logging.getLogger(__name__)

@@ -43,7 +43,7 @@ from typing import Callable
 import numpy as np
 
 from slamkit.errors import DataError
-from slamkit.geometry import so3_exp
+from slamkit.geometry.transforms import so3_exp
 from slamkit.plugin import PluginSpec, hookimpl
 from slamkit.roles import Dataset, DatasetConfig, SensorProfile, require
 from slamkit.types import Camera, Frame

@@ -5,7 +5,7 @@
 over the pixels with valid observed depth (all pixels for the colour terms when none has
 depth; no depth term then). L1 terms are means over those pixels (and the 3 channels); SSIM is
 pytorch-msssim's (window 11, sigma 1.5) with the pixels outside the mask set to 0 in both
-images (`slamkit.image_metrics.ssim`).
+images (`slamkit.metrics.images.ssim`).
 """
 
 from __future__ import annotations
@@ -14,9 +14,9 @@ from dataclasses import dataclass
 
 import torch
 
-from slamkit import image_metrics
+from slamkit.metrics import images as image_metrics
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.rendering import RenderOutput
+from slamkit.map.rendering import RenderOutput
 from slamkit.roles import MappingLoss, PluginConfig, TrainingView, require
 
 

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import torch
 
-from slamkit.gaussian_map import PARAMETERS
+from slamkit.map.gaussian_map import PARAMETERS
 from slamkit.plugin import PluginSpec, hookimpl
 from slamkit.roles import MapOptimizer, PluginConfig, require
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 from slamkit.errors import ConfigError, PluginError
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.rendering import Rasterizer
+from slamkit.map.rendering import Rasterizer
 from slamkit.roles import PluginConfig, require
 
 log = logging.getLogger(__name__)
@@ -35,7 +35,7 @@ class AutoRasterizer(Rasterizer):
     other attributes are the backend's."""
 
     def __init__(self, cfg: AutoRasterizerConfig):
-        from slamkit.registry import default_registry
+        from slamkit.registry.discovery import default_registry
 
         self.cfg = cfg
         reasons = []

@@ -1,6 +1,6 @@
 """`rasterizer=cpu`: a tile-based, multi-threaded, compiled CPU rasteriser (forward + backward).
 
-The same conventions as `slamkit.rendering.Rasterizer` and the `torch` reference backend (see
+The same conventions as `slamkit.map.rendering.Rasterizer` and the `torch` reference backend (see
 `slamkit_plugins.rasterizers.torch_rasterizer`), reproduced to float precision: projection with
 the EWA covariance + 0.3 px^2, near-plane culling at z <= 0.01 m, the torch backend's exact
 per-row pixel coverage (alpha >= 1/255 ellipse), alpha = min(0.99, o exp(-q/2)), front-to-back
@@ -28,7 +28,7 @@ import torch
 from slamkit.errors import ConfigError
 from slamkit.native import NativeLibrary
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.rendering import Rasterizer, RenderOutput
+from slamkit.map.rendering import Rasterizer, RenderOutput
 from slamkit.roles import PluginConfig, require
 from slamkit.types import Camera
 

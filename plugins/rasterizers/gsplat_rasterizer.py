@@ -33,7 +33,7 @@ import torch
 
 from slamkit.errors import ConfigError
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.rendering import Rasterizer, RenderOutput
+from slamkit.map.rendering import Rasterizer, RenderOutput
 from slamkit.roles import PluginConfig, require
 from slamkit.types import Camera
 
@@ -56,7 +56,7 @@ class GsplatRasterizerConfig(PluginConfig):
 
 
 class GsplatRasterizer(Rasterizer):
-    """`gsplat.rasterization` wrapped to `slamkit.rendering.Rasterizer` (see module docstring)."""
+    """`gsplat.rasterization` wrapped to `slamkit.map.rendering.Rasterizer` (see module docstring)."""
 
     def __init__(self, cfg: GsplatRasterizerConfig | None = None):
         self.cfg = cfg or GsplatRasterizerConfig()

@@ -3,7 +3,7 @@
 It is the reference for correctness that the other backends are checked against, and the
 fallback where neither gsplat (CUDA) nor a compiled CPU backend is available.
 
-Conventions (those of `slamkit.rendering.Rasterizer`, stated exactly):
+Conventions (those of `slamkit.map.rendering.Rasterizer`, stated exactly):
 - camera-frame mean p = R m + t; Gaussians with p_z <= 0.01 m are culled;
 - u = fx p_x / p_z + cx, v = fy p_y / p_z + cy; pixel (row i, column j) has its centre at
   (u, v) = (j, i);
@@ -43,9 +43,9 @@ import numpy as np
 import torch
 from torch.autograd.function import once_differentiable
 
-from slamkit.geometry import covariance_from_scales
+from slamkit.geometry.transforms import covariance_from_scales
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.rendering import Rasterizer, RenderOutput
+from slamkit.map.rendering import Rasterizer, RenderOutput
 from slamkit.roles import PluginConfig, require
 from slamkit.types import Camera
 

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import torch
 
-from slamkit.map_editing import MapEdit
+from slamkit.map.editing import MapEdit
 from slamkit.plugin import PluginSpec, hookimpl
 from slamkit.roles import StepInfo, require
 from slamkit_plugins.strategies.gsicp import PruneConfig, PruneStrategy

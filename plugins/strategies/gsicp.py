@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import torch
 
-from slamkit.map_editing import MapEdit
+from slamkit.map.editing import MapEdit
 from slamkit.plugin import PluginSpec, hookimpl
 from slamkit.roles import DensifyStrategy, SensorProfile, StepInfo, StrategyConfig, require
 

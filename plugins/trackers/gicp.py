@@ -36,9 +36,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slamkit.gaussian_geometry import Regularization, regularize, rotate_covariances
-from slamkit.gaussian_map import GaussianMap
-from slamkit.geometry import backproject, invert_pose, so3_exp
+from slamkit.geometry.gaussians import Regularization, regularize, rotate_covariances
+from slamkit.map.gaussian_map import GaussianMap
+from slamkit.geometry.transforms import backproject, invert_pose, so3_exp
 from slamkit.plugin import PluginSpec, hookimpl
 from slamkit.roles import PluginConfig, SensorProfile, Tracker, require
 from slamkit.types import Frame, FrameGaussians, TrackingResult

@@ -1,6 +1,6 @@
 """The G-ICP tracker's two hot loops, in numpy (the reference) and compiled (csrc/gicp_kernels.cpp):
 
-- `frame_covariances`: each back-projected point's k-NN covariance (slamkit.gaussian_geometry's
+- `frame_covariances`: each back-projected point's k-NN covariance (slamkit.geometry.gaussians's
   `knn_covariances`). The compiled version searches a window of the pixel grid first and proves
   the result exact by a projection bound; the few points it cannot prove (depth edges, holes) go
   to the KD-tree. Same neighbours, so the same covariances.
@@ -27,7 +27,7 @@ from typing import Callable
 import numpy as np
 from pykdtree.kdtree import KDTree
 
-from slamkit.gaussian_geometry import knn_covariances, whitening_sym3
+from slamkit.geometry.gaussians import knn_covariances, whitening_sym3
 from slamkit.native import NativeLibrary, available_threads
 
 SOURCE = Path(__file__).resolve().parent / "csrc" / "gicp_kernels.cpp"

@@ -15,8 +15,8 @@ import numpy as np
 from kiss_icp.config import KISSConfig
 from kiss_icp.kiss_icp import KissICP
 
-from slamkit.geometry import backproject, invert_pose
-from slamkit.gaussian_map import GaussianMap
+from slamkit.geometry.transforms import backproject, invert_pose
+from slamkit.map.gaussian_map import GaussianMap
 from slamkit.plugin import PluginSpec, hookimpl
 from slamkit.roles import PluginConfig, Tracker, require
 from slamkit.types import Frame, TrackingResult

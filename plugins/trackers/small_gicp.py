@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from slamkit.errors import ConfigError
-from slamkit.gaussian_map import GaussianMap
-from slamkit.geometry import backproject, invert_pose, make_pose, nearest_rotation, rotation_angle_deg, transform_points
+from slamkit.map.gaussian_map import GaussianMap
+from slamkit.geometry.transforms import backproject, invert_pose, make_pose, nearest_rotation, rotation_angle_deg, transform_points
 from slamkit.plugin import PluginSpec, hookimpl
 from slamkit.roles import PluginConfig, Tracker, require
 from slamkit.types import Frame, TrackingResult

@@ -3,7 +3,7 @@ of roles (`ROLES`). A plugin provides a subclass of one base and a config datacl
 from `PluginConfig`; the registry builds the subclass with the validated config (and, for a
 mapper, the parts it names in `Mapper.parts`)."""
 
-from slamkit.rendering import Rasterizer, RenderOutput
+from slamkit.map.rendering import Rasterizer, RenderOutput
 from slamkit.roles.config import PluginConfig, require
 from slamkit.roles.dataset import Dataset, DatasetConfig, OnError, SensorProfile
 from slamkit.roles.mapping import KeyframeSampler, Mapper, MapOptimizer, MappingLoss, TrainingView

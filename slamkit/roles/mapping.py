@@ -1,5 +1,5 @@
 """The mapping roles: the mapper, and the parts a mapper may be composed of (training-view
-sampler, loss, optimiser; the rasteriser is `slamkit.rendering.Rasterizer`, the densification
+sampler, loss, optimiser; the rasteriser is `slamkit.map.rendering.Rasterizer`, the densification
 strategy `slamkit.roles.strategy.DensifyStrategy`)."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ from typing import Any, Callable, ClassVar
 import numpy as np
 import torch
 
-from slamkit.gaussian_map import GaussianMap, GaussianRows
-from slamkit.rendering import RenderOutput
+from slamkit.map.gaussian_map import GaussianMap, GaussianRows
+from slamkit.map.rendering import RenderOutput
 from slamkit.types import Camera, Frame, KeyframeKind, TrackingResult
 
 
@@ -99,12 +99,12 @@ class MapOptimizer(ABC):
     """Updates the map's parameters from one training step's gradients.
 
     Its state is per map row (e.g. Adam's moments), so it must follow the rows as the map grows
-    and shrinks: the shared row operations (`slamkit.map_editing.MapEdit`) call `edit_rows` and
+    and shrinks: the shared row operations (`slamkit.map.editing.MapEdit`) call `edit_rows` and
     `reset`, never a strategy directly."""
 
     @abstractmethod
     def step(self, params: dict[str, torch.Tensor], grads: dict[str, torch.Tensor]) -> None:
-        """Update `params` (the map's leaf tensors by name, `slamkit.gaussian_map.PARAMETERS`)
+        """Update `params` (the map's leaf tensors by name, `slamkit.map.gaussian_map.PARAMETERS`)
         in place from `grads` (same names and shapes; a missing name had no gradient)."""
 
     @abstractmethod

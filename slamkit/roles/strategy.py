@@ -25,9 +25,9 @@ from typing import Callable
 
 import torch
 
-from slamkit.gaussian_map import GaussianRows
-from slamkit.map_editing import MapEdit
-from slamkit.rendering import RenderOutput, covered_by_render
+from slamkit.map.gaussian_map import GaussianRows
+from slamkit.map.editing import MapEdit
+from slamkit.map.rendering import RenderOutput, covered_by_render
 from slamkit.roles.config import PluginConfig, require
 from slamkit.roles.mapping import TrainingView
 from slamkit.types import Camera

@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from slamkit.errors import PluginError
-from slamkit.rendering import Rasterizer
+from slamkit.map.rendering import Rasterizer
 from slamkit.roles.dataset import Dataset
 from slamkit.roles.mapping import KeyframeSampler, Mapper, MapOptimizer, MappingLoss
 from slamkit.roles.strategy import DensifyStrategy

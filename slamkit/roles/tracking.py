@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slamkit.gaussian_map import GaussianMap
+from slamkit.map.gaussian_map import GaussianMap
 from slamkit.types import Frame, KeyframeKind, TrackingResult
 
 

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from slamkit.gaussian_map import GaussianMap
-from slamkit.rendering import RenderOutput
+from slamkit.map.gaussian_map import GaussianMap
+from slamkit.map.rendering import RenderOutput
 from slamkit.roles.config import PluginConfig, require
 from slamkit.roles.mapping import Mapper
 from slamkit.types import Camera, Frame, KeyframeKind

@@ -15,10 +15,10 @@ import pytest
 
 import slamkit_p2plane
 from slamkit.errors import ConfigError
-from slamkit.geometry import invert_pose, make_pose, rotation_angle_deg, so3_exp, transform_points
-from slamkit.registry import discover
+from slamkit.geometry.transforms import invert_pose, make_pose, rotation_angle_deg, so3_exp, transform_points
+from slamkit.registry.discovery import discover
 from slamkit.roles import SensorProfile
-from slamkit.tum_format import read_tum_trajectory
+from slamkit.formats.tum import read_tum_trajectory
 from slamkit_p2plane import Model, P2PlaneConfig, P2PlaneTracker, point_to_plane
 
 # The shared real data beside the slamkit checkout (override with SLAMKIT_DATA).
@@ -64,6 +64,7 @@ def test_registered_through_the_entry_point():
     assert spec.cls is P2PlaneTracker and spec.config is P2PlaneConfig
 
 
+@pytest.mark.slow
 def test_slamkit_runs_p2plane_on_tum(tmp_path):
     if not TUM.is_dir():
         pytest.skip(f"shared data not found at {TUM} (set SLAMKIT_DATA)")

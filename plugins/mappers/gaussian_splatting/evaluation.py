@@ -1,6 +1,6 @@
 """Rendering metrics of a trained map: every `every`-th frame rendered from its estimated pose.
 
-PSNR / SSIM are masked by valid depth (`slamkit.image_metrics`) and reported for the keyframes
+PSNR / SSIM are masked by valid depth (`slamkit.metrics.images`) and reported for the keyframes
 (training views: psnr_train, ssim_train), the other frames (held-out views: psnr_test,
 ssim_test) and all (psnr, ssim); depth L1 in cm over valid pixels. A few render | ground-truth
 images and map.ply go into the run folder.
@@ -16,9 +16,9 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from slamkit import image_metrics
-from slamkit.gaussian_map import GaussianMap
-from slamkit.rendering import RenderOutput
+from slamkit.metrics import images as image_metrics
+from slamkit.map.gaussian_map import GaussianMap
+from slamkit.map.rendering import RenderOutput
 from slamkit.types import Camera
 from slamkit_plugins.mappers.gaussian_splatting.keyframes import resize_rgbd
 
@@ -57,7 +57,7 @@ def evaluate_renders(render: Callable[[np.ndarray, Camera], RenderOutput], gauss
                    eval_frames=len(indices), eval_train_frames=len(rows["train"]),
                    eval_time_s=time.perf_counter() - start)
     if out_dir is not None:
-        from slamkit.ply import save_ply
+        from slamkit.formats.ply import save_ply
 
         Path(out_dir).mkdir(parents=True, exist_ok=True)
         save_ply(Path(out_dir) / "map.ply", gaussian_map)

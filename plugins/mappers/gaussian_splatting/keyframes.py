@@ -20,7 +20,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from slamkit.geometry import invert_pose
+from slamkit.geometry.transforms import invert_pose
 from slamkit.roles import TrainingView
 from slamkit.types import Camera, Frame, KeyframeKind
 

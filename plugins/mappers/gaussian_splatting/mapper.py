@@ -6,7 +6,7 @@ strategy (`strategy=`), the optimiser (`optimizer=`) and the loss (`loss=`). It 
 keyframes and the training loop; the map's parameters are the GaussianMap's own leaf tensors
 (the tracker's next target is taken from the values it optimised: that exchange is the method),
 the optimiser owns its per-row state, and the strategy edits rows only through the shared row
-operations (`slamkit.map_editing.MapEdit`).
+operations (`slamkit.map.editing.MapEdit`).
 
 A training step, as in 3DGS: take a keyframe (the ones not yet trained on first, once each, then
 the sampler's choice), render it, the loss, its gradient, the optimiser's update, then the
@@ -29,10 +29,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from slamkit.gaussian_map import GaussianMap
-from slamkit.geometry import invert_pose
-from slamkit.map_editing import MapEdit
-from slamkit.rendering import RenderOutput, render_map
+from slamkit.map.gaussian_map import GaussianMap
+from slamkit.geometry.transforms import invert_pose
+from slamkit.map.editing import MapEdit
+from slamkit.map.rendering import RenderOutput, render_map
 from slamkit.roles import (DensifyStrategy, KeyframeSampler, KeyframeView, Mapper, MapOptimizer, MappingLoss,
                            Rasterizer, StepInfo, TrainingView)
 from slamkit.types import Camera

@@ -2,7 +2,7 @@
 run outputs (trajectory.txt, keyframes.txt, camera.json, metrics.json, frames.csv,
 trajectory.png) and evaluation.
 
-The algorithm itself is `slamkit.slam.SLAM`; this module is the I/O around it.
+The algorithm itself is `slamkit.run.slam.SLAM`; this module is the I/O around it.
 """
 
 from __future__ import annotations
@@ -22,17 +22,17 @@ from typing import Any
 import numpy as np
 import torch
 
-from slamkit import evaluation
-from slamkit.config import Mode, RunConfig
+from slamkit.metrics import trajectory as evaluation
+from slamkit.registry.schema import Mode, RunConfig
 from slamkit.errors import DataError, PluginError, SlamkitError
-from slamkit.gaussian_map import GaussianMap
+from slamkit.map.gaussian_map import GaussianMap
 from slamkit.native import available_threads
-from slamkit.prefetch import UnreadableFrame, prefetched
-from slamkit.registry import Registry
-from slamkit.slam import SLAM, MappingThread, StepResult
-from slamkit.tum_format import write_tum_trajectory
+from slamkit.run.prefetch import UnreadableFrame, prefetched
+from slamkit.registry.discovery import Registry
+from slamkit.run.slam import SLAM, MappingThread, StepResult
+from slamkit.formats.tum import write_tum_trajectory
 from slamkit.types import Frame
-from slamkit.viewing import ViewerFeed
+from slamkit.run.viewing import ViewerFeed
 
 log = logging.getLogger(__name__)
 
@@ -353,7 +353,7 @@ def finish(cfg: RunConfig, slam: SLAM, dataset, state: RunState, wall_s: float, 
     _write_json_atomic(out_dir / "metrics.json", metrics)
     log.info("%s", summary(metrics))
     if cfg.eval.plot and n:
-        from slamkit.plots import plot_trajectory
+        from slamkit.formats.plots import plot_trajectory
 
         has_gt = ate is not None and ate.rmse_m is not None
         est = ate.est_aligned if has_gt else poses[:, :3, 3]

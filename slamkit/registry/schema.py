@@ -1,7 +1,7 @@
 """The top-level run configuration (Hydra structured config) and its validation.
 
 The schema is RunConfig's keys plus one group per role of `slamkit.roles.ROLES`, each holding
-the selected plugin's config dataclass (registered by `slamkit.registry.register_configs`),
+the selected plugin's config dataclass (registered by `slamkit.registry.discovery.register_configs`),
 and a defaults list that selects each role's default plugin. Validation turns every group into
 its dataclass (running its `validate`) before any work starts.
 """
@@ -15,7 +15,7 @@ from typing import Any
 from omegaconf import MISSING, DictConfig, OmegaConf
 
 from slamkit.errors import ConfigError
-from slamkit.map_growth import MapGrowthConfig
+from slamkit.map.growth import MapGrowthConfig
 from slamkit.roles import ROLES, PluginConfig, require
 
 

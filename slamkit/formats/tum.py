@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from slamkit.errors import DataError
-from slamkit.geometry import quat_to_rotmat, rotmat_to_quat
+from slamkit.geometry.transforms import quat_to_rotmat, rotmat_to_quat
 
 
 

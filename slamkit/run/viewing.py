@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from slamkit.gaussian_map import GaussianMap
+from slamkit.map.gaussian_map import GaussianMap
 from slamkit.roles import Mapper, Viewer, ViewerFrame
 from slamkit.types import Camera, Frame, KeyframeKind
 

@@ -1,4 +1,4 @@
-"""Plugin discovery: entry points in the group ``slamkit``, the hook of `slamkit.hookspecs`.
+"""Plugin discovery: entry points in the group ``slamkit``, the hook of `slamkit.registry.hookspecs`.
 
 Built-in plugins are found exactly like third-party ones. Each spec's role is the role whose
 base class its class subclasses (`slamkit.roles.ROLES`). A plugin that fails to import, whose
@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import pluggy
 
-from slamkit import hookspecs
+from slamkit.registry import hookspecs
 from slamkit.errors import PluginError
 from slamkit.plugin import PROJECT, PluginSpec
 from slamkit.roles import ROLE_KEYS, SensorProfile, role_of

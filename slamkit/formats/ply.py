@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from slamkit.errors import DataError
-from slamkit.gaussian_map import GaussianMap, GaussianRows
+from slamkit.map.gaussian_map import GaussianMap, GaussianRows
 
 #: The degree-0 real spherical harmonic, 1 / (2 sqrt(pi)).
 C0 = 0.28209479177387814

@@ -17,9 +17,9 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from slamkit import evaluation
+from slamkit.metrics import trajectory as evaluation
 from slamkit.errors import DataError, SlamkitError
-from slamkit.tum_format import read_tum_trajectory
+from slamkit.formats.tum import read_tum_trajectory
 
 METRICS = ["ate_rmse_m", "ate_mean_m", "rpe_trans_rmse_m", "fps", "tracking_fps", "psnr", "ssim",
            "psnr_train", "psnr_test", "depth_l1_cm", "num_keyframes", "num_gaussians", "lost_frames", "peak_memory_mb"]

@@ -1,4 +1,4 @@
-"""The SLAM loop over one shared Gaussian map, free of I/O (see `slamkit.pipeline` for that)."""
+"""The SLAM loop over one shared Gaussian map, free of I/O (see `slamkit.run.pipeline` for that)."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slamkit.gaussian_map import GaussianMap
-from slamkit.heap import release_free_memory
-from slamkit.map_growth import MapGrowthConfig, new_gaussians
+from slamkit.map.gaussian_map import GaussianMap
+from slamkit.run.heap import release_free_memory
+from slamkit.map.growth import MapGrowthConfig, new_gaussians
 from slamkit.roles import KeyframePolicy, Mapper, Tracker
 from slamkit.types import Frame, KeyframeKind, TrackingResult
 
@@ -34,7 +34,7 @@ class SLAM:
     the map (a tracking keyframe also rebuilds the tracker's target from the map, which by then
     holds the mapper's optimised values); then the mapper runs a fixed number of iterations, so
     the run is deterministic. After each keyframe the C heap's free pages go back to the OS
-    (`slamkit.heap`), so that a long run's resident memory follows what it holds.
+    (`slamkit.run.heap`), so that a long run's resident memory follows what it holds.
     """
 
     def __init__(

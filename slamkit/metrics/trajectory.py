@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slamkit.geometry import invert_pose, rotation_angle_deg
+from slamkit.geometry.transforms import invert_pose, rotation_angle_deg
 
 ALIGNMENTS = ("se3", "sim3", "none")
 MIN_ATE_POSES = 3

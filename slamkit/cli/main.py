@@ -14,9 +14,9 @@ import re
 import sys
 from pathlib import Path
 
-from slamkit.compose import CONF_DIR, EXPERIMENTS_DIR, compose_run, register
+from slamkit.registry.compose import CONF_DIR, EXPERIMENTS_DIR, compose_run, register
 from slamkit.errors import SlamkitError
-from slamkit.registry import Registry, default_registry, discover
+from slamkit.registry.discovery import Registry, default_registry, discover
 from slamkit.roles import ROLE_KEYS
 
 log = logging.getLogger("slamkit")
@@ -70,8 +70,8 @@ def _is_sweep(override: str) -> bool:
 def _task(cfg) -> None:
     from hydra.core.hydra_config import HydraConfig
 
-    from slamkit import pipeline
-    from slamkit.config import validate_config
+    from slamkit.run import pipeline
+    from slamkit.registry.schema import validate_config
 
     registry = _registry or default_registry()  # launchers run jobs in fresh processes
     hydra_cfg = HydraConfig.get()

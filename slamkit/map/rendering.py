@@ -13,8 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from slamkit.gaussian_map import GaussianMap
-from slamkit.geometry import invert_pose, project_points
+from slamkit.map.gaussian_map import GaussianMap
+from slamkit.geometry.transforms import invert_pose, project_points
 from slamkit.types import Camera
 
 

@@ -8,7 +8,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 import torch
 
-from slamkit.geometry import covariance_from_scales, scales_from_covariance
+from slamkit.geometry.transforms import covariance_from_scales, scales_from_covariance
 
 #: The optimisable parameters, in this order everywhere (GaussianMap, GaussianRows, optimisers).
 PARAMETERS = ("means", "quats", "log_scales", "opacity_logits", "colors")

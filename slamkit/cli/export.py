@@ -99,7 +99,7 @@ def read_camera(path: Path) -> tuple[Camera, float | None]:
 
 def read_keyframe_poses(path: Path) -> np.ndarray:
     """(K,4,4) camera-to-world keyframe poses (metres) from a run's keyframes.txt (TUM format)."""
-    from slamkit.tum_format import read_tum_trajectory
+    from slamkit.formats.tum import read_tum_trajectory
 
     if not path.is_file():
         raise DataError(f"{path} not found (runs write it since slamkit-export exists; re-run slamkit)")
@@ -127,8 +127,8 @@ def export_mesh(run_dir: Path, out: Path | None = None, voxel: float = 0.01, sdf
     (default RUN_DIR/mesh.ply). voxel, sdf_trunc, depth_trunc: metres (sdf_trunc default 4
     voxels; depth_trunc default the run's, else 10 m). scale: render resolution relative to the
     run's camera. every: use every n-th keyframe."""
-    from slamkit.ply import load_ply
-    from slamkit.registry import create_rasterizer
+    from slamkit.formats.ply import load_ply
+    from slamkit.registry.discovery import create_rasterizer
 
     run_dir = Path(run_dir)
     map_ply = check_run_dir(run_dir)
@@ -158,7 +158,7 @@ def export_mesh(run_dir: Path, out: Path | None = None, voxel: float = 0.01, sdf
 
 
 def _world_to_camera(pose: np.ndarray) -> np.ndarray:
-    from slamkit.geometry import invert_pose
+    from slamkit.geometry.transforms import invert_pose
 
     return invert_pose(np.asarray(pose, dtype=np.float64))
 
@@ -166,7 +166,7 @@ def _world_to_camera(pose: np.ndarray) -> np.ndarray:
 def _render_rgbd(o3d, backend, gaussian_map, pose: np.ndarray, camera: Camera, min_alpha: float, depth_trunc: float):
     """open3d RGBD image of the map rendered from `pose` (camera-to-world): expected colour
     (uint8) and expected depth (float32 metres, 0 where alpha < min_alpha)."""
-    from slamkit.rendering import render_map
+    from slamkit.map.rendering import render_map
 
     out = render_map(backend, gaussian_map, pose, camera)
     depth = np.ascontiguousarray(out.expected_depth(min_alpha).cpu().numpy().astype(np.float32))

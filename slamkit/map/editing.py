@@ -16,8 +16,8 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from slamkit.gaussian_map import PARAMETERS, GaussianMap, GaussianRows
-from slamkit.geometry import quat_to_rotmat
+from slamkit.map.gaussian_map import PARAMETERS, GaussianMap, GaussianRows
+from slamkit.geometry.transforms import quat_to_rotmat
 
 if TYPE_CHECKING:
     from slamkit.roles.mapping import MapOptimizer

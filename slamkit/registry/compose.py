@@ -9,15 +9,15 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from slamkit.config import RunConfig, register_run_config, validate_config
+from slamkit.registry.schema import RunConfig, register_run_config, validate_config
 from slamkit.errors import ConfigError
-from slamkit.registry import Registry, default_registry, register_configs
+from slamkit.registry.discovery import Registry, default_registry, register_configs
 from slamkit.roles import ROLE_KEYS
 
 #: The config tree (conf/config.yaml) and the experiment configs (`+experiment=NAME`), found
 #: beside the source tree (slamkit is installed editable).
-CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
-EXPERIMENTS_DIR = Path(__file__).resolve().parent.parent / "experiments"
+CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
+EXPERIMENTS_DIR = Path(__file__).resolve().parents[2] / "experiments"
 
 
 def register(registry: Registry) -> None:
@@ -51,7 +51,7 @@ def compose_run(overrides: list[str] | tuple[str, ...] = (), registry: Registry 
 
 def build_run(overrides: list[str] | tuple[str, ...] = (), registry: Registry | None = None):
     """(dataset, SLAM system, viewer) for `overrides`, built as a `slamkit` run builds them."""
-    from slamkit.pipeline import build
+    from slamkit.run.pipeline import build
 
     registry = registry or default_registry()
     cfg, names = compose_run(overrides, registry)

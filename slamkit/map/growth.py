@@ -9,7 +9,7 @@ camera depth z (metres): none -> 1, constant -> c, z -> max(c z, 1), z_pow -> ma
 trackable, so the tracking target is not duplicated.
 
 `new_gaussians` makes a keyframe's candidate rows; which of them enter the map is the mapper's
-decision (`Mapper.admit`, in `slamkit.slam.SLAM.grow_map`).
+decision (`Mapper.admit`, in `slamkit.run.slam.SLAM.grow_map`).
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slamkit.gaussian_map import GaussianRows
+from slamkit.map.gaussian_map import GaussianRows
 from slamkit.roles.config import PluginConfig, require
 from slamkit.roles.dataset import SensorProfile
 from slamkit.types import FrameGaussians

@@ -1,0 +1,2 @@
+"""The command-line programs: `slamkit` (`main`), `slamkit-bench` (`bench`), `slamkit-report`
+(`report`), `slamkit-plugins` (`plugins`) and `slamkit-export` (`export`)."""
