@@ -171,7 +171,8 @@ class CPURasterizer(Rasterizer):
     """Compiled tile-based CPU rasteriser. Computes in float32 on CPU tensors; other floating
     dtypes are cast, and the outputs are returned in the input dtype. Thread-safe: each render
     owns its state, and the compiled code runs without the GIL. Building it compiles the library
-    if needed; ConfigError (one line) where that is impossible."""
+    if needed; ConfigError (one line) where that is impossible. Tensors on another device (a map
+    on the GPU) are copied to the CPU and the outputs back (and the gradients with them)."""
 
     def __init__(self, cfg: CPURasterizerConfig | None = None):
         self.cfg = cfg or CPURasterizerConfig()
@@ -199,11 +200,12 @@ class CPURasterizer(Rasterizer):
         background: torch.Tensor | None = None,
     ) -> RenderOutput:
         lib = self.lib
-        dtype = means.dtype
+        dtype, device = means.dtype, means.device
         tensors = [means, quats, scales, opacities, colors] + ([background] if background is not None else [])
-        for t in tensors:
-            if t.device.type != "cpu":
-                raise ValueError(f"the cpu rasteriser takes CPU tensors, got one on {t.device}")
+        if any(t.device.type != "cpu" for t in tensors):  # a map on the GPU: render on the CPU
+            means, quats, scales, opacities, colors = (t.cpu() for t in tensors[:5])
+            background = background.cpu() if background is not None else None
+            tensors = [means, quats, scales, opacities, colors] + ([background] if background is not None else [])
         if background is None:
             background = torch.zeros(3, dtype=torch.float32)
         opacities = opacities.reshape(-1) if opacities.dim() == 2 and opacities.shape[-1] == 1 else opacities
@@ -223,9 +225,8 @@ class CPURasterizer(Rasterizer):
             f32(means), f32(quats), f32(scales), f32(opacities), f32(colors), f32(background),
             w2c, intr, H, W, int(nthreads), lib, self, keep_state,
         )
-        if dtype != torch.float32 and dtype.is_floating_point:
-            color, depth, alpha = color.to(dtype), depth.to(dtype), alpha.to(dtype)
-        return RenderOutput(color=color, depth=depth, alpha=alpha)
+        back = {"device": device, "dtype": dtype if dtype.is_floating_point else torch.float32}
+        return RenderOutput(color=color.to(**back), depth=depth.to(**back), alpha=alpha.to(**back))
 
 
 @hookimpl

@@ -60,10 +60,12 @@ class MapEdit:
             for k, v in self.state.items():
                 self.state[k] = _zeros_like_rows(v, 0)
             rows = 0
+        device = self.map.device
         if rows < n:
-            self.optimizer.edit_rows(lambda name, v: torch.cat([v, _zeros_like_rows(v, n - v.shape[0])]))
+            self.optimizer.edit_rows(lambda name, v: torch.cat([v.to(device), _zeros_like_rows(v.to(device), n - v.shape[0])]))
         for k, v in self.state.items():
-            if v.shape[0] < n:
+            if v.shape[0] < n or v.device != device:
+                v = v.to(device)
                 self.state[k] = torch.cat([v, _zeros_like_rows(v, n - v.shape[0])])
 
     # -- the operations ----------------------------------------------------------------------

@@ -55,6 +55,9 @@ class Rasterizer(ABC):
       where opacity <= 0.99); compositing stops before a Gaussian that would
       bring the transmittance below 1e-4;
     - colour = sum_i w_i c_i + (1 - alpha) * background, w_i = alpha_i T_i.
+
+    Outputs are on the inputs' device and gradients flow back to it, whatever device a backend
+    computes on.
     """
 
     @abstractmethod

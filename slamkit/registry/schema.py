@@ -24,6 +24,14 @@ class Mode(enum.Enum):
     realtime = "realtime"
 
 
+class Device(enum.Enum):
+    """Where the map's tensors (and the keyframes the mapper trains on) live."""
+
+    auto = "auto"
+    cpu = "cpu"
+    cuda = "cuda"
+
+
 @dataclass
 class EvalConfig:
     """plot: write trajectory.png. running_ate_every: frames between running-ATE updates of the
@@ -42,7 +50,10 @@ class RunConfig(PluginConfig):
     behaviour) instead of processing every frame late. seed: for every
     random choice. progress: show a progress bar. mapping_threads: torch threads for mapping
     (0: every CPU in sequential mode; every CPU but one in realtime mode, where the tracking
-    thread runs beside the mapping thread)."""
+    thread runs beside the mapping thread). mapping_device: auto | cpu | cuda: where the map's
+    tensors and the mapper's keyframes live (auto = the GPU when CUDA is available, as the
+    paper maps on the GPU; the tracker always runs on the CPU and takes its target from the map
+    as a CPU copy)."""
 
     map: MapGrowthConfig = field(default_factory=MapGrowthConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
@@ -53,6 +64,18 @@ class RunConfig(PluginConfig):
     seed: int = 0
     progress: bool = True
     mapping_threads: int = 0
+    mapping_device: Device = Device.auto
+
+    def device(self) -> str:
+        """The torch device the map lives on ("cpu" or "cuda"); ConfigError when cuda is asked
+        for and there is none."""
+        import torch
+
+        if self.mapping_device is Device.auto:
+            return "cuda" if torch.cuda.is_available() else "cpu"
+        require(self.mapping_device is Device.cpu or torch.cuda.is_available(), "mapping_device",
+                "cpu or auto on a machine without CUDA", self.mapping_device.value)
+        return self.mapping_device.value
 
     def validate(self) -> None:
         require(self.iterations_per_frame >= 0, "iterations_per_frame", ">= 0", self.iterations_per_frame)

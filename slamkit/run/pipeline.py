@@ -125,7 +125,7 @@ def build(cfg: RunConfig, registry: Registry, names: dict[str, str]):
     tracker.use_threads(tracking_threads(cfg))
     mapper = create("mapper", **parts)
     slam = SLAM(Blamed(tracker, "tracker", names["tracker"]), Blamed(policy, "keyframe", names["keyframe"]),
-                Blamed(mapper, "mapper", names["mapper"]), GaussianMap(), cfg.map.with_sensor(sensor),
+                Blamed(mapper, "mapper", names["mapper"]), GaussianMap(cfg.device()), cfg.map.with_sensor(sensor),
                 cfg.iterations_per_frame)
     return dataset, slam, create("viewer")
 
