@@ -321,3 +321,21 @@ def test_gsplat_matches_torch_backend():
         assert (a - b).abs().max() < 1e-3, name
     for name, a, b in zip(("means", "quats", "scales", "opacities", "colors"), grads, grads_ref):
         assert (a - b).norm() <= 1e-3 * b.norm(), name
+
+
+def test_max_pairs_per_chunk_bounds_the_bands_without_changing_the_image():
+    """`rasterizer.max_pairs_per_chunk` set through the CLI's composition: a small bound renders the
+    same image in more bands of rows (less memory at once)."""
+    from slamkit.registry.compose import build_run
+
+    cam = Camera(width=64, height=48, fx=60.0, fy=58.0, cx=31.5, cy=23.5)
+    scene = random_scene(300, seed=5, size=(0.05, 0.2))
+    outs, bands = [], []
+    for limit in (2_000_000, 1024):
+        rast = build_run(["mapper=gaussian_splatting", "rasterizer=torch",
+                          f"rasterizer.max_pairs_per_chunk={limit}"])[1].mapper.rasterizer
+        outs.append(rast.render(*scene, a_pose(), cam))
+        bands.append(rast.last_num_bands)
+    assert bands[0] == 1 and bands[1] > 5
+    for a, b in zip(as_tuple(outs[0]), as_tuple(outs[1])):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-11)  # float64 sums in another order

@@ -79,6 +79,7 @@ class TorchRasterizer(Rasterizer):
     def __init__(self, cfg: TorchRasterizerConfig | None = None):
         self.cfg = cfg or TorchRasterizerConfig()
         self.last_num_pairs = 0  # pairs composited by the last render (after the T cut-off)
+        self.last_num_bands = 0  # bands of image rows the last render was processed in
 
     def render(
         self,
@@ -261,6 +262,7 @@ class _Composite(torch.autograd.Function):
 
         out_color += (1.0 - out_alpha)[:, None] * background
         owner.last_num_pairs = total
+        owner.last_num_bands = len(bands)
         ctx.chunks, ctx.order = chunks, order
         ctx.save_for_backward(a, b, c, opac, z, _take(colors, order), background, out_alpha, rg, dy, rows.g)
         return out_color.view(H, W, 3), out_depth.view(H, W), out_alpha.view(H, W)

@@ -95,7 +95,8 @@ def markdown_reference(registry: Registry) -> str:
         out.extend(["| key | type | default | meaning |", "|---|---|---|---|"])
         for name, ftype, default, doc in config_fields(cls):
             if name not in groups:
-                out.append(f"| `{prefix}{name}` | {ftype} | `{default}` | {doc} |")
+                cells = (c.replace("|", "\\|") for c in (ftype, default, doc))  # a pipe would split the cell
+                out.append("| `{}{}` | {} | `{}` | {} |".format(prefix, name, *cells))
         out.append("")
 
     out += ["## Top level", ""]
