@@ -45,7 +45,7 @@ def tensor_mb() -> float:
 def build(frames: int, cap: int | None, iterations: int) -> tuple:
     dataset, slam, _ = build_run(["dataset=synthetic", "dataset.num_frames=2000", f"dataset.max_frames={frames}",
                                   "tracker=gicp", "keyframe=overlap", "mapper=gaussian_splatting",
-                                  "mapper.final_iterations=0", f"strategy.max_gaussians={cap or 'null'}",
+                                  "final_iterations=0", f"strategy.max_gaussians={cap or 'null'}",
                                   f"iterations_per_frame={iterations}"])
     return dataset, slam
 

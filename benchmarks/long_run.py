@@ -56,7 +56,7 @@ def variants(args) -> list[tuple[str, list[str]]]:
     base = {"dataset.num_frames": str(args.frames), "progress": "false", "eval.plot": "false"}
     if args.mapper:
         base.update({"mapper": "gaussian_splatting", "iterations_per_frame": str(args.iterations),
-                     "mapper.final_iterations": "0", "mapper.eval_every": str(args.eval_every)})
+                     "final_iterations": "0", "mapper.eval_every": str(args.eval_every)})
     for item in args.set:  # the user's values win
         key, _, value = item.partition("=")
         base[key] = value

@@ -4,7 +4,7 @@ Prints a table (whole-run wall time, mapping time, PSNR, ATE, and the speed-up o
 torch measured in the same invocation) and writes JSON.
 
     OMP_NUM_THREADS=1 python benchmarks/mapping_backends.py
-    python benchmarks/mapping_backends.py --sequences tum --extra dataset.max_frames=30 mapper.final_iterations=100
+    python benchmarks/mapping_backends.py --sequences tum --extra dataset.max_frames=30 final_iterations=100
 """
 
 from __future__ import annotations

@@ -77,7 +77,7 @@ def make_mapper(gm: GaussianMap | None = None, sensor: SensorProfile | None = No
     for role, default in PART_DEFAULTS.items():
         name, fields = _choice(settings.pop(role, default))
         parts[role] = registry.create(role, name, registry.get(role, name).config(**fields), sensor)
-    mapper_fields = {"resolution_scale": 1.0, "final_iterations": 5, **settings.pop("mapper", {})}
+    mapper_fields = {"resolution_scale": 1.0, **settings.pop("mapper", {})}
     assert not settings, f"unknown settings {settings}"
     spec = registry.get("mapper", "gaussian_splatting")
     mapper = registry.create("mapper", "gaussian_splatting", spec.config(**mapper_fields), sensor, **parts)

@@ -122,7 +122,7 @@ def test_mesh_of_a_replica_mapping_run_matches_the_true_depth(tmp_path, replica_
     proc = run_slamkit(
         "dataset=replica", f"dataset.path={replica_path}", "dataset.max_frames=5", "keyframe=every_n",
         "keyframe.tracking_every=2", "mapper=gaussian_splatting", "iterations_per_frame=2",
-        "mapper.final_iterations=300", "mapper.resolution_scale=0.25", "mapper.eval_every=100",
+        "final_iterations=300", "mapper.resolution_scale=0.25", "mapper.eval_every=100",
         "mapper.save_images=0", "progress=false", "eval.plot=false", f"hydra.run.dir={out}",
         cwd=tmp_path, env_extra={"OMP_NUM_THREADS": "1"}, timeout=600,
     )

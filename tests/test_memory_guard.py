@@ -163,7 +163,7 @@ def test_guarded_replica_run_stays_under_the_cap_keeps_the_most_opaque_and_track
     cap = 12_000
     dataset, slam, _ = build_run(["dataset=replica", f"dataset.path={replica_path}", "dataset.max_frames=8",
                                   "tracker=gicp", "keyframe=every_n", "keyframe.tracking_every=2",
-                                  "mapper=gaussian_splatting", "mapper.resolution_scale=0.25", "mapper.final_iterations=0",
+                                  "mapper=gaussian_splatting", "mapper.resolution_scale=0.25", "final_iterations=0",
                                   "mapper.eval_resolution_scale=0.25", "mapper.save_images=0",
                                   f"strategy.max_gaussians={cap}", "strategy.memory_guard_margin=0.1",
                                   "iterations_per_frame=2"])
@@ -285,7 +285,7 @@ def test_cli_run_with_the_guard_reports_pruning_and_stays_under_the_cap(tmp_path
     proc = run_slamkit(
         "dataset=synthetic", "dataset.num_frames=12", "dataset.width=64", "dataset.height=48", "tracker=gicp",
         "keyframe=every_n", "keyframe.tracking_every=2", "mapper=gaussian_splatting", "strategy.max_gaussians=1000",
-        "mapper.final_iterations=2", "mapper.save_images=0", "iterations_per_frame=2", f"mode={mode}",
+        "final_iterations=2", "mapper.save_images=0", "iterations_per_frame=2", f"mode={mode}",
         "progress=false", "eval.plot=false", f"hydra.run.dir={out}", cwd=tmp_path, timeout=300,
     )
     assert proc.returncode == 0, proc.stderr[-2000:]

@@ -132,7 +132,7 @@ def test_rerun_records_a_tum_run_to_rrd(tmp_path, tum_path):
     out = tmp_path / "run"
     proc = run_slamkit(
         "dataset=tum", f"dataset.path={tum_path}", "dataset.max_frames=8", "mapper=gaussian_splatting",
-        "iterations_per_frame=1", "mapper.final_iterations=0", "mapper.eval_every=100", "mapper.save_images=0",
+        "iterations_per_frame=1", "final_iterations=0", "mapper.eval_every=100", "mapper.save_images=0",
         "viewer=rerun", f"viewer.save={rrd}", "viewer.render_every=4", "viewer.map_every=4", "progress=false",
         f"hydra.run.dir={out}", cwd=tmp_path, env_extra={"OMP_NUM_THREADS": "1"}, timeout=300,
     )

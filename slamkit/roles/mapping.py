@@ -44,7 +44,8 @@ class Mapper(ABC):
         """Run up to `iterations` optimisation steps; return how many were done."""
 
     def finish(self) -> None:
-        """Called after the last frame (final iterations, if any)."""
+        """Called once after the last frame and any refinement steps (`optimize` calls), to
+        wrap up (e.g. a last pruning)."""
 
     def evaluate(self, frames, poses: list[np.ndarray], out_dir) -> dict[str, Any]:
         """Rendering metrics (psnr, ssim, ...) for the run's metrics.json; {} if none."""

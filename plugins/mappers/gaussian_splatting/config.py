@@ -19,9 +19,6 @@ class GaussianSplattingConfig(PluginConfig):
       Gaussian) pairs, so 0.5 is 4x cheaper than full resolution, while 0.25 would cap the
       full-resolution PSNR near 30 dB on Replica (an ideal 0.25 image upsampled back scores
       30.2 dB on room0's frame 0; 0.5 scores 34.9 dB).
-    final_iterations: sampled training steps after the last frame (in `finish`). 400 by
-      default, so that a short sequence (20 Replica frames at 10 steps a frame) is trained
-      for ~600 steps in all: the training views' PSNR is still rising at 350 steps.
     keyframe_storage: memory | disk: where keyframe training images live (uint8 colour and
       uint16 millimetre depth at the training resolution either way; disk = .npy files read
       back when the keyframe is trained on, for long runs).
@@ -34,7 +31,6 @@ class GaussianSplattingConfig(PluginConfig):
     """
 
     resolution_scale: float = 0.5
-    final_iterations: int = 400
     keyframe_storage: KeyframeStorage = KeyframeStorage.memory
     keyframe_dir: str | None = None
     eval_every: int = 1
@@ -46,6 +42,5 @@ class GaussianSplattingConfig(PluginConfig):
         require(0 < self.resolution_scale <= 1, "mapper.resolution_scale", "in (0, 1]", self.resolution_scale)
         require(0 < self.eval_resolution_scale <= 1, "mapper.eval_resolution_scale", "in (0, 1]",
                 self.eval_resolution_scale)
-        require(self.final_iterations >= 0, "mapper.final_iterations", "an integer >= 0", self.final_iterations)
         require(self.eval_every >= 1, "mapper.eval_every", "an integer >= 1", self.eval_every)
         require(self.save_images >= 0, "mapper.save_images", "an integer >= 0", self.save_images)

@@ -24,6 +24,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import deque
+from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
@@ -39,6 +40,7 @@ from slamkit.types import Camera
 from slamkit_plugins.mappers.gaussian_splatting.config import GaussianSplattingConfig
 from slamkit_plugins.mappers.gaussian_splatting.evaluation import evaluate_renders
 from slamkit_plugins.mappers.gaussian_splatting.keyframes import KeyframeStore
+from slamkit_plugins.mappers.gaussian_splatting.timing import PhaseTimer
 
 log = logging.getLogger(__name__)
 
@@ -60,6 +62,7 @@ class GaussianSplattingMapper(Mapper):
         self.skipped_steps = 0  # steps skipped for a non-finite loss or gradient
         self.stale_steps = 0  # steps dropped: rows were removed or overwritten during them
         self.last_loss: float | None = None
+        self.timer = PhaseTimer()  # where the steps' time goes (metrics.json: mapping_step_ms)
         self.bind(GaussianMap())
 
     def bind(self, gaussian_map: GaussianMap) -> None:
@@ -86,16 +89,15 @@ class GaussianSplattingMapper(Mapper):
         waits instead of spinning."""
         done = 0
         while done < iterations and len(self.keyframes) and len(self.gaussian_map):
-            kf_id = self.pending.popleft() if self.pending else self._sample()
-            self.train_step(self.keyframes[kf_id].view(self.gaussian_map.device))
+            with self.timer("view"):
+                kf_id = self.pending.popleft() if self.pending else self._sample()
+                view = self.keyframes[kf_id].view(self.gaussian_map.device)
+            self.train_step(view)
+            self.timer.steps += 1
             done += 1
         return done
 
     def finish(self) -> None:
-        if self.cfg.final_iterations:
-            start = time.perf_counter()
-            done = self.optimize(self.cfg.final_iterations)
-            log.info("final mapping: %d steps in %.1f s", done, time.perf_counter() - start)
         with self.gaussian_map.lock:
             self.edit.sync()
             self.strategy.finish(self.edit)
@@ -115,7 +117,7 @@ class GaussianSplattingMapper(Mapper):
                                    cfg.eval_every, cfg.eval_resolution_scale, cfg.save_images, out_dir)
         first = self.keyframes[self.keyframes.ids[0]].camera if len(self.keyframes) else None
         metrics.update(self.strategy.metrics(), mapping_steps=self.steps, mapping_skipped_steps=self.skipped_steps,
-                       mapping_stale_steps=self.stale_steps,
+                       mapping_stale_steps=self.stale_steps, mapping_step_ms=self.timer.per_step_ms(),
                        keyframe_memory_mb=self.keyframes.memory_bytes() / 2**20,
                        train_resolution=[first.width, first.height] if first else None)
         return metrics
@@ -136,31 +138,46 @@ class GaussianSplattingMapper(Mapper):
     def train_step(self, view: TrainingView) -> bool:
         """One optimisation step on `view`; False when it was skipped (empty map, a non-finite
         loss or gradient) or dropped (rows removed during it)."""
-        gm = self.gaussian_map
-        with gm.lock:
+        gm, timer = self.gaussian_map, self.timer
+        with self._locked():
             params, rows, structure = gm.parameters(), len(gm), gm.structure_version
         if rows == 0:
             return False
-        render = self.render(view.world_to_camera, view.camera, params)
-        loss = self.loss(render, view)
-        grads, problem = _gradients(loss, params)
-        with gm.lock:
+        with timer("render"):
+            render = self.render(view.world_to_camera, view.camera, params)
+        with timer("loss"):
+            loss = self.loss(render, view)
+        with timer("backward"):
+            grads, problem = _gradients(loss, params)
+        with self._locked():
             if problem:
                 return self._skip(problem)
             if gm.structure_version != structure:
                 self.stale_steps += 1
                 return False
-            live = gm.parameters()  # rows appended during the step had no part in it
-            grads = {k: _pad_rows(g, len(gm)) for k, g in grads.items()}
-            self.edit.sync()
-            self.optimizer.step(live, grads)
-            with torch.no_grad():
-                live["colors"].clamp_(0.0, 1.0)
-            gm.version += 1
+            with timer("optimizer"):
+                live = gm.parameters()  # rows appended during the step had no part in it
+                grads = {k: _pad_rows(g, len(gm)) for k, g in grads.items()}
+                self.edit.sync()
+                self.optimizer.step(live, grads)
+                with torch.no_grad():
+                    live["colors"].clamp_(0.0, 1.0)
+                gm.version += 1
             self.steps += 1
             self.last_loss = float(loss.detach())
-            self.strategy.step_post_backward(self.edit, StepInfo(self.steps, view, render, grads, self.last_loss))
+            with timer("strategy"):
+                self.strategy.step_post_backward(self.edit, StepInfo(self.steps, view, render, grads, self.last_loss))
         return True
+
+    @contextmanager
+    def _locked(self):
+        """Hold the map's lock; the wait counts as the step's `lock` phase."""
+        with self.timer("lock"):
+            self.gaussian_map.lock.acquire()
+        try:
+            yield
+        finally:
+            self.gaussian_map.lock.release()
 
     def _skip(self, why: str) -> bool:
         """Skip a step (parameters and moments unchanged), removing at once the Gaussians whose
