@@ -7,7 +7,7 @@ import torch
 
 from slamkit.map.gaussian_map import PARAMETERS
 from slamkit_plugins.optimizers.adam import AdamConfig, TorchAdam
-from slamkit_plugins.optimizers.visible_adam import VisibleAdam, VisibleAdamConfig
+from slamkit_plugins.optimizers.visible_adam import Kernels, VisibleAdam, VisibleAdamConfig
 
 SHAPES = {"means": (3,), "quats": (4,), "log_scales": (3,), "opacity_logits": (), "colors": (3,)}
 LRS = AdamConfig().learning_rates()
@@ -46,9 +46,18 @@ def close(a: dict, b: dict, steps: int) -> None:
         torch.testing.assert_close(a[k].detach(), b[k].detach(), rtol=0, atol=steps * ulp, msg=k)
 
 
-@pytest.mark.parametrize("make", [lambda: TorchAdam(AdamConfig()), lambda: VisibleAdam(VisibleAdamConfig()),
-                                  lambda: VisibleAdam(VisibleAdamConfig(only_visible=False))],
-                         ids=["adam", "visible_adam", "visible_adam_dense"])
+def visible(kernels: str, **fields) -> VisibleAdam:
+    return VisibleAdam(VisibleAdamConfig(kernels=Kernels(kernels), **fields))
+
+
+KERNELS = ["torch", "compiled"]
+
+
+@pytest.mark.parametrize("make", [lambda: TorchAdam(AdamConfig()), lambda: visible("torch"),
+                                  lambda: visible("compiled"), lambda: visible("torch", only_visible=False),
+                                  lambda: visible("compiled", only_visible=False)],
+                         ids=["adam", "visible_adam", "visible_adam_compiled", "visible_adam_dense",
+                              "visible_adam_dense_compiled"])
 def test_every_row_seen_every_step_is_torch_adam(make):
     ours, theirs = params(50), params(50)
     optimizer, ref = make(), reference(theirs)
@@ -61,9 +70,10 @@ def test_every_row_seen_every_step_is_torch_adam(make):
     assert optimizer.num_rows() == 50
 
 
-def test_visible_adam_leaves_unseen_rows_alone_and_counts_steps_per_row():
+@pytest.mark.parametrize("kernels", KERNELS)
+def test_visible_adam_leaves_unseen_rows_alone_and_counts_steps_per_row(kernels):
     ours, theirs = params(40), params(40)
-    optimizer = VisibleAdam(VisibleAdamConfig())
+    optimizer = visible(kernels)
     hidden = torch.arange(40) >= 30  # rows 30..39 never rendered
     before = {k: v.detach()[hidden].clone() for k, v in ours.items()}
     ref = reference({k: v[:30].detach().clone().requires_grad_(True) for k, v in theirs.items()})
@@ -76,14 +86,15 @@ def test_visible_adam_leaves_unseen_rows_alone_and_counts_steps_per_row():
         assert torch.equal(ours[k].detach()[hidden], before[k]), k  # untouched
     close({k: v[:30] for k, v in ours.items()}, seen, 8)  # the seen rows: Adam on those rows alone
     steps = optimizer.row_state()["steps"][0]
-    assert torch.equal(steps, torch.where(hidden, 0.0, 8.0))
+    assert torch.equal(steps, torch.where(hidden, 0.0, 8.0)) and optimizer.last_updated_rows == 30
 
 
-def test_a_late_row_starts_like_a_fresh_adam_with_visible_adam():
+@pytest.mark.parametrize("kernels", KERNELS)
+def test_a_late_row_starts_like_a_fresh_adam_with_visible_adam(kernels):
     """A row appended after 20 steps (zero state) moves on its first update as a fresh Adam
     moves a parameter (lr * g / |g|): its own step count bias-corrects it."""
     p = params(10)
-    optimizer = VisibleAdam(VisibleAdamConfig())
+    optimizer = visible(kernels)
     for step in range(20):
         optimizer.step(p, grads(10, step))
     optimizer.edit_rows(lambda name, v: torch.cat([v, torch.zeros((1,) + tuple(v.shape[1:]))]))
@@ -95,8 +106,8 @@ def test_a_late_row_starts_like_a_fresh_adam_with_visible_adam():
     torch.testing.assert_close(p["colors"].detach()[10], expected, rtol=1e-5, atol=1e-9)
 
 
-@pytest.mark.parametrize("make", [lambda: TorchAdam(AdamConfig()), lambda: VisibleAdam(VisibleAdamConfig())],
-                         ids=["adam", "visible_adam"])
+@pytest.mark.parametrize("make", [lambda: TorchAdam(AdamConfig()), lambda: visible("torch"),
+                                  lambda: visible("compiled")], ids=["adam", "visible_adam", "visible_adam_compiled"])
 def test_removing_rows_through_edit_rows_keeps_the_others_on_course(make):
     """Rows 0-9 removed after 5 steps: the other 30 continue exactly as torch.optim.Adam run on
     them alone."""
@@ -122,3 +133,27 @@ def test_learning_rates_are_validated():
         AdamConfig(lr_means=-1.0)
     with pytest.raises(ConfigError, match="optimizer.eps"):
         VisibleAdamConfig(eps=0.0)
+
+
+def test_the_compiled_kernel_equals_the_torch_reference_on_a_long_sparse_run():
+    """200 steps, a random third of the rows seen at each, rows removed and appended between
+    steps: the compiled and torch visible-Adam paths stay equal to float precision."""
+    a, b = params(500), params(500)
+    opts = {"torch": visible("torch"), "compiled": visible("compiled")}
+    g = torch.Generator().manual_seed(5)
+    for step in range(200):
+        n = len(a["means"])
+        hidden = torch.rand(n, generator=g) > 0.33
+        grad = grads(n, step, zero_rows=hidden)
+        opts["torch"].step(a, grad)
+        opts["compiled"].step(b, grad)
+        if step % 50 == 25:  # the map loses 10 rows and gains 20
+            keep = torch.ones(n, dtype=torch.bool)
+            keep[torch.randperm(n, generator=g)[:10]] = False
+            for o in opts.values():
+                o.edit_rows(lambda name, v: torch.cat([v[keep], torch.zeros((20,) + tuple(v.shape[1:]))]))
+            new = params(20, seed=step)
+            a = {k: torch.cat([v.detach()[keep], new[k].detach()]).requires_grad_(True) for k, v in a.items()}
+            b = {k: torch.cat([v.detach()[keep], new[k].detach()]).requires_grad_(True) for k, v in b.items()}
+    close(b, a, 200)
+    assert torch.equal(opts["torch"].row_state()["steps"][0], opts["compiled"].row_state()["steps"][0])

@@ -8,17 +8,50 @@ every parameter) keeps its parameters and moments (the "sparse" or "visible" Ada
 literature; `only_visible=false` updates every row, moments decaying where the gradient is
 zero). With every row visible at every step and the same age, it equals torch.optim.Adam
 (tests/test_optimizers.py). The same learning rates as `optimizer=adam`.
+
+On CPU the update is one pass of compiled code over the rows (csrc/visible_adam.cpp, built on
+first use by `slamkit.native`; `kernels=torch` is the reference it is tested against, and the
+path for GPU tensors or without a compiler): the torch path gathers and scatters the visible
+rows of every tensor.
 """
 
 from __future__ import annotations
 
+import ctypes
+import enum
+import logging
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 
+from slamkit.errors import ConfigError
+from slamkit.native import NativeLibrary
 from slamkit.plugin import PluginSpec, hookimpl
 from slamkit.roles import MapOptimizer
 from slamkit_plugins.optimizers.adam import AdamConfig
+
+log = logging.getLogger(__name__)
+SOURCE = Path(__file__).resolve().parent / "csrc" / "visible_adam.cpp"
+
+
+def _declare(lib) -> None:
+    P = ctypes.c_void_p
+    lib.slk_visible_adam.restype = ctypes.c_int64
+    lib.slk_visible_adam.argtypes = [ctypes.c_int64, ctypes.c_int, P, P, P, P, P, P, P, P, ctypes.c_float,
+                                     ctypes.c_float, ctypes.c_float, ctypes.c_int, ctypes.c_int]
+
+
+LIBRARY = NativeLibrary(SOURCE, "visible-Adam kernel", 2, _declare)
+
+
+class Kernels(enum.Enum):
+    """auto: compiled on CPU when a compiler builds it, else torch. compiled: compiled or an
+    error. torch: the torch reference."""
+
+    auto = "auto"
+    compiled = "compiled"
+    torch = "torch"
 
 #: The per-row step count's key among the state tensors `edit_rows` sees.
 STEPS = "steps"
@@ -27,9 +60,11 @@ STEPS = "steps"
 @dataclass
 class VisibleAdamConfig(AdamConfig):
     """only_visible: update only the rows with a non-zero gradient (rows the step rendered);
-    false updates every row (moments decay where the gradient is zero)."""
+    false updates every row (moments decay where the gradient is zero). kernels: auto |
+    compiled | torch (see the module docstring; the same updates to float precision)."""
 
     only_visible: bool = True
+    kernels: Kernels = Kernels.auto
 
 
 class VisibleAdam(MapOptimizer):
@@ -41,6 +76,12 @@ class VisibleAdam(MapOptimizer):
         self.lrs = cfg.learning_rates()
         self.moments: dict[str, tuple[torch.Tensor, torch.Tensor]] = {}
         self.steps = torch.zeros(0)
+        self.lib = None if Kernels(cfg.kernels) is Kernels.torch else LIBRARY.get()
+        if self.lib is None and Kernels(cfg.kernels) is Kernels.compiled:
+            raise ConfigError(f"optimizer.kernels=compiled: the kernel is not available ({LIBRARY.error})")
+        self.last_updated_rows = 0  # rows the last step updated
+        self.calls = 0  # steps taken: no row's step count exceeds it
+        self._corrections = torch.zeros(0, 2)  # (t, 1 - beta^t) for t = 0..calls
 
     def num_rows(self) -> int:
         return int(self.steps.shape[0])
@@ -59,7 +100,11 @@ class VisibleAdam(MapOptimizer):
             device = next(iter(params.values())).device
             self.moments = {k: (torch.zeros_like(p), torch.zeros_like(p)) for k, p in params.items()}
             self.steps = torch.zeros(n, device=device)
+        self.calls += 1
+        if self._compiled(params, grads):
+            return
         rows = self._rows(grads, n)
+        self.last_updated_rows = len(rows)
         self.steps[rows] += 1
         b1, b2 = self.cfg.beta1, self.cfg.beta2
         t = self.steps[rows]
@@ -76,6 +121,36 @@ class VisibleAdam(MapOptimizer):
             update = (m_rows / c1.view(shape)) / (v_rows / c2.view(shape)).sqrt_().add_(self.cfg.eps)
             m[rows], v[rows] = m_rows, v_rows
             p[rows] -= self.lrs[name] * update
+
+    def _compiled(self, params: dict[str, torch.Tensor], grads: dict[str, torch.Tensor]) -> bool:
+        """The update in one compiled pass, where it applies (CPU float32); False otherwise."""
+        names = [k for k in params if k in grads]
+        tensors = [params[k] for k in names] + [grads[k] for k in names] + [self.steps]
+        if self.lib is None or any(t.device.type != "cpu" or t.dtype != torch.float32 for t in tensors):
+            return False
+        grads = {k: grads[k].contiguous() for k in names}
+
+        def pointers(ts):
+            return (ctypes.c_void_p * len(ts))(*(t.data_ptr() for t in ts))
+
+        width = (ctypes.c_int * len(names))(*(params[k][0].numel() if len(params[k]) else 1 for k in names))
+        lr = (ctypes.c_float * len(names))(*(self.lrs[k] for k in names))
+        m = [self.moments[k][0] for k in names]
+        v = [self.moments[k][1] for k in names]
+        self.last_updated_rows = self.lib.slk_visible_adam(
+            len(self.steps), len(names), pointers([params[k] for k in names]), pointers([grads[k] for k in names]),
+            pointers(m), pointers(v), width, lr, self.steps.data_ptr(), self._bias_corrections().data_ptr(),
+            self.cfg.beta1, self.cfg.beta2, self.cfg.eps, int(self.cfg.only_visible), 1)
+        return True
+
+    def _bias_corrections(self) -> torch.Tensor:
+        """(calls + 1, 2) float32: 1 - beta1^t and 1 - beta2^t for every step count t a row can
+        have now, computed once per count (in float64, rounded once, as the torch path's pow)."""
+        if len(self._corrections) <= self.calls:
+            t = torch.arange(2 * self.calls + 2, dtype=torch.float64)[:, None]
+            betas = torch.tensor([self.cfg.beta1, self.cfg.beta2], dtype=torch.float64)
+            self._corrections = (1 - betas**t).to(torch.float32).contiguous()
+        return self._corrections
 
     def _rows(self, grads: dict[str, torch.Tensor], n: int) -> torch.Tensor:
         """The rows to update: those with a non-zero gradient (or every row)."""
