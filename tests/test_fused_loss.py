@@ -57,16 +57,20 @@ def loss_and_grads(fn, inputs, dtype=torch.float32, **kw):
 
 
 def assert_agrees(inputs, **kw):
+    """The fused loss against the reference in float64 (the definition, computed exactly
+    enough) and in float32 (what the mapper runs today). On real images torch's float32 result
+    is itself up to ~3e-5 from the float64 one in the gradients (SSIM's variances F(x x) -
+    F(x)^2 cancel on flat regions); the kernel computes those maps in double, so it is held to
+    the tolerance against float64, and against float32 to the tolerance plus float32's own
+    error. (The same for the value: torch rounds SSIM ~ 1 to float32 before 1 - SSIM.)"""
     fused = loss_and_grads(fused_rgbd_loss, inputs, **kw)
     ref = loss_and_grads(torch_rgbd_loss, inputs, **kw)
+    exact = loss_and_grads(torch_rgbd_loss, inputs, dtype=torch.float64, **kw)
     assert fused[0].dtype == torch.float32 and fused[0].dim() == 0
-    # relative to the loss, plus w_ssim: torch rounds SSIM (~1) to float32 before 1 - SSIM, so
-    # its own value is only that precise when SSIM is close to 1
-    scale = abs(float(ref[0])) + kw.get("w_ssim", 0.2)
-    assert abs(float(fused[0]) - float(ref[0])) < LOSS_TOL * scale, (float(fused[0]), float(ref[0]))
-    assert rel(fused[1], ref[1]) < GRAD_TOL
-    assert rel(fused[2], ref[2]) < GRAD_TOL
-    return fused, ref
+    for k, tol in ((0, LOSS_TOL), (1, GRAD_TOL), (2, GRAD_TOL)):
+        assert rel(fused[k], exact[k]) < tol, k
+        assert rel(fused[k], ref[k]) < tol + rel(ref[k], exact[k]), k
+    return fused, ref, exact
 
 
 def random_inputs(H: int, W: int, seed: int, valid: float = 0.8):
@@ -121,11 +125,9 @@ def test_matches_torch_on_real_keyframes(name, kw):
     assert inputs[0].shape == ((340, 600, 3) if name == "replica" else (240, 320, 3))
     if name == "tum":
         assert 0.3 < float((inputs[3] > 0).float().mean()) < 1.0  # holes: the mask matters
-    fused, ref = assert_agrees(inputs, **kw)
-    # as close to torch's own float64 result as torch's float32 result is (or closer)
-    exact = loss_and_grads(torch_rgbd_loss, inputs, dtype=torch.float64, **kw)
-    for f, r, e in zip(fused, ref, exact):
-        assert rel(f, e) <= 2 * rel(r, e) + 1e-7
+    fused, ref, exact = assert_agrees(inputs, **kw)
+    for f, r, e in zip(fused[1:], ref[1:], exact[1:]):  # closer to the exact gradients than torch's float32
+        assert rel(f, e) <= rel(r, e) + 1e-7
 
 
 @pytest.mark.parametrize("shape", [(240, 320), (97, 45)])
@@ -168,7 +170,7 @@ def test_gradient_matches_finite_differences():
 def test_no_valid_depth_uses_every_pixel_and_drops_the_depth_term():
     color, depth, image, observed = random_inputs(30, 40, seed=7)
     observed.zero_()
-    (loss, gc, gd), _ = assert_agrees((color, depth, image, observed))
+    (loss, gc, gd), _, _ = assert_agrees((color, depth, image, observed))
     assert torch.count_nonzero(gd) == 0 and torch.count_nonzero(gc) > 0.9 * gc.numel()
     terms, _, _ = kernel_rgbd_loss(color, depth, image, observed, (0.8, 0.2, 0.1, 10.0), 1, grads=False)
     assert terms[3] == 0 and terms[4] == 30 * 40
@@ -181,7 +183,7 @@ def test_a_few_valid_pixels(valid):
     keep = torch.zeros(25 * 31, dtype=torch.bool)
     keep[torch.randperm(25 * 31, generator=torch.Generator().manual_seed(valid))[:valid]] = True
     observed[~keep.reshape(25, 31)] = 0
-    (_, gc, gd), _ = assert_agrees((color, depth, image, observed))
+    (_, gc, gd), _, _ = assert_agrees((color, depth, image, observed))
     assert torch.count_nonzero(gd) == valid  # only the valid pixels see a depth gradient
 
 

@@ -33,10 +33,14 @@
 // accumulated in double.
 
 #include <algorithm>
+#if defined(__AVX512F__)
+#include <immintrin.h>
+#endif
 #include <cmath>
 #include <cstdint>
 #include <cstring>
 #include <exception>
+#include <new>
 #include <stdexcept>
 #include <string>
 #include <thread>
@@ -48,6 +52,7 @@ constexpr int ABI_VERSION = 1;
 constexpr int K = 11;      // SSIM window taps
 constexpr int R = K - 1;   // rows / columns the valid filter loses
 constexpr int VL = 16;     // floats per vector
+constexpr int VD = 8;      // doubles per vector
 constexpr float C1 = (float)(0.01 * 0.01);  // (K1 data_range)^2 as pytorch_msssim, rounded as torch does
 constexpr float C2 = (float)(0.03 * 0.03);
 
@@ -55,24 +60,64 @@ typedef float vf __attribute__((vector_size(64)));
 typedef float vf8 __attribute__((vector_size(32)));
 typedef double vd __attribute__((vector_size(64)));
 typedef int32_t vi __attribute__((vector_size(64)));
+typedef int64_t vl __attribute__((vector_size(64)));
 
 inline vf vf1(float x) { return vf{x, x, x, x, x, x, x, x, x, x, x, x, x, x, x, x}; }
+inline vd vd1(double x) { return vd{x, x, x, x, x, x, x, x}; }
 inline vf ld(const float* p) {
   vf v;
   std::memcpy(&v, p, sizeof v);
   return v;
 }
+inline vd ldd(const double* p) {
+  vd v;
+  std::memcpy(&v, p, sizeof v);
+  return v;
+}
+// 8 floats widened to double, 8 doubles rounded to float (GCC splits __builtin_convertvector
+// between 256- and 512-bit vectors into halves: 3 instructions instead of 1)
+inline vd ld8(const float* p) {
+#if defined(__AVX512F__)
+  return (vd)_mm512_cvtps_pd(_mm256_loadu_ps(p));
+#else
+  vf8 v;
+  std::memcpy(&v, p, sizeof v);
+  return __builtin_convertvector(v, vd);
+#endif
+}
+inline void st8(float* p, vd v) {
+#if defined(__AVX512F__)
+  _mm256_storeu_ps(p, _mm512_cvtpd_ps((__m512d)v));
+#else
+  const vf8 f = __builtin_convertvector(v, vf8);
+  std::memcpy(p, &f, sizeof f);
+#endif
+}
+inline vf ld16(const double* p) {  // 16 doubles (float values), as floats
+  float h[VL];
+  st8(h, ldd(p));
+  st8(h + VD, ldd(p + VD));
+  return ld(h);
+}
 inline void st(float* p, vf v) { std::memcpy(p, &v, sizeof v); }
+inline void st16(double* p, vf v) {  // 16 floats, widened
+  float h[VL];
+  std::memcpy(h, &v, sizeof h);
+  const vd lo = ld8(h), hi = ld8(h + VD);
+  std::memcpy(p, &lo, sizeof lo);
+  std::memcpy(p + VD, &hi, sizeof hi);
+}
+inline void st(double* p, vd v) { std::memcpy(p, &v, sizeof v); }
 inline vf select(vi m, vf a, vf b) { return (vf)(((vi)a & m) | ((vi)b & ~m)); }
+inline vd select(vl m, vd a, vd b) { return (vd)(((vl)a & m) | ((vl)b & ~m)); }
 // sign(v) as torch's abs backward: 0 at 0, NaN for NaN
 inline vf sign(vf v) { return select(v > 0, vf1(1.f), select(v < 0, vf1(-1.f), v)); }
 inline vf vabs(vf v) { return (vf)((vi)v & (vi{} + 0x7fffffff)); }
 // a += v, the 16 floats widened to double (low and high halves added first: a fixed order)
 inline void add_wide(vd& a, vf v) {
-  vf8 lo, hi;
-  std::memcpy(&lo, &v, sizeof lo);
-  std::memcpy(&hi, reinterpret_cast<const char*>(&v) + sizeof lo, sizeof hi);
-  a += __builtin_convertvector(lo, vd) + __builtin_convertvector(hi, vd);
+  float h[VL];
+  std::memcpy(h, &v, sizeof h);
+  a += ld8(h) + ld8(h + VD);
 }
 inline double hsum(vd a) {
   double h[8];
@@ -81,12 +126,134 @@ inline double hsum(vd a) {
 }
 inline int round_up(int x, int m) { return (x + m - 1) / m * m; }
 
+// a b + c: one fused multiply-add where the CPU has them (the loss does not depend on
+// rounding as torch does; results differ from the portable build's in the last bits only)
+#if defined(__AVX512F__)
+inline vd madd(vd a, vd b, vd c) { return (vd)_mm512_fmadd_pd((__m512d)a, (__m512d)b, (__m512d)c); }
+inline vf madd(vf a, vf b, vf c) { return (vf)_mm512_fmadd_ps((__m512)a, (__m512)b, (__m512)c); }
+#else
+inline vd madd(vd a, vd b, vd c) { return a * b + c; }
+inline vf madd(vf a, vf b, vf c) { return a * b + c; }
+#endif
+
+// The symmetric window (g[t] = g[10 - t]) applied to the 11 values at(0..10):
+// g5 p5 + sum_{t<5} g_t (p_t + p_{10-t}), the centre first.
+template <class V, class At>
+inline V sym_filter(const V* g, At at) {
+  V acc = g[5] * at(5);
+  for (int t = 4; t >= 0; --t) acc = madd(g[t], at(t) + at(K - 1 - t), acc);
+  return acc;
+}
+
+// The same for the products a_t b_t: sum_t g_t a_t b_t.
+template <class V>
+inline V sym_filter_product(const V* g, const V* a, const V* b) {
+  V acc = g[5] * (a[5] * b[5]);
+  for (int t = 4; t >= 0; --t) acc = madd(g[t], madd(a[t], b[t], a[K - 1 - t] * b[K - 1 - t]), acc);
+  return acc;
+}
+
+// Filtering along a row: out[j] = sum_t g[t] p[j + t], the 11 shifted windows of one output
+// vector taken from aligned vectors by lane shifts (AVX-512 valign) rather than by 10 unaligned
+// loads, each of which would straddle two cache lines.
+#if defined(__AVX512F__)
+template <int S>
+inline vd shift(vd a, vd b) {  // lanes S..S+7 of (a, b)
+  return (vd)_mm512_castsi512_pd(_mm512_alignr_epi64(_mm512_castpd_si512((__m512d)b), _mm512_castpd_si512((__m512d)a), S));
+}
+template <int S>
+inline vf shift(vf a, vf b) {  // lanes S..S+15 of (a, b)
+  return (vf)_mm512_castsi512_ps(_mm512_alignr_epi32(_mm512_castps_si512((__m512)b), _mm512_castps_si512((__m512)a), S));
+}
+inline vd row_filter(const vd* g, const double* p) {  // p: 64-byte aligned
+  const vd a = ldd(p), b = ldd(p + VD), c = ldd(p + 2 * VD);
+  const vd w[K] = {a, shift<1>(a, b), shift<2>(a, b), shift<3>(a, b), shift<4>(a, b), shift<5>(a, b),
+                   shift<6>(a, b), shift<7>(a, b), b, shift<1>(b, c), shift<2>(b, c)};
+  return sym_filter(g, [&](int t) { return w[t]; });
+}
+inline vf row_filter6(const vf* g, const float* p) {  // sum_t g[t] p[j + 6 + t]; p: 64-byte aligned
+  const vf a = ld(p), b = ld(p + VL);
+  const vf w[K] = {shift<6>(a, b), shift<7>(a, b), shift<8>(a, b), shift<9>(a, b), shift<10>(a, b), shift<11>(a, b),
+                   shift<12>(a, b), shift<13>(a, b), shift<14>(a, b), shift<15>(a, b), b};
+  return sym_filter(g, [&](int t) { return w[t]; });
+}
+#else
+inline vd row_filter(const vd* g, const double* p) {
+  return sym_filter(g, [&](int t) { return ldd(p + t); });
+}
+inline vf row_filter6(const vf* g, const float* p) {
+  return sym_filter(g, [&](int t) { return ld(p + 6 + t); });
+}
+#endif
+
+// (H,W,3) rows <-> planar channels, 16 pixels at a time: de/interleave3(p, ...) reads/writes
+// p[0..47] as the channels' 16-lane vectors (two two-source permutes per vector).
+#if defined(__AVX512F__)
+inline vi lanes(int (*f)(int)) {
+  alignas(64) int32_t v[VL];
+  for (int k = 0; k < VL; ++k) v[k] = f(k);
+  vi r;
+  std::memcpy(&r, v, sizeof r);
+  return r;
+}
+inline vf permute2(vf a, vi idx, vf b) {
+  return (vf)_mm512_permutex2var_ps((__m512)a, (__m512i)idx, (__m512)b);
+}
+inline void deinterleave3(const float* p, vf out[3]) {
+  // channel ch, lane k: element 3k + ch of (v0, v1, v2); those past 31 come in the second step
+  static const vi first[3] = {lanes([](int k) { return 3 * k < 32 ? 3 * k : 0; }),
+                              lanes([](int k) { return 3 * k + 1 < 32 ? 3 * k + 1 : 0; }),
+                              lanes([](int k) { return 3 * k + 2 < 32 ? 3 * k + 2 : 0; })};
+  static const vi second[3] = {lanes([](int k) { return 3 * k < 32 ? k : 3 * k - 16; }),
+                               lanes([](int k) { return 3 * k + 1 < 32 ? k : 3 * k + 1 - 16; }),
+                               lanes([](int k) { return 3 * k + 2 < 32 ? k : 3 * k + 2 - 16; })};
+  const vf v0 = ld(p), v1 = ld(p + VL), v2 = ld(p + 2 * VL);
+  for (int ch = 0; ch < 3; ++ch) out[ch] = permute2(permute2(v0, first[ch], v1), second[ch], v2);
+}
+inline void interleave3(const vf in[3], float* p) {
+  // output vector o, lane e: pixel (16 o + e) / 3, channel (16 o + e) % 3; channels 0 and 1
+  // first (lanes of in[0], in[1]), then channel 2
+  static const vi first[3] = {lanes([](int e) { return (e % 3 == 1 ? 16 : 0) + e / 3; }),
+                              lanes([](int e) { return ((16 + e) % 3 == 1 ? 16 : 0) + (16 + e) / 3; }),
+                              lanes([](int e) { return ((32 + e) % 3 == 1 ? 16 : 0) + (32 + e) / 3; })};
+  static const vi second[3] = {lanes([](int e) { return e % 3 == 2 ? 16 + e / 3 : e; }),
+                               lanes([](int e) { return (16 + e) % 3 == 2 ? 16 + (16 + e) / 3 : e; }),
+                               lanes([](int e) { return (32 + e) % 3 == 2 ? 16 + (32 + e) / 3 : e; })};
+  for (int o = 0; o < 3; ++o) st(p + o * VL, permute2(permute2(in[0], first[o], in[1]), second[o], in[2]));
+}
+#else
+inline void deinterleave3(const float* p, vf out[3]) {
+  float h[3][VL];
+  for (int k = 0; k < VL; ++k)
+    for (int ch = 0; ch < 3; ++ch) h[ch][k] = p[3 * k + ch];
+  for (int ch = 0; ch < 3; ++ch) out[ch] = ld(h[ch]);
+}
+inline void interleave3(const vf in[3], float* p) {
+  float h[3][VL];
+  for (int ch = 0; ch < 3; ++ch) st(h[ch], in[ch]);
+  for (int k = 0; k < VL; ++k)
+    for (int ch = 0; ch < 3; ++ch) p[3 * k + ch] = h[ch][k];
+}
+#endif
+
+// 64-byte aligned, zero-initialised floats (rows start on a cache line: aligned vector loads).
+struct Buffer {
+  float* p = nullptr;
+  explicit Buffer(size_t n) : p(static_cast<float*>(::operator new(n * sizeof(float), std::align_val_t(64)))) {
+    std::fill_n(p, n, 0.f);
+  }
+  ~Buffer() { ::operator delete(p, std::align_val_t(64)); }
+  Buffer(const Buffer&) = delete;
+  Buffer& operator=(const Buffer&) = delete;
+};
+
 // The whole problem, shared by the bands (read-only but for each band's own output rows).
 struct Problem {
   int H, W, Hv, Wv;
-  int Wp;  // padded planar row length (floats): covers the filters' reads past the last vector
+  int Wp;  // padded row length (floats; multiple of 16): covers the filters' reads past the last vector
   const float *color, *depth, *image, *obs;
-  float g[K];
+  vf gf[6];  // window taps 0..5 (symmetric), float and double
+  vd gd[6];
   bool has_depth, do_ssim, grads;
   float k_l1, k_d, k_s;  // gradient scales: w_l1 / 3n, w_depth / (n unit), -w_ssim / (3 Hv Wv)
   float* grad_color;     // (H,W,3) or null
@@ -94,33 +261,37 @@ struct Problem {
   double *row_l1, *row_depth, *row_ssim;  // per-row sums (H, H, Hv)
 };
 
-// One band's rings and row buffers (zero-initialised: the padding stays zero).
+// One band's rings and row buffers. The five maps and S's adjoints are computed in double:
+// s11 = F(x x) - mu1^2 etc. cancel (to ~1e-4 of their terms on flat image regions), and in
+// float32 torch's own result is then only ~3e-5 from the exact one on real keyframes; their
+// correlations (the adjoint passes) in float32.
 struct Band {
   const Problem& P;
-  std::vector<float> xy;    // [channel][x or y][ring slot][Wp]: c m and I m, planar
-  std::vector<float> mask;  // [ring slot][Wp]
-  std::vector<float> v;     // [5][Wp]: the vertical pass of mu1, mu2, e11, e22, e12
-  std::vector<float> seed;  // [3][Wp + 2 VL]: a_mu, a_11, a_12 of one map row at offset R, zero around
-  std::vector<float> u;     // [channel][ring slot][3][Wp]: the seeds correlated horizontally
-  std::vector<float> grad;  // [3][Wp]: one row's colour gradient, planar
-  std::vector<float> tail;  // [4 VL]: the last partial vector of an unpadded row
-  int seed_len;
+  const int Wp, SL;  // SL: seed row length (map row at offset VL, zeros around)
+  Buffer xy;    // [channel][x or y][ring slot][Wp] doubles: c m and I m, planar
+  Buffer mask;  // [ring slot][Wp]
+  Buffer v;     // [5][Wp] doubles (2 Wp floats each): the vertical pass of mu1, mu2, e11, e22, e12
+  Buffer seed;  // [3][SL]: a_mu, a_11, a_12 of one map row
+  Buffer u;     // [channel][ring slot][3][Wp]: the seeds correlated horizontally
+  Buffer grad;  // [3][Wp]: one row's colour gradient, planar
+  Buffer tail;  // [4 VL]: the last partial vector of an unpadded row
 
-  explicit Band(const Problem& p) : P(p), seed_len(p.Wp + 2 * VL) {
-    xy.assign((size_t)3 * 2 * K * P.Wp, 0.f);
-    mask.assign((size_t)K * P.Wp, 0.f);
-    v.assign((size_t)5 * P.Wp, 0.f);
-    seed.assign((size_t)3 * seed_len, 0.f);
-    u.assign((size_t)3 * K * 3 * P.Wp, 0.f);
-    grad.assign((size_t)3 * P.Wp, 0.f);
-    tail.assign(4 * VL, 0.f);
+  explicit Band(const Problem& p)
+      : P(p), Wp(p.Wp), SL(p.Wp + 2 * VL), xy((size_t)3 * 2 * K * Wp * 2), mask((size_t)K * Wp),
+        v((size_t)5 * 2 * Wp), seed((size_t)3 * SL), u((size_t)3 * K * 3 * Wp), grad((size_t)3 * Wp),
+        tail(4 * VL) {}
+
+  double* xrow(int ch, int which, int row) {
+    return reinterpret_cast<double*>(xy.p) + (((size_t)ch * 2 + which) * K + row % K) * Wp;
   }
-
-  float* xrow(int ch, int which, int row) { return &xy[(((size_t)ch * 2 + which) * K + row % K) * P.Wp]; }
-  float* mrow(int row) { return &mask[(size_t)(row % K) * P.Wp]; }
-  float* urow(int ch, int row, int map) { return &u[(((size_t)ch * K + (row + K) % K) * 3 + map) * P.Wp]; }
+  float* mrow(int row) { return mask.p + (size_t)(row % K) * Wp; }
+  double* vrow(int map) { return reinterpret_cast<double*>(v.p) + (size_t)map * Wp; }
+  float* urow(int ch, int row, int map) { return u.p + (((size_t)ch * K + (row + K) % K) * 3 + map) * Wp; }
 
   void load_row(int q);
+  void vertical(int ch, int r, int count);
+  vd horizontal_and_seeds(int count);
+  void adjoint_horizontal(int ch, int r);
   double forward_row(int r);
   void clear_u(int r);
   void emit_row(int i, double& l1, double& dep);
@@ -136,93 +307,116 @@ void Band::load_row(int q) {
   const float* D = P.obs + (size_t)q * W;
   float* m = mrow(q);
   for (int j = 0; j < W; ++j) m[j] = P.has_depth ? (D[j] > 0.f ? 1.f : 0.f) : 1.f;
+  double *x[3], *y[3];
   for (int ch = 0; ch < 3; ++ch) {
-    float* x = xrow(ch, 0, q);
-    float* y = xrow(ch, 1, q);
-    for (int j = 0; j < W; ++j) {
-      x[j] = c[3 * j + ch] * m[j];
-      y[j] = I[3 * j + ch] * m[j];
+    x[ch] = xrow(ch, 0, q);
+    y[ch] = xrow(ch, 1, q);
+  }
+  const int full = W / VL * VL;
+  for (int j = 0; j < full; j += VL) {
+    vf cv[3], iv[3];
+    deinterleave3(c + 3 * j, cv);
+    deinterleave3(I + 3 * j, iv);
+    const vf mv = ld(m + j);
+    for (int ch = 0; ch < 3; ++ch) {
+      st16(x[ch] + j, cv[ch] * mv);
+      st16(y[ch] + j, iv[ch] * mv);
+    }
+  }
+  for (int j = full; j < W; ++j) {
+    for (int ch = 0; ch < 3; ++ch) {
+      x[ch][j] = c[3 * j + ch] * m[j];
+      y[ch][j] = I[3 * j + ch] * m[j];
     }
   }
 }
 
-// Map row r (< Hv): the five filtered maps, S, and (with gradients) the seeds correlated
-// horizontally into the u ring. Returns sum S over the row and the channels.
+// The vertical pass of map row r, channel ch: mu1, mu2, e11, e22, e12 filtered along the
+// columns (input rows r..r+10), in double, `count` vectors of 8 columns.
+void Band::vertical(int ch, int r, int count) {
+  const vd* g = P.gd;
+  const double* xs[K];
+  const double* ys[K];
+  for (int t = 0; t < K; ++t) {
+    xs[t] = xrow(ch, 0, r + t);
+    ys[t] = xrow(ch, 1, r + t);
+  }
+  double* vm[5];
+  for (int k = 0; k < 5; ++k) vm[k] = vrow(k);
+  for (int b = 0; b < count; ++b) {
+    const int j = b * VD;
+    vd x[K], y[K];
+    for (int t = 0; t < K; ++t) {
+      x[t] = ldd(xs[t] + j);
+      y[t] = ldd(ys[t] + j);
+    }
+    st(vm[0] + j, sym_filter(g, [&](int t) { return x[t]; }));
+    st(vm[1] + j, sym_filter(g, [&](int t) { return y[t]; }));
+    st(vm[2] + j, sym_filter_product(g, x, x));
+    st(vm[3] + j, sym_filter_product(g, y, y));
+    st(vm[4] + j, sym_filter_product(g, x, y));
+  }
+}
+
+// The horizontal pass of the five maps, then per map pixel S and (with gradients) the seeds
+// a_mu, a_11, a_12 times k_s, rounded to float (0 outside the map). Returns sum S (double).
+vd Band::horizontal_and_seeds(int count) {
+  const vd* g = P.gd;
+  const vd ks = vd1(P.k_s);
+  const double* vm[5];
+  for (int k = 0; k < 5; ++k) vm[k] = vrow(k);
+  float* sd[3];
+  for (int k = 0; k < 3; ++k) sd[k] = seed.p + (size_t)k * SL + VL;
+  vd total = vd{};
+  for (int b = 0; b < count; ++b) {
+    const int j = b * VD;
+    vd f[5];
+    for (int k = 0; k < 5; ++k) f[k] = row_filter(g, vm[k] + j);
+    const vd mu1 = f[0], mu2 = f[1];
+    const vd mu1s = mu1 * mu1, mu2s = mu2 * mu2, mu12 = mu1 * mu2;
+    const vd s11 = f[2] - mu1s, s22 = f[3] - mu2s, s12 = f[4] - mu12;
+    const vd B1 = (mu1s + mu2s) + (double)C1, B2 = (s11 + s22) + (double)C2;
+    const vd inv = 1.0 / (B1 * B2), rB1 = B2 * inv, rB2 = B1 * inv;
+    const vd l = (2.0 * mu12 + (double)C1) * rB1;
+    const vd cs = (2.0 * s12 + (double)C2) * rB2;
+    const vd S = l * cs;
+    const vl keep = (vl{0, 1, 2, 3, 4, 5, 6, 7} + j) < (int64_t)P.Wv;
+    total += select(keep, S, vd{});
+    if (P.grads) {
+      const vd a12 = 2.0 * l * rB2;
+      const vd a11 = -(S * rB2);
+      const vd amu = (2.0 * cs) * (mu2 - mu1 * l) * rB1 - mu2 * a12 - 2.0 * mu1 * a11;
+      st8(sd[0] + j, select(keep, ks * amu, vd{}));
+      st8(sd[1] + j, select(keep, ks * a11, vd{}));
+      st8(sd[2] + j, select(keep, ks * a12, vd{}));
+    }
+  }
+  return total;
+}
+
+// The seeds' full correlation along the row into the u ring (row r, channel ch):
+// u[j] = sum_t g[t] a[j - t] = sum_t g[t] a[j - 10 + t] (symmetric taps); a is stored at
+// offset VL with zeros around.
+void Band::adjoint_horizontal(int ch, int r) {
+  const int count = round_up(P.W, VL) / VL;
+  for (int k = 0; k < 3; ++k) {
+    float* out = urow(ch, r, k);
+    const float* a = seed.p + (size_t)k * SL;  // a + 6 + t = the seed row at offset t - 10
+    for (int b = 0; b < count; ++b) {
+      const int j = b * VL;
+      st(out + j, row_filter6(P.gf, a + j));
+    }
+  }
+}
+
+// Map row r (< Hv), every channel: S summed over the row, and the u ring's row r.
 double Band::forward_row(int r) {
-  const int nv_out = round_up(P.Wv, VL) / VL;  // vectors of map columns
-  const int nv_in = nv_out + 1;                 // vertical-pass vectors the horizontal pass reads
-  const int nv_adj = round_up(P.W, VL) / VL;
-  const float* g = P.g;
+  const int count = round_up(P.Wv, VD) / VD;  // vectors of map columns
   vd total = vd{};
   for (int ch = 0; ch < 3; ++ch) {
-    const float* xs[K];
-    const float* ys[K];
-    for (int t = 0; t < K; ++t) {
-      xs[t] = xrow(ch, 0, r + t);
-      ys[t] = xrow(ch, 1, r + t);
-    }
-    float* vm[5];
-    for (int k = 0; k < 5; ++k) vm[k] = &v[(size_t)k * P.Wp];
-    for (int b = 0; b < nv_in; ++b) {
-      const int j = b * VL;
-      vf a0 = vf{}, a1 = vf{}, a2 = vf{}, a3 = vf{}, a4 = vf{};
-      for (int t = 0; t < K; ++t) {
-        const vf x = ld(xs[t] + j), y = ld(ys[t] + j), w = vf1(g[t]);
-        a0 += w * x;
-        a1 += w * y;
-        a2 += w * (x * x);
-        a3 += w * (y * y);
-        a4 += w * (x * y);
-      }
-      st(vm[0] + j, a0);
-      st(vm[1] + j, a1);
-      st(vm[2] + j, a2);
-      st(vm[3] + j, a3);
-      st(vm[4] + j, a4);
-    }
-    float* sd[3];
-    for (int k = 0; k < 3; ++k) sd[k] = &seed[(size_t)k * seed_len];
-    const vf ks = vf1(P.k_s);
-    for (int b = 0; b < nv_out; ++b) {
-      const int j = b * VL;
-      vf f[5];
-      for (int k = 0; k < 5; ++k) {
-        vf a = vf{};
-        for (int t = 0; t < K; ++t) a += vf1(g[t]) * ld(vm[k] + j + t);
-        f[k] = a;
-      }
-      const vf mu1 = f[0], mu2 = f[1];
-      const vf mu1s = mu1 * mu1, mu2s = mu2 * mu2, mu12 = mu1 * mu2;
-      const vf s11 = f[2] - mu1s, s22 = f[3] - mu2s, s12 = f[4] - mu12;
-      const vf B1 = (mu1s + mu2s) + C1, B2 = (s11 + s22) + C2;
-      const vf cs = (2.f * s12 + C2) / B2;
-      const vf l = (2.f * mu12 + C1) / B1;
-      const vf S = l * cs;
-      vi lane = vi{0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15} + j;
-      const vi keep = lane < P.Wv;
-      add_wide(total, select(keep, S, vf{}));
-      if (P.grads) {
-        const vf rB2 = 1.f / B2;
-        const vf a12 = 2.f * l * rB2;
-        const vf a11 = -(S * rB2);
-        const vf amu = (2.f * cs) * (mu2 - mu1 * l) / B1 - mu2 * a12 - 2.f * mu1 * a11;
-        st(sd[0] + R + j, select(keep, ks * amu, vf{}));
-        st(sd[1] + R + j, select(keep, ks * a11, vf{}));
-        st(sd[2] + R + j, select(keep, ks * a12, vf{}));
-      }
-    }
-    if (P.grads) {
-      // full correlation: u[j] = sum_t g[t] a[j - t], a stored at offset R (zeros around)
-      for (int k = 0; k < 3; ++k) {
-        float* out = urow(ch, r, k);
-        for (int b = 0; b < nv_adj; ++b) {
-          const int j = b * VL;
-          vf a = vf{};
-          for (int t = 0; t < K; ++t) a += vf1(g[t]) * ld(sd[k] + j + R - t);
-          st(out + j, a);
-        }
-      }
-    }
+    vertical(ch, r, count + 2);  // the horizontal pass reads up to 10 columns further
+    total += horizontal_and_seeds(count);
+    if (P.grads) adjoint_horizontal(ch, r);
   }
   return hsum(total);
 }
@@ -230,21 +424,20 @@ double Band::forward_row(int r) {
 // A ring slot for a map row outside the map (r >= Hv): no contribution.
 void Band::clear_u(int r) {
   for (int ch = 0; ch < 3; ++ch)
-    for (int k = 0; k < 3; ++k) std::fill_n(urow(ch, r, k), P.Wp, 0.f);
+    for (int k = 0; k < 3; ++k) std::fill_n(urow(ch, r, k), Wp, 0.f);
 }
 
 // Input row i: its L1 and depth sums, and (with gradients) its colour and depth gradients. The
 // SSIM part needs the u ring rows i-10..i (rows outside the map are zero slots).
 void Band::emit_row(int i, double& l1_sum, double& dep_sum) {
   const int W = P.W, nv = round_up(W, VL) / VL;
-  const float* g = P.g;
   const vf kl1 = vf1(P.k_l1);
   vd l1 = vd{};
   const float* m = mrow(i);
   for (int ch = 0; ch < 3; ++ch) {
-    const float* x = xrow(ch, 0, i);
-    const float* y = xrow(ch, 1, i);
-    float* out = &grad[(size_t)ch * P.Wp];
+    const double* x = xrow(ch, 0, i);
+    const double* y = xrow(ch, 1, i);
+    float* out = grad.p + (size_t)ch * Wp;
     const float* us[3][K];
     if (P.do_ssim && P.grads)
       for (int k = 0; k < 3; ++k)
@@ -252,18 +445,14 @@ void Band::emit_row(int i, double& l1_sum, double& dep_sum) {
     for (int b = 0; b < nv; ++b) {
       const int j = b * VL;
       // |c - I| m = |x - y| for m in {0, 1} (padding: 0 - 0)
-      const vf xv = ld(x + j), yv = ld(y + j), diff = xv - yv;
+      const vf xv = ld16(x + j), yv = ld16(y + j), diff = xv - yv;
       add_wide(l1, vabs(diff));
       if (!P.grads) continue;
       vf gr = kl1 * sign(diff);
       if (P.do_ssim) {
         vf T[3];
-        for (int k = 0; k < 3; ++k) {
-          vf a = vf{};
-          for (int t = 0; t < K; ++t) a += vf1(g[t]) * ld(us[k][t] + j);
-          T[k] = a;
-        }
-        gr += T[0] + 2.f * xv * T[1] + yv * T[2];
+        for (int k = 0; k < 3; ++k) T[k] = sym_filter(P.gf, [&](int t) { return ld(us[k][t] + j); });
+        gr += madd(yv, T[2], madd(2.f * xv, T[1], T[0]));
       }
       st(out + j, gr * ld(m + j));
     }
@@ -271,8 +460,14 @@ void Band::emit_row(int i, double& l1_sum, double& dep_sum) {
   l1_sum = hsum(l1);
   if (P.grads) {
     float* gc = P.grad_color + (size_t)i * W * 3;
-    for (int j = 0; j < W; ++j)
-      for (int ch = 0; ch < 3; ++ch) gc[3 * j + ch] = grad[(size_t)ch * P.Wp + j];
+    const float* gp[3] = {grad.p, grad.p + Wp, grad.p + 2 * Wp};
+    const int full = W / VL * VL;
+    for (int j = 0; j < full; j += VL) {
+      const vf g3[3] = {ld(gp[0] + j), ld(gp[1] + j), ld(gp[2] + j)};
+      interleave3(g3, gc + 3 * j);
+    }
+    for (int j = full; j < W; ++j)
+      for (int ch = 0; ch < 3; ++ch) gc[3 * j + ch] = gp[ch][j];
   }
   dep_sum = 0.0;
   if (!P.has_depth) {
@@ -281,7 +476,8 @@ void Band::emit_row(int i, double& l1_sum, double& dep_sum) {
   }
   const float* d = P.depth + (size_t)i * W;
   const float* D = P.obs + (size_t)i * W;
-  float* gd = P.grad_depth ? P.grad_depth + (size_t)i * W : nullptr;
+  float* gd = P.grads ? P.grad_depth + (size_t)i * W : nullptr;
+  float* tl = tail.p;
   const vf kd = vf1(P.k_d);
   vd dep = vd{};
   for (int j = 0; j < W; j += VL) {
@@ -291,11 +487,11 @@ void Band::emit_row(int i, double& l1_sum, double& dep_sum) {
       dv = ld(d + j);
       Dv = ld(D + j);
     } else {  // the last partial vector, zero-padded (adds 0 to the sum)
-      std::fill(tail.begin(), tail.end(), 0.f);
-      std::copy_n(d + j, n, tail.data());
-      std::copy_n(D + j, n, tail.data() + VL);
-      dv = ld(tail.data());
-      Dv = ld(tail.data() + VL);
+      std::fill_n(tl, 2 * VL, 0.f);
+      std::copy_n(d + j, n, tl);
+      std::copy_n(D + j, n, tl + VL);
+      dv = ld(tl);
+      Dv = ld(tl + VL);
     }
     const vf mv = ld(m + j), diff = dv - Dv;
     add_wide(dep, vabs(diff) * mv);
@@ -304,8 +500,8 @@ void Band::emit_row(int i, double& l1_sum, double& dep_sum) {
       if (n == VL) {
         st(gd + j, gv);
       } else {
-        st(tail.data() + 2 * VL, gv);
-        std::copy_n(tail.data() + 2 * VL, n, gd + j);
+        st(tl + 2 * VL, gv);
+        std::copy_n(tl + 2 * VL, n, gd + j);
       }
     }
   }
@@ -361,11 +557,16 @@ int slk_rgbd_loss(int H, int W, const float* color, const float* depth, const fl
     P.Hv = H - R;
     P.Wv = W - R;
     P.Wp = round_up(W, VL) + 2 * VL;
+    for (int t = 0; t < K; ++t)
+      if (window[t] != window[K - 1 - t] || !(window[t] > 0.f)) throw std::invalid_argument("the SSIM window must be positive and symmetric");
+    for (int t = 0; t <= K / 2; ++t) {
+      P.gf[t] = vf1(window[t]);
+      P.gd[t] = vd1(window[t]);
+    }
     P.color = color;
     P.depth = depth;
     P.image = image;
     P.obs = obs;
-    std::copy_n(window, K, P.g);
     int64_t n = 0;
     for (int64_t p = 0; p < (int64_t)H * W; ++p) n += obs[p] > 0.f;
     P.has_depth = n > 0;
