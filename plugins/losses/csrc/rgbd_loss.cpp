@@ -12,25 +12,31 @@
 //   Ld   = sum |d - D| m / n / depth_unit
 //   loss = w_l1 L1 + w_ssim (1 - SSIM) + w_depth Ld
 //
-// SSIM backward, per channel with x = c m, y = I m and F the valid separable filter: the map
-// S = l cs depends on x through mu1 = F x, e11 = F(x x), e12 = F(x y); with the per-pixel
-// adjoints a_mu = dS/dmu1, a_11 = dS/de11, a_12 = dS/de12 (scaled by -w_ssim / #map),
-//   dloss/dx = F^T a_mu + 2 x F^T a_11 + y F^T a_12,
+// SSIM, per channel with x = c m, y = I m and F the valid separable filter: from the maps
+// mu1 = F x, mu2 = F y, e = F(x x + y y), e12 = F(x y) (the variances enter SSIM only as their
+// sum s11 + s22 = e - mu1^2 - mu2^2),
+//   S = (2 mu1 mu2 + C1) / (mu1^2 + mu2^2 + C1) * (2 (e12 - mu1 mu2) + C2) / (e - mu1^2 - mu2^2 + C2).
+// Backward: with the per-pixel adjoints a_mu = dS/dmu1, a_e = dS/de, a_12 = dS/de12 (times
+// -w_ssim / map size),
+//   dloss/dx = F^T a_mu + 2 x F^T a_e + y F^T a_12,
 // where F^T, the adjoint of a valid correlation, is the full correlation with the same taps
-// (zero outside the map).
+// (zero outside the map); the window is symmetric, so F^T filters with the same taps.
 //
 // Layout: row bands (one per thread). Each band streams its rows: deinterleave an input row
-// into planar, masked channel rows (a ring of 11), filter vertically then horizontally (the 5
-// maps mu1, mu2, e11, e22, e12 in one sweep over the 11 rows), compute S and its three
-// adjoints, correlate those horizontally (a ring of 11 rows), and once an input row has all
-// 11 contributions, correlate vertically and write its gradient. A band recomputes the 10 map
-// rows above it (the halo its first rows' gradients need). Every output and every sum has a
-// fixed order of operations, so results do not depend on the number of threads.
+// into planar, masked channel rows (a ring of 11), filter vertically then horizontally (the 4
+// maps in one sweep over the 11 rows), compute S and its three adjoints, correlate those
+// horizontally (a ring of 11 rows), and once an input row has all 11 contributions, correlate
+// vertically and write its gradient. A band recomputes the 10 map rows above it (the halo its
+// first rows' gradients need). Every output and every sum has a fixed order of operations, so
+// results do not depend on the number of threads.
 //
-// Arithmetic: float32, 16 lanes per vector (GCC/Clang vector extensions: AVX-512 with
-// -march=native, split into narrower registers elsewhere); separate multiplies and adds (no
-// FMA), so the portable and the native build compute the same numbers. Sums over pixels are
-// accumulated in double.
+// Arithmetic (GCC/Clang vector extensions, 64-byte vectors: AVX-512 with -march=native, split
+// into narrower registers elsewhere): the maps and the adjoints' seeds in double (8 lanes): the
+// variances cancel, e - mu1^2 - mu2^2 is ~1e-4 of its terms on flat image regions, and in float32
+// (as torch computes it) the gradients on real keyframes are only ~3e-5 from the exact ones.
+// The adjoints' correlations and the per-pixel L1 / depth terms in float32 (16 lanes); sums over
+// pixels in double. Fused multiply-adds where the CPU has them (AVX-512), so the native and the
+// portable build differ in the last bits.
 
 #include <algorithm>
 #if defined(__AVX512F__)
@@ -53,8 +59,11 @@ constexpr int K = 11;      // SSIM window taps
 constexpr int R = K - 1;   // rows / columns the valid filter loses
 constexpr int VL = 16;     // floats per vector
 constexpr int VD = 8;      // doubles per vector
-constexpr float C1 = (float)(0.01 * 0.01);  // (K1 data_range)^2 as pytorch_msssim, rounded as torch does
-constexpr float C2 = (float)(0.03 * 0.03);
+// Filtered maps: mu1 = F x, mu2 = F y, e = F(x x + y y), e12 = F(x y). SSIM needs the variances
+// s11, s22 only as their sum (s11 + s22 = e - mu1^2 - mu2^2), so one map serves both.
+constexpr int MAPS = 4;
+constexpr double C1 = 0.01 * 0.01;  // (K1 data_range)^2, (K2 data_range)^2 as pytorch_msssim
+constexpr double C2 = 0.03 * 0.03;
 
 typedef float vf __attribute__((vector_size(64)));
 typedef float vf8 __attribute__((vector_size(32)));
@@ -93,21 +102,40 @@ inline void st8(float* p, vd v) {
   std::memcpy(p, &f, sizeof f);
 #endif
 }
-inline vf ld16(const double* p) {  // 16 doubles (float values), as floats
-  float h[VL];
-  st8(h, ldd(p));
-  st8(h + VD, ldd(p + VD));
-  return ld(h);
+// 16 floats <-> two vectors of 8 doubles (in registers: a round trip through memory would
+// stall on store-to-load forwarding between 256- and 512-bit accesses)
+#if defined(__AVX512F__)
+inline void widen(vf v, vd& lo, vd& hi) {
+  lo = (vd)_mm512_cvtps_pd(_mm512_castps512_ps256((__m512)v));
+  hi = (vd)_mm512_cvtps_pd(_mm256_castpd_ps(_mm512_extractf64x4_pd(_mm512_castps_pd((__m512)v), 1)));
 }
-inline void st(float* p, vf v) { std::memcpy(p, &v, sizeof v); }
-inline void st16(double* p, vf v) {  // 16 floats, widened
+inline vf narrow(vd lo, vd hi) {
+  const __m256 l = _mm512_cvtpd_ps((__m512d)lo), h = _mm512_cvtpd_ps((__m512d)hi);
+  return (vf)_mm512_castpd_ps(_mm512_insertf64x4(_mm512_castpd256_pd512(_mm256_castps_pd(l)), _mm256_castps_pd(h), 1));
+}
+#else
+inline void widen(vf v, vd& lo, vd& hi) {
   float h[VL];
   std::memcpy(h, &v, sizeof h);
-  const vd lo = ld8(h), hi = ld8(h + VD);
-  std::memcpy(p, &lo, sizeof lo);
-  std::memcpy(p + VD, &hi, sizeof hi);
+  lo = ld8(h);
+  hi = ld8(h + VD);
 }
+inline vf narrow(vd lo, vd hi) {
+  float h[VL];
+  st8(h, lo);
+  st8(h + VD, hi);
+  return ld(h);
+}
+#endif
+inline vf ld16(const double* p) { return narrow(ldd(p), ldd(p + VD)); }
+inline void st(float* p, vf v) { std::memcpy(p, &v, sizeof v); }
 inline void st(double* p, vd v) { std::memcpy(p, &v, sizeof v); }
+inline void st16(double* p, vf v) {  // 16 floats, widened
+  vd lo, hi;
+  widen(v, lo, hi);
+  st(p, lo);
+  st(p + VD, hi);
+}
 inline vf select(vi m, vf a, vf b) { return (vf)(((vi)a & m) | ((vi)b & ~m)); }
 inline vd select(vl m, vd a, vd b) { return (vd)(((vl)a & m) | ((vl)b & ~m)); }
 // sign(v) as torch's abs backward: 0 at 0, NaN for NaN
@@ -115,9 +143,9 @@ inline vf sign(vf v) { return select(v > 0, vf1(1.f), select(v < 0, vf1(-1.f), v
 inline vf vabs(vf v) { return (vf)((vi)v & (vi{} + 0x7fffffff)); }
 // a += v, the 16 floats widened to double (low and high halves added first: a fixed order)
 inline void add_wide(vd& a, vf v) {
-  float h[VL];
-  std::memcpy(h, &v, sizeof h);
-  a += ld8(h) + ld8(h + VD);
+  vd lo, hi;
+  widen(v, lo, hi);
+  a += lo + hi;
 }
 inline double hsum(vd a) {
   double h[8];
@@ -145,11 +173,18 @@ inline V sym_filter(const V* g, At at) {
   return acc;
 }
 
-// The same for the products a_t b_t: sum_t g_t a_t b_t.
-template <class V>
-inline V sym_filter_product(const V* g, const V* a, const V* b) {
-  V acc = g[5] * (a[5] * b[5]);
-  for (int t = 4; t >= 0; --t) acc = madd(g[t], madd(a[t], b[t], a[K - 1 - t] * b[K - 1 - t]), acc);
+// The same for the products x_t y_t, and for x_t^2 + y_t^2.
+inline vd sym_filter_product(const vd* g, const vd* x, const vd* y) {
+  vd acc = g[5] * (x[5] * y[5]);
+  for (int t = 4; t >= 0; --t) acc = madd(g[t], madd(x[t], y[t], x[K - 1 - t] * y[K - 1 - t]), acc);
+  return acc;
+}
+inline vd sym_filter_squares(const vd* g, const vd* x, const vd* y) {
+  vd acc = g[5] * madd(x[5], x[5], y[5] * y[5]);
+  for (int t = 4; t >= 0; --t) {
+    const int u = K - 1 - t;
+    acc = madd(g[t], madd(x[t], x[t], madd(y[t], y[t], madd(x[u], x[u], y[u] * y[u]))), acc);
+  }
   return acc;
 }
 
@@ -261,24 +296,21 @@ struct Problem {
   double *row_l1, *row_depth, *row_ssim;  // per-row sums (H, H, Hv)
 };
 
-// One band's rings and row buffers. The five maps and S's adjoints are computed in double:
-// s11 = F(x x) - mu1^2 etc. cancel (to ~1e-4 of their terms on flat image regions), and in
-// float32 torch's own result is then only ~3e-5 from the exact one on real keyframes; their
-// correlations (the adjoint passes) in float32.
+// One band's rings and row buffers.
 struct Band {
   const Problem& P;
   const int Wp, SL;  // SL: seed row length (map row at offset VL, zeros around)
   Buffer xy;    // [channel][x or y][ring slot][Wp] doubles: c m and I m, planar
   Buffer mask;  // [ring slot][Wp]
-  Buffer v;     // [5][Wp] doubles (2 Wp floats each): the vertical pass of mu1, mu2, e11, e22, e12
-  Buffer seed;  // [3][SL]: a_mu, a_11, a_12 of one map row
+  Buffer v;     // [4][Wp] doubles (2 Wp floats each): the vertical pass of the maps
+  Buffer seed;  // [3][SL]: a_mu, a_e, a_12 of one map row
   Buffer u;     // [channel][ring slot][3][Wp]: the seeds correlated horizontally
   Buffer grad;  // [3][Wp]: one row's colour gradient, planar
   Buffer tail;  // [4 VL]: the last partial vector of an unpadded row
 
   explicit Band(const Problem& p)
       : P(p), Wp(p.Wp), SL(p.Wp + 2 * VL), xy((size_t)3 * 2 * K * Wp * 2), mask((size_t)K * Wp),
-        v((size_t)5 * 2 * Wp), seed((size_t)3 * SL), u((size_t)3 * K * 3 * Wp), grad((size_t)3 * Wp),
+        v((size_t)MAPS * 2 * Wp), seed((size_t)3 * SL), u((size_t)3 * K * 3 * Wp), grad((size_t)3 * Wp),
         tail(4 * VL) {}
 
   double* xrow(int ch, int which, int row) {
@@ -331,8 +363,8 @@ void Band::load_row(int q) {
   }
 }
 
-// The vertical pass of map row r, channel ch: mu1, mu2, e11, e22, e12 filtered along the
-// columns (input rows r..r+10), in double, `count` vectors of 8 columns.
+// The vertical pass of map row r, channel ch: the 4 maps filtered along the columns (input
+// rows r..r+10), in double, `count` vectors of 8 columns.
 void Band::vertical(int ch, int r, int count) {
   const vd* g = P.gd;
   const double* xs[K];
@@ -341,8 +373,8 @@ void Band::vertical(int ch, int r, int count) {
     xs[t] = xrow(ch, 0, r + t);
     ys[t] = xrow(ch, 1, r + t);
   }
-  double* vm[5];
-  for (int k = 0; k < 5; ++k) vm[k] = vrow(k);
+  double* vm[MAPS];
+  for (int k = 0; k < MAPS; ++k) vm[k] = vrow(k);
   for (int b = 0; b < count; ++b) {
     const int j = b * VD;
     vd x[K], y[K];
@@ -352,44 +384,47 @@ void Band::vertical(int ch, int r, int count) {
     }
     st(vm[0] + j, sym_filter(g, [&](int t) { return x[t]; }));
     st(vm[1] + j, sym_filter(g, [&](int t) { return y[t]; }));
-    st(vm[2] + j, sym_filter_product(g, x, x));
-    st(vm[3] + j, sym_filter_product(g, y, y));
-    st(vm[4] + j, sym_filter_product(g, x, y));
+    st(vm[2] + j, sym_filter_squares(g, x, y));
+    st(vm[3] + j, sym_filter_product(g, x, y));
   }
 }
 
-// The horizontal pass of the five maps, then per map pixel S and (with gradients) the seeds
-// a_mu, a_11, a_12 times k_s, rounded to float (0 outside the map). Returns sum S (double).
+// The horizontal pass of the 4 maps, then per map pixel S and (with gradients) the seeds a_mu,
+// a_e, a_12 times k_s, rounded to float (0 outside the map). Returns sum S (double).
 vd Band::horizontal_and_seeds(int count) {
   const vd* g = P.gd;
   const vd ks = vd1(P.k_s);
-  const double* vm[5];
-  for (int k = 0; k < 5; ++k) vm[k] = vrow(k);
+  const double* vm[MAPS];
+  for (int k = 0; k < MAPS; ++k) vm[k] = vrow(k);
   float* sd[3];
   for (int k = 0; k < 3; ++k) sd[k] = seed.p + (size_t)k * SL + VL;
   vd total = vd{};
   for (int b = 0; b < count; ++b) {
     const int j = b * VD;
-    vd f[5];
-    for (int k = 0; k < 5; ++k) f[k] = row_filter(g, vm[k] + j);
-    const vd mu1 = f[0], mu2 = f[1];
+    const vd mu1 = row_filter(g, vm[0] + j), mu2 = row_filter(g, vm[1] + j);
+    const vd e = row_filter(g, vm[2] + j), e12 = row_filter(g, vm[3] + j);
     const vd mu1s = mu1 * mu1, mu2s = mu2 * mu2, mu12 = mu1 * mu2;
-    const vd s11 = f[2] - mu1s, s22 = f[3] - mu2s, s12 = f[4] - mu12;
-    const vd B1 = (mu1s + mu2s) + (double)C1, B2 = (s11 + s22) + (double)C2;
+    const vd B1 = (mu1s + mu2s) + C1, B2 = ((e - mu1s) - mu2s) + C2;
     const vd inv = 1.0 / (B1 * B2), rB1 = B2 * inv, rB2 = B1 * inv;
-    const vd l = (2.0 * mu12 + (double)C1) * rB1;
-    const vd cs = (2.0 * s12 + (double)C2) * rB2;
-    const vd S = l * cs;
-    const vl keep = (vl{0, 1, 2, 3, 4, 5, 6, 7} + j) < (int64_t)P.Wv;
-    total += select(keep, S, vd{});
+    const vd l = (2.0 * mu12 + C1) * rB1;
+    const vd cs = (2.0 * (e12 - mu12) + C2) * rB2;
+    vd S = l * cs;
+    vd a[3] = {};  // dS/dmu1, dS/de (= dS/dB2), dS/de12, times k_s
     if (P.grads) {
       const vd a12 = 2.0 * l * rB2;
-      const vd a11 = -(S * rB2);
-      const vd amu = (2.0 * cs) * (mu2 - mu1 * l) * rB1 - mu2 * a12 - 2.0 * mu1 * a11;
-      st8(sd[0] + j, select(keep, ks * amu, vd{}));
-      st8(sd[1] + j, select(keep, ks * a11, vd{}));
-      st8(sd[2] + j, select(keep, ks * a12, vd{}));
+      const vd ae = -(S * rB2);
+      a[0] = ks * ((2.0 * cs) * (mu2 - mu1 * l) * rB1 - mu2 * a12 - 2.0 * mu1 * ae);
+      a[1] = ks * ae;
+      a[2] = ks * a12;
     }
+    if (j + VD > P.Wv) {  // the last vector: lanes past the map count for nothing
+      const vl keep = (vl{0, 1, 2, 3, 4, 5, 6, 7} + j) < (int64_t)P.Wv;
+      S = select(keep, S, vd{});
+      for (vd& ak : a) ak = select(keep, ak, vd{});
+    }
+    total += S;
+    if (P.grads)
+      for (int k = 0; k < 3; ++k) st8(sd[k] + j, a[k]);
   }
   return total;
 }
