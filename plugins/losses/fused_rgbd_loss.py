@@ -115,22 +115,33 @@ def kernel_rgbd_loss(color, depth, image, observed_depth, weights, num_threads: 
 
 class _FusedRGBDLoss(torch.autograd.Function):
     """forward: the kernel (loss and gradients in one call); backward: the kept gradients
-    times the incoming one. No gradient reaches image or observed_depth."""
+    times the incoming one. No gradient reaches image or observed_depth.
+
+    The gradients are handed to autograd, not copied: scaled in place (skipped for the usual
+    incoming gradient 1), so that the leaves' .grad can take them over; a second backward
+    through the same graph is refused as for any freed graph. (A copy or a multiply would run
+    on torch's intra-op threads, which on a busy machine cost more than the kernel.)"""
 
     @staticmethod
     def forward(ctx, color, depth, image, observed_depth, weights, num_threads):
         grads = ctx.needs_input_grad[0] or ctx.needs_input_grad[1]
-        terms, g_color, g_depth = kernel_rgbd_loss(color, depth, image, observed_depth, weights, num_threads, grads)
-        if grads:
-            ctx.save_for_backward(g_color, g_depth)
+        terms, ctx.g_color, ctx.g_depth = kernel_rgbd_loss(color, depth, image, observed_depth, weights,
+                                                           num_threads, grads)
         return torch.tensor(terms[0], dtype=torch.float32)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_output):
-        g_color, g_depth = ctx.saved_tensors
-        return (grad_output * g_color if ctx.needs_input_grad[0] else None,
-                grad_output * g_depth if ctx.needs_input_grad[1] else None, None, None, None, None)
+        g_color, g_depth = ctx.g_color, ctx.g_depth
+        if g_color is None:
+            raise RuntimeError("fused rgbd loss: backward through the same graph a second time (its gradients "
+                               "were handed over the first time)")
+        ctx.g_color = ctx.g_depth = None
+        if float(grad_output) != 1.0:
+            g_color.mul_(grad_output)
+            g_depth.mul_(grad_output)
+        return (g_color if ctx.needs_input_grad[0] else None, g_depth if ctx.needs_input_grad[1] else None,
+                None, None, None, None)
 
 
 def fused_rgbd_loss(color: torch.Tensor, depth: torch.Tensor, image: torch.Tensor, observed_depth: torch.Tensor,
