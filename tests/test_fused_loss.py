@@ -287,3 +287,15 @@ def test_portable_build_agrees_with_the_native_one(monkeypatch, tmp_path):
     other = loss_and_grads(fused_rgbd_loss, inputs)
     assert rel(other[0], native[0]) < 1e-6
     assert rel(other[1], native[1]) < 1e-5 and rel(other[2], native[2]) < 1e-6
+
+
+def test_non_finite_inputs_give_a_non_finite_loss_as_torch():
+    """The mapper skips a step whose loss is not finite: NaN in the render must reach the loss
+    (also under the mask, where torch's c * m is NaN too)."""
+    color, depth, image, observed = random_inputs(24, 30, seed=16)
+    observed[3, 4] = 0
+    for where in [(3, 4), (10, 11)]:
+        bad = color.clone()
+        bad[where][1] = float("nan")
+        assert torch.isnan(fused_rgbd_loss(bad, depth, image, observed))
+        assert torch.isnan(torch_rgbd_loss(bad, depth, image, observed))

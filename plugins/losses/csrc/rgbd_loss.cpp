@@ -22,7 +22,8 @@
 // where F^T, the adjoint of a valid correlation, is the full correlation with the same taps
 // (zero outside the map); the window is symmetric, so F^T filters with the same taps.
 //
-// Layout: row bands (one per thread). Each band streams its rows: deinterleave an input row
+// Layout: row bands, one per thread, handed out dynamically by a persistent pool (a worker
+// that is not scheduled in time is not waited for). Each band streams its rows: deinterleave an input row
 // into planar, masked channel rows (a ring of 11), filter vertically then horizontally (the 4
 // maps in one sweep over the 11 rows), compute S and its three adjoints, correlate those
 // horizontally (a ring of 11 rows), and once an input row has all 11 contributions, correlate
@@ -108,16 +109,12 @@ inline void st8(float* p, vd v) {
   std::memcpy(p, &f, sizeof f);
 #endif
 }
-// 16 floats <-> two vectors of 8 doubles (in registers: a round trip through memory would
+// 16 floats -> two vectors of 8 doubles (in registers: a round trip through memory would
 // stall on store-to-load forwarding between 256- and 512-bit accesses)
 #if defined(__AVX512F__)
 inline void widen(vf v, vd& lo, vd& hi) {
   lo = (vd)_mm512_cvtps_pd(_mm512_castps512_ps256((__m512)v));
   hi = (vd)_mm512_cvtps_pd(_mm256_castpd_ps(_mm512_extractf64x4_pd(_mm512_castps_pd((__m512)v), 1)));
-}
-inline vf narrow(vd lo, vd hi) {
-  const __m256 l = _mm512_cvtpd_ps((__m512d)lo), h = _mm512_cvtpd_ps((__m512d)hi);
-  return (vf)_mm512_castpd_ps(_mm512_insertf64x4(_mm512_castpd256_pd512(_mm256_castps_pd(l)), _mm256_castps_pd(h), 1));
 }
 #else
 inline void widen(vf v, vd& lo, vd& hi) {
@@ -126,22 +123,9 @@ inline void widen(vf v, vd& lo, vd& hi) {
   lo = ld8(h);
   hi = ld8(h + VD);
 }
-inline vf narrow(vd lo, vd hi) {
-  float h[VL];
-  st8(h, lo);
-  st8(h + VD, hi);
-  return ld(h);
-}
 #endif
-inline vf ld16(const double* p) { return narrow(ldd(p), ldd(p + VD)); }
 inline void st(float* p, vf v) { std::memcpy(p, &v, sizeof v); }
 inline void st(double* p, vd v) { std::memcpy(p, &v, sizeof v); }
-inline void st16(double* p, vf v) {  // 16 floats, widened
-  vd lo, hi;
-  widen(v, lo, hi);
-  st(p, lo);
-  st(p + VD, hi);
-}
 inline vf select(vi m, vf a, vf b) { return (vf)(((vi)a & m) | ((vi)b & ~m)); }
 inline vd select(vl m, vd a, vd b) { return (vd)(((vl)a & m) | ((vl)b & ~m)); }
 // sign(v) as torch's abs backward: 0 at 0, NaN for NaN
@@ -408,7 +392,7 @@ class Pool {
 // The whole problem, shared by the bands (read-only but for each band's own output rows).
 struct Problem {
   int H, W, Hv, Wv;
-  int Wp;  // padded row length (floats; multiple of 16): covers the filters' reads past the last vector
+  int Wp;  // padded row length (elements, a multiple of 16): covers the filters' reads past the last vector
   const float *color, *depth, *image, *obs;
   vf gf[6];  // window taps 0..5 (symmetric), float and double
   vd gd[6];
@@ -423,7 +407,7 @@ struct Problem {
 struct Band {
   const Problem& P;
   const int Wp, SL;  // SL: seed row length (map row at offset VL, zeros around)
-  Buffer xy;    // [channel][x or y][ring slot][Wp] doubles: c m and I m, planar
+  Buffer xy;    // [channel][x or y][ring slot][Wp]: x = c m, y = I m, planar
   Buffer mask;  // [ring slot][Wp]
   Buffer v;     // [4][Wp] doubles (2 Wp floats each): the vertical pass of the maps
   Buffer seed;  // [3][SL]: a_mu, a_e, a_12 of one map row
@@ -432,13 +416,11 @@ struct Band {
   Buffer tail;  // [4 VL]: the last partial vector of an unpadded row
 
   explicit Band(const Problem& p)
-      : P(p), Wp(p.Wp), SL(p.Wp + 2 * VL), xy((size_t)3 * 2 * K * Wp * 2), mask((size_t)K * Wp),
+      : P(p), Wp(p.Wp), SL(p.Wp + 2 * VL), xy((size_t)3 * 2 * K * Wp), mask((size_t)K * Wp),
         v((size_t)MAPS * 2 * Wp), seed((size_t)3 * SL), u((size_t)3 * K * 3 * Wp), grad((size_t)3 * Wp),
         tail(4 * VL) {}
 
-  double* xrow(int ch, int which, int row) {
-    return reinterpret_cast<double*>(xy.p) + (((size_t)ch * 2 + which) * K + row % K) * Wp;
-  }
+  float* xrow(int ch, int which, int row) { return xy.p + (((size_t)ch * 2 + which) * K + row % K) * Wp; }
   float* mrow(int row) { return mask.p + (size_t)(row % K) * Wp; }
   double* vrow(int map) { return reinterpret_cast<double*>(v.p) + (size_t)map * Wp; }
   float* urow(int ch, int row, int map) { return u.p + (((size_t)ch * K + (row + K) % K) * 3 + map) * Wp; }
@@ -462,7 +444,7 @@ void Band::load_row(int q) {
   const float* D = P.obs + (size_t)q * W;
   float* m = mrow(q);
   for (int j = 0; j < W; ++j) m[j] = P.has_depth ? (D[j] > 0.f ? 1.f : 0.f) : 1.f;
-  double *x[3], *y[3];
+  float *x[3], *y[3];
   for (int ch = 0; ch < 3; ++ch) {
     x[ch] = xrow(ch, 0, q);
     y[ch] = xrow(ch, 1, q);
@@ -474,8 +456,8 @@ void Band::load_row(int q) {
     deinterleave3(I + 3 * j, iv);
     const vf mv = ld(m + j);
     for (int ch = 0; ch < 3; ++ch) {
-      st16(x[ch] + j, cv[ch] * mv);
-      st16(y[ch] + j, iv[ch] * mv);
+      st(x[ch] + j, cv[ch] * mv);
+      st(y[ch] + j, iv[ch] * mv);
     }
   }
   for (int j = full; j < W; ++j) {
@@ -490,8 +472,8 @@ void Band::load_row(int q) {
 // rows r..r+10), in double, `count` vectors of 8 columns.
 void Band::vertical(int ch, int r, int count) {
   const vd* g = P.gd;
-  const double* xs[K];
-  const double* ys[K];
+  const float* xs[K];
+  const float* ys[K];
   for (int t = 0; t < K; ++t) {
     xs[t] = xrow(ch, 0, r + t);
     ys[t] = xrow(ch, 1, r + t);
@@ -502,8 +484,8 @@ void Band::vertical(int ch, int r, int count) {
     const int j = b * VD;
     vd x[K], y[K];
     for (int t = 0; t < K; ++t) {
-      x[t] = ldd(xs[t] + j);
-      y[t] = ldd(ys[t] + j);
+      x[t] = ld8(xs[t] + j);
+      y[t] = ld8(ys[t] + j);
     }
     st(vm[0] + j, sym_filter(g, [&](int t) { return x[t]; }));
     st(vm[1] + j, sym_filter(g, [&](int t) { return y[t]; }));
@@ -593,8 +575,8 @@ void Band::emit_row(int i, double& l1_sum, double& dep_sum) {
   vd l1 = vd{};
   const float* m = mrow(i);
   for (int ch = 0; ch < 3; ++ch) {
-    const double* x = xrow(ch, 0, i);
-    const double* y = xrow(ch, 1, i);
+    const float* x = xrow(ch, 0, i);
+    const float* y = xrow(ch, 1, i);
     float* out = grad.p + (size_t)ch * Wp;
     const float* us[3][K];
     if (P.do_ssim && P.grads)
@@ -603,7 +585,7 @@ void Band::emit_row(int i, double& l1_sum, double& dep_sum) {
     for (int b = 0; b < nv; ++b) {
       const int j = b * VL;
       // |c - I| m = |x - y| for m in {0, 1} (padding: 0 - 0)
-      const vf xv = ld16(x + j), yv = ld16(y + j), diff = xv - yv;
+      const vf xv = ld(x + j), yv = ld(y + j), diff = xv - yv;
       add_wide(l1, vabs(diff));
       if (!P.grads) continue;
       vf gr = kl1 * sign(diff);
