@@ -68,9 +68,9 @@ def assert_agrees(inputs, **kw):
     """The fused loss against the reference in float64 (the definition, computed exactly
     enough) and in float32 (what the mapper runs today). On real images torch's float32 result
     is itself up to ~3e-5 from the float64 one in the gradients (SSIM's variances F(x x) -
-    F(x)^2 cancel on flat regions); the kernel computes those maps in double, so it is held to
-    the tolerance against float64, and against float32 to the tolerance plus float32's own
-    error. (The same for the value: torch rounds SSIM ~ 1 to float32 before 1 - SSIM.)"""
+    F(x)^2 cancel on flat regions) and ~1e-5 in the value; the kernel computes those maps in
+    double, so it is held to the tolerance against float64, and against float32 to the
+    tolerance plus float32's own error."""
     fused = loss_and_grads(fused_rgbd_loss, inputs, **kw)
     ref = loss_and_grads(torch_rgbd_loss, inputs, **kw)
     exact = loss_and_grads(torch_rgbd_loss, inputs, dtype=torch.float64, **kw)

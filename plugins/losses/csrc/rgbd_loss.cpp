@@ -12,15 +12,19 @@
 //   Ld   = sum |d - D| m / n / depth_unit
 //   loss = w_l1 L1 + w_ssim (1 - SSIM) + w_depth Ld
 //
-// SSIM, per channel with x = c m, y = I m and F the valid separable filter: from the maps
-// mu1 = F x, mu2 = F y, e = F(x x + y y), e12 = F(x y) (the variances enter SSIM only as their
-// sum s11 + s22 = e - mu1^2 - mu2^2),
-//   S = (2 mu1 mu2 + C1) / (mu1^2 + mu2^2 + C1) * (2 (e12 - mu1 mu2) + C2) / (e - mu1^2 - mu2^2 + C2).
-// Backward: with the per-pixel adjoints a_mu = dS/dmu1, a_e = dS/de, a_12 = dS/de12 (times
-// -w_ssim / map size),
-//   dloss/dx = F^T a_mu + 2 x F^T a_e + y F^T a_12,
+// SSIM, per channel with x = c m, y = I m and F the valid separable filter, from 4 maps:
+// mu1 = F x, mu2 = F y, e = F(x x + y y), d = F((x - y)^2). The variances enter SSIM only as
+// B2 = s11 + s22 + C2 = e - mu1^2 - mu2^2 + C2, and the covariance through
+// B2 - A2 = s11 + s22 - 2 s12 = d - (mu1 - mu2)^2 (the variance of x - y):
+//   S = l cs,  l = (2 mu1 mu2 + C1) / (mu1^2 + mu2^2 + C1),  cs = A2 / B2 = 1 - (d - (mu1 - mu2)^2) / B2.
+// Backward: with the per-pixel adjoints (times -w_ssim / map size) of S w.r.t. mu1, e and d,
+//   a_mu = 2 (cs (mu2 - mu1 l) / B1 - l (mu2 - mu1 cs) / B2),  a_e = l (B2 - A2) / B2^2,  a_d = -l / B2,
+//   dloss/dx = F^T a_mu + 2 x F^T a_e + 2 (x - y) F^T a_d,
 // where F^T, the adjoint of a valid correlation, is the full correlation with the same taps
-// (zero outside the map); the window is symmetric, so F^T filters with the same taps.
+// (zero outside the map; the window is symmetric, so F^T filters with the same taps). In these
+// variables no term is large where the result is small (on a flat region a_mu and a_e are small,
+// a_d ~ -1/C2 multiplies x - y), so the adjoints can be correlated in float32; with the usual
+// F x, F(x x), F(x y) the three terms are ~1/C2 and cancel to ~1e-3 of that.
 //
 // Layout: row bands, one per thread, handed out dynamically by a persistent pool (a worker
 // that is not scheduled in time is not waited for). Each band streams its rows: deinterleave an input row
@@ -32,11 +36,11 @@
 // results do not depend on the number of threads.
 //
 // Arithmetic (GCC/Clang vector extensions, 64-byte vectors: AVX-512 with -march=native, split
-// into narrower registers elsewhere): the maps and the adjoints' seeds in double (8 lanes): the
-// variances cancel, e - mu1^2 - mu2^2 is ~1e-4 of its terms on flat image regions, and in float32
+// into narrower registers elsewhere): the maps, S and the adjoints' seeds in double (8 lanes):
+// the variance e - mu1^2 - mu2^2 is ~1e-4 of its terms on flat image regions, and in float32
 // (as torch computes it) the gradients on real keyframes are only ~3e-5 from the exact ones.
-// The adjoints' correlations and the per-pixel L1 / depth terms in float32 (16 lanes); sums over
-// pixels in double. Fused multiply-adds where the CPU has them (AVX-512), so the native and the
+// The adjoints' correlations and the per-pixel L1 / depth terms in float32 (16 lanes); sums
+// over pixels in double. Fused multiply-adds where the CPU has them (AVX-512), so the native and the
 // portable build differ in the last bits.
 
 #include <algorithm>
@@ -66,9 +70,7 @@ constexpr int K = 11;      // SSIM window taps
 constexpr int R = K - 1;   // rows / columns the valid filter loses
 constexpr int VL = 16;     // floats per vector
 constexpr int VD = 8;      // doubles per vector
-// Filtered maps: mu1 = F x, mu2 = F y, e = F(x x + y y), e12 = F(x y). SSIM needs the variances
-// s11, s22 only as their sum (s11 + s22 = e - mu1^2 - mu2^2), so one map serves both.
-constexpr int MAPS = 4;
+constexpr int MAPS = 4;  // filtered maps: mu1, mu2, e, d (see above)
 constexpr double C1 = 0.01 * 0.01;  // (K1 data_range)^2, (K2 data_range)^2 as pytorch_msssim
 constexpr double C2 = 0.03 * 0.03;
 
@@ -410,7 +412,7 @@ struct Band {
   Buffer xy;    // [channel][x or y][ring slot][Wp]: x = c m, y = I m, planar
   Buffer mask;  // [ring slot][Wp]
   Buffer v;     // [4][Wp] doubles (2 Wp floats each): the vertical pass of the maps
-  Buffer seed;  // [3][SL]: a_mu, a_e, a_12 of one map row
+  Buffer seed;  // [3][SL]: a_mu, a_e, a_d of one map row
   Buffer u;     // [channel][ring slot][3][Wp]: the seeds correlated horizontally
   Buffer grad;  // [3][Wp]: one row's colour gradient, planar
   Buffer tail;  // [4 VL]: the last partial vector of an unpadded row
@@ -490,12 +492,14 @@ void Band::vertical(int ch, int r, int count) {
     st(vm[0] + j, sym_filter(g, [&](int t) { return x[t]; }));
     st(vm[1] + j, sym_filter(g, [&](int t) { return y[t]; }));
     st(vm[2] + j, sym_filter_squares(g, x, y));
-    st(vm[3] + j, sym_filter_product(g, x, y));
+    vd dxy[K];
+    for (int t = 0; t < K; ++t) dxy[t] = x[t] - y[t];  // exact: two floats
+    st(vm[3] + j, sym_filter_product(g, dxy, dxy));
   }
 }
 
 // The horizontal pass of the 4 maps, then per map pixel S and (with gradients) the seeds a_mu,
-// a_e, a_12 times k_s, rounded to float (0 outside the map). Returns sum S (double).
+// a_e, a_d times k_s, rounded to float (0 outside the map). Returns sum S (double).
 vd Band::horizontal_and_seeds(int count) {
   const vd* g = P.gd;
   const vd ks = vd1(P.k_s);
@@ -507,20 +511,19 @@ vd Band::horizontal_and_seeds(int count) {
   for (int b = 0; b < count; ++b) {
     const int j = b * VD;
     const vd mu1 = row_filter(g, vm[0] + j), mu2 = row_filter(g, vm[1] + j);
-    const vd e = row_filter(g, vm[2] + j), e12 = row_filter(g, vm[3] + j);
-    const vd mu1s = mu1 * mu1, mu2s = mu2 * mu2, mu12 = mu1 * mu2;
+    const vd e = row_filter(g, vm[2] + j), d = row_filter(g, vm[3] + j);
+    const vd mu1s = mu1 * mu1, mu2s = mu2 * mu2, mu12 = mu1 * mu2, dmu = mu1 - mu2;
     const vd B1 = (mu1s + mu2s) + C1, B2 = ((e - mu1s) - mu2s) + C2;
+    const vd var_d = d - dmu * dmu;  // the variance of x - y: B2 - A2
     const vd inv = 1.0 / (B1 * B2), rB1 = B2 * inv, rB2 = B1 * inv;
     const vd l = (2.0 * mu12 + C1) * rB1;
-    const vd cs = (2.0 * (e12 - mu12) + C2) * rB2;
+    const vd cs = (B2 - var_d) * rB2;
     vd S = l * cs;
-    vd a[3] = {};  // dS/dmu1, dS/de (= dS/dB2), dS/de12, times k_s
+    vd a[3] = {};  // dS/dmu1, dS/de, dS/dd (mu2, e, d / mu1, d / mu1, e fixed), times k_s
     if (P.grads) {
-      const vd a12 = 2.0 * l * rB2;
-      const vd ae = -(S * rB2);
-      a[0] = ks * ((2.0 * cs) * (mu2 - mu1 * l) * rB1 - mu2 * a12 - 2.0 * mu1 * ae);
-      a[1] = ks * ae;
-      a[2] = ks * a12;
+      a[0] = ks * (2.0 * (cs * (mu2 - mu1 * l) * rB1 - l * (mu2 - mu1 * cs) * rB2));
+      a[1] = ks * (l * var_d * (rB2 * rB2));
+      a[2] = ks * -(l * rB2);
     }
     if (j + VD > P.Wv) {  // the last vector: lanes past the map count for nothing
       const vl keep = (vl{0, 1, 2, 3, 4, 5, 6, 7} + j) < (int64_t)P.Wv;
@@ -592,7 +595,7 @@ void Band::emit_row(int i, double& l1_sum, double& dep_sum) {
       if (P.do_ssim) {
         vf T[3];
         for (int k = 0; k < 3; ++k) T[k] = sym_filter(P.gf, [&](int t) { return ld(us[k][t] + j); });
-        gr += madd(yv, T[2], madd(2.f * xv, T[1], T[0]));
+        gr += madd(2.f * diff, T[2], madd(2.f * xv, T[1], T[0]));
       }
       st(out + j, gr * ld(m + j));
     }
