@@ -11,9 +11,11 @@ rendered colour near it, depths 0.5-4.5 m with 10 % of the pixels without a meas
 `kernel` row is the compiled call alone (loss and both gradients, no autograd, no Python
 around it beyond ctypes): the rest of `fused` is autograd's and the Function's overhead.
 
-Times are medians over `--repeats` runs after warm-up: wall-clock, and process CPU time (all
-threads) beside it. `threads` is torch.set_num_threads for the torch path and num_threads
-(row bands) for the fused one. On a machine shared with other work compare the one-thread
+Times are over `--repeats` runs after warm-up: the median and the minimum wall-clock time, and
+the median process CPU time (all threads); speed-ups are torch's time over each path's, for
+each of the three. `threads` is torch.set_num_threads for the torch path and num_threads (row
+bands) for the fused one. On a machine shared with other work the wall-clock medians wander
+(a run that loses its core waits): compare the minima and the CPU times, and the one-thread
 rows; the load average at the start is printed and stored.
 """
 
@@ -86,18 +88,20 @@ def run(sizes, threads_list, repeats: int) -> list[dict]:
         for threads in threads_list:
             torch.set_num_threads(threads)
             results = {name: time_it(step, repeats) for name, step in steps(inputs, threads).items()}
-            base = results["torch"]["wall_s"]
+            base = results["torch"]
             for name, r in results.items():
                 rows.append({"size": f"{width}x{height}", "threads": threads, "path": name, **r,
-                             "speedup": base / r["wall_s"]})
+                             "speedup": base["wall_s"] / r["wall_s"], "speedup_min": base["wall_min_s"] / r["wall_min_s"],
+                             "speedup_cpu": base["cpu_s"] / r["cpu_s"]})
     return rows
 
 
 def print_table(rows) -> None:
-    print(f"{'size':>8} {'thr':>3} {'path':>7} {'wall ms':>9} {'min ms':>8} {'CPU ms':>8} {'speed-up':>9}")
+    print(f"{'size':>8} {'thr':>3} {'path':>7} {'wall ms':>9} {'min ms':>8} {'CPU ms':>8}   speed-up: "
+          f"{'wall':>6} {'min':>6} {'CPU':>6}")
     for r in rows:
         print(f"{r['size']:>8} {r['threads']:>3} {r['path']:>7} {1e3 * r['wall_s']:9.3f} {1e3 * r['wall_min_s']:8.3f} "
-              f"{1e3 * r['cpu_s']:8.3f} {r['speedup']:8.1f}x")
+              f"{1e3 * r['cpu_s']:8.3f}             {r['speedup']:5.1f}x {r['speedup_min']:5.1f}x {r['speedup_cpu']:5.1f}x")
 
 
 def main(argv=None) -> int:
