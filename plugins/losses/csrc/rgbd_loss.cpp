@@ -12,36 +12,40 @@
 //   Ld   = sum |d - D| m / n / depth_unit
 //   loss = w_l1 L1 + w_ssim (1 - SSIM) + w_depth Ld
 //
-// SSIM, per channel with x = c m, y = I m and F the valid separable filter, from 4 maps:
-// mu1 = F x, mu2 = F y, e = F(x x + y y), d = F((x - y)^2). The variances enter SSIM only as
-// B2 = s11 + s22 + C2 = e - mu1^2 - mu2^2 + C2, and the covariance through
-// B2 - A2 = s11 + s22 - 2 s12 = d - (mu1 - mu2)^2 (the variance of x - y):
-//   S = l cs,  l = (2 mu1 mu2 + C1) / (mu1^2 + mu2^2 + C1),  cs = A2 / B2 = 1 - (d - (mu1 - mu2)^2) / B2.
-// Backward: with the per-pixel adjoints (times -w_ssim / map size) of S w.r.t. mu1, e and d,
-//   a_mu = 2 (cs (mu2 - mu1 l) / B1 - l (mu2 - mu1 cs) / B2),  a_e = l (B2 - A2) / B2^2,  a_d = -l / B2,
-//   dloss/dx = F^T a_mu + 2 x F^T a_e + 2 (x - y) F^T a_d,
+// SSIM, per channel with x = c m, y = I m and F the valid separable filter, from the means and
+// variances of s = x + y and t = x - y (Var = F(.^2) - (F .)^2):
+//   mu1, mu2 = (F s +- F t) / 2,  B1 = mu1^2 + mu2^2 + C1 = ((F s)^2 + (F t)^2) / 2 + C1,
+//   A1 = 2 mu1 mu2 + C1 = ((F s)^2 - (F t)^2) / 2 + C1,  B2 = s11 + s22 + C2 = (Var s + Var t) / 2 + C2,
+//   A2 = 2 s12 + C2 = B2 - Var t,  S = l cs,  l = A1 / B1,  cs = A2 / B2.
+// Backward: with the per-pixel adjoints (times -w_ssim / map size) of S w.r.t. mu1, e = F(x x + y y)
+// and d = F(t t) (each with the other two and mu2 fixed),
+//   a_mu = 2 (cs (mu2 - mu1 l) / B1 - l (mu2 - mu1 cs) / B2),  a_e = l Var t / B2^2,  a_d = -l / B2,
+//   mu2 - mu1 l = -F t (mu2 F s + C1) / B1,  mu2 - mu1 cs = -F t + mu1 Var t / B2,
+//   dloss/dx = F^T a_mu + 2 x F^T a_e + 2 t F^T a_d,
 // where F^T, the adjoint of a valid correlation, is the full correlation with the same taps
-// (zero outside the map; the window is symmetric, so F^T filters with the same taps). In these
-// variables no term is large where the result is small (on a flat region a_mu and a_e are small,
-// a_d ~ -1/C2 multiplies x - y), so the adjoints can be correlated in float32; with the usual
-// F x, F(x x), F(x y) the three terms are ~1/C2 and cancel to ~1e-3 of that.
+// (zero outside the map; the window is symmetric, so F^T filters with the same taps).
+//
+// Precision: Var s cancels (on a flat image region it is ~1e-4 of (F s)^2), so F s and F(s s)
+// are filtered in double (s and s^2 are exact there) and Var s formed in double: computed in
+// float32, as torch does, the gradients on real keyframes are only ~3e-5 from the exact ones.
+// Nothing else cancels in these variables: t, F t and Var t are small where x ~ y; a_mu and a_e
+// are small on flat regions and a_d ~ -1/C2 multiplies t there (with torch's F x, F(x x),
+// F(x y) the three gradient terms are each ~1/C2 and cancel to ~1e-3 of that). So the rest (the
+// t maps, S, the seeds, the adjoint correlations, the L1 and depth terms) is float32; sums over
+// pixels are double. Gradients on real keyframes: 1-2e-6 from torch's float64 result.
 //
 // Layout: row bands, one per thread, handed out dynamically by a persistent pool (a worker
-// that is not scheduled in time is not waited for). Each band streams its rows: deinterleave an input row
-// into planar, masked channel rows (a ring of 11), filter vertically then horizontally (the 4
-// maps in one sweep over the 11 rows), compute S and its three adjoints, correlate those
-// horizontally (a ring of 11 rows), and once an input row has all 11 contributions, correlate
-// vertically and write its gradient. A band recomputes the 10 map rows above it (the halo its
-// first rows' gradients need). Every output and every sum has a fixed order of operations, so
-// results do not depend on the number of threads.
+// that is not scheduled in time is not waited for). Each band streams its rows: deinterleave
+// an input row into planar, masked channel rows (a ring of 11), filter vertically then
+// horizontally, compute S and its three adjoints, correlate those horizontally (a ring of 11
+// rows), and once an input row has all 11 contributions, correlate vertically and write its
+// gradient. A band recomputes the 10 map rows above it (the halo its first rows' gradients
+// need). Every output and every sum has a fixed order of operations, so results do not depend
+// on the number of threads.
 //
-// Arithmetic (GCC/Clang vector extensions, 64-byte vectors: AVX-512 with -march=native, split
-// into narrower registers elsewhere): the maps, S and the adjoints' seeds in double (8 lanes):
-// the variance e - mu1^2 - mu2^2 is ~1e-4 of its terms on flat image regions, and in float32
-// (as torch computes it) the gradients on real keyframes are only ~3e-5 from the exact ones.
-// The adjoints' correlations and the per-pixel L1 / depth terms in float32 (16 lanes); sums
-// over pixels in double. Fused multiply-adds where the CPU has them (AVX-512), so the native and the
-// portable build differ in the last bits.
+// Vectors: GCC/Clang vector extensions, 64 bytes (16 floats, 8 doubles): AVX-512 with
+// -march=native, split into narrower registers elsewhere. Fused multiply-adds where the CPU has
+// them (AVX-512), so the native and the portable build differ in the last bits.
 
 #include <algorithm>
 #include <atomic>
@@ -70,7 +74,6 @@ constexpr int K = 11;      // SSIM window taps
 constexpr int R = K - 1;   // rows / columns the valid filter loses
 constexpr int VL = 16;     // floats per vector
 constexpr int VD = 8;      // doubles per vector
-constexpr int MAPS = 4;  // filtered maps: mu1, mu2, e, d (see above)
 constexpr double C1 = 0.01 * 0.01;  // (K1 data_range)^2, (K2 data_range)^2 as pytorch_msssim
 constexpr double C2 = 0.03 * 0.03;
 
@@ -111,14 +114,26 @@ inline void st8(float* p, vd v) {
   std::memcpy(p, &f, sizeof f);
 #endif
 }
-// 16 floats -> two vectors of 8 doubles (in registers: a round trip through memory would
+// 16 floats <-> two vectors of 8 doubles (in registers: a round trip through memory would
 // stall on store-to-load forwarding between 256- and 512-bit accesses)
 #if defined(__AVX512F__)
 inline void widen(vf v, vd& lo, vd& hi) {
   lo = (vd)_mm512_cvtps_pd(_mm512_castps512_ps256((__m512)v));
   hi = (vd)_mm512_cvtps_pd(_mm256_castpd_ps(_mm512_extractf64x4_pd(_mm512_castps_pd((__m512)v), 1)));
 }
+inline vf narrow(vd lo, vd hi) {
+  const __m256 l = _mm512_cvtpd_ps((__m512d)lo), h = _mm512_cvtpd_ps((__m512d)hi);
+  return (vf)_mm512_castpd_ps(_mm512_insertf64x4(_mm512_castpd256_pd512(_mm256_castps_pd(l)), _mm256_castps_pd(h), 1));
+}
 #else
+inline vf narrow(vd lo, vd hi) {
+  float h[VL];
+  st8(h, lo);
+  st8(h + VD, hi);
+  vf v;
+  std::memcpy(&v, h, sizeof v);
+  return v;
+}
 inline void widen(vf v, vd& lo, vd& hi) {
   float h[VL];
   std::memcpy(h, &v, sizeof h);
@@ -165,18 +180,11 @@ inline V sym_filter(const V* g, At at) {
   return acc;
 }
 
-// The same for the products x_t y_t, and for x_t^2 + y_t^2.
-inline vd sym_filter_product(const vd* g, const vd* x, const vd* y) {
-  vd acc = g[5] * (x[5] * y[5]);
-  for (int t = 4; t >= 0; --t) acc = madd(g[t], madd(x[t], y[t], x[K - 1 - t] * y[K - 1 - t]), acc);
-  return acc;
-}
-inline vd sym_filter_squares(const vd* g, const vd* x, const vd* y) {
-  vd acc = g[5] * madd(x[5], x[5], y[5] * y[5]);
-  for (int t = 4; t >= 0; --t) {
-    const int u = K - 1 - t;
-    acc = madd(g[t], madd(x[t], x[t], madd(y[t], y[t], madd(x[u], x[u], y[u] * y[u]))), acc);
-  }
+// The same for the squares p_t^2: sum_t g_t p_t^2.
+template <class V>
+inline V sym_filter_squares(const V* g, const V* p) {
+  V acc = g[5] * (p[5] * p[5]);
+  for (int t = 4; t >= 0; --t) acc = madd(g[t], madd(p[t], p[t], p[K - 1 - t] * p[K - 1 - t]), acc);
   return acc;
 }
 
@@ -198,6 +206,12 @@ inline vd row_filter(const vd* g, const double* p) {  // p: 64-byte aligned
                    shift<6>(a, b), shift<7>(a, b), b, shift<1>(b, c), shift<2>(b, c)};
   return sym_filter(g, [&](int t) { return w[t]; });
 }
+inline vf row_filter(const vf* g, const float* p) {  // p: 64-byte aligned
+  const vf a = ld(p), b = ld(p + VL);
+  const vf w[K] = {a, shift<1>(a, b), shift<2>(a, b), shift<3>(a, b), shift<4>(a, b), shift<5>(a, b),
+                   shift<6>(a, b), shift<7>(a, b), shift<8>(a, b), shift<9>(a, b), shift<10>(a, b)};
+  return sym_filter(g, [&](int t) { return w[t]; });
+}
 inline vf row_filter6(const vf* g, const float* p) {  // sum_t g[t] p[j + 6 + t]; p: 64-byte aligned
   const vf a = ld(p), b = ld(p + VL);
   const vf w[K] = {shift<6>(a, b), shift<7>(a, b), shift<8>(a, b), shift<9>(a, b), shift<10>(a, b), shift<11>(a, b),
@@ -207,6 +221,9 @@ inline vf row_filter6(const vf* g, const float* p) {  // sum_t g[t] p[j + 6 + t]
 #else
 inline vd row_filter(const vd* g, const double* p) {
   return sym_filter(g, [&](int t) { return ldd(p + t); });
+}
+inline vf row_filter(const vf* g, const float* p) {
+  return sym_filter(g, [&](int t) { return ld(p + t); });
 }
 inline vf row_filter6(const vf* g, const float* p) {
   return sym_filter(g, [&](int t) { return ld(p + 6 + t); });
@@ -411,7 +428,7 @@ struct Band {
   const int Wp, SL;  // SL: seed row length (map row at offset VL, zeros around)
   Buffer xy;    // [channel][x or y][ring slot][Wp]: x = c m, y = I m, planar
   Buffer mask;  // [ring slot][Wp]
-  Buffer v;     // [4][Wp] doubles (2 Wp floats each): the vertical pass of the maps
+  Buffer v;     // the vertical pass of the maps: F s, F s^2 (double rows), F t, F t^2 (float rows)
   Buffer seed;  // [3][SL]: a_mu, a_e, a_d of one map row
   Buffer u;     // [channel][ring slot][3][Wp]: the seeds correlated horizontally
   Buffer grad;  // [3][Wp]: one row's colour gradient, planar
@@ -419,12 +436,13 @@ struct Band {
 
   explicit Band(const Problem& p)
       : P(p), Wp(p.Wp), SL(p.Wp + 2 * VL), xy((size_t)3 * 2 * K * Wp), mask((size_t)K * Wp),
-        v((size_t)MAPS * 2 * Wp), seed((size_t)3 * SL), u((size_t)3 * K * 3 * Wp), grad((size_t)3 * Wp),
+        v((size_t)6 * Wp), seed((size_t)3 * SL), u((size_t)3 * K * 3 * Wp), grad((size_t)3 * Wp),
         tail(4 * VL) {}
 
   float* xrow(int ch, int which, int row) { return xy.p + (((size_t)ch * 2 + which) * K + row % K) * Wp; }
   float* mrow(int row) { return mask.p + (size_t)(row % K) * Wp; }
-  double* vrow(int map) { return reinterpret_cast<double*>(v.p) + (size_t)map * Wp; }
+  double* vrow_d(int map) { return reinterpret_cast<double*>(v.p) + (size_t)map * Wp; }  // map 0, 1
+  float* vrow_f(int map) { return v.p + (size_t)(4 + map) * Wp; }                        // map 0, 1
   float* urow(int ch, int row, int map) { return u.p + (((size_t)ch * K + (row + K) % K) * 3 + map) * Wp; }
 
   void load_row(int q);
@@ -470,69 +488,74 @@ void Band::load_row(int q) {
   }
 }
 
-// The vertical pass of map row r, channel ch: the 4 maps filtered along the columns (input
-// rows r..r+10), in double, `count` vectors of 8 columns.
+// The vertical pass of map row r, channel ch (input rows r..r+10), `count` vectors of 16
+// columns: F s and F s^2 in double (s = x + y and s^2 are exact there), F t and F t^2 in float.
 void Band::vertical(int ch, int r, int count) {
-  const vd* g = P.gd;
   const float* xs[K];
   const float* ys[K];
   for (int t = 0; t < K; ++t) {
     xs[t] = xrow(ch, 0, r + t);
     ys[t] = xrow(ch, 1, r + t);
   }
-  double* vm[MAPS];
-  for (int k = 0; k < MAPS; ++k) vm[k] = vrow(k);
+  double *fs = vrow_d(0), *fss = vrow_d(1);
+  float *ft = vrow_f(0), *ftt = vrow_f(1);
   for (int b = 0; b < count; ++b) {
-    const int j = b * VD;
-    vd x[K], y[K];
-    for (int t = 0; t < K; ++t) {
-      x[t] = ld8(xs[t] + j);
-      y[t] = ld8(ys[t] + j);
+    const int j = b * VL;
+    vf t16[K];
+    for (int t = 0; t < K; ++t) t16[t] = ld(xs[t] + j) - ld(ys[t] + j);
+    st(ft + j, sym_filter(P.gf, [&](int t) { return t16[t]; }));
+    st(ftt + j, sym_filter_squares(P.gf, t16));
+    for (int h = 0; h < VL; h += VD) {
+      vd s8[K];
+      for (int t = 0; t < K; ++t) s8[t] = ld8(xs[t] + j + h) + ld8(ys[t] + j + h);
+      st(fs + j + h, sym_filter(P.gd, [&](int t) { return s8[t]; }));
+      st(fss + j + h, sym_filter_squares(P.gd, s8));
     }
-    st(vm[0] + j, sym_filter(g, [&](int t) { return x[t]; }));
-    st(vm[1] + j, sym_filter(g, [&](int t) { return y[t]; }));
-    st(vm[2] + j, sym_filter_squares(g, x, y));
-    vd dxy[K];
-    for (int t = 0; t < K; ++t) dxy[t] = x[t] - y[t];  // exact: two floats
-    st(vm[3] + j, sym_filter_product(g, dxy, dxy));
   }
 }
 
-// The horizontal pass of the 4 maps, then per map pixel S and (with gradients) the seeds a_mu,
-// a_e, a_d times k_s, rounded to float (0 outside the map). Returns sum S (double).
+// The horizontal pass of the maps, then per map pixel S and (with gradients) the seeds a_mu,
+// a_e, a_d times k_s (0 outside the map), in float: Var s = F s^2 - (F s)^2 is formed in double,
+// after which no step cancels (see the header). Returns sum S (double).
 vd Band::horizontal_and_seeds(int count) {
-  const vd* g = P.gd;
-  const vd ks = vd1(P.k_s);
-  const double* vm[MAPS];
-  for (int k = 0; k < MAPS; ++k) vm[k] = vrow(k);
+  const vf ks = vf1(P.k_s), c1 = vf1((float)C1), c2 = vf1((float)C2);
+  const double *fs = vrow_d(0), *fss = vrow_d(1);
+  const float *ft = vrow_f(0), *ftt = vrow_f(1);
   float* sd[3];
   for (int k = 0; k < 3; ++k) sd[k] = seed.p + (size_t)k * SL + VL;
   vd total = vd{};
   for (int b = 0; b < count; ++b) {
-    const int j = b * VD;
-    const vd mu1 = row_filter(g, vm[0] + j), mu2 = row_filter(g, vm[1] + j);
-    const vd e = row_filter(g, vm[2] + j), d = row_filter(g, vm[3] + j);
-    const vd mu1s = mu1 * mu1, mu2s = mu2 * mu2, mu12 = mu1 * mu2, dmu = mu1 - mu2;
-    const vd B1 = (mu1s + mu2s) + C1, B2 = ((e - mu1s) - mu2s) + C2;
-    const vd var_d = d - dmu * dmu;  // the variance of x - y: B2 - A2
-    const vd inv = 1.0 / (B1 * B2), rB1 = B2 * inv, rB2 = B1 * inv;
-    const vd l = (2.0 * mu12 + C1) * rB1;
-    const vd cs = (B2 - var_d) * rB2;
-    vd S = l * cs;
-    vd a[3] = {};  // dS/dmu1, dS/de, dS/dd (mu2, e, d / mu1, d / mu1, e fixed), times k_s
+    const int j = b * VL;
+    vd ms[2], vs[2];
+    for (int h = 0; h < 2; ++h) {
+      ms[h] = row_filter(P.gd, fs + j + h * VD);
+      vs[h] = row_filter(P.gd, fss + j + h * VD) - ms[h] * ms[h];
+    }
+    const vf Ms = narrow(ms[0], ms[1]), var_s = narrow(vs[0], vs[1]);  // mean and variance of s
+    const vf Mt = row_filter(P.gf, ft + j);                           // mean of t = mu1 - mu2
+    const vf var_t = row_filter(P.gf, ftt + j) - Mt * Mt;            // variance of t: B2 - A2
+    const vf mu1 = 0.5f * (Ms + Mt), mu2 = 0.5f * (Ms - Mt);
+    const vf B1 = 0.5f * madd(Ms, Ms, Mt * Mt) + c1, A1 = 0.5f * (Ms * Ms - Mt * Mt) + c1;
+    const vf B2 = 0.5f * (var_s + var_t) + c2;
+    const vf rB1 = 1.f / B1, rB2 = 1.f / B2;
+    const vf l = A1 * rB1, cs = (B2 - var_t) * rB2;
+    vf S = l * cs;
+    vf a[3] = {};
     if (P.grads) {
-      a[0] = ks * (2.0 * (cs * (mu2 - mu1 * l) * rB1 - l * (mu2 - mu1 * cs) * rB2));
-      a[1] = ks * (l * var_d * (rB2 * rB2));
+      // mu2 - mu1 l = -t (mu2 s + C1) / B1,  mu2 - mu1 cs = -t + mu1 var_t / B2: no cancellation
+      const vf d_l = -(Mt * madd(mu2, Ms, c1)) * rB1, d_cs = madd(mu1 * var_t, rB2, -Mt);
+      a[0] = ks * (2.f * (cs * d_l * rB1 - l * d_cs * rB2));
+      a[1] = ks * (l * var_t * (rB2 * rB2));
       a[2] = ks * -(l * rB2);
     }
-    if (j + VD > P.Wv) {  // the last vector: lanes past the map count for nothing
-      const vl keep = (vl{0, 1, 2, 3, 4, 5, 6, 7} + j) < (int64_t)P.Wv;
-      S = select(keep, S, vd{});
-      for (vd& ak : a) ak = select(keep, ak, vd{});
+    if (j + VL > P.Wv) {  // the last vector: lanes past the map count for nothing
+      const vi keep = (vi{0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15} + j) < P.Wv;
+      S = select(keep, S, vf{});
+      for (vf& ak : a) ak = select(keep, ak, vf{});
     }
-    total += S;
+    add_wide(total, S);
     if (P.grads)
-      for (int k = 0; k < 3; ++k) st8(sd[k] + j, a[k]);
+      for (int k = 0; k < 3; ++k) st(sd[k] + j, a[k]);
   }
   return total;
 }
@@ -554,10 +577,10 @@ void Band::adjoint_horizontal(int ch, int r) {
 
 // Map row r (< Hv), every channel: S summed over the row, and the u ring's row r.
 double Band::forward_row(int r) {
-  const int count = round_up(P.Wv, VD) / VD;  // vectors of map columns
+  const int count = round_up(P.Wv, VL) / VL;  // vectors of map columns
   vd total = vd{};
   for (int ch = 0; ch < 3; ++ch) {
-    vertical(ch, r, count + 2);  // the horizontal pass reads up to 10 columns further
+    vertical(ch, r, count + 1);  // the horizontal pass reads up to 10 columns further
     total += horizontal_and_seeds(count);
     if (P.grads) adjoint_horizontal(ch, r);
   }
