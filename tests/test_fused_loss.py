@@ -138,7 +138,7 @@ def test_matches_torch_on_real_keyframes(name, kw):
         assert rel(f, e) <= rel(r, e) + 1e-7
 
 
-@pytest.mark.parametrize("shape", [(240, 320), (97, 45)])
+@pytest.mark.parametrize("shape", [(240, 320), (97, 45), (23, 40), (34, 29)])
 def test_identical_for_any_thread_count(shape):
     inputs = random_inputs(*shape, seed=5)
     one = loss_and_grads(fused_rgbd_loss, inputs, num_threads=1)

@@ -35,11 +35,11 @@
 // pixels are double. Gradients on real keyframes: 1-2e-6 from torch's float64 result.
 //
 // Layout: row bands, one per thread, handed out dynamically by a persistent pool (a worker
-// that is not scheduled in time is not waited for). Each band streams its rows: deinterleave
-// an input row into planar, masked channel rows (a ring of 11), filter vertically then
-// horizontally, compute S and its three adjoints, correlate those horizontally (a ring of 11
-// rows), and once an input row has all 11 contributions, correlate vertically and write its
-// gradient. A band recomputes the 10 map rows above it (the halo its first rows' gradients
+// that is not scheduled in time is not waited for). Each band streams its rows, two at a time
+// (they share their vertical filters' loads): deinterleave input rows into planar, masked
+// channel rows (a ring of 12), filter vertically then horizontally, compute S and its three
+// adjoints, correlate those horizontally (a ring of 12 rows), and once an input row has all 11
+// contributions, correlate vertically and write its gradient. A band recomputes the 10 map rows above it (the halo its first rows' gradients
 // need). Every output and every sum has a fixed order of operations, so results do not depend
 // on the number of threads.
 //
@@ -74,6 +74,9 @@ constexpr int K = 11;      // SSIM window taps
 constexpr int R = K - 1;   // rows / columns the valid filter loses
 constexpr int VL = 16;     // floats per vector
 constexpr int VD = 8;      // doubles per vector
+constexpr int ROWS = 2;    // map rows (and input rows) computed together, sharing their loads
+constexpr int RING = K + ROWS - 1;  // input rows and correlated seed rows kept
+static_assert(ROWS == 2, "forward_rows and run dispatch on 1 or 2 rows");
 constexpr double C1 = 0.01 * 0.01;  // (K1 data_range)^2, (K2 data_range)^2 as pytorch_msssim
 constexpr double C2 = 0.03 * 0.03;
 
@@ -428,30 +431,34 @@ struct Band {
   const int Wp, SL;  // SL: seed row length (map row at offset VL, zeros around)
   Buffer xy;    // [channel][x or y][ring slot][Wp]: x = c m, y = I m, planar
   Buffer mask;  // [ring slot][Wp]
-  Buffer v;     // the vertical pass of the maps: F s, F s^2 (double rows), F t, F t^2 (float rows)
+  Buffer v;     // [ROWS][6 Wp]: a map row's vertical pass: F s, F s^2 (double), F t, F t^2 (float)
   Buffer seed;  // [3][SL]: a_mu, a_e, a_d of one map row
   Buffer u;     // [channel][ring slot][3][Wp]: the seeds correlated horizontally
-  Buffer grad;  // [3][Wp]: one row's colour gradient, planar
+  Buffer grad;  // [ROWS][3][Wp]: the rows' colour gradients, planar
   Buffer tail;  // [4 VL]: the last partial vector of an unpadded row
 
   explicit Band(const Problem& p)
-      : P(p), Wp(p.Wp), SL(p.Wp + 2 * VL), xy((size_t)3 * 2 * K * Wp), mask((size_t)K * Wp),
-        v((size_t)6 * Wp), seed((size_t)3 * SL), u((size_t)3 * K * 3 * Wp), grad((size_t)3 * Wp),
+      : P(p), Wp(p.Wp), SL(p.Wp + 2 * VL), xy((size_t)3 * 2 * RING * Wp), mask((size_t)RING * Wp),
+        v((size_t)ROWS * 6 * Wp), seed((size_t)3 * SL), u((size_t)3 * RING * 3 * Wp), grad((size_t)ROWS * 3 * Wp),
         tail(4 * VL) {}
 
-  float* xrow(int ch, int which, int row) { return xy.p + (((size_t)ch * 2 + which) * K + row % K) * Wp; }
-  float* mrow(int row) { return mask.p + (size_t)(row % K) * Wp; }
-  double* vrow_d(int map) { return reinterpret_cast<double*>(v.p) + (size_t)map * Wp; }  // map 0, 1
-  float* vrow_f(int map) { return v.p + (size_t)(4 + map) * Wp; }                        // map 0, 1
-  float* urow(int ch, int row, int map) { return u.p + (((size_t)ch * K + (row + K) % K) * 3 + map) * Wp; }
+  float* xrow(int ch, int which, int row) { return xy.p + (((size_t)ch * 2 + which) * RING + row % RING) * Wp; }
+  float* mrow(int row) { return mask.p + (size_t)(row % RING) * Wp; }
+  double* vrow_d(int q, int map) { return reinterpret_cast<double*>(v.p + (size_t)q * 6 * Wp) + (size_t)map * Wp; }
+  float* vrow_f(int q, int map) { return v.p + ((size_t)q * 6 + 4 + map) * Wp; }
+  float* urow(int ch, int row, int map) {  // row >= -10
+    return u.p + (((size_t)ch * RING + (row + RING) % RING) * 3 + map) * Wp;
+  }
+  float* grow(int q, int ch) { return grad.p + ((size_t)q * 3 + ch) * Wp; }
 
   void load_row(int q);
-  void vertical(int ch, int r, int count);
-  vd horizontal_and_seeds(int count);
+  template <int N> void vertical(int ch, int r, int count);
+  vd horizontal_and_seeds(int q, int count);
   void adjoint_horizontal(int ch, int r);
-  double forward_row(int r);
+  void forward_rows(int r, int n, double* sums);
   void clear_u(int r);
-  void emit_row(int i, double& l1, double& dep);
+  template <int N> void emit_colour(int i, double* l1);
+  double emit_depth(int i, int q);
   void run(int i0, int i1);
 };
 
@@ -488,39 +495,44 @@ void Band::load_row(int q) {
   }
 }
 
-// The vertical pass of map row r, channel ch (input rows r..r+10), `count` vectors of 16
-// columns: F s and F s^2 in double (s = x + y and s^2 are exact there), F t and F t^2 in float.
+// The vertical pass of map rows r..r+N-1, channel ch (input rows r..r+N+9), `count` vectors of
+// 16 columns: F s and F s^2 in double (s = x + y and s^2 are exact there), F t and F t^2 in
+// float. The rows share their input rows' loads; each row's arithmetic is the same for any N.
+template <int N>
 void Band::vertical(int ch, int r, int count) {
-  const float* xs[K];
-  const float* ys[K];
-  for (int t = 0; t < K; ++t) {
+  constexpr int NR = K + N - 1;
+  const float* xs[NR];
+  const float* ys[NR];
+  for (int t = 0; t < NR; ++t) {
     xs[t] = xrow(ch, 0, r + t);
     ys[t] = xrow(ch, 1, r + t);
   }
-  double *fs = vrow_d(0), *fss = vrow_d(1);
-  float *ft = vrow_f(0), *ftt = vrow_f(1);
   for (int b = 0; b < count; ++b) {
     const int j = b * VL;
-    vf t16[K];
-    for (int t = 0; t < K; ++t) t16[t] = ld(xs[t] + j) - ld(ys[t] + j);
-    st(ft + j, sym_filter(P.gf, [&](int t) { return t16[t]; }));
-    st(ftt + j, sym_filter_squares(P.gf, t16));
+    vf t16[NR];
+    for (int t = 0; t < NR; ++t) t16[t] = ld(xs[t] + j) - ld(ys[t] + j);
+    for (int q = 0; q < N; ++q) {
+      st(vrow_f(q, 0) + j, sym_filter(P.gf, [&](int t) { return t16[q + t]; }));
+      st(vrow_f(q, 1) + j, sym_filter_squares(P.gf, t16 + q));
+    }
     for (int h = 0; h < VL; h += VD) {
-      vd s8[K];
-      for (int t = 0; t < K; ++t) s8[t] = ld8(xs[t] + j + h) + ld8(ys[t] + j + h);
-      st(fs + j + h, sym_filter(P.gd, [&](int t) { return s8[t]; }));
-      st(fss + j + h, sym_filter_squares(P.gd, s8));
+      vd s8[NR];
+      for (int t = 0; t < NR; ++t) s8[t] = ld8(xs[t] + j + h) + ld8(ys[t] + j + h);
+      for (int q = 0; q < N; ++q) {
+        st(vrow_d(q, 0) + j + h, sym_filter(P.gd, [&](int t) { return s8[q + t]; }));
+        st(vrow_d(q, 1) + j + h, sym_filter_squares(P.gd, s8 + q));
+      }
     }
   }
 }
 
-// The horizontal pass of the maps, then per map pixel S and (with gradients) the seeds a_mu,
+// The horizontal pass of the maps of row q (of the rows computed together), then per map pixel S and (with gradients) the seeds a_mu,
 // a_e, a_d times k_s (0 outside the map), in float: Var s = F s^2 - (F s)^2 is formed in double,
 // after which no step cancels (see the header). Returns sum S (double).
-vd Band::horizontal_and_seeds(int count) {
+vd Band::horizontal_and_seeds(int q, int count) {
   const vf ks = vf1(P.k_s), c1 = vf1((float)C1), c2 = vf1((float)C2);
-  const double *fs = vrow_d(0), *fss = vrow_d(1);
-  const float *ft = vrow_f(0), *ftt = vrow_f(1);
+  const double *fs = vrow_d(q, 0), *fss = vrow_d(q, 1);
+  const float *ft = vrow_f(q, 0), *ftt = vrow_f(q, 1);
   float* sd[3];
   for (int k = 0; k < 3; ++k) sd[k] = seed.p + (size_t)k * SL + VL;
   vd total = vd{};
@@ -576,15 +588,21 @@ void Band::adjoint_horizontal(int ch, int r) {
 }
 
 // Map row r (< Hv), every channel: S summed over the row, and the u ring's row r.
-double Band::forward_row(int r) {
+// Map rows r..r+n-1 (< Hv, n <= ROWS), every channel: S summed over each row (sums[q]), and
+// the u ring's rows.
+void Band::forward_rows(int r, int n, double* sums) {
   const int count = round_up(P.Wv, VL) / VL;  // vectors of map columns
-  vd total = vd{};
+  vd total[ROWS] = {};
   for (int ch = 0; ch < 3; ++ch) {
-    vertical(ch, r, count + 1);  // the horizontal pass reads up to 10 columns further
-    total += horizontal_and_seeds(count);
-    if (P.grads) adjoint_horizontal(ch, r);
+    // the horizontal pass reads up to 10 columns further: one more vector
+    if (n == 2) vertical<2>(ch, r, count + 1);
+    else vertical<1>(ch, r, count + 1);
+    for (int q = 0; q < n; ++q) {
+      total[q] += horizontal_and_seeds(q, count);
+      if (P.grads) adjoint_horizontal(ch, r + q);
+    }
   }
-  return hsum(total);
+  for (int q = 0; q < n; ++q) sums[q] = hsum(total[q]);
 }
 
 // A ring slot for a map row outside the map (r >= Hv): no contribution.
@@ -593,40 +611,57 @@ void Band::clear_u(int r) {
     for (int k = 0; k < 3; ++k) std::fill_n(urow(ch, r, k), Wp, 0.f);
 }
 
-// Input row i: its L1 and depth sums, and (with gradients) its colour and depth gradients. The
-// SSIM part needs the u ring rows i-10..i (rows outside the map are zero slots).
-void Band::emit_row(int i, double& l1_sum, double& dep_sum) {
-  const int W = P.W, nv = round_up(W, VL) / VL;
+// Input rows i..i+N-1, colour: their L1 sums (l1[q]) and (with gradients) their colour
+// gradients. The SSIM part needs the u ring rows i-10..i+N-1 (rows outside the map are zero
+// slots); the rows share those loads.
+template <int N>
+void Band::emit_colour(int i, double* l1_sums) {
+  constexpr int NR = K + N - 1;
+  const int nv = round_up(P.W, VL) / VL;
   const vf kl1 = vf1(P.k_l1);
-  vd l1 = vd{};
-  const float* m = mrow(i);
+  vd l1[N] = {};
   for (int ch = 0; ch < 3; ++ch) {
-    const float* x = xrow(ch, 0, i);
-    const float* y = xrow(ch, 1, i);
-    float* out = grad.p + (size_t)ch * Wp;
-    const float* us[3][K];
+    const float *x[N], *y[N], *m[N];
+    for (int q = 0; q < N; ++q) {
+      x[q] = xrow(ch, 0, i + q);
+      y[q] = xrow(ch, 1, i + q);
+      m[q] = mrow(i + q);
+    }
+    const float* us[3][NR];  // us[k][p]: row i - 10 + p
     if (P.do_ssim && P.grads)
       for (int k = 0; k < 3; ++k)
-        for (int t = 0; t < K; ++t) us[k][t] = urow(ch, i - t, k);
+        for (int p = 0; p < NR; ++p) us[k][p] = urow(ch, i - R + p, k);
     for (int b = 0; b < nv; ++b) {
       const int j = b * VL;
-      // |c - I| m = |x - y| for m in {0, 1} (padding: 0 - 0)
-      const vf xv = ld(x + j), yv = ld(y + j), diff = xv - yv;
-      add_wide(l1, vabs(diff));
-      if (!P.grads) continue;
-      vf gr = kl1 * sign(diff);
-      if (P.do_ssim) {
-        vf T[3];
-        for (int k = 0; k < 3; ++k) T[k] = sym_filter(P.gf, [&](int t) { return ld(us[k][t] + j); });
-        gr += madd(2.f * diff, T[2], madd(2.f * xv, T[1], T[0]));
+      vf T[N][3];
+      if (P.do_ssim && P.grads) {
+        for (int k = 0; k < 3; ++k) {
+          vf uv[NR];
+          for (int p = 0; p < NR; ++p) uv[p] = ld(us[k][p] + j);
+          for (int q = 0; q < N; ++q) T[q][k] = sym_filter(P.gf, [&](int t) { return uv[R + q - t]; });
+        }
       }
-      st(out + j, gr * ld(m + j));
+      for (int q = 0; q < N; ++q) {
+        // |c - I| m = |x - y| for m in {0, 1} (padding: 0 - 0)
+        const vf xv = ld(x[q] + j), diff = xv - ld(y[q] + j);
+        add_wide(l1[q], vabs(diff));
+        if (!P.grads) continue;
+        vf gr = kl1 * sign(diff);
+        if (P.do_ssim) gr += madd(2.f * diff, T[q][2], madd(2.f * xv, T[q][1], T[q][0]));
+        st(grow(q, ch) + j, gr * ld(m[q] + j));
+      }
     }
   }
-  l1_sum = hsum(l1);
+  for (int q = 0; q < N; ++q) l1_sums[q] = hsum(l1[q]);
+}
+
+// Input row i (the q-th of the rows just emitted): its colour gradient interleaved into the
+// output, and its depth term and gradient. Returns the row's sum |d - D| m.
+double Band::emit_depth(int i, int q) {
+  const int W = P.W;
   if (P.grads) {
     float* gc = P.grad_color + (size_t)i * W * 3;
-    const float* gp[3] = {grad.p, grad.p + Wp, grad.p + 2 * Wp};
+    const float* gp[3] = {grow(q, 0), grow(q, 1), grow(q, 2)};
     const int full = W / VL * VL;
     for (int j = 0; j < full; j += VL) {
       const vf g3[3] = {ld(gp[0] + j), ld(gp[1] + j), ld(gp[2] + j)};
@@ -635,11 +670,11 @@ void Band::emit_row(int i, double& l1_sum, double& dep_sum) {
     for (int j = full; j < W; ++j)
       for (int ch = 0; ch < 3; ++ch) gc[3 * j + ch] = gp[ch][j];
   }
-  dep_sum = 0.0;
   if (!P.has_depth) {
     if (P.grads) std::fill_n(P.grad_depth + (size_t)i * W, W, 0.f);
-    return;
+    return 0.0;
   }
+  const float* m = mrow(i);
   const float* d = P.depth + (size_t)i * W;
   const float* D = P.obs + (size_t)i * W;
   float* gd = P.grads ? P.grad_depth + (size_t)i * W : nullptr;
@@ -671,27 +706,40 @@ void Band::emit_row(int i, double& l1_sum, double& dep_sum) {
       }
     }
   }
-  dep_sum = hsum(dep);
+  return hsum(dep);
 }
 
-// Input rows [i0, i1): with SSIM, map rows from i0 - 10 (the halo) to min(i1, Hv) - 1.
+// Input rows [i0, i1), ROWS at a time: with SSIM, map rows from i0 - 10 (the halo) to
+// min(i1, Hv) - 1.
 void Band::run(int i0, int i1) {
   const int rs = P.do_ssim ? std::max(0, i0 - R) : i0;
   if (P.do_ssim)
     for (int q = rs; q < std::min(P.H, rs + R); ++q) load_row(q);
-  for (int r = rs; r < i1; ++r) {
+  for (int r = rs; r < i1; r += ROWS) {
+    const int n = std::min(ROWS, i1 - r);
     if (P.do_ssim) {
-      if (r + R < P.H) load_row(r + R);
-      if (r < P.Hv) {
-        const double s = forward_row(r);
-        if (r >= i0) P.row_ssim[r] = s;
-      } else if (P.grads) {
-        clear_u(r);
+      for (int q = 0; q < n; ++q)
+        if (r + R + q < P.H) load_row(r + R + q);
+      const int nf = std::max(0, std::min(n, P.Hv - r));  // map rows among r..r+n-1
+      if (nf > 0) {
+        double sums[ROWS];
+        forward_rows(r, nf, sums);
+        for (int q = 0; q < nf; ++q)
+          if (r + q >= i0) P.row_ssim[r + q] = sums[q];
       }
+      if (P.grads)
+        for (int q = nf; q < n; ++q) clear_u(r + q);
     } else {
-      load_row(r);
+      for (int q = 0; q < n; ++q) load_row(r + q);
     }
-    if (r >= i0) emit_row(r, P.row_l1[r], P.row_depth[r]);
+    const int first = std::max(r, i0);  // rows before i0 are the halo
+    double l1[ROWS];
+    if (r + n - first == 2) emit_colour<2>(first, l1);
+    else if (r + n - first == 1) emit_colour<1>(first, l1);
+    for (int i = first; i < r + n; ++i) {
+      P.row_l1[i] = l1[i - first];
+      P.row_depth[i] = emit_depth(i, i - first);
+    }
   }
 }
 
