@@ -97,7 +97,6 @@ typedef float vf __attribute__((vector_size(64)));
 typedef float vf8 __attribute__((vector_size(32)));
 typedef double vd __attribute__((vector_size(64)));
 typedef int32_t vi __attribute__((vector_size(64)));
-typedef int64_t vl __attribute__((vector_size(64)));
 
 inline vf vf1(float x) { return vf{x, x, x, x, x, x, x, x, x, x, x, x, x, x, x, x}; }
 inline vd vd1(double x) { return vd{x, x, x, x, x, x, x, x}; }
@@ -160,7 +159,6 @@ inline void widen(vf v, vd& lo, vd& hi) {
 inline void st(float* p, vf v) { std::memcpy(p, &v, sizeof v); }
 inline void st(double* p, vd v) { std::memcpy(p, &v, sizeof v); }
 inline vf select(vi m, vf a, vf b) { return (vf)(((vi)a & m) | ((vi)b & ~m)); }
-inline vd select(vl m, vd a, vd b) { return (vd)(((vl)a & m) | ((vl)b & ~m)); }
 // sign(v) as torch's abs backward: 0 at 0, NaN for NaN
 inline vf sign(vf v) { return select(v > 0, vf1(1.f), select(v < 0, vf1(-1.f), v)); }
 inline vf vabs(vf v) { return (vf)((vi)v & (vi{} + 0x7fffffff)); }
@@ -645,7 +643,7 @@ void Band::emit_colour(int i, double* l1_sums) {
         for (int p = 0; p < NR; ++p) us[k][p] = urow(ch, i - R + p, k);
     for (int b = 0; b < nv; ++b) {
       const int j = b * VL;
-      vf T[N][3];
+      vf T[N][3] = {};
       if (P.do_ssim && P.grads) {
         for (int k = 0; k < 3; ++k) {
           vf uv[NR];
