@@ -51,3 +51,23 @@ def test_gradients_reach_colour_and_depth():
     L1SSIMDepthLoss(L1SSIMDepthConfig())(RenderOutput(color, depth, render.alpha), view).backward()
     assert color.grad.abs().sum() > 0 and depth.grad.abs().sum() > 0
     assert not depth.grad[view.depth == 0].any()  # invalid pixels have no depth gradient
+
+
+@pytest.mark.parametrize("seed, invalid", [(0, 0.3), (1, 0.0), (2, 1.1)])
+def test_the_compiled_backend_is_the_same_loss(seed, invalid):
+    """loss.backend=compiled (one kernel call, analytic gradients) against backend=torch
+    (autograd through pytorch-msssim): value and gradients to float precision."""
+    from slamkit_plugins.losses.l1_ssim_depth import Backend
+
+    view, render = view_and_render(seed, invalid)
+    results = {}
+    for backend in (Backend.torch, Backend.compiled):
+        color, depth = render.color.clone().requires_grad_(True), render.depth.clone().requires_grad_(True)
+        loss = L1SSIMDepthLoss(L1SSIMDepthConfig(backend=backend))(RenderOutput(color, depth, render.alpha), view)
+        loss.backward()
+        no_grad = torch.zeros_like(depth)  # no depth term (no valid depth): torch leaves depth out of the graph
+        results[backend] = (float(loss), color.grad, no_grad if depth.grad is None else depth.grad)
+    (a, ca, da), (b, cb, db) = results.values()
+    assert b == pytest.approx(a, rel=1e-6)
+    torch.testing.assert_close(cb, ca, rtol=1e-4, atol=1e-7)
+    torch.testing.assert_close(db, da, rtol=1e-5, atol=1e-9)

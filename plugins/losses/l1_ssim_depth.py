@@ -5,35 +5,53 @@
 over the pixels with valid observed depth (all pixels for the colour terms when none has
 depth; no depth term then). L1 terms are means over those pixels (and the 3 channels); SSIM is
 pytorch-msssim's (window 11, sigma 1.5) with the pixels outside the mask set to 0 in both
-images (`slamkit.metrics.images.ssim`).
+images. The definition is `torch_rgbd_loss` (`fused_rgbd_loss.py`); on CPU float32 images the
+compiled kernel computes the same value and its gradients in one pass (`backend`).
 """
 
 from __future__ import annotations
 
+import enum
 from dataclasses import dataclass
 
 import torch
 
-from slamkit.metrics import images as image_metrics
-from slamkit.plugin import PluginSpec, hookimpl
+from slamkit.errors import ConfigError
 from slamkit.map.rendering import RenderOutput
+from slamkit.plugin import PluginSpec, hookimpl
 from slamkit.roles import MappingLoss, PluginConfig, TrainingView, require
+from slamkit_plugins.losses import fused_rgbd_loss as rgbd
+
+
+class Backend(enum.Enum):
+    """auto: the compiled kernel for CPU float32 images when it builds, else torch. compiled:
+    the kernel or an error. torch: autograd through pytorch-msssim (the reference; GPU images)."""
+
+    auto = "auto"
+    compiled = "compiled"
+    torch = "torch"
 
 
 @dataclass
 class L1SSIMDepthConfig(PluginConfig):
     """weight_l1, weight_ssim, weight_depth: the loss's weights (reference: 0.8, 0.2, 0.1).
-    depth_unit: metres; the depth term is L1(depth / depth_unit) (the reference's 10)."""
+    depth_unit: metres; the depth term is L1(depth / depth_unit) (the reference's 10).
+    backend: auto | compiled | torch (the same loss; see Backend). num_threads: the compiled
+    kernel's threads (0 = torch.get_num_threads(), the run's mapping threads)."""
 
     weight_l1: float = 0.8
     weight_ssim: float = 0.2
     weight_depth: float = 0.1
     depth_unit: float = 10.0
+    backend: Backend = Backend.auto
+    num_threads: int = 0
 
     def validate(self) -> None:
         for name in ("weight_l1", "weight_ssim", "weight_depth"):
             require(getattr(self, name) >= 0, f"loss.{name}", ">= 0", getattr(self, name))
         require(self.depth_unit > 0, "loss.depth_unit", "> 0 metres", self.depth_unit)
+        require(self.num_threads >= 0, "loss.num_threads", "an integer >= 0 (0: the mapping threads)",
+                self.num_threads)
 
 
 class L1SSIMDepthLoss(MappingLoss):
@@ -41,21 +59,19 @@ class L1SSIMDepthLoss(MappingLoss):
 
     def __init__(self, cfg: L1SSIMDepthConfig):
         self.cfg = cfg
+        backend = Backend(cfg.backend)
+        if backend is Backend.compiled and not rgbd.available():
+            raise ConfigError(f"loss.backend=compiled: the kernel is not available ({rgbd.LIBRARY.error})")
+        self.compiled = backend is not Backend.torch and rgbd.available()
 
     def __call__(self, render: RenderOutput, view: TrainingView) -> torch.Tensor:
-        cfg = self.cfg
-        mask = view.depth > 0
-        has_depth = bool(mask.any())
-        if not has_depth:
-            mask = torch.ones_like(mask)
-        m = mask.to(render.color.dtype)
-        n = m.sum()
-        loss = cfg.weight_l1 * (((render.color - view.image).abs() * m[..., None]).sum() / (3 * n))
-        if cfg.weight_ssim:
-            loss = loss + cfg.weight_ssim * (1 - image_metrics.ssim(render.color, view.image, mask, differentiable=True))
-        if cfg.weight_depth and has_depth:
-            loss = loss + cfg.weight_depth * (((render.depth - view.depth).abs() * m).sum() / n / cfg.depth_unit)
-        return loss
+        c = self.cfg
+        args = (render.color, render.depth, view.image, view.depth, c.weight_l1, c.weight_ssim, c.weight_depth,
+                c.depth_unit)
+        on_cpu = all(t.device.type == "cpu" and t.dtype == torch.float32 for t in args[:4])
+        if self.compiled and on_cpu:
+            return rgbd.fused_rgbd_loss(*args, num_threads=c.num_threads)
+        return rgbd.torch_rgbd_loss(*args)
 
 
 @hookimpl
