@@ -102,6 +102,16 @@ def test_new_keyframe_trained_first_then_sampled(truth_frames):
     assert mapper.keyframes[1].kind is KeyframeKind.MAPPING_ONLY
 
 
+def test_coarse_steps_train_a_new_keyframe_at_half_resolution_first(truth_frames):
+    mapper = make_mapper(mapper={"coarse_steps": 3})
+    widths = []
+    step = mapper.train_step
+    mapper.train_step = lambda view: widths.append(view.camera.width) or step(view)
+    add(mapper, truth_frames[0])
+    mapper.optimize(5)
+    assert widths == [20, 20, 20, 40, 40] and np.isfinite(mapper.last_loss)
+
+
 def test_rows_appended_between_steps_get_trained(truth_frames):
     gm = start_map()
     mapper = make_mapper(gm, strategy=("gsicp", {"prune_every": 0}))

@@ -42,6 +42,17 @@ def test_random_recent_and_covisible_choices():
         RandomSampler().sample([], None, rng, {})
 
 
+def test_newest_share_is_the_share_of_draws_on_the_newest_keyframe():
+    from slamkit_plugins.samplers.keyframe_samplers import RandomSamplerConfig
+
+    rng = np.random.default_rng(0)
+    ids = list(range(10))
+    draws_ = [RandomSampler(RandomSamplerConfig(newest_share=0.5)).sample(ids, None, rng, {}) for _ in range(4000)]
+    assert np.mean(np.array(draws_) == 9) == pytest.approx(0.5 + 0.5 / 10, abs=0.03)
+    with pytest.raises(ConfigError, match="sampler.newest_share"):
+        RandomSamplerConfig(newest_share=1.5)
+
+
 def test_top_k_is_how_many_of_the_most_covisible_are_drawn_from():
     poses = {0: look(0), 1: look(3), 2: look(-20), 3: look(40), 4: look(180)}
     assert draws(CovisibleSampler(CovisibleSamplerConfig(top_k=1)), poses, look(0)) == {0}

@@ -1,7 +1,8 @@
 """Keyframe samplers: which keyframe the mapper trains on next (paper Table 8a).
 
 - `random` (the paper's choice, 38.83 dB on Replica): uniform over all keyframes so far, so the
-  whole map keeps being trained and no view's local minimum dominates.
+  whole map keeps being trained and no view's local minimum dominates; optionally a share of the
+  draws on the newest keyframe (`newest_share`).
 - `covisible` (31.34 dB in the paper): uniform among the `top_k` keyframes whose view overlaps
   the current one most. Overlap is the fraction of a fixed set of points inside the current
   camera's viewing frustum (a grid over a `fov_deg` cone at depths up to `max_depth` metres) that
@@ -24,17 +25,26 @@ from slamkit.roles import KeyframeSampler, PluginConfig, require
 
 @dataclass
 class RandomSamplerConfig(PluginConfig):
-    """No options."""
+    """newest_share: the share of draws that take the newest keyframe, the rest uniform over all
+    (0 = uniform, the paper's; in real time, where a keyframe gets few steps, it trains the
+    region the camera is in)."""
+
+    newest_share: float = 0.0
+
+    def validate(self) -> None:
+        require(0 <= self.newest_share <= 1, "sampler.newest_share", "in [0, 1]", self.newest_share)
 
 
 class RandomSampler(KeyframeSampler):
-    """Uniform over all keyframes."""
+    """Uniform over all keyframes (a `newest_share` of the draws: the newest)."""
 
     def __init__(self, cfg: RandomSamplerConfig | None = None):
         self.cfg = cfg or RandomSamplerConfig()
 
     def sample(self, keyframe_ids, current_pose, rng, keyframe_poses) -> int:
         _check(keyframe_ids)
+        if self.cfg.newest_share and rng.random() < self.cfg.newest_share:
+            return keyframe_ids[-1]
         return keyframe_ids[int(rng.integers(len(keyframe_ids)))]
 
 

@@ -19,6 +19,9 @@ class GaussianSplattingConfig(PluginConfig):
       Gaussian) pairs, so 0.5 is 4x cheaper than full resolution, while 0.25 would cap the
       full-resolution PSNR near 30 dB on Replica (an ideal 0.25 image upsampled back scores
       30.2 dB on room0's frame 0; 0.5 scores 34.9 dB).
+    coarse_steps: a keyframe's first training steps (this many) see it at half the training
+      resolution: a step then costs about a quarter, spent while the keyframe's Gaussians are
+      far from fitting it (coarse to fine; 0 = off, the paper's).
     keyframe_storage: memory | disk: where keyframe training images live (uint8 colour and
       uint16 millimetre depth at the training resolution either way; disk = .npy files read
       back when the keyframe is trained on, for long runs).
@@ -31,6 +34,7 @@ class GaussianSplattingConfig(PluginConfig):
     """
 
     resolution_scale: float = 0.5
+    coarse_steps: int = 0
     keyframe_storage: KeyframeStorage = KeyframeStorage.memory
     keyframe_dir: str | None = None
     eval_every: int = 1
@@ -42,5 +46,6 @@ class GaussianSplattingConfig(PluginConfig):
         require(0 < self.resolution_scale <= 1, "mapper.resolution_scale", "in (0, 1]", self.resolution_scale)
         require(0 < self.eval_resolution_scale <= 1, "mapper.eval_resolution_scale", "in (0, 1]",
                 self.eval_resolution_scale)
+        require(self.coarse_steps >= 0, "mapper.coarse_steps", "an integer >= 0 (0 = off)", self.coarse_steps)
         require(self.eval_every >= 1, "mapper.eval_every", "an integer >= 1", self.eval_every)
         require(self.save_images >= 0, "mapper.save_images", "an integer >= 0", self.save_images)

@@ -40,9 +40,10 @@ def resize_rgbd(rgb: np.ndarray, depth: np.ndarray, camera: Camera, scale: float
     frame's resolution: colour by area averaging, depth by averaging the valid pixels of each
     output pixel's area (0 where fewer than half of them are valid). Non-finite or negative
     depths count as invalid."""
-    image = torch.as_tensor(np.asarray(rgb), device=device)
+    image = torch.as_tensor(rgb if isinstance(rgb, torch.Tensor) else np.asarray(rgb), device=device)
     image = image.float() / 255.0 if image.dtype == torch.uint8 else image.float()
-    d = torch.as_tensor(np.asarray(depth, dtype=np.float32), device=device)
+    d = torch.as_tensor(depth if isinstance(depth, torch.Tensor) else np.asarray(depth, dtype=np.float32),
+                        device=device).float()
     d = torch.where(torch.isfinite(d) & (d > 0), d, torch.zeros_like(d))  # NaN / inf / negative: invalid
     if scale == 1.0:
         return image, d, camera
@@ -77,17 +78,21 @@ class Keyframe:
             return self.rgbd
         return np.load(f"{self.path}_rgb.npy"), np.load(f"{self.path}_depth.npy")
 
-    def view(self, device=None) -> TrainingView:
-        """The keyframe as a training target (float images on `device`)."""
+    def view(self, device=None, scale: float = 1.0) -> TrainingView:
+        """The keyframe as a training target (float images on `device`), at `scale` of the
+        training resolution (area averaging, as when it was stored)."""
         rgb, d = self.arrays()
+        image = torch.from_numpy(rgb).to(device=device, dtype=torch.float32) / 255.0
+        depth = torch.from_numpy(d).to(device=device, dtype=torch.float32) * KEYFRAME_DEPTH_STEP
+        image, depth, camera = resize_rgbd(image, depth, self.camera, scale, device)
         return TrainingView(
             keyframe_id=self.id,
             frame_index=self.frame_index,
             pose=self.pose,
             world_to_camera=torch.as_tensor(invert_pose(self.pose), dtype=torch.float32, device=device),
-            camera=self.camera,
-            image=torch.from_numpy(rgb).to(device=device, dtype=torch.float32) / 255.0,
-            depth=torch.from_numpy(d).to(device=device, dtype=torch.float32) * KEYFRAME_DEPTH_STEP,
+            camera=camera,
+            image=image,
+            depth=depth,
         )
 
     @property

@@ -57,6 +57,7 @@ class GaussianSplattingMapper(Mapper):
             rasterizer, sampler, strategy, optimizer, loss)
         self.keyframes = KeyframeStore(cfg.resolution_scale, cfg.keyframe_storage, cfg.keyframe_dir)
         self.pending: deque[int] = deque()  # keyframes not trained on yet
+        self.trained: dict[int, int] = {}  # steps taken on each keyframe
         self.rng = np.random.default_rng(cfg.seed)
         self.steps = 0  # training steps taken (skipped and dropped ones excluded)
         self.skipped_steps = 0  # steps skipped for a non-finite loss or gradient
@@ -91,7 +92,9 @@ class GaussianSplattingMapper(Mapper):
         while done < iterations and len(self.keyframes) and len(self.gaussian_map):
             with self.timer("view"):
                 kf_id = self.pending.popleft() if self.pending else self._sample()
-                view = self.keyframes[kf_id].view(self.gaussian_map.device)
+                coarse = self.trained.get(kf_id, 0) < self.cfg.coarse_steps
+                self.trained[kf_id] = self.trained.get(kf_id, 0) + 1
+                view = self.keyframes[kf_id].view(self.gaussian_map.device, 0.5 if coarse else 1.0)
             self.train_step(view)
             self.timer.steps += 1
             done += 1
@@ -203,7 +206,9 @@ def _gradients(loss: torch.Tensor, params: dict[str, torch.Tensor]) -> tuple[dic
     names = list(params)
     grads = torch.autograd.grad(loss, [params[k] for k in names], allow_unused=True)
     grads = {k: g for k, g in zip(names, grads) if g is not None}
-    if not all(bool(torch.isfinite(g).all()) for g in grads.values()):
+    # one reduction per tensor instead of a mask: a sum is finite iff every entry is (up to an
+    # overflow, ~1e38, where skipping the step is right too)
+    if grads and not bool(torch.isfinite(torch.stack([g.sum() for g in grads.values()])).all()):
         return grads, "non-finite gradient"
     return grads, None
 
