@@ -352,3 +352,19 @@ def test_sevenscenes_defaults_and_errors(tmp_path):
     with pytest.raises(DataError) as e:
         SevenScenesDataset(SevenScenesConfig(path=str(root)))
     one_line_error(e, "frame-000001.depth.png")
+
+
+def test_passes_play_the_frames_back_and_forth_with_running_timestamps(replica_path):
+    from slamkit_plugins.datasets.replica import ReplicaConfig, ReplicaDataset
+
+    one = ReplicaDataset(ReplicaConfig(path=str(replica_path), max_frames=None))
+    three = ReplicaDataset(ReplicaConfig(path=str(replica_path), passes=3))
+    assert len(three) == 20 + 19 + 19
+    assert list(three.raw_indices())[18:23] == [18, 19, 18, 17, 16] and list(three.raw_indices())[-2:] == [18, 19]
+    stamps = [three.timestamp(i) for i in range(len(three))]
+    assert all(b > a for a, b in zip(stamps, stamps[1:]))
+    back = three[21]  # the second pass, raw frame 17
+    np.testing.assert_array_equal(back.depth, one[17].depth)
+    np.testing.assert_allclose(back.gt_pose, one[17].gt_pose)
+    assert back.index == 21 and back.timestamp == pytest.approx(stamps[21])
+    assert len(ReplicaDataset(ReplicaConfig(path=str(replica_path), passes=3, max_frames=25))) == 25

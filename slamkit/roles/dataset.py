@@ -7,6 +7,7 @@ import enum
 import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
+from typing import Sequence
 
 from slamkit.roles.config import PluginConfig, require
 from slamkit.types import Camera, Frame
@@ -55,7 +56,10 @@ class DatasetConfig(PluginConfig):
     """Options every dataset takes.
 
     path: folder of the sequence. start, stride, max_frames: which frames are used (frame i of
-    the run is raw frame start + i * stride); max_frames null = all. depth_trunc: metres,
+    the run is raw frame start + i * stride); max_frames null = all. passes: play those frames
+    this many times, back and forth (forward, backward, forward, ...), so the camera path stays
+    continuous: a short sequence becomes a longer stream that revisits the scene (timestamps
+    keep running at the sequence's mean frame rate); max_frames counts the frames of all passes. depth_trunc: metres,
     points beyond are not used for tracking (null = the dataset's default). fx, fy, cx, cy:
     override the intrinsics in pixels (null = from the dataset). prefetch: frames read ahead
     in a background thread. on_error: raise (default) stops the run at a frame that cannot be
@@ -67,6 +71,7 @@ class DatasetConfig(PluginConfig):
     start: int = 0
     stride: int = 1
     max_frames: int | None = None
+    passes: int = 1
     depth_trunc: float | None = None
     fx: float | None = None
     fy: float | None = None
@@ -79,6 +84,7 @@ class DatasetConfig(PluginConfig):
         require(self.start >= 0, "dataset.start", "an integer >= 0", self.start)
         require(self.stride >= 1, "dataset.stride", "an integer >= 1", self.stride)
         require(self.max_frames is None or self.max_frames >= 1, "dataset.max_frames", "null or >= 1", self.max_frames)
+        require(self.passes >= 1, "dataset.passes", "an integer >= 1", self.passes)
         require(self.depth_trunc is None or self.depth_trunc > 0, "dataset.depth_trunc", "null or > 0 metres", self.depth_trunc)
         require(self.prefetch >= 0, "dataset.prefetch", "an integer >= 0", self.prefetch)
         for name in ("fx", "fy"):
@@ -137,11 +143,24 @@ class Dataset(ABC):
         return raw_index / 30.0
 
     def timestamp(self, i: int) -> float:
-        return self.raw_timestamp(self.raw_indices()[i])
+        """Seconds of frame i of the run (with several passes: the first frame's, plus i mean
+        frame periods of the selected frames)."""
+        if self.cfg.passes == 1:
+            return self.raw_timestamp(self.raw_indices()[i])
+        one = range(self.cfg.start, self.num_available(), self.cfg.stride)
+        first = self.raw_timestamp(one[0])
+        period = (self.raw_timestamp(one[-1]) - first) / (len(one) - 1) if len(one) > 1 else 1 / 30.0
+        return first + i * period
 
-    def raw_indices(self) -> range:
-        r = range(self.cfg.start, self.num_available(), self.cfg.stride)
-        return r if self.cfg.max_frames is None else r[: self.cfg.max_frames]
+    def raw_indices(self) -> Sequence[int]:
+        """The raw frame of each frame of the run (see DatasetConfig: start, stride, passes,
+        max_frames)."""
+        one = range(self.cfg.start, self.num_available(), self.cfg.stride)
+        frames: Sequence[int] = one
+        if self.cfg.passes > 1 and len(one) > 1:
+            forward, backward = list(one), list(one)[-2::-1]
+            frames = forward + [r for p in range(1, self.cfg.passes) for r in (backward if p % 2 else forward[1:])]
+        return frames if self.cfg.max_frames is None else frames[: self.cfg.max_frames]
 
     def __len__(self) -> int:
         return len(self.raw_indices())
@@ -150,6 +169,8 @@ class Dataset(ABC):
         raw = self.raw_indices()[i]
         frame = self.load(raw)
         frame.index = i
+        if self.cfg.passes > 1:
+            frame.timestamp = self.timestamp(i)
         frame.camera = self.camera
         frame.depth_trunc = self.depth_trunc
         return frame
