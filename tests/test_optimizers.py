@@ -157,3 +157,18 @@ def test_the_compiled_kernel_equals_the_torch_reference_on_a_long_sparse_run():
             b = {k: torch.cat([v.detach()[keep], new[k].detach()]).requires_grad_(True) for k, v in b.items()}
     close(b, a, 200)
     assert torch.equal(opts["torch"].row_state()["steps"][0], opts["compiled"].row_state()["steps"][0])
+
+
+@pytest.mark.parametrize("kernels", KERNELS)
+def test_global_bias_correction_on_rows_seen_every_step_is_torch_adam_too(kernels):
+    """bias_correction=global (gsplat's SelectiveAdam): the optimiser's step count for every row;
+    a row that joins late takes that count, as in torch.optim.Adam."""
+    from slamkit_plugins.optimizers.visible_adam import BiasCorrection
+
+    ours, theirs = params(30), params(30)
+    optimizer, ref = visible(kernels, bias_correction=BiasCorrection["global"]), reference(theirs)
+    for step in range(6):
+        g = grads(30, step)
+        optimizer.step(ours, g)
+        reference_step(ref, theirs, g)
+    close(ours, theirs, 6)

@@ -38,11 +38,17 @@ SOURCE = Path(__file__).resolve().parent / "csrc" / "visible_adam.cpp"
 def _declare(lib) -> None:
     P = ctypes.c_void_p
     lib.slk_visible_adam.restype = ctypes.c_int64
-    lib.slk_visible_adam.argtypes = [ctypes.c_int64, ctypes.c_int, P, P, P, P, P, P, P, P, ctypes.c_float,
-                                     ctypes.c_float, ctypes.c_float, ctypes.c_int, ctypes.c_int]
+    lib.slk_visible_adam.argtypes = [ctypes.c_int64, ctypes.c_int, P, P, P, P, P, P, P, P, ctypes.c_int64,
+                                     ctypes.c_float, ctypes.c_float, ctypes.c_float, ctypes.c_int, ctypes.c_int]
 
 
-LIBRARY = NativeLibrary(SOURCE, "visible-Adam kernel", 2, _declare)
+LIBRARY = NativeLibrary(SOURCE, "visible-Adam kernel", 3, _declare)
+
+
+#: Which step count bias-corrects a row's moments. row: its own (a late or rarely seen row steps
+#: like a fresh Adam). global: the optimiser's, for every row (as torch.optim.Adam and gsplat's
+#: SelectiveAdam). (Functional form: `global` is a keyword, and Hydra matches members by name.)
+BiasCorrection = enum.Enum("BiasCorrection", {"row": "row", "global": "global"}, module=__name__)
 
 
 class Kernels(enum.Enum):
@@ -60,10 +66,12 @@ STEPS = "steps"
 @dataclass
 class VisibleAdamConfig(AdamConfig):
     """only_visible: update only the rows with a non-zero gradient (rows the step rendered);
-    false updates every row (moments decay where the gradient is zero). kernels: auto |
+    false updates every row (moments decay where the gradient is zero). bias_correction: row |
+    global: which step count corrects a row's moments (see BiasCorrection). kernels: auto |
     compiled | torch (see the module docstring; the same updates to float precision)."""
 
     only_visible: bool = True
+    bias_correction: BiasCorrection = BiasCorrection["row"]
     kernels: Kernels = Kernels.auto
 
 
@@ -80,6 +88,7 @@ class VisibleAdam(MapOptimizer):
         if self.lib is None and Kernels(cfg.kernels) is Kernels.compiled:
             raise ConfigError(f"optimizer.kernels=compiled: the kernel is not available ({LIBRARY.error})")
         self.last_updated_rows = 0  # rows the last step updated
+        self._row_counts = BiasCorrection(cfg.bias_correction) is BiasCorrection["row"]
         self.calls = 0  # steps taken: no row's step count exceeds it
         self._corrections = torch.zeros(0, 2)  # (t, 1 - beta^t) for t = 0..calls
 
@@ -107,7 +116,7 @@ class VisibleAdam(MapOptimizer):
         self.last_updated_rows = len(rows)
         self.steps[rows] += 1
         b1, b2 = self.cfg.beta1, self.cfg.beta2
-        t = self.steps[rows]
+        t = self.steps[rows] if self._row_counts else torch.full_like(self.steps[rows], float(self.calls))
         c1, c2 = 1 - b1**t, 1 - b2**t
         for name, p in params.items():
             g = grads.get(name)
@@ -140,7 +149,8 @@ class VisibleAdam(MapOptimizer):
         self.last_updated_rows = self.lib.slk_visible_adam(
             len(self.steps), len(names), pointers([params[k] for k in names]), pointers([grads[k] for k in names]),
             pointers(m), pointers(v), width, lr, self.steps.data_ptr(), self._bias_corrections().data_ptr(),
-            self.cfg.beta1, self.cfg.beta2, self.cfg.eps, int(self.cfg.only_visible), 1)
+            0 if self._row_counts else self.calls, self.cfg.beta1, self.cfg.beta2, self.cfg.eps,
+            int(self.cfg.only_visible), 1)
         return True
 
     def _bias_corrections(self) -> torch.Tensor:
