@@ -44,7 +44,6 @@ import numpy as np
 
 from slamkit.errors import DataError
 from slamkit.geometry.transforms import so3_exp
-from slamkit.plugin import PluginSpec, hookimpl
 from slamkit.roles import Dataset, DatasetConfig, SensorProfile, require
 from slamkit.types import Camera, Frame
 
@@ -1092,8 +1091,3 @@ class SyntheticDataset(Dataset):
             camera=self._camera,
             gt_pose=np.array(self._poses[raw_index], dtype=np.float64),
         )
-
-
-@hookimpl
-def slamkit_plugins():
-    return [PluginSpec("synthetic", SyntheticDataset, SyntheticConfig)]
