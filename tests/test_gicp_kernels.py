@@ -11,12 +11,12 @@ import shutil
 import numpy as np
 import pytest
 
-import slamkit_plugins.trackers.gicp_kernels as kernels_module
+import slamkit_plugins.trackers.gicp.kernels as kernels_module
 from slamkit.geometry.gaussians import knn_covariances, regularize
 from slamkit.geometry.transforms import backproject, covariance_from_scales, make_pose, so3_exp
 from slamkit.native import NativeLibrary
 from slamkit_plugins.datasets.tum import TUMConfig, TUMDataset
-from slamkit_plugins.trackers.gicp_kernels import CompiledKernels, Kernels, NumpyKernels, create_kernels
+from slamkit_plugins.trackers.gicp.kernels import CompiledKernels, Kernels, NumpyKernels, create_kernels
 
 
 @pytest.fixture(scope="module")
@@ -134,7 +134,7 @@ def test_without_a_compiler_auto_falls_back_and_compiled_says_why(monkeypatch, t
 def test_compiled_nearest_neighbours_equal_pykdtree(library, tum_frames):
     """Real map-like points (a frame's back-projection) and queries offset by up to ~4 cm: the
     same matches within 3 cm as pykdtree, with or without a hint (a wrong hint included)."""
-    from slamkit_plugins.trackers.gicp_kernels import CompiledKDTree, PyKDTreeIndex
+    from slamkit_plugins.trackers.gicp.kernels import CompiledKDTree, PyKDTreeIndex
 
     rng = np.random.default_rng(5)
     frame = tum_frames[0]

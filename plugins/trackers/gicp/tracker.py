@@ -21,7 +21,7 @@ previous pose (a sudden stop) and coarse to fine from the prediction (a motion t
 missed by more than the correspondence distance), and the result matching more points is kept.
 
 The loops over points (k-NN covariances, nearest-neighbour search, normal equations) run in
-compiled kernels or their numpy reference (`gicp_kernels`); both give the same trajectory.
+compiled kernels or their numpy reference (`.kernels`); both give the same trajectory.
 
 The frame's Gaussians (world means at the final pose, regularised covariances rotated to the
 world, colours, depths, squared distance to the nearest target mean from the last
@@ -39,10 +39,9 @@ import numpy as np
 from slamkit.geometry.gaussians import Regularization, regularize, rotate_covariances
 from slamkit.map.gaussian_map import GaussianMap
 from slamkit.geometry.transforms import backproject, invert_pose, so3_exp
-from slamkit.plugin import PluginSpec, hookimpl
 from slamkit.roles import PluginConfig, SensorProfile, Tracker, require
 from slamkit.types import Frame, FrameGaussians, TrackingResult
-from slamkit_plugins.trackers.gicp_kernels import Kernels, create_kernels
+from slamkit_plugins.trackers.gicp.kernels import Kernels, create_kernels
 
 
 #: Stats summed over all attempts at a frame.
@@ -464,8 +463,3 @@ class GICPTracker(Tracker):
             np.abs(delta[:3, :3] - np.eye(3)).max() < self.cfg.rotation_tolerance
             and np.abs(delta[:3, 3]).max() < self.cfg.translation_tolerance
         )
-
-
-@hookimpl
-def slamkit_plugins():
-    return [PluginSpec("gicp", GICPTracker, GICPConfig)]
