@@ -38,7 +38,7 @@ import numpy as np
 
 from slamkit.geometry.gaussians import Regularization, regularize, rotate_covariances
 from slamkit.map.gaussian_map import GaussianMap
-from slamkit.geometry.transforms import backproject, invert_pose, so3_exp
+from slamkit.geometry.transforms import backproject, invert_pose, se3_exp
 from slamkit.roles import PluginConfig, SensorProfile, Tracker, require
 from slamkit.types import Frame, FrameGaussians, TrackingResult
 from slamkit_plugins.trackers.gicp.kernels import Kernels, create_kernels
@@ -151,22 +151,6 @@ class GICPConfig(PluginConfig):
         return self.fill_nulls(pixel_stride=sensor.tracking_pixel_stride,
                                max_correspondence_distance=sensor.correspondence_distance,
                                min_target_opacity=sensor.min_target_opacity)
-
-
-def se3_exp(xi: np.ndarray) -> np.ndarray:
-    """4x4 exp of xi = (omega, v): rotation vector (rad) and translation part (metres)."""
-    omega, v = xi[:3], xi[3:]
-    theta = float(np.linalg.norm(omega))
-    R = so3_exp(omega)
-    K = np.array([[0, -omega[2], omega[1]], [omega[2], 0, -omega[0]], [-omega[1], omega[0], 0]])
-    if theta < 1e-10:
-        V = np.eye(3) + 0.5 * K
-    else:
-        V = np.eye(3) + (1 - np.cos(theta)) / theta**2 * K + (theta - np.sin(theta)) / theta**3 * (K @ K)
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = V @ v
-    return T
 
 
 def orthonormalize(T: np.ndarray) -> np.ndarray:
