@@ -220,7 +220,8 @@ def test_registered_as_cpu_and_picked_by_auto_without_cuda(monkeypatch, cpu):
 
 
 def _fresh_library(monkeypatch):
-    monkeypatch.setattr(cpu_module, "_LIBRARIES", {})
+    """Every CPURasterizer gets a library not built yet (so that it builds under the test's $CXX)."""
+    monkeypatch.setattr(cpu_module, "get_library", cpu_module.new_library)
 
 
 def test_without_a_compiler_cpu_is_a_one_line_error_and_auto_renders_with_torch(monkeypatch, caplog):

@@ -26,12 +26,13 @@ from slamkit.geometry.transforms import (
     quat_to_rotmat,
     rotation_angle_deg,
     scales_from_covariance,
+    se3_exp,
     so3_exp,
     transform_points,
 )
 from slamkit.map.growth import MapGrowthConfig, ScaleAlignment, new_gaussians, scale_alignment_factors
 from slamkit.roles import SensorProfile
-from slamkit_plugins.trackers.gicp import GICPConfig, GICPTracker, InitialGuess, se3_exp, slamkit_plugins
+from slamkit_plugins.trackers.gicp import GICPConfig, GICPTracker, InitialGuess, slamkit_plugins
 from slamkit.types import Camera, Frame
 
 CAMERA = Camera(160, 120, 120.0, 120.0, 79.5, 59.5)

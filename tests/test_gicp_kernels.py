@@ -11,12 +11,11 @@ import shutil
 import numpy as np
 import pytest
 
-import slamkit_plugins.trackers.gicp_kernels as kernels_module
+import slamkit_plugins.trackers.gicp.kernels as kernels_module
 from slamkit.geometry.gaussians import knn_covariances, regularize
 from slamkit.geometry.transforms import backproject, covariance_from_scales, make_pose, so3_exp
-from slamkit.native import NativeLibrary
 from slamkit_plugins.datasets.tum import TUMConfig, TUMDataset
-from slamkit_plugins.trackers.gicp_kernels import CompiledKernels, Kernels, NumpyKernels, create_kernels
+from slamkit_plugins.trackers.gicp.kernels import CompiledKernels, Kernels, NumpyKernels, create_kernels
 
 
 @pytest.fixture(scope="module")
@@ -122,8 +121,7 @@ def test_results_do_not_depend_on_the_thread_count(library):
 
 def test_without_a_compiler_auto_falls_back_and_compiled_says_why(monkeypatch, tmp_path):
     monkeypatch.setenv("CXX", str(tmp_path / "no-such-compiler"))
-    monkeypatch.setattr(kernels_module, "LIBRARY", NativeLibrary(kernels_module.SOURCE, "G-ICP kernels",
-                                                                  kernels_module.ABI_VERSION, kernels_module._declare))
+    monkeypatch.setattr(kernels_module, "LIBRARY", kernels_module.new_library())  # built again, without a compiler
     with pytest.warns(RuntimeWarning, match="numpy kernels"):
         assert isinstance(create_kernels(Kernels.auto), NumpyKernels)
     with pytest.raises(RuntimeError, match="no C\\+\\+ compiler found"):
@@ -134,7 +132,7 @@ def test_without_a_compiler_auto_falls_back_and_compiled_says_why(monkeypatch, t
 def test_compiled_nearest_neighbours_equal_pykdtree(library, tum_frames):
     """Real map-like points (a frame's back-projection) and queries offset by up to ~4 cm: the
     same matches within 3 cm as pykdtree, with or without a hint (a wrong hint included)."""
-    from slamkit_plugins.trackers.gicp_kernels import CompiledKDTree, PyKDTreeIndex
+    from slamkit_plugins.trackers.gicp.kernels import CompiledKDTree, PyKDTreeIndex
 
     rng = np.random.default_rng(5)
     frame = tum_frames[0]

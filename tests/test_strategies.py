@@ -11,12 +11,11 @@ import torch
 
 from mapping_scenes import N, add, make_map, make_mapper, plane_scene, pose_x, render_frame, start_map, state_follows_map
 from slamkit.errors import ConfigError
-from slamkit.map.gaussian_map import GaussianMap
 from slamkit.map.growth import MapGrowthConfig
 from slamkit.registry.discovery import create_rasterizer
 from slamkit.roles import SensorProfile, Tracker
 from slamkit.run.slam import SLAM
-from slamkit.types import FrameGaussians, KeyframeKind, TrackingResult
+from slamkit.types import FrameGaussians, TrackingResult
 from slamkit_plugins.keyframes.every_n import EveryNKeyframeConfig, EveryNKeyframePolicy
 from slamkit_plugins.strategies.densify_3dgs import Densify3DGSConfig
 

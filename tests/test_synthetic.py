@@ -137,7 +137,7 @@ def test_cache_is_reused(tmp_path, monkeypatch):
     def no_render(*args, **kwargs):
         raise AssertionError("the cached sequence was rendered again")
 
-    monkeypatch.setattr(synthetic, "render", no_render)
+    monkeypatch.setattr(synthetic.dataset, "render", no_render)  # where the dataset looks it up
     second = SyntheticDataset(SyntheticConfig(cache_dir=str(tmp_path), **SMALL))
     for i, f in enumerate(frames):
         g = second[i]

@@ -65,10 +65,17 @@ _LIBRARIES: dict[bool, NativeLibrary] = {}
 _LIBRARIES_LOCK = threading.Lock()
 
 
+def new_library(native: bool = True) -> NativeLibrary:
+    """A handle on the rasteriser's library (native: built with -march=native), not built yet
+    (it builds on its first `get()`)."""
+    return NativeLibrary(SOURCE, "CPU rasteriser", ABI_VERSION, _declare, native=native)
+
+
 def get_library(native: bool = True) -> NativeLibrary:
+    """The process's handle on the library for `native` (one per flag, built on first use)."""
     with _LIBRARIES_LOCK:
         if native not in _LIBRARIES:
-            _LIBRARIES[native] = NativeLibrary(SOURCE, "CPU rasteriser", ABI_VERSION, _declare, native=native)
+            _LIBRARIES[native] = new_library(native)
         return _LIBRARIES[native]
 
 

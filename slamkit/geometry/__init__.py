@@ -3,9 +3,9 @@
 
 from slamkit.geometry.transforms import (backproject, covariance_from_scales, invert_pose, make_pose,
                                          nearest_rotation, pixel_grid, project_points, quat_to_rotmat,
-                                         rotation_angle_deg, rotmat_to_quat, scales_from_covariance, skew, so3_exp,
-                                         transform_points)
+                                         rotation_angle_deg, rotmat_to_quat, scales_from_covariance, se3_exp, skew,
+                                         so3_exp, transform_points)
 
 __all__ = ["backproject", "covariance_from_scales", "invert_pose", "make_pose", "nearest_rotation", "pixel_grid",
-           "project_points", "quat_to_rotmat", "rotation_angle_deg", "rotmat_to_quat", "scales_from_covariance", "skew",
-           "so3_exp", "transform_points"]
+           "project_points", "quat_to_rotmat", "rotation_angle_deg", "rotmat_to_quat", "scales_from_covariance",
+           "se3_exp", "skew", "so3_exp", "transform_points"]

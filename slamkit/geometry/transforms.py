@@ -96,6 +96,22 @@ def so3_exp(w: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(theta) / theta * K + (1 - np.cos(theta)) / theta**2 * (K @ K)
 
 
+def se3_exp(xi: np.ndarray) -> np.ndarray:
+    """4x4 exp of xi = (omega, v): rotation vector (rad) and translation part (metres)."""
+    omega, v = xi[:3], xi[3:]
+    theta = float(np.linalg.norm(omega))
+    R = so3_exp(omega)
+    K = skew(omega)
+    if theta < 1e-10:
+        V = np.eye(3) + 0.5 * K
+    else:
+        V = np.eye(3) + (1 - np.cos(theta)) / theta**2 * K + (theta - np.sin(theta)) / theta**3 * (K @ K)
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = V @ v
+    return T
+
+
 def skew(v):
     """(..., 3) vectors to (..., 3, 3) cross-product matrices."""
     xp = _xp(v)

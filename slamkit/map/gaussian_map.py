@@ -157,17 +157,6 @@ class GaussianMap:
             self.version += 1
             self.structure_version += 1
 
-    def write_back(self, params: dict[str, torch.Tensor], rows: int) -> None:
-        """After an update applied to parameter tensors taken from this map when it had `rows`
-        rows: where rows were appended meanwhile (new tensors), copy the updated first `rows`
-        rows into them. Call under the lock; the caller checks that no row was removed."""
-        with torch.no_grad():
-            for name, t in params.items():
-                live = getattr(self, name)
-                if live is not t:
-                    live[:rows] = t.detach()
-        self.version += 1
-
     def covariances(self) -> torch.Tensor:
         """(N,3,3) world-frame covariances R diag(s^2) R^T in m^2."""
         return covariance_from_scales(self.quats.detach(), self.scales.detach())

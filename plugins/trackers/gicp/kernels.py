@@ -79,7 +79,13 @@ def _declare(lib) -> None:
     lib.slk_kdtree_nearest.argtypes = [P, I, P, ctypes.c_float, P, P, P, I]
 
 
-LIBRARY = NativeLibrary(SOURCE, "G-ICP kernels", ABI_VERSION, _declare)
+def new_library() -> NativeLibrary:
+    """A handle on the kernels' library, not built yet (it builds on its first `get()`)."""
+    return NativeLibrary(SOURCE, "G-ICP kernels", ABI_VERSION, _declare)
+
+
+#: The library the kernels use (built on first use, tried once per process).
+LIBRARY = new_library()
 
 
 def _ptr(a: np.ndarray) -> int:

@@ -1,0 +1,38 @@
+"""`dataset=synthetic`: the built-in synthetic RGB-D sequence, a furnished room rendered along a
+hand-held path.
+
+Nothing is downloaded: the scene is analytic (a 6 x 5 x 3 m room seen from inside, with a sofa,
+a table, a cabinet, a bookshelf, a floor lamp, a stool, balls, a rug, a door, a window, pictures,
+a clock, a ceiling beam and lamp), rendered by vectorised numpy ray casting against boxes,
+spheres and cylinders. Every surface has its own procedural texture (planks, tiles, checkers,
+stripes, value noise, gradients) computed from the hit point, shaded by a fixed directional
+light. Depth is exact (the camera-frame z of the hit, no holes) and ground truth is the
+rendering pose. `seed` draws the camera path; the scene itself never changes.
+
+World frame: metres, z up, the floor at z = 0, the room spans x in [-3, 3], y in [-2.5, 2.5].
+Poses are camera-to-world with OpenCV camera axes (x right, y down, z forward).
+
+Modules: `textures` (noise and box-filtered patterns), `primitives` (shapes, ray tests, the hit
+a material sees), `materials` (each surface's colours), `scene` (the room's primitives),
+`raycast` (`render`), `path` (`camera_path`), `dataset` (the plugin: config, dataset, cache).
+"""
+
+from slamkit.plugin import PluginSpec, hookimpl
+from slamkit_plugins.datasets.synthetic.dataset import (
+    DEPTH_SCALE,
+    GENERATOR_VERSION,
+    SyntheticConfig,
+    SyntheticDataset,
+    default_cache_dir,
+)
+from slamkit_plugins.datasets.synthetic.path import FPS, PATH_BOUNDS, camera_path
+from slamkit_plugins.datasets.synthetic.raycast import render
+from slamkit_plugins.datasets.synthetic.scene import ROOM_HI, ROOM_LO, scene, scene_clearance
+
+__all__ = ["DEPTH_SCALE", "FPS", "GENERATOR_VERSION", "PATH_BOUNDS", "ROOM_HI", "ROOM_LO", "SyntheticConfig",
+           "SyntheticDataset", "camera_path", "default_cache_dir", "render", "scene", "scene_clearance"]
+
+
+@hookimpl
+def slamkit_plugins():
+    return [PluginSpec("synthetic", SyntheticDataset, SyntheticConfig)]

@@ -1,0 +1,254 @@
+"""`dataset=synthetic`: the generated sequence as a dataset, and its cache.
+
+The sequence is generated once (a few seconds for the default 120 frames at 320x240) and
+cached as one compressed .npz per parameter set (rgb uint8, depth uint16 at 0.2 mm) in
+`cache_dir` (null = $SLAMKIT_CACHE/synthetic, else ~/.cache/slamkit/synthetic); later
+constructions open the cache and decode frames on demand. Depth noise and dropout are applied
+at load time (deterministic per seed and frame), so they share the noise-free cache.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+import os
+import tempfile
+import threading
+import time
+import zipfile
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from slamkit.errors import DataError
+from slamkit.roles import Dataset, DatasetConfig, SensorProfile, require
+from slamkit.types import Camera, Frame
+from slamkit_plugins.datasets.synthetic.path import FPS, camera_path
+from slamkit_plugins.datasets.synthetic.raycast import render
+
+log = logging.getLogger(__name__)
+
+#: Bump when the scene, its materials, the path or the renderer change (anything in this package
+#: that changes a frame): old cache files are then ignored.
+GENERATOR_VERSION = 1
+#: Depth is cached as uint16 with this many units per metre (0.2 mm steps, up to 13.1 m; the
+#: room's farthest point from the camera is < 8 m).
+DEPTH_SCALE = 5000.0
+
+
+@dataclass
+class SyntheticConfig(DatasetConfig):
+    """The generated sequence.
+
+    num_frames: frames in the sequence (30 per second of motion). width, height: image size in
+    pixels. fov_deg: horizontal field of view in degrees; the rendering camera has square
+    pixels, fx = fy = (width / 2) / tan(fov_deg / 2) (64 deg gives fx ~ 256 at 320 wide) and
+    the principal point at the image centre, cx = (width - 1) / 2, cy = (height - 1) / 2.
+    seed: draws the camera path (the scene is fixed). speed: multiplies the camera's linear and
+    angular speeds (the same path, traversed faster). depth_noise: metres of Gaussian depth
+    noise at 1 m, growing with z^2 as a Kinect's does (0 = exact depth; the default 1.5 mm is
+    a Kinect v1's, so that the default run is not a noiseless toy). depth_dropout:
+    fraction of pixels whose depth is set to 0 (invalid) at random. cache_dir: folder of the
+    cached sequences (null = $SLAMKIT_CACHE/synthetic, else ~/.cache/slamkit/synthetic).
+
+    `path` is not used (the sequence is generated, not read); `fx`, `fy`, `cx`, `cy` override
+    the intrinsics *reported* with each frame, as for every dataset, without changing what is
+    rendered (e.g. to study calibration errors): to render another camera use `fov_deg`,
+    `width` and `height`.
+    """
+
+    num_frames: int = 120
+    width: int = 320
+    height: int = 240
+    fov_deg: float = 64.0
+    seed: int = 0
+    speed: float = 1.0
+    depth_noise: float = 0.0015
+    depth_dropout: float = 0.0
+    cache_dir: str | None = None
+
+    def validate(self) -> None:
+        super().validate()
+        require(self.num_frames >= 2, "dataset.num_frames", "an integer >= 2", self.num_frames)
+        require(16 <= self.width <= 8192, "dataset.width", "an integer in [16, 8192] pixels", self.width)
+        require(16 <= self.height <= 8192, "dataset.height", "an integer in [16, 8192] pixels", self.height)
+        require(
+            10.0 <= self.fov_deg <= 150.0,
+            "dataset.fov_deg",
+            "a horizontal field of view in [10, 150] degrees",
+            self.fov_deg,
+        )
+        require(self.seed >= 0, "dataset.seed", "an integer >= 0", self.seed)
+        require(0.0 < self.speed <= 10.0, "dataset.speed", "a factor in (0, 10]", self.speed)
+        require(self.depth_noise >= 0.0, "dataset.depth_noise", ">= 0 metres", self.depth_noise)
+        require(0.0 <= self.depth_dropout < 1.0, "dataset.depth_dropout", "a fraction in [0, 1)", self.depth_dropout)
+
+
+def _write_npz(f, arrays) -> None:
+    """Write (name, array) pairs as an .npz that np.load reads, like np.savez_compressed but
+    streaming and with zlib level 1 (the frames compress nearly as well, twice as fast)."""
+    with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1) as zf:
+        for name, value in arrays:
+            with zf.open(name + ".npy", "w", force_zip64=True) as member:
+                np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
+
+
+def default_cache_dir() -> Path:
+    """$SLAMKIT_CACHE/synthetic, else ~/.cache/slamkit/synthetic."""
+    root = os.environ.get("SLAMKIT_CACHE")
+    return Path(root) / "synthetic" if root else Path.home() / ".cache" / "slamkit" / "synthetic"
+
+
+class SyntheticDataset(Dataset):
+    """The generated furnished-room sequence (see the module docstring). Frames: rgb HxWx3
+    uint8, depth HxW float32 metres (exact unless depth_noise / depth_dropout), gt_pose
+    camera-to-world, timestamp raw_index / 30 s."""
+
+    # small frames (320x240 by default) of a 6 x 5 x 3 m room: a dense sample stride
+    default_sensor = SensorProfile(depth_scale=DEPTH_SCALE, depth_trunc=6.0, max_gaussian_scale=0.5,
+                                   tracking_pixel_stride=2, min_target_opacity=0.05)
+
+    def __init__(self, cfg: SyntheticConfig):
+        super().__init__(cfg)
+        self.cfg: SyntheticConfig = cfg
+        fx = (cfg.width / 2.0) / math.tan(math.radians(cfg.fov_deg) / 2.0)
+        self._camera = Camera(cfg.width, cfg.height, fx, fx, (cfg.width - 1) / 2.0, (cfg.height - 1) / 2.0)
+        self._lock = threading.Lock()
+        self._store = None  # NpzFile or dict: rgb_%05d (uint8), depth_%05d (uint16), poses
+        self.cache_path = Path(cfg.cache_dir).expanduser() if cfg.cache_dir else default_cache_dir()
+        self.cache_path = self.cache_path / f"synthetic_{self.cache_key()[:20]}.npz"
+        self._open_or_generate()
+
+    # -- cache ----------------------------------------------------------------------------
+    def generation_params(self) -> dict:
+        c = self.cfg
+        return {
+            "version": GENERATOR_VERSION,
+            "num_frames": int(c.num_frames),
+            "width": int(c.width),
+            "height": int(c.height),
+            "fov_deg": float(c.fov_deg),
+            "seed": int(c.seed),
+            "speed": float(c.speed),
+        }
+
+    def cache_key(self) -> str:
+        return hashlib.sha256(json.dumps(self.generation_params(), sort_keys=True).encode()).hexdigest()
+
+    def _open_or_generate(self) -> None:
+        meta = json.dumps(self.generation_params(), sort_keys=True)
+        if self._open_cache(meta):
+            return
+        t0 = time.perf_counter()
+        tmp = None
+        try:
+            self.cache_path.parent.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(dir=self.cache_path.parent, prefix=self.cache_path.stem + ".", suffix=".tmp")
+            with os.fdopen(fd, "wb") as f:
+                _write_npz(f, self._generate(meta))
+            os.replace(tmp, self.cache_path)  # atomic: readers never see a partial file
+            tmp = None
+        except OSError as e:
+            log.warning("cannot write the synthetic cache %s (%s); keeping the sequence in memory", self.cache_path, e)
+            self._store = dict(self._generate(meta))
+            self._poses = self._store["poses"]
+            return
+        finally:
+            if tmp is not None:
+                Path(tmp).unlink(missing_ok=True)
+        log.info(
+            "generated the synthetic sequence (%d frames, %dx%d) in %.1f s: %s",
+            self.cfg.num_frames,
+            self.cfg.width,
+            self.cfg.height,
+            time.perf_counter() - t0,
+            self.cache_path,
+        )
+        if not self._open_cache(meta):
+            raise DataError(f"{self.cache_path}: the synthetic sequence just written cannot be read back")
+
+    def _open_cache(self, meta: str) -> bool:
+        """Open the cache file if it exists and holds this parameter set."""
+        if not self.cache_path.is_file():
+            return False
+        try:
+            store = np.load(self.cache_path)
+            if str(store["meta"]) == meta and f"depth_{self.cfg.num_frames - 1:05d}.npy" in store.zip.namelist():
+                self._poses = store["poses"]
+                self._store = store
+                return True
+            store.close()
+            log.warning("synthetic cache %s does not match its parameters; regenerating", self.cache_path)
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
+            log.warning("synthetic cache %s is unreadable (%s); regenerating", self.cache_path, e)
+        return False
+
+    def _generate(self, meta: str):
+        """Yield (name, array): meta, poses, then rgb_%05d (uint8) and depth_%05d (uint16,
+        DEPTH_SCALE units per metre) per frame."""
+        c = self.cfg
+        poses = camera_path(c.num_frames, c.seed, c.speed)
+        yield "meta", np.array(meta)
+        yield "poses", poses
+        # Frames are independent: render a chunk at a time on a few threads (numpy releases
+        # the GIL); only one chunk is held in memory.
+        workers = max(1, min(4, os.cpu_count() or 1))
+        with ThreadPoolExecutor(workers) as pool:
+            for start in range(0, len(poses), 16):
+                chunk = pool.map(lambda pose: render(self._camera, pose), poses[start : start + 16])
+                for i, (rgb, depth) in enumerate(chunk, start):
+                    yield f"rgb_{i:05d}", rgb
+                    yield f"depth_{i:05d}", np.clip(np.round(depth * DEPTH_SCALE), 0, 65535).astype(np.uint16)
+
+    def close(self) -> None:
+        """Close the cache file (frames cannot be loaded afterwards)."""
+        if hasattr(self._store, "close"):
+            self._store.close()
+        self._store = None
+
+    def __getstate__(self) -> dict:  # picklable (e.g. for a worker process): reopen there
+        state = self.__dict__.copy()
+        state["_store"] = state["_lock"] = None
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._lock = threading.Lock()
+        self._open_or_generate()
+
+    # -- Dataset --------------------------------------------------------------------------
+    @property
+    def native_camera(self) -> Camera:
+        return self._camera
+
+    def num_available(self) -> int:
+        return int(self.cfg.num_frames)
+
+    def load(self, raw_index: int) -> Frame:
+        if not 0 <= raw_index < self.cfg.num_frames:
+            raise IndexError(f"synthetic frame {raw_index} out of range [0, {self.cfg.num_frames})")
+        with self._lock:
+            rgb = np.array(self._store[f"rgb_{raw_index:05d}"])
+            depth_raw = self._store[f"depth_{raw_index:05d}"]
+        depth = depth_raw.astype(np.float32) / np.float32(DEPTH_SCALE)
+        c = self.cfg
+        if c.depth_noise > 0 or c.depth_dropout > 0:
+            rng = np.random.default_rng([c.seed, raw_index, 0xDE])
+            valid = depth > 0
+            if c.depth_noise > 0:
+                noise = rng.standard_normal(depth.shape).astype(np.float32) * np.float32(c.depth_noise) * depth * depth
+                depth = np.where(valid, np.maximum(depth + noise, 1e-3), 0).astype(np.float32)
+            if c.depth_dropout > 0:
+                depth[rng.random(depth.shape) < c.depth_dropout] = 0.0
+        return Frame(
+            index=raw_index,
+            timestamp=raw_index / FPS,
+            rgb=rgb,
+            depth=depth,
+            camera=self._camera,
+            gt_pose=np.array(self._poses[raw_index], dtype=np.float64),
+        )

@@ -1,0 +1,136 @@
+"""Levenberg-Marquardt G-ICP on SE(3) against a `Target` (paper Sec. 3.1; Segal et al. 2009).
+
+The pose T (camera-to-world, metres) minimises
+
+    sum_i d_i^T (C_t,i + R C_s,i R^T)^-1 d_i,   d_i = mu_t,i - (R p_i + t)
+
+over source points p_i (camera frame) with covariances C_s,i, from a start pose, with the right
+perturbation T <- T exp(xi), re-finding each source point's nearest target mean within the
+correspondence distance at every iteration. The loops over points run in the tracker's kernels
+(`.kernels`).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from slamkit.geometry.transforms import se3_exp
+from slamkit_plugins.trackers.gicp.config import GICPConfig
+from slamkit_plugins.trackers.gicp.target import Target
+
+
+def new_stats() -> dict:
+    """An attempt's effort, zeroed: seconds spent on covariances, neighbour search and solving,
+    and Levenberg-Marquardt iterations."""
+    return {"covariance_s": 0.0, "nn_search_s": 0.0, "solve_s": 0.0, "iterations": 0}
+
+
+def orthonormalize(T: np.ndarray) -> np.ndarray:
+    """The pose with its rotation block projected onto SO(3) (nearest rotation, by SVD), so
+    rounding cannot accumulate through pose products."""
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        R = U @ np.diag([1.0, 1.0, -1.0]) @ Vt
+    out = T.copy()
+    out[:3, :3] = R
+    out[3] = (0.0, 0.0, 0.0, 1.0)
+    return out
+
+
+class Aligner:
+    """G-ICP of source points to a target with the tracker's settings (`GICPConfig`: iterations,
+    tolerances, damping, minimum correspondences) and kernels; max_corr: the correspondence
+    distance in metres."""
+
+    def __init__(self, cfg: GICPConfig, kernels, max_corr: float):
+        self.cfg = cfg
+        self.kernels = kernels
+        self.max_corr = max_corr
+
+    def align(self, target: Target, src: np.ndarray, src_cov: np.ndarray, T0: np.ndarray, stats: dict,
+              max_corr: float | None = None):
+        """Levenberg-Marquardt G-ICP from T0. Returns (pose, ok, squared NN distances of the
+        last correspondence search (inf where none)).
+
+        Residuals are taken in the body frame: r_i = R^T (mu_i - R p_i - t) with weight
+        W_i = (R^T C_t,i R + C_s,i)^-1 = G_i^T G_i (G_i: inverse Cholesky factor; the
+        pseudo-inverse where singular), and T <- T exp(xi), xi = (omega, v), for which
+        dr_i/dxi = [[p_i]x, -I]."""
+        cfg = self.cfg
+        n_target = len(target)
+        packed_src = np.concatenate([src, src_cov.reshape(-1, 9)], axis=1)
+        T = T0.copy()
+        lam = None
+        nu = 2.0
+        sq = np.full(len(src), np.inf)
+        idx = None  # the last matches: each search starts from them
+        converged = False
+        for it in range(cfg.max_iterations):
+            stats["iterations"] = it + 1
+            R, t = T[:3, :3], T[:3, 3]
+            query = (src @ R.T + t).astype(np.float32)
+            ts = time.perf_counter()
+            d2, idx = target.index.nearest(query, max_corr or self.max_corr, hint=idx)
+            te = time.perf_counter()
+            stats["nn_search_s"] += te - ts
+            sq = d2.astype(np.float64)
+            m = int(np.count_nonzero(idx < n_target))
+            stats["num_correspondences"] = m
+            if m < cfg.min_correspondences:
+                stats["lost_reason"] = f"too few correspondences ({m} < {cfg.min_correspondences})"
+                stats["solve_s"] += time.perf_counter() - te
+                return T0, False, sq
+            lin = self.kernels.linearize(packed_src, target.packed, idx, T)
+            H, g, cost0 = lin.H, lin.g, lin.cost
+            if lam is None:
+                lam = cfg.lm_lambda * float(np.max(np.diag(H)))
+            accepted = False
+            for _ in range(cfg.lm_max_tries):
+                try:
+                    xi = np.linalg.solve(H + lam * np.eye(6), -g)
+                except np.linalg.LinAlgError:
+                    xi = np.linalg.lstsq(H + lam * np.eye(6), -g, rcond=None)[0]
+                delta = se3_exp(xi)
+                Tn = T @ delta
+                cost = lin.cost_at(Tn)  # same correspondences and weights
+                small = self._small(delta)
+                rho_den = float(xi @ (lam * xi - g))
+                rho = (cost0 - cost) / rho_den if rho_den > 0 else -1.0
+                if cost <= cost0 or rho > 0:
+                    T = Tn
+                    lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3) if rho > 0 else 1.0
+                    nu = 2.0
+                    accepted = True
+                    converged = small
+                    break
+                if small:
+                    converged = True
+                    break
+                lam *= nu
+                nu *= 2.0
+            stats["solve_s"] += time.perf_counter() - te
+            stats["singular_covariances"] = lin.singular
+            if converged or not accepted:
+                break
+        stats["converged"] = bool(converged)
+        if not np.isfinite(T).all():
+            stats["lost_reason"] = "non-finite pose"
+            return T0, False, sq
+        return orthonormalize(T), True, sq
+
+    def match(self, target: Target, src: np.ndarray, pose: np.ndarray) -> np.ndarray:
+        """Squared distance (m^2) of each source point at `pose` to its nearest target mean
+        within max_correspondence_distance (inf where none)."""
+        query = (src @ pose[:3, :3].T + pose[:3, 3]).astype(np.float32)
+        return target.index.nearest(query, self.max_corr)[0].astype(np.float64)
+
+    def _small(self, delta: np.ndarray) -> bool:
+        """Whether an update (4x4) is within rotation_tolerance (every |dR - I| entry) and
+        translation_tolerance (every |dt| entry, metres): converged."""
+        return bool(
+            np.abs(delta[:3, :3] - np.eye(3)).max() < self.cfg.rotation_tolerance
+            and np.abs(delta[:3, 3]).max() < self.cfg.translation_tolerance
+        )

@@ -1,0 +1,171 @@
+"""G-ICP tracking against the shared Gaussian map (paper Sec. 3.1; Segal et al. 2009).
+
+Each frame's depth is back-projected on a fixed pixel grid (every `pixel_stride`-th pixel,
+no voxel filter); every point gets a covariance from its `knn` nearest neighbours (the source
+Gaussians), regularised (`ellipse` by default). The target is the map's trackable Gaussians
+with opacity above `min_target_opacity`, their covariances R diag(s^2) R^T regularised the
+same way (the reference code's rule that a map covariance with a median eigenvalue below 1e-3
+becomes 1e-3 I is `target_min_median`, off by default: see GICPConfig). The pose minimises
+
+    sum_i d_i^T (C_t,i + R C_s,i R^T)^-1 d_i,   d_i = mu_t,i - (R p_i + t)
+
+by Levenberg-Marquardt on SE(3) (right perturbation T <- T exp(xi)), re-finding each source
+point's nearest target mean within `max_correspondence_distance` at every iteration. The
+target's KD-tree is built once per tracking keyframe, in `update_target`, never per frame.
+Only trackable points (depth <= the frame's depth_trunc) are aligned; all get covariances.
+
+The optimisation starts from a constant-velocity prediction (measured better than the
+reference code's previous pose on TUM fr1/rpy: 4.5 vs 6.2 cm mean ATE over seven start
+frames; equal on Replica). If it slides away or fails from there, it is run again from the
+previous pose (a sudden stop) and coarse to fine from the prediction (a motion the prediction
+missed by more than the correspondence distance), and the result matching more points is kept.
+
+The loops over points (k-NN covariances, nearest-neighbour search, normal equations) run in
+compiled kernels or their numpy reference (`.kernels`); both give the same trajectory.
+
+The frame's Gaussians (world means at the final pose, regularised covariances rotated to the
+world, colours, depths, squared distance to the nearest target mean from the last
+correspondence search) are returned for the keyframe policy and for map growth.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from slamkit.geometry.gaussians import Regularization, regularize, rotate_covariances
+from slamkit.map.gaussian_map import GaussianMap
+from slamkit.geometry.transforms import backproject, invert_pose
+from slamkit.roles import Tracker, require
+from slamkit.types import Frame, FrameGaussians, TrackingResult
+from slamkit_plugins.trackers.gicp.alignment import Aligner, new_stats, orthonormalize
+from slamkit_plugins.trackers.gicp.config import GICPConfig, InitialGuess
+from slamkit_plugins.trackers.gicp.fallbacks import FallbackPolicy
+from slamkit_plugins.trackers.gicp.kernels import create_kernels
+from slamkit_plugins.trackers.gicp.target import Target
+
+
+class GICPTracker(Tracker):
+    """Frame-to-map G-ICP on the shared Gaussian map (see the module docstring).
+
+    `tree_builds` counts target KD-tree builds (one per `update_target` with a non-empty
+    target)."""
+
+    def __init__(self, cfg: GICPConfig):
+        self.cfg = cfg
+        for name in ("pixel_stride", "max_correspondence_distance", "min_target_opacity"):
+            require(getattr(cfg, name) is not None, f"tracker.{name}", "a value (GICPConfig.with_sensor fills it from the dataset)", None)
+        self.pixel_stride = int(cfg.pixel_stride)
+        self.max_corr = float(cfg.max_correspondence_distance)
+        self.min_opacity = float(cfg.min_target_opacity)
+        self.regularization = Regularization(cfg.regularization)
+        self.initial_guess = InitialGuess(cfg.initial_guess)
+        self.kernels = create_kernels(cfg.kernels, cfg.num_threads or 0)
+        self.aligner = Aligner(cfg, self.kernels, self.max_corr)
+        self.fallbacks = FallbackPolicy(cfg, self.aligner)
+        self.target: Target | None = None
+        self.tree_builds = 0
+        self.poses: list[np.ndarray] = []
+        self.first_pose = np.eye(4)
+
+    # ---------------------------------------------------------------- role API
+    def initialize(self, first_pose: np.ndarray) -> None:
+        self.first_pose = orthonormalize(np.asarray(first_pose, dtype=np.float64))
+        self.poses = []
+
+    def use_threads(self, threads: int) -> None:
+        if self.cfg.num_threads is None:
+            self.kernels.num_threads = threads
+
+    def update_target(self, gaussian_map: GaussianMap) -> None:
+        """Take the map's trackable Gaussians as the new target; regularise their covariances
+        and build the KD-tree (the only place it is built)."""
+        snap = gaussian_map.tracking_target(self.min_opacity)
+        if len(snap.means) == 0:
+            self.target = None
+            return
+        cov = self._regularize(snap.covariances, target=True)
+        self.target = Target(snap.means, cov, snap.version, self.kernels)
+        self.tree_builds += 1
+
+    def predict(self) -> np.ndarray:
+        """The pose the optimisation starts from (camera-to-world)."""
+        if not self.poses:
+            return self.first_pose.copy()
+        if self.initial_guess is InitialGuess.constant_velocity and len(self.poses) >= 2:
+            prev, last = self.poses[-2], self.poses[-1]
+            return orthonormalize(last @ (invert_pose(prev) @ last))
+        return self.poses[-1].copy()
+
+    def track(self, frame: Frame, gaussian_map: GaussianMap) -> TrackingResult:
+        predicted = self.predict()
+        result = self._track(frame, predicted)
+        self.poses = self.poses[-1:] + [result.pose]  # the motion model needs the last two
+        return result
+
+    # ---------------------------------------------------------------- internals
+    def _regularize(self, cov: np.ndarray, target: bool) -> np.ndarray:
+        min_median = self.cfg.target_min_median if target else None
+        return regularize(cov, self.regularization, self.cfg.plane_eps, min_median=min_median)
+
+    def _track(self, frame: Frame, predicted: np.ndarray) -> TrackingResult:
+        cfg = self.cfg
+        stats = new_stats()
+        t0 = time.perf_counter()
+        depth = np.asarray(frame.depth)
+        if not np.isfinite(depth).all():
+            depth = np.where(np.isfinite(depth), depth, 0.0)
+        points, pix = backproject(depth, frame.camera, self.pixel_stride)
+        z = points[:, 2]
+        trackable = z <= frame.depth_trunc
+        n_track = int(trackable.sum())
+        stats["num_points"] = len(points)
+        stats["num_trackable"] = n_track
+        if n_track < cfg.min_points or len(points) < cfg.knn:
+            stats["lost_reason"] = f"too few valid depth points ({n_track} < {cfg.min_points})"
+            return TrackingResult(pose=predicted, lost=True, stats=stats)
+
+        raw_cam = self.kernels.frame_covariances(points, pix, frame.camera, self.pixel_stride, cfg.knn)
+        cov_cam = self._regularize(raw_cam, target=False)
+        stats["covariance_s"] = time.perf_counter() - t0
+
+        src = points[trackable].astype(np.float64)
+        src_cov = cov_cam[trackable]
+        sq_track = np.full(n_track, np.inf)
+        pose = predicted
+        if self.target is None or len(self.target) == 0:
+            stats["note"] = "no target yet"
+        else:
+            previous = self.poses[-1] if self.poses else None
+            pose, ok, sq_track = self.fallbacks.solve(self.target, src, src_cov, predicted, previous, stats)
+            if not ok:
+                return TrackingResult(pose=predicted, lost=True, stats=stats)
+
+        gaussians = self._frame_gaussians(frame, points, pix, trackable, pose, cov_cam, raw_cam, sq_track)
+        stats["matched_fraction"] = float(np.isfinite(sq_track).mean()) if n_track else 0.0
+        return TrackingResult(pose=pose, lost=False, gaussians=gaussians, stats=stats)
+
+    @staticmethod
+    def _frame_gaussians(frame: Frame, points: np.ndarray, pix: np.ndarray, trackable: np.ndarray, pose: np.ndarray,
+                         cov_cam: np.ndarray, raw_cam: np.ndarray, sq_track: np.ndarray) -> FrameGaussians:
+        """The frame's Gaussians at `pose` (camera-to-world): world means (m), regularised and raw
+        covariances rotated to the world (m^2), colours in [0, 1], camera depths (m), and the
+        trackable points' squared distance (m^2) to their nearest target mean (inf elsewhere)."""
+        sq_dist = np.full(len(points), np.inf)
+        sq_dist[trackable] = sq_track
+        R, t = pose[:3, :3], pose[:3, 3]
+        rgb = np.asarray(frame.rgb).reshape(-1, 3)[pix]
+        if np.issubdtype(rgb.dtype, np.integer):
+            colors = rgb.astype(np.float32) / 255.0
+        else:
+            colors = np.clip(rgb, 0.0, 1.0).astype(np.float32)
+        return FrameGaussians(
+            means=(points.astype(np.float64) @ R.T + t).astype(np.float32),
+            covariances=rotate_covariances(R, cov_cam),
+            shape_covariances=rotate_covariances(R, raw_cam),
+            colors=colors,
+            depths=points[:, 2].copy(),
+            trackable=trackable,
+            sq_dist_to_map=sq_dist,
+        )
