@@ -22,7 +22,6 @@ removed or overwritten is dropped (`stale_steps`).
 from __future__ import annotations
 
 import logging
-import time
 from collections import deque
 from contextlib import contextmanager
 from typing import Any
