@@ -1,6 +1,6 @@
-"""Running SLAM on a dataset: building the roles from config, the progress bar, the viewer, the
-run outputs (trajectory.txt, keyframes.txt, camera.json, metrics.json, frames.csv,
-trajectory.png) and evaluation.
+"""Running SLAM on a dataset: building the roles from config, the frame loop (sequential or
+beside a mapping thread, paced like a camera), the progress bar, the viewer, the per-frame log
+(frames.csv) and the refinement after the stream; the outputs are `slamkit.run.outputs`.
 
 The algorithm itself is `slamkit.run.slam.SLAM`; this module is the I/O around it.
 """
@@ -9,80 +9,31 @@ from __future__ import annotations
 
 import csv
 import inspect
-import json
 import logging
-import os
 import signal
 import time
 from contextlib import contextmanager
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
-from slamkit.metrics import trajectory as evaluation
-from slamkit.registry.schema import Mode, RunConfig
 from slamkit.errors import DataError, PluginError, SlamkitError
 from slamkit.map.gaussian_map import GaussianMap
+from slamkit.metrics import trajectory as evaluation
 from slamkit.native import available_threads
-from slamkit.run.prefetch import UnreadableFrame, prefetched
 from slamkit.registry.discovery import Registry
+from slamkit.registry.schema import Mode, RunConfig
+from slamkit.run.outputs import RunState, rss_mb, summary, write_camera, write_outputs
+from slamkit.run.prefetch import UnreadableFrame, prefetched
 from slamkit.run.slam import SLAM, MappingThread, StepResult
-from slamkit.formats.tum import write_tum_trajectory
-from slamkit.types import Frame
 from slamkit.run.viewing import ViewerFeed
+from slamkit.types import Frame
+
+__all__ = ["build", "run", "summary", "mapping_threads", "tracking_threads", "InputClock"]
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class RunState:
-    """What a run has produced so far; written out even when the run stops early."""
-
-    timestamps: list[float] = field(default_factory=list)
-    poses: list[np.ndarray] = field(default_factory=list)
-    gt_poses: list[np.ndarray | None] = field(default_factory=list)
-    keyframe_rows: list[int] = field(default_factory=list)  # indices into poses of the keyframes
-    num_keyframes: int = 0
-    lost_frames: int = 0
-    dropped_frames: int = 0
-    mapping_iterations: int = 0
-    tracking_time_s: float = 0.0
-    mapping_time_s: float = 0.0
-    stream_time_s: float = 0.0  # from the first frame to the last one tracked
-    refine_iterations: int = 0  # mapping steps after the stream
-    refine_time_s: float = 0.0
-    completed: bool = False
-    error: str | None = None
-
-    def record_unreadable(self, timestamp: float) -> None:
-        """A frame that could not be read (dataset.on_error=skip): lost, keeps the last pose."""
-        self.timestamps.append(timestamp)
-        self.poses.append(self.poses[-1] if self.poses else np.full((4, 4), np.nan))
-        self.gt_poses.append(None)
-        self.lost_frames += 1
-
-    def record_dropped(self, frame: Frame) -> None:
-        """A frame that arrived while the tracker was busy (real-time mode, drop_frames): it
-        keeps the last pose, so the trajectory still has one line per input frame."""
-        self.timestamps.append(frame.timestamp)
-        self.poses.append(self.poses[-1])
-        self.gt_poses.append(frame.gt_pose)
-        self.dropped_frames += 1
-
-    def record(self, frame: Frame, step: StepResult) -> None:
-        self.timestamps.append(frame.timestamp)
-        self.poses.append(step.tracking.pose)
-        self.gt_poses.append(frame.gt_pose)
-        if step.keyframe:
-            self.keyframe_rows.append(len(self.poses) - 1)
-        self.num_keyframes += bool(step.keyframe)
-        self.lost_frames += step.tracking.lost
-        self.mapping_iterations += step.mapping_iterations
-        self.tracking_time_s += step.tracking_time_s
-        self.mapping_time_s += step.mapping_time_s
 
 
 class Blamed:
@@ -186,7 +137,7 @@ def _run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Pat
         raise
     finally:
         try:
-            metrics = finish(cfg, slam, dataset, state, time.perf_counter() - start, out_dir)
+            metrics = write_outputs(cfg, slam, dataset, state, time.perf_counter() - start, out_dir)
         finally:
             viewer.close()
     return metrics
@@ -216,14 +167,6 @@ def tracking_threads(cfg: RunConfig) -> int:
     """Threads for a tracker whose `num_threads` is null: one in real-time mode (the mapping
     thread has the other CPUs), else every CPU this process may use (or $OMP_NUM_THREADS)."""
     return 1 if cfg.mode is Mode.realtime else available_threads()
-
-
-def write_camera(path: Path, camera, depth_trunc: float) -> None:
-    """The run's camera as JSON: width, height (pixels), fx, fy, cx, cy (pixels) and
-    depth_trunc (metres, null = none), for tools that render the map later (slamkit-export)."""
-    data = {"width": camera.width, "height": camera.height, "fx": camera.fx, "fy": camera.fy, "cx": camera.cx,
-            "cy": camera.cy, "depth_trunc": depth_trunc if np.isfinite(depth_trunc) else None}
-    _write_json_atomic(path, data)
 
 
 class InputClock:
@@ -307,7 +250,7 @@ def _log_frame(writer, frame: Frame, step: StepResult, num_gaussians: int) -> No
     writer.writerow([frame.index, f"{frame.timestamp:.6f}", step.keyframe.value, int(result.lost),
                      f"{1e3 * step.tracking_time_s:.2f}", f"{1e3 * step.mapping_time_s:.2f}",
                      step.mapping_iterations, _fmt(result.correspondence_ratio), num_gaussians,
-                     f"{_rss_mb():.1f}", result.stats.get("lost_reason", "")])
+                     f"{rss_mb():.1f}", result.stats.get("lost_reason", "")])
     if result.lost:
         log.warning("frame %d lost: %s", frame.index, result.stats.get("lost_reason", "?"))
 
@@ -321,98 +264,3 @@ def _running_ate(state: RunState) -> str:
     return "ATE n/a" if result.rmse_m is None else f"ATE {100 * result.rmse_m:.2f} cm"
 
 
-def finish(cfg: RunConfig, slam: SLAM, dataset, state: RunState, wall_s: float, out_dir: Path) -> dict[str, Any]:
-    """Write trajectory.txt, metrics.json and the plot; return the metrics."""
-    n = len(state.poses)
-    poses = np.array(state.poses).reshape(n, 4, 4)
-    finite = np.flatnonzero(np.isfinite(poses).all(axis=(1, 2)))
-    poses[: finite[0] if len(finite) else n] = poses[finite[0]] if len(finite) else np.eye(4)  # unreadable first frames
-    write_tum_trajectory(out_dir / "trajectory.txt", state.timestamps, poses)
-    write_tum_trajectory(out_dir / "keyframes.txt", [state.timestamps[i] for i in state.keyframe_rows],
-                         poses[state.keyframe_rows].reshape(-1, 4, 4))
-    has_gt = [i for i, p in enumerate(state.gt_poses) if p is not None and np.all(np.isfinite(p))]
-    if has_gt:  # beside the estimate, for evo and slamkit-report
-        write_tum_trajectory(out_dir / "groundtruth.txt", [state.timestamps[i] for i in has_gt],
-                             np.array([state.gt_poses[i] for i in has_gt]))
-    ate = evaluation.ate(poses, state.gt_poses) if n else None
-    rpe = evaluation.rpe(poses, state.gt_poses) if n > 1 else None
-    metrics: dict[str, Any] = {
-        "num_frames": n,
-        "num_keyframes": state.num_keyframes,
-        "fps": n / wall_s if wall_s > 0 else None,
-        "tracking_fps": n / state.tracking_time_s if state.tracking_time_s > 0 else None,
-        "stream_fps": n / state.stream_time_s if state.stream_time_s > 0 else None,
-        "stream_time_s": state.stream_time_s,
-        "tracking_time_s": state.tracking_time_s,
-        "mapping_time_s": state.mapping_time_s,
-        "wall_time_s": wall_s,
-        "mapping_iterations": state.mapping_iterations,
-        "refine_iterations": state.refine_iterations,
-        "refine_time_s": state.refine_time_s,
-        "lost_frames": state.lost_frames,
-        "dropped_frames": state.dropped_frames,
-        "mode": cfg.mode.value,
-        "mapping_threads": torch.get_num_threads(),
-        "completed": state.completed,
-        "error": state.error,
-        "ate_rmse_m": ate.rmse_m if ate else None,
-        "ate_mean_m": ate.mean_m if ate else None,
-        "ate_frames": ate.num if ate else 0,
-        "rpe_trans_rmse_m": rpe["trans_rmse_m"] if rpe else None,
-        "rpe_rot_rmse_deg": rpe["rot_rmse_deg"] if rpe else None,
-        "num_gaussians": len(slam.gaussian_map),
-        "peak_memory_mb": _peak_memory_mb(),
-    }
-    if state.completed:
-        metrics.update(slam.mapper.evaluate(dataset, state.poses, out_dir))
-    _write_json_atomic(out_dir / "metrics.json", metrics)
-    log.info("%s", summary(metrics))
-    if cfg.eval.plot and n:
-        from slamkit.formats.plots import plot_trajectory
-
-        has_gt = ate is not None and ate.rmse_m is not None
-        est = ate.est_aligned if has_gt else poses[:, :3, 3]
-        gt = ate.gt_positions if has_gt else None
-        plot_trajectory(out_dir / "trajectory.png", est, gt, title=_summary(metrics))
-    return metrics
-
-
-def _rss_mb() -> float:
-    """Current resident memory in MB (Linux /proc; 0 where unavailable)."""
-    try:
-        with open("/proc/self/statm") as f:
-            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
-    except (OSError, ValueError, IndexError):
-        return 0.0
-
-
-def _peak_memory_mb() -> float:
-    import resource
-
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # kilobytes on Linux
-
-
-def _write_json_atomic(path: Path, data: dict) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2, default=float) + "\n")
-    os.replace(tmp, path)
-
-
-def _summary(m: dict[str, Any]) -> str:
-    """Frames, ATE and the system's frames/s: the stream's in real-time mode (the frames/s the
-    live system kept up with), the whole run's otherwise."""
-    ate = "n/a (no ground truth)" if m["ate_rmse_m"] is None else f"{100 * m['ate_rmse_m']:.2f} cm"
-    realtime = m.get("mode") == "realtime"
-    fps = m["stream_fps"] if realtime else m["fps"]
-    fps = f"{fps:.1f} frames/s" + (" in real time" if realtime else "") if fps else "n/a frames/s"
-    return f"{m['num_frames']} frames, ATE RMSE {ate}, {fps}"
-
-
-def summary(m: dict[str, Any]) -> str:
-    """One line for the terminal."""
-    text = _summary(m) + f", {m['num_keyframes']} keyframes, {m['lost_frames']} lost"
-    if m.get("psnr") is not None:
-        text += f", PSNR {m['psnr']:.2f} dB"
-    if m.get("refine_iterations"):
-        text += f" after {m['refine_iterations']} refinement steps ({m['refine_time_s']:.1f} s)"
-    return text if m["completed"] else text + " (incomplete)"

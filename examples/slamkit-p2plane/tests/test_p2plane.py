@@ -13,7 +13,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import slamkit_p2plane
 from slamkit.errors import ConfigError
 from slamkit.geometry.transforms import invert_pose, make_pose, rotation_angle_deg, so3_exp, transform_points
 from slamkit.registry.discovery import discover
