@@ -90,11 +90,13 @@ def test_visible_adam_leaves_unseen_rows_alone_and_counts_steps_per_row(kernels)
 
 
 @pytest.mark.parametrize("kernels", KERNELS)
-def test_a_late_row_starts_like_a_fresh_adam_with_visible_adam(kernels):
-    """A row appended after 20 steps (zero state) moves on its first update as a fresh Adam
-    moves a parameter (lr * g / |g|): its own step count bias-corrects it."""
+def test_a_late_row_starts_like_a_fresh_adam_with_row_bias_correction(kernels):
+    """bias_correction=row: a row appended after 20 steps (zero state) moves on its first update
+    as a fresh Adam moves a parameter (lr * g / |g|): its own step count bias-corrects it."""
+    from slamkit_plugins.optimizers.visible_adam import BiasCorrection
+
     p = params(10)
-    optimizer = visible(kernels)
+    optimizer = visible(kernels, bias_correction=BiasCorrection["row"])
     for step in range(20):
         optimizer.step(p, grads(10, step))
     optimizer.edit_rows(lambda name, v: torch.cat([v, torch.zeros((1,) + tuple(v.shape[1:]))]))
