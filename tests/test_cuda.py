@@ -213,10 +213,9 @@ def test_mapping_step_phases_on_cuda(backend, replica_path):
     gm = slam.gaussian_map
     assert gm.means.device.type == "cuda" and len(mapper.keyframes) > 0
     clock = step_phases.PhaseClock(torch.cuda.synchronize)
-    ids = list(mapper.keyframes.ids)
-    losses = [step_phases.timed_step(mapper, mapper.keyframes[ids[i % len(ids)]].view("cuda"), clock)
-              for i in range(6)]
-    assert all(math.isfinite(v) for v in losses) and losses[-1] < losses[0]
+    view = mapper.keyframes[mapper.keyframes.ids[-1]].view("cuda")
+    losses = [step_phases.timed_step(mapper, view, clock) for _ in range(6)]
+    assert all(math.isfinite(v) for v in losses) and losses[-1] < losses[0]  # the same view, trained on
     ms = clock.per_step_ms()
     assert all(ms[phase] > 0 for phase in step_phases.PHASES), ms
     assert mapper.steps == 6 and all(torch.isfinite(p).all() for p in gm.parameters().values())
