@@ -20,11 +20,11 @@ gsplat out (the script passes it when gsplat's extension did not build).
   device) and `tracking_target` (the map's trackable Gaussians copied back for the tracker),
   milliseconds per keyframe, with the map on the CPU and on the GPU.
 - phases: the map grown over the first PHASE_FRAMES frames (no training), then PHASE_WARMUP
-  untimed and PHASE_STEPS timed training steps over its keyframes (benchmarks/step_phases.py,
-  with torch.cuda.synchronize around each phase): render, loss, backward, optimizer, strategy,
-  milliseconds per step.
-- realtime: `slamkit-bench`'s gsicp_realtime30 system (mode=realtime fps_limit=30, mapping stops
-  with the stream, `mapper.final_iterations=0`) per backend variant, each run in its own process
+  untimed and PHASE_STEPS timed steps of the mapper's own `optimize` (its PhaseTimer, with
+  torch.cuda.synchronize around each phase: benchmarks/step_phases.py): view, render, loss,
+  backward, lock, optimizer, strategy, wall milliseconds per step (and thread CPU ms in the JSON).
+- realtime: `slamkit-bench`'s gsicp_realtime30 system (mode=realtime fps_limit=30; mapping stops
+  with the stream, real-time mode's default) per backend variant, each run in its own process
   under REALTIME_TIMEOUT_S seconds: ATE, tracking / stream / system frames/s, mapping steps,
   PSNR, Gaussians.
 """
@@ -135,16 +135,16 @@ def markdown(data: dict) -> str:
         lines.append("")
     if data.get("phases"):
         lines += ["## One mapping step by phase (ms per step)", "",
-                  "| sequence | backend@map | Gaussians | resolution | render | loss | backward | optimizer | "
-                  "strategy | step |", "|---|---|---|---|---|---|---|---|---|---|"]
+                  "| sequence | backend@map | Gaussians | resolution | view | render | loss | backward | lock | "
+                  "optimizer | strategy | step |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in data["phases"]:
             if "error" in r:
                 lines.append(f"| {r['sequence']} | {r['variant']} | failed: {r['error']} |")
                 continue
             ms = r["ms"]
             lines.append(f"| {r['sequence']} | {r['variant']} | {r['gaussians']} | {r['resolution']} | "
-                         + " | ".join(_f(ms[k], 2) for k in ("render", "loss", "backward", "optimizer", "strategy",
-                                                             "step")) + " |")
+                         + " | ".join(_f(ms.get(k), 2) for k in ("view", "render", "loss", "backward", "lock",
+                                                                 "optimizer", "strategy", "step")) + " |")
         lines.append("")
     if data.get("realtime"):
         lines += ["## Real time (mode=realtime fps_limit=30, mapping stops with the stream)", "",
@@ -245,7 +245,7 @@ def phases(name: str, variant: str, data: Path) -> dict:
     from slamkit.registry.compose import build_run
 
     sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from step_phases import PhaseClock, timed_step, unwrapped
+    from step_phases import time_steps, unwrapped
 
     device = variant.split("@")[1]
     dataset, slam, _ = build_run([*sequence_overrides(name, data), f"dataset.max_frames={PHASE_FRAMES}",
@@ -255,18 +255,15 @@ def phases(name: str, variant: str, data: Path) -> dict:
     for i in range(len(dataset)):
         slam.step(dataset[i])
     mapper = unwrapped(slam.mapper)
-    ids = list(mapper.keyframes.ids)
-    views = [mapper.keyframes[k].view(device) for k in ids]
     sync = torch.cuda.synchronize if device == "cuda" else None
-    warm = PhaseClock(sync)
-    for i in range(PHASE_WARMUP):
-        timed_step(mapper, views[i % len(views)], warm)
-    clock = PhaseClock(sync)
-    losses = [timed_step(mapper, views[i % len(views)], clock) for i in range(PHASE_STEPS)]
-    cam = views[0].camera
-    return {"sequence": name, "variant": variant, "frames": len(dataset), "keyframes": len(ids),
-            "gaussians": len(slam.gaussian_map), "resolution": f"{cam.width}x{cam.height}",
-            "steps": PHASE_STEPS, "ms": clock.per_step_ms(), "first_loss": losses[0], "last_loss": losses[-1]}
+    time_steps(mapper, PHASE_WARMUP, sync)
+    first_loss = mapper.last_loss
+    timer = time_steps(mapper, PHASE_STEPS, sync)
+    cam = mapper.keyframes[mapper.keyframes.ids[0]].camera
+    return {"sequence": name, "variant": variant, "frames": len(dataset), "keyframes": len(mapper.keyframes),
+            "gaussians": len(slam.gaussian_map), "resolution": f"{cam.width}x{cam.height}", "steps": timer.steps,
+            "ms": timer.per_step_ms(), "cpu_ms": {k: 1e3 * v / max(timer.steps, 1) for k, v in timer.cpu.items()},
+            "first_loss": first_loss, "last_loss": mapper.last_loss}
 
 
 def realtime(name: str, variant: str, data: Path, runs_dir: Path) -> dict:

@@ -107,7 +107,7 @@ if [ "$DRY" = 1 ]; then
 fi
 
 run_steps() {
-  step machine 30 bash -c "nvidia-smi -L; \"$PY\" -c 'import torch; print(\"torch\", torch.__version__, \"cuda\", torch.version.cuda, \"available\", torch.cuda.is_available())'"
+  step machine 30 bash -c "nvidia-smi -L; nvcc --version | tail -n 2; \"$PY\" -c 'import torch; print(\"torch\", torch.__version__, \"cuda\", torch.version.cuda, \"available\", torch.cuda.is_available())'"
 
   step install-wheels 90 "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
     --target "$SITE" $(ls "$WHEELS"/*.whl 2>/dev/null || echo "$WHEELS/*.whl")

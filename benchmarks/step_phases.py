@@ -1,52 +1,41 @@
-"""One training step of the `gaussian_splatting` mapper, timed by phase: render, loss, backward,
-optimizer (the update, the colour clamp), strategy (the post-backward hook: statistics,
-densification, pruning on its schedule).
+"""Mapping steps timed by phase on a GPU: the mapper's own PhaseTimer (phases view, render, loss,
+backward, lock, optimizer, strategy; `plugins/mappers/gaussian_splatting/timing.py`) with a
+synchronisation before and after each phase, so that a phase is charged with the GPU work it
+launched rather than with the launches alone (CUDA kernels run asynchronously: without it, the
+render's time shows up in whichever later phase first waits for a result).
 
-A self-contained stand-in for a step profiler in the mapper itself: `timed_step` takes the same
-step as `GaussianSplattingMapper.train_step`, without its real-time checks (no other thread may
-change the map meanwhile). Used by benchmarks/gpu_bench.py and tests/test_cuda.py:
+Used by benchmarks/gpu_bench.py and tests/test_cuda.py:
 
-    clock = PhaseClock(torch.cuda.synchronize)
-    loss = timed_step(mapper, mapper.keyframes[kf_id].view("cuda"), clock)
-    clock.seconds   # {"render": ..., "loss": ..., ...}, summed over the steps timed
+    timer = time_steps(slam.mapper, 10, torch.cuda.synchronize)   # the mapper's own steps
+    timer.per_step_ms()   # {"view": ..., "render": ..., ..., "step": ...}
 """
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 from contextlib import contextmanager
 
-import torch
+from slamkit_plugins.mappers.gaussian_splatting.timing import PhaseTimer
 
-from slamkit.roles import StepInfo
+#: The phases every timed step goes through (view: only when the mapper picks the keyframe;
+#: lock: waiting for the map's lock).
+STEP_PHASES = ("render", "loss", "backward", "optimizer", "strategy")
 
-PHASES = ("render", "loss", "backward", "optimizer", "strategy")
 
-
-class PhaseClock:
-    """Wall-clock seconds per phase, summed over the steps timed. `sync` (None: nothing) runs
-    before each reading, e.g. torch.cuda.synchronize, so that a phase is charged with the GPU
-    work it launched rather than with the launches alone."""
+class SyncedPhaseTimer(PhaseTimer):
+    """PhaseTimer that calls `sync` (e.g. torch.cuda.synchronize; None: nothing) on entering and
+    before leaving each phase."""
 
     def __init__(self, sync: Callable[[], None] | None = None):
+        super().__init__()
         self.sync = sync or (lambda: None)
-        self.seconds = {name: 0.0 for name in PHASES}
-        self.steps = 0
 
     @contextmanager
     def __call__(self, phase: str):
         self.sync()
-        start = time.perf_counter()
-        yield
-        self.sync()
-        self.seconds[phase] += time.perf_counter() - start
-
-    def per_step_ms(self) -> dict[str, float]:
-        """Milliseconds per step for each phase and their sum (`step`)."""
-        ms = {name: 1e3 * s / max(self.steps, 1) for name, s in self.seconds.items()}
-        ms["step"] = sum(ms.values())
-        return ms
+        with super().__call__(phase):
+            yield
+            self.sync()
 
 
 def unwrapped(plugin):
@@ -54,32 +43,21 @@ def unwrapped(plugin):
     return getattr(plugin, "_plugin", plugin)
 
 
-def timed_step(mapper, view, clock: PhaseClock) -> float:
-    """One step of `mapper` (a GaussianSplattingMapper, bound to its map; a pipeline's wrapped
-    mapper is unwrapped) on `view` (a TrainingView on the map's device), each phase timed by
-    `clock`; returns the loss."""
+def time_steps(mapper, steps: int, sync: Callable[[], None] | None = None, view=None) -> SyncedPhaseTimer:
+    """`steps` training steps of `mapper` (a GaussianSplattingMapper bound to its map; a pipeline's
+    wrapped mapper is unwrapped), timed by phase with `sync` around each phase: the mapper's own
+    `optimize` (it picks the keyframes), or `train_step(view)` on one TrainingView when `view`
+    is given. The mapper's timer is restored afterwards; returns the one that timed them."""
     mapper = unwrapped(mapper)
-    gm = mapper.gaussian_map
-    with gm.lock:
-        params = gm.parameters()
-    with clock("render"):
-        render = mapper.render(view.world_to_camera, view.camera, params)
-    with clock("loss"):
-        loss = mapper.loss(render, view)
-    with clock("backward"):
-        names = list(params)
-        grads = torch.autograd.grad(loss, [params[k] for k in names], allow_unused=True)
-        grads = {k: g for k, g in zip(names, grads) if g is not None}
-    value = float(loss.detach())
-    with gm.lock:
-        with clock("optimizer"):
-            mapper.edit.sync()
-            mapper.optimizer.step(params, grads)
-            with torch.no_grad():
-                params["colors"].clamp_(0.0, 1.0)
-            gm.version += 1
-            mapper.steps += 1
-        with clock("strategy"):
-            mapper.strategy.step_post_backward(mapper.edit, StepInfo(mapper.steps, view, render, grads, value))
-    clock.steps += 1
-    return value
+    saved, timer = mapper.timer, SyncedPhaseTimer(sync)
+    mapper.timer = timer
+    try:
+        if view is None:
+            mapper.optimize(steps)
+        else:
+            for _ in range(steps):
+                mapper.train_step(view)
+                timer.steps += 1
+    finally:
+        mapper.timer = saved
+    return timer

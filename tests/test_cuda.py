@@ -7,7 +7,8 @@ reason "CUDA not available" elsewhere (tests/conftest.py). benchmarks/gpu_check.
 - the cpu backend with a map on the GPU (what `rasterizer=auto` falls back to without gsplat);
 - a few frames of the whole pipeline with the map on the GPU (torch and gsplat backends) against
   the CPU path (map on the CPU, cpu backend): same trajectory, PSNR within 0.3 dB;
-- the mapping step's phases on the GPU, and `mode=realtime` mapping on the GPU by default.
+- the mapping step's phases on the GPU (the mapper's own timer, synchronised: benchmarks/step_phases.py),
+  and `mode=realtime` mapping on the GPU by default.
 
 The tolerances for gsplat follow from its alpha clamp (0.999, the reference's 0.99: scenes keep
 opacities <= 0.95) and its float32 fast-math arithmetic: a pixel where a Gaussian's alpha sits at
@@ -159,7 +160,7 @@ def psnr(image: torch.Tensor, reference: torch.Tensor) -> float:
 #: A few Replica frames of sequential GS-ICP SLAM, trained enough that the map's renders and the
 #: tracker's targets (rebuilt every second frame, from the trained map) depend on the mapping.
 PIPELINE = ["dataset=replica", "dataset.max_frames=6", "mapper=gaussian_splatting", "keyframe=every_n",
-            "keyframe.tracking_every=2", "iterations_per_frame=10", "mapper.final_iterations=100",
+            "keyframe.tracking_every=2", "iterations_per_frame=10", "final_iterations=100",
             "mapper.eval_resolution_scale=0.5", "mapper.save_images=0", "progress=false", "eval.plot=false"]
 
 
@@ -212,13 +213,17 @@ def test_mapping_step_phases_on_cuda(backend, replica_path):
     mapper = step_phases.unwrapped(slam.mapper)
     gm = slam.gaussian_map
     assert gm.means.device.type == "cuda" and len(mapper.keyframes) > 0
-    clock = step_phases.PhaseClock(torch.cuda.synchronize)
     view = mapper.keyframes[mapper.keyframes.ids[-1]].view("cuda")
-    losses = [step_phases.timed_step(mapper, view, clock) for _ in range(6)]
+    losses = []
+    for _ in range(6):
+        timer = step_phases.time_steps(mapper, 1, torch.cuda.synchronize, view)
+        losses.append(mapper.last_loss)
+        assert all(timer.wall[phase] > 0 for phase in step_phases.STEP_PHASES), dict(timer.wall)
     assert all(math.isfinite(v) for v in losses) and losses[-1] < losses[0]  # the same view, trained on
-    ms = clock.per_step_ms()
-    assert all(ms[phase] > 0 for phase in step_phases.PHASES), ms
-    assert mapper.steps == 6 and all(torch.isfinite(p).all() for p in gm.parameters().values())
+    timer = step_phases.time_steps(mapper, 4, torch.cuda.synchronize)  # the mapper's own choice of views
+    ms = timer.per_step_ms()
+    assert timer.steps == 4 and ms["view"] > 0 and ms["step"] >= sum(ms[p] for p in step_phases.STEP_PHASES)
+    assert mapper.steps == 10 and all(torch.isfinite(p).all() for p in gm.parameters().values())
     assert all(p.device.type == "cuda" for p in gm.parameters().values())
 
 
@@ -226,7 +231,7 @@ def test_realtime_maps_on_the_gpu_by_default(replica_path, tmp_path):
     """mode=realtime with the default mapping_device (auto): the map and the keyframes on the
     GPU, the tracker on the CPU; the run completes and trains."""
     overrides = ["dataset=replica", f"dataset.path={replica_path}", "dataset.max_frames=5",
-                 "mapper=gaussian_splatting", "mode=realtime", "fps_limit=30", "mapper.final_iterations=20",
+                 "mapper=gaussian_splatting", "mode=realtime", "fps_limit=30", "final_iterations=20",
                  "mapper.eval_resolution_scale=0.5", "mapper.save_images=0", "progress=false", "eval.plot=false"]
     _, slam, _ = build_run(overrides)
     assert slam.gaussian_map.device.type == "cuda"

@@ -101,8 +101,9 @@ def test_results_are_merged_and_tabled_as_they_come(tmp_path):
                                   "ate_rmse_m": 0.05, "grow_map_ms": 3.0, "target_ms": 2.0, "rows_per_keyframe": 2500.0,
                                   "copy_in_ms": 0.2, "copy_out_ms": 0.3, "copy_mb": 0.2})
     bench.merge(out, "phases", {"sequence": "tum", "variant": "gsplat@cuda", "gaussians": 26840,
-                                "resolution": "320x240", "ms": {"render": 1.0, "loss": 2.0, "backward": 3.0,
-                                                                "optimizer": 0.5, "strategy": 0.1, "step": 6.6}})
+                                "resolution": "320x240", "ms": {"view": 0.2, "render": 1.0, "loss": 2.0, "backward": 3.0,
+                                                                "lock": 0.0, "optimizer": 0.5, "strategy": 0.1,
+                                                                "step": 6.8}})
     bench.merge(out, "phases", {"sequence": "tum", "variant": "torch@cuda", "error": "RuntimeError: out of memory"})
     bench.merge(out, "realtime", {"sequence": "replica", "variant": "cpu@cpu", "num_frames": 20, "ate_rmse_m": 3e-5,
                                   "tracking_fps": 30.2, "stream_fps": 29.0, "fps": 28.1, "mapping_steps": 4,
@@ -112,7 +113,7 @@ def test_results_are_merged_and_tabled_as_they_come(tmp_path):
     table = (out / "gpu_check.md").read_text()
     assert "| build-gsplat | ok | 183.0 | python benchmarks/build_gsplat.py |" in table
     assert "| tum | cuda | 60 | 11 | 40.5 | 5.00 | 3.00 | 2.00 | 2500 | 0.20 / 0.30 (0.20) |" in table
-    assert "| tum | gsplat@cuda | 26840 | 320x240 | 1.00 | 2.00 | 3.00 | 0.50 | 0.10 | 6.60 |" in table
+    assert "| tum | gsplat@cuda | 26840 | 320x240 | 0.20 | 1.00 | 2.00 | 3.00 | 0.00 | 0.50 | 0.10 | 6.80 |" in table
     assert "| tum | torch@cuda | failed: RuntimeError: out of memory |" in table
     assert "| replica | cpu@cpu | 20 | 0.00 | 30.2 | 29.0 | 28.1 | 4 | 12.30 | 40800 |" in table
 
