@@ -290,6 +290,7 @@ def plan(args) -> list[str]:
     for name in args.sequences:
         lines += [f"phases {name} {v}: grow the map over {PHASE_FRAMES} frames, {PHASE_WARMUP}+{PHASE_STEPS} steps "
                   f"by phase ({' '.join(variant_overrides(v))})" for v in selected(PHASE_VARIANTS, args.no_gsplat)]
+    sys.path.insert(0, str(REPO))  # the plan runs before slamkit is installed (gpu_check.sh --dry-run)
     from slamkit.cli.bench import SYSTEMS  # no torch: the plan stays quick
 
     for name in args.sequences:

@@ -136,7 +136,9 @@ run_steps() {
   [ -n "$NO_GSPLAT" ] && BENCH+=(--no-gsplat)
   for stage in tracking phases realtime; do
     step "time-$stage" "$(stage_cap "$stage")" "${BENCH[@]}" "$stage"
-    [ "$DRY" = 1 ] && wanted "time-$stage" && "$PY" -B benchmarks/gpu_bench.py plan "$stage" --data "$DATA" ${NO_GSPLAT:+--no-gsplat}
+    if [ "$DRY" = 1 ] && wanted "time-$stage"; then
+      "$PY" -B benchmarks/gpu_bench.py plan "$stage" --data "$DATA" ${NO_GSPLAT:+--no-gsplat} || return 1
+    fi
   done
 
   if [ "$DRY" = 1 ]; then

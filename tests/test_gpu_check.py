@@ -35,8 +35,14 @@ def snapshot(root: Path) -> dict[str, tuple[int, int]]:
     return files
 
 
+def bare_python() -> str:
+    """This Python without the virtual environment's packages (no slamkit, no torch), as on the GPU
+    machine before the check installs anything."""
+    return getattr(sys, "_base_executable", None) or sys.executable
+
+
 def dry_run(tmp_path: Path, **env: str) -> tuple[subprocess.CompletedProcess, list[str]]:
-    env = {**os.environ, "PYTHON": sys.executable, "GPU_CHECK_OUT": str(tmp_path / "out"),
+    env = {**os.environ, "PYTHON": bare_python(), "GPU_CHECK_OUT": str(tmp_path / "out"),
            "GPU_CHECK_WHEELS": str(tmp_path / "whl"), "SLAMKIT_DATA": str(tmp_path / "data"), **env}
     proc = subprocess.run(["bash", str(REPO / "benchmarks" / "gpu_check.sh"), "--dry-run"], cwd=tmp_path, env=env,
                           capture_output=True, text=True, timeout=120)
@@ -47,6 +53,7 @@ def test_dry_run_prints_every_step_and_touches_nothing(tmp_path):
     before = snapshot(REPO)
     proc, lines = dry_run(tmp_path)
     assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert proc.stderr == "", proc.stderr
     assert snapshot(REPO) == before
     assert list(tmp_path.iterdir()) == []  # no output folder, nothing installed
     steps = [ln.split()[1] for ln in lines if ln.startswith("STEP ")]
