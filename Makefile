@@ -16,7 +16,7 @@ export SLAMKIT_CACHE ?= $(CURDIR)/.cache/slamkit
 # or root it only warns, and everything but the mesh export still works.
 MESH_DEBS ?= libusb-1.0-0 libgl1 libx11-6 libudev1 libgomp1
 
-.PHONY: run test setup setup-test system-libs clean
+.PHONY: run test setup setup-test system-libs clean gpu-wheels gpu-data
 
 run: setup
 	$(VENV)/bin/slamkit $(ARGS)
@@ -56,6 +56,22 @@ $(VENV)/.installed-test: pyproject.toml examples/slamkit-p2plane/pyproject.toml 
 	$(PY) -m pip install --quiet -e ".[test]"  # includes the extras viewer (rerun-sdk) and mesh (open3d)
 	$(PY) -m pip install --quiet --no-deps -e examples/slamkit-p2plane  # the example third-party plugin
 	touch $(VENV)/.installed $@
+
+# The GPU check (docs/gpu.md) runs on a machine with no registry: what it needs beside that
+# machine's own packages travels as wheels for its Python 3.12 (.whl/, git-ignored, ~7.4 MB) and
+# the frames it times travel in .gpudata/ (git-ignored, under the 64 MiB transfer limit).
+GPU_WHEELS ?= gsplat==1.5.3 hydra-core==1.3.8 omegaconf==2.3.1 pykdtree==1.4.3 pytorch-msssim==1.0.0
+GPU_PLATFORMS := $(foreach p,manylinux_2_28_x86_64 manylinux_2_27_x86_64 manylinux_2_17_x86_64 manylinux2014_x86_64 manylinux1_x86_64,--platform $(p))
+
+gpu-wheels:
+	rm -rf .whl && mkdir -p .whl
+	$(PYTHON) -m pip download --quiet --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+	  $(GPU_PLATFORMS) -d .whl $(GPU_WHEELS)
+	$(PYTHON) -m pip wheel --quiet --no-deps -w .whl antlr4-python3-runtime==4.9.3  # an sdist on PyPI: built here, pure Python
+	@du -sh .whl && ls .whl
+
+gpu-data:
+	$(PYTHON) benchmarks/gpu_data.py $(GPU_DATA_ARGS)
 
 clean:
 	rm -rf $(VENV) .cache outputs multirun

@@ -1,4 +1,5 @@
-"""Shared fixtures: the real data folder beside the repository, and temporary plugins."""
+"""Shared fixtures: the real data folder beside the repository (or $SLAMKIT_DATA), temporary
+plugins, and the `cuda` marker's skip where there is no GPU."""
 
 from __future__ import annotations
 
@@ -11,9 +12,24 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-DATA = REPO.parent / "shared" / "data"
+#: The shared data folder; SLAMKIT_DATA names another holding the same sub-folders (on a GPU
+#: machine the data travels inside the repository: docs/gpu.md).
+DATA = Path(os.environ.get("SLAMKIT_DATA") or REPO.parent / "shared" / "data")
 TUM = DATA / "tum_fr1_rpy_first150"
 REPLICA = DATA / "replica_room0_first20"
+
+
+def pytest_collection_modifyitems(config, items):
+    """Tests marked `cuda` are skipped, with the reason, where torch sees no CUDA device."""
+    cuda_tests = [item for item in items if item.get_closest_marker("cuda")]
+    if not cuda_tests:
+        return
+    import torch
+
+    if not torch.cuda.is_available():
+        skip = pytest.mark.skip(reason="CUDA not available")
+        for item in cuda_tests:
+            item.add_marker(skip)
 
 
 def require_data(path: Path) -> Path:

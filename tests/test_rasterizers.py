@@ -1,5 +1,6 @@
 """Rasteriser backends: the torch reference against analytic images, a dense brute-force
-renderer, finite differences and occlusion; backend selection; gsplat against torch on CUDA."""
+renderer, finite differences and occlusion; backend selection. On CUDA (gsplat against torch,
+the torch backend on the GPU): tests/test_cuda.py."""
 
 from __future__ import annotations
 
@@ -274,53 +275,6 @@ def test_gsplat_without_cuda_is_a_config_error(monkeypatch):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     with pytest.raises(ConfigError, match=r"needs CUDA and the gsplat package \(pip install 'slamkit\[cuda\]'\)"):
         create_rasterizer("gsplat", registry=_registry_with_backends())
-
-
-# ---------------------------------------------------------------------------------------------
-# CUDA only
-
-
-requires_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA not available")
-
-
-def _gpu_scene():
-    cam = Camera(width=96, height=72, fx=80.0, fy=78.0, cx=45.3, cy=37.9)
-    # opacities <= 0.95: gsplat clamps alpha at 0.999 and the reference at 0.99
-    scene = random_scene(400, seed=21, opacity=(0.05, 0.95), size=(0.02, 0.1), spread=(1.2, 0.9))
-    bg = torch.tensor([0.2, 0.3, 0.4], dtype=F64)
-    return scene, a_pose(), cam, bg
-
-
-def _render_with_grads(rast, scene, w2c, cam, bg, device, dtype):
-    params = [p.to(device=device, dtype=dtype).requires_grad_(True) for p in scene]
-    out = as_tuple(rast.render(*params, w2c.to(device=device, dtype=dtype), cam, bg.to(device=device, dtype=dtype)))
-    weights = [w.to(device=device, dtype=dtype) for w in random_weights(cam)]
-    grads = torch.autograd.grad(weighted_loss(out, weights), params)
-    return [o.detach().double().cpu() for o in out], [g.double().cpu() for g in grads]
-
-
-@requires_cuda
-def test_torch_backend_on_cuda_matches_cpu():
-    scene, w2c, cam, bg = _gpu_scene()
-    rast = TorchRasterizer()
-    out_gpu, grads_gpu = _render_with_grads(rast, scene, w2c, cam, bg, "cuda", F64)
-    out_cpu, grads_cpu = _render_with_grads(rast, scene, w2c, cam, bg, "cpu", F64)
-    for a, b in zip(out_gpu, out_cpu):
-        torch.testing.assert_close(a, b, rtol=0, atol=1e-10)
-    for a, b in zip(grads_gpu, grads_cpu):
-        torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-8 * (1 + b.abs().max().item()))
-
-
-@requires_cuda
-def test_gsplat_matches_torch_backend():
-    pytest.importorskip("gsplat")
-    scene, w2c, cam, bg = _gpu_scene()
-    out_ref, grads_ref = _render_with_grads(TorchRasterizer(), scene, w2c, cam, bg, "cpu", F64)
-    out, grads = _render_with_grads(create_rasterizer("gsplat"), scene, w2c, cam, bg, "cuda", torch.float32)
-    for name, a, b in zip(("color", "depth", "alpha"), out, out_ref):
-        assert (a - b).abs().max() < 1e-3, name
-    for name, a, b in zip(("means", "quats", "scales", "opacities", "colors"), grads, grads_ref):
-        assert (a - b).norm() <= 1e-3 * b.norm(), name
 
 
 def test_max_pairs_per_chunk_bounds_the_bands_without_changing_the_image():

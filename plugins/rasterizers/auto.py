@@ -2,14 +2,18 @@
 
 gsplat needs CUDA, the gsplat package and its compiled extension; cpu needs a C++ compiler
 (the library is built on first use); torch always works. A backend that cannot be built is
-skipped with a log line saying why. Each is built with its default config: to configure a
-backend, select it by name (`rasterizer=cpu rasterizer.num_threads=2`).
+skipped with a log line saying why: a warning on a machine with CUDA (gsplat not installed or
+its extension not built: the GPU does not render), else an info line. Each is built with its
+default config: to configure a backend, select it by name (`rasterizer=cpu
+rasterizer.num_threads=2`).
 """
 
 from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+
+import torch
 
 from slamkit.errors import ConfigError, PluginError
 from slamkit.plugin import PluginSpec, hookimpl
@@ -39,6 +43,7 @@ class AutoRasterizer(Rasterizer):
 
         self.cfg = cfg
         reasons = []
+        level = logging.WARNING if torch.cuda.is_available() else logging.INFO
         for name in cfg.prefer:
             try:
                 self.backend = default_registry().create("rasterizer", name)
@@ -46,11 +51,11 @@ class AutoRasterizer(Rasterizer):
                 break
             except (ConfigError, PluginError) as exc:
                 reasons.append(f"{name}: {exc}")
-                log.info("rasterizer auto: not using %s (%s)", name, exc)
+                log.log(level, "rasterizer auto: not using %s (%s)", name, exc)
         else:
             raise ConfigError("rasterizer auto: no backend could be built (" + "; ".join(reasons) + ")")
         if reasons:
-            log.info("rasterizer auto: using %s", self.name)
+            log.log(level, "rasterizer auto: using %s", self.name)
 
     def render(self, *args, **kwargs):
         return self.backend.render(*args, **kwargs)

@@ -40,6 +40,12 @@ from slamkit.types import Camera
 NEAR_PLANE = 0.01
 EPS_2D = 0.3
 MAX_TILE_SIZE = 32  # tile_size^2 threads per CUDA block, at most 1024
+#: The device gsplat computes on. Tests that stand in a fake gsplat on a machine without CUDA
+#: set it to "cpu"; nothing else should.
+DEVICE = "cuda"
+#: The probe's one-line failure in this process, if it failed: gsplat retries its whole build
+#: at every call after a failed one (minutes), so a later construction fails at once instead.
+_probe_failure: str | None = None
 NEEDS = "rasterizer gsplat needs CUDA and the gsplat package (pip install 'slamkit[cuda]')"
 
 
@@ -72,16 +78,24 @@ class GsplatRasterizer(Rasterizer):
 
     def probe(self) -> None:
         """Render one Gaussian on an 8x8 image, so gsplat builds or loads its CUDA extension now;
-        ConfigError (one line) when it cannot."""
-        one = torch.ones(1, 3, device="cuda")
-        try:
-            self.render(torch.tensor([[0.0, 0.0, 1.0]], device="cuda"), torch.tensor([[1.0, 0, 0, 0]], device="cuda"),
-                        0.1 * one, torch.full((1,), 0.5, device="cuda"), 0.5 * one, torch.eye(4, device="cuda"),
-                        Camera(8, 8, 8.0, 8.0, 3.5, 3.5))
-            torch.cuda.synchronize()
-        except Exception as exc:
-            reason = f"{type(exc).__name__}: {exc}".strip().splitlines()[0]
-            raise ConfigError(f"rasterizer gsplat: its CUDA extension could not be built or loaded ({reason})") from None
+        ConfigError (one line) when it cannot (or when the GPU cannot even hold the inputs). A
+        failure is remembered for the rest of the process (`_probe_failure`)."""
+        global _probe_failure
+        if _probe_failure is None:
+            try:
+                device = torch.device(DEVICE)
+                one = torch.ones(1, 3, device=device)
+                self.render(torch.tensor([[0.0, 0.0, 1.0]], device=device),
+                            torch.tensor([[1.0, 0, 0, 0]], device=device), 0.1 * one,
+                            torch.full((1,), 0.5, device=device), 0.5 * one, torch.eye(4, device=device),
+                            Camera(8, 8, 8.0, 8.0, 3.5, 3.5))
+                if device.type == "cuda":
+                    torch.cuda.synchronize(device)
+                return
+            except Exception as exc:
+                reason = f"{type(exc).__name__}: {exc}".strip().splitlines()[0]
+                _probe_failure = f"rasterizer gsplat: its CUDA extension could not be built or loaded ({reason})"
+        raise ConfigError(_probe_failure)
 
     def render(
         self,
@@ -95,7 +109,7 @@ class GsplatRasterizer(Rasterizer):
         background: torch.Tensor | None = None,
     ) -> RenderOutput:
         out_device, out_dtype = means.device, means.dtype
-        device = out_device if out_device.type == "cuda" else torch.device("cuda")
+        device = out_device if out_device.type == torch.device(DEVICE).type else torch.device(DEVICE)
 
         def f32(x):
             return torch.as_tensor(x).to(device=device, dtype=torch.float32)
