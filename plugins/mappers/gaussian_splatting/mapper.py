@@ -67,6 +67,7 @@ class GaussianSplattingMapper(Mapper):
 
     def bind(self, gaussian_map: GaussianMap) -> None:
         self.gaussian_map = gaussian_map
+        self.timer.sync = torch.cuda.synchronize if gaussian_map.device.type == "cuda" else None
         self.optimizer.reset()
         self.edit = MapEdit(gaussian_map, self.optimizer, self.strategy.state)
 

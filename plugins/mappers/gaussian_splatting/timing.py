@@ -19,6 +19,7 @@ class PhaseTimer:
         self.wall: dict[str, float] = defaultdict(float)
         self.cpu: dict[str, float] = defaultdict(float)
         self.steps = 0
+        self.sync = None  # e.g. torch.cuda.synchronize: a GPU's queued work is charged to its phase
 
     @contextmanager
     def __call__(self, phase: str):
@@ -26,6 +27,8 @@ class PhaseTimer:
         try:
             yield
         finally:
+            if self.sync is not None:
+                self.sync()
             self.wall[phase] += time.perf_counter() - wall
             self.cpu[phase] += time.thread_time() - cpu
 
