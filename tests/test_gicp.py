@@ -408,12 +408,12 @@ def test_config_validation_and_hints():
     with pytest.raises(ConfigError, match="tracker.pixel_stride"):
         GICPConfig(pixel_stride=0)
     cfg = GICPConfig()
-    assert cfg.pixel_stride is None and cfg.max_correspondence_distance is None and cfg.min_target_opacity is None
+    assert cfg.pixel_stride is None and cfg.max_correspondence_distance is None and cfg.min_target_opacity == 0
     with pytest.raises(ConfigError, match="tracker.pixel_stride"):
         GICPTracker(cfg)  # nulls are the dataset's to fill
-    replica = SensorProfile(tracking_pixel_stride=10, correspondence_distance=0.02, min_target_opacity=0.05)
+    replica = SensorProfile(tracking_pixel_stride=10, correspondence_distance=0.02)
     tracker = GICPTracker(cfg.with_sensor(replica))
-    assert (tracker.pixel_stride, tracker.max_corr, tracker.min_opacity) == (10, 0.02, 0.05)
+    assert (tracker.pixel_stride, tracker.max_corr, tracker.min_opacity) == (10, 0.02, 0.0)
     tracker = GICPTracker(GICPConfig(pixel_stride=3).with_sensor(replica))  # a value given wins
     assert (tracker.pixel_stride, tracker.max_corr) == (3, 0.02)
 

@@ -214,8 +214,8 @@ class GroundTruthTracker(Tracker):
     """Reports each frame's ground-truth pose with Gaussians from its depth; records the
     tracking target it is given at each tracking keyframe."""
 
-    def __init__(self, stride: int = 3):
-        self.stride = stride
+    def __init__(self, stride: int = 3, geometry: str = "entry"):
+        self.stride, self.geometry = stride, geometry
         self.targets = []
 
     def track(self, frame, gaussian_map):
@@ -231,13 +231,15 @@ class GroundTruthTracker(Tracker):
         return TrackingResult(frame.gt_pose, gaussians=g)
 
     def update_target(self, gaussian_map):
-        self.targets.append(gaussian_map.tracking_target())
+        self.targets.append(gaussian_map.tracking_target(geometry=self.geometry))
 
 
-def test_tracking_keyframe_sees_the_optimised_map(truth_frames):
+@pytest.mark.parametrize("geometry", ["optimised", "entry"])
+def test_a_tracking_keyframe_takes_the_target_geometry_it_asks_for(truth_frames, geometry):
     """Through the SLAM loop: the target taken at the second tracking keyframe holds the values
-    the mapper optimised, not the ones the first keyframe's Gaussians entered with."""
-    tracker = GroundTruthTracker()
+    the mapper optimised ("optimised", the reference code's exchange), or the ones the first
+    keyframe's Gaussians entered with ("entry", G-ICP's default) while the mapper moved them."""
+    tracker = GroundTruthTracker(geometry=geometry)
     gm = GaussianMap()
     mapper = make_mapper(gm, optimizer=("adam", {"lr_means": 1e-3}))
     slam = SLAM(tracker, EveryNKeyframePolicy(EveryNKeyframeConfig(tracking_every=2)), mapper, gm,
@@ -256,9 +258,15 @@ def test_tracking_keyframe_sees_the_optimised_map(truth_frames):
     entered = torch.as_tensor(first.means)
     optimised_means, optimised_cov = snapshots[1]  # after frames 0 and 1's mapping steps
     target_means = torch.as_tensor(second.means[:n0])
-    assert not torch.allclose(target_means, entered, atol=1e-5)  # the mapper moved them
-    torch.testing.assert_close(target_means, optimised_means[:n0], rtol=0, atol=0)
-    torch.testing.assert_close(torch.as_tensor(second.covariances[:n0]), optimised_cov[:n0], rtol=1e-6, atol=1e-9)
+    assert not torch.allclose(optimised_means[:n0], entered, atol=1e-5)  # the mapper moved them
+    if geometry == "optimised":
+        torch.testing.assert_close(target_means, optimised_means[:n0], rtol=0, atol=0)
+        torch.testing.assert_close(torch.as_tensor(second.covariances[:n0]), optimised_cov[:n0], rtol=1e-6,
+                                   atol=1e-9)
+    else:
+        torch.testing.assert_close(target_means, entered, rtol=0, atol=0)
+        torch.testing.assert_close(torch.as_tensor(second.covariances[:n0]), torch.as_tensor(first.covariances),
+                                   rtol=0, atol=0)
     assert second.version > first.version
 
 

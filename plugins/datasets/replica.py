@@ -65,7 +65,7 @@ class ReplicaDataset(Dataset):
 
     # rendered, noiseless depth of 1200x680 frames: the reference code's Replica settings
     default_sensor = SensorProfile(depth_trunc=12.0, max_gaussian_scale=0.25,
-                                   tracking_pixel_stride=10, correspondence_distance=0.02, min_target_opacity=0.05,
+                                   tracking_pixel_stride=10, correspondence_distance=0.02,
                                    new_gaussian_overlap=5e-5, keyframe_overlap=5e-4, keyframe_threshold=0.7)
 
     def __init__(self, cfg: ReplicaConfig):

@@ -186,6 +186,6 @@ def load_ply(path: str | Path, device: str | torch.device = "cpu") -> GaussianMa
         "colors": cols("f_dc_0", "f_dc_1", "f_dc_2") * np.float32(C0) + np.float32(0.5),
     }
     rows = {name: torch.tensor(np.ascontiguousarray(value), device=gm.device) for name, value in values.items()}
-    gm.append(GaussianRows(**rows, trackable=torch.ones(n, dtype=torch.bool, device=gm.device),
+    gm.append(GaussianRows.from_parameters(rows, trackable=torch.ones(n, dtype=torch.bool, device=gm.device),
                            keyframe_id=torch.full((n,), -1, dtype=torch.int64, device=gm.device)))
     return gm

@@ -12,11 +12,12 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import fields
 from typing import TYPE_CHECKING
 
 import torch
 
-from slamkit.map.gaussian_map import PARAMETERS, GaussianMap, GaussianRows
+from slamkit.map.gaussian_map import GaussianMap, GaussianRows
 from slamkit.geometry.transforms import quat_to_rotmat
 
 if TYPE_CHECKING:
@@ -120,7 +121,7 @@ class MapEdit:
             child.means = parents.means + torch.einsum("nij,nj->ni", R, s * noise)
             child.log_scales = parents.log_scales - math.log(scale_divisor)
             self.duplicate(index)
-            self._overwrite(slice(len(self.map) - len(index), len(self.map)), child)
+            self._overwrite(slice(len(self.map) - len(index), len(self.map)), child.entering_now())
         drop = torch.zeros(len(self.map), dtype=torch.bool, device=self.map.device)
         drop[index] = True
         self.remove(drop)
@@ -144,10 +145,8 @@ class MapEdit:
 
     def _overwrite(self, index, rows: GaussianRows) -> None:
         with torch.no_grad():
-            for name in PARAMETERS:
-                getattr(self.map, name)[index] = getattr(rows, name).to(self.map.device)
-            self.map.trackable[index] = rows.trackable.to(self.map.device)
-            self.map.keyframe_id[index] = rows.keyframe_id.to(self.map.device)
+            for f in fields(GaussianRows):
+                getattr(self.map, f.name)[index] = getattr(rows, f.name).to(self.map.device)
 
         def zero(name, v):
             v = v.clone()

@@ -12,6 +12,8 @@ from slamkit.geometry.transforms import covariance_from_scales, scales_from_cova
 
 #: The optimisable parameters, in this order everywhere (GaussianMap, GaussianRows, optimisers).
 PARAMETERS = ("means", "quats", "log_scales", "opacity_logits", "colors")
+#: The geometry a Gaussian entered the map with, which no optimiser changes: entry field -> parameter.
+ENTRY_GEOMETRY = {"entry_means": "means", "entry_quats": "quats", "entry_log_scales": "log_scales"}
 
 
 def _logit(p: np.ndarray) -> np.ndarray:
@@ -23,7 +25,9 @@ class GaussianRows:
     """Gaussians that are not (or not yet) rows of a map, in the map's parameterisation: torch
     tensors with one row each. means (N,3) world metres; quats (N,4) (w, x, y, z); log_scales
     (N,3) log of standard deviations in metres; opacity_logits (N,); colors (N,3) RGB in [0, 1];
-    trackable (N,) bool; keyframe_id (N,) int64 (the keyframe that added it, -1 = none)."""
+    trackable (N,) bool; keyframe_id (N,) int64 (the keyframe that added it, -1 = none);
+    entry_means, entry_quats, entry_log_scales: the geometry it entered the map with (what a
+    tracker aligns to, see GaussianMap)."""
 
     means: torch.Tensor
     quats: torch.Tensor
@@ -32,6 +36,21 @@ class GaussianRows:
     colors: torch.Tensor
     trackable: torch.Tensor
     keyframe_id: torch.Tensor
+    entry_means: torch.Tensor
+    entry_quats: torch.Tensor
+    entry_log_scales: torch.Tensor
+
+    @classmethod
+    def from_parameters(cls, params: dict[str, torch.Tensor], trackable: torch.Tensor,
+                        keyframe_id: torch.Tensor) -> GaussianRows:
+        """Rows entering now: their entry geometry is their current one."""
+        entry = {field: params[name].detach().clone() for field, name in ENTRY_GEOMETRY.items()}
+        return cls(**{k: params[k] for k in PARAMETERS}, trackable=trackable, keyframe_id=keyframe_id, **entry)
+
+    def entering_now(self) -> GaussianRows:
+        """These rows with their current geometry as their entry geometry (new Gaussians made
+        from others, e.g. a split's children)."""
+        return GaussianRows.from_parameters(self.parameters(), self.trackable, self.keyframe_id)
 
     @classmethod
     def from_shapes(cls, means, quats, scales, colors, opacity, trackable, keyframe_id, device=None) -> GaussianRows:
@@ -43,16 +62,13 @@ class GaussianRows:
         def f32(a, width):
             return torch.as_tensor(np.asarray(a, dtype=np.float32), device=device).reshape((n, width) if width else n)
 
-        return cls(
-            means=f32(means, 3),
-            quats=f32(quats, 4),
-            log_scales=f32(np.log(np.maximum(np.asarray(scales, dtype=np.float64), 1e-8)), 3),
-            opacity_logits=f32(_logit(opacity), 0),
-            colors=f32(colors, 3),
-            trackable=torch.as_tensor(np.asarray(trackable, dtype=bool), device=device).reshape(n),
+        params = {"means": f32(means, 3), "quats": f32(quats, 4),
+                  "log_scales": f32(np.log(np.maximum(np.asarray(scales, dtype=np.float64), 1e-8)), 3),
+                  "opacity_logits": f32(_logit(opacity), 0), "colors": f32(colors, 3)}
+        return cls.from_parameters(
+            params, trackable=torch.as_tensor(np.asarray(trackable, dtype=bool), device=device).reshape(n),
             keyframe_id=torch.as_tensor(np.broadcast_to(np.asarray(keyframe_id, dtype=np.int64), (n,)).copy(),
-                                        device=device),
-        )
+                                        device=device))
 
     @classmethod
     def from_covariances(cls, means, covariances, colors, opacity, trackable, keyframe_id, scale_factors=None,
@@ -90,6 +106,12 @@ class GaussianMap:
       used); log_scales (N,3) log of standard deviations in metres; opacity_logits (N,) logit
       of opacity; colors (N,3) RGB in [0, 1] (SH degree 0).
     Per-Gaussian flags: trackable (N,) bool, keyframe_id (N,) int64 (the keyframe that added it).
+    Entry geometry: entry_means, entry_quats, entry_log_scales, the values each Gaussian entered
+    the map with, which no optimiser changes. The tracker aligns to them by default
+    (`tracking_target(geometry="entry")`): the mapper reshapes and turns Gaussians for rendering
+    (1-3 mm trackable Gaussians, smaller than a training pixel, have their normals turned by
+    7-14 degrees median on TUM fr1/rpy), which cost 28% mean ATE when the tracker aligned to the
+    optimised shapes (docs/tracking_under_mapping.md).
 
     Concurrency: whoever changes the map holds `lock`. Every change bumps `version`; removing or
     overwriting rows also bumps `structure_version` (appending does not), so a training step
@@ -108,10 +130,9 @@ class GaussianMap:
         self._set(empty)
 
     def _set(self, rows: GaussianRows) -> None:
-        for name in PARAMETERS:
-            setattr(self, name, _leaf(getattr(rows, name)))
-        self.trackable = rows.trackable
-        self.keyframe_id = rows.keyframe_id
+        for f in fields(GaussianRows):
+            value = getattr(rows, f.name)
+            setattr(self, f.name, _leaf(value) if f.name in PARAMETERS else value)
 
     def __len__(self) -> int:
         return int(self.means.shape[0])
@@ -161,12 +182,16 @@ class GaussianMap:
         """(N,3,3) world-frame covariances R diag(s^2) R^T in m^2."""
         return covariance_from_scales(self.quats.detach(), self.scales.detach())
 
-    def tracking_target(self, min_opacity: float = 0.0) -> TrackingTarget:
-        """Copy the trackable Gaussians with opacity above `min_opacity` for a tracker."""
+    def tracking_target(self, min_opacity: float = 0.0, geometry: str = "entry") -> TrackingTarget:
+        """Copy the trackable Gaussians with opacity above `min_opacity` for a tracker, with their
+        `geometry`: "entry" (means and shapes as they entered the map) or "optimised" (the
+        mapper's current values, as the reference code)."""
         with self.lock:
             keep = self.trackable & (self.opacities.detach() > min_opacity)
-            means = self.means.detach()[keep]
-            cov = covariance_from_scales(self.quats.detach()[keep], torch.exp(self.log_scales.detach()[keep]))
+            prefix = {"entry": "entry_", "optimised": ""}[geometry]
+            means, quats, log_scales = (getattr(self, prefix + name).detach()[keep]
+                                        for name in ("means", "quats", "log_scales"))
+            cov = covariance_from_scales(quats, torch.exp(log_scales))
             return TrackingTarget(
                 means=means.cpu().numpy().copy(), covariances=cov.cpu().numpy().copy(), version=self.version
             )

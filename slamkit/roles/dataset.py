@@ -27,8 +27,7 @@ class SensorProfile:
       in these scenes (larger ones are pruned). tracking_pixel_stride: a tracker samples every
       n-th pixel in x and y at the native resolution (reference: 5 TUM, 10 Replica).
       correspondence_distance: metres, G-ICP's largest correspondence distance for this depth
-      noise (0.03 TUM, 0.02 Replica). min_target_opacity: map Gaussians at or below this
-      opacity are not tracked against. new_gaussian_overlap: m^2, a keyframe Gaussian this close
+      noise (0.03 TUM, 0.02 Replica). new_gaussian_overlap: m^2, a keyframe Gaussian this close
       to a trackable map Gaussian is not made trackable (no duplicate targets).
       keyframe_overlap: m^2, a frame point overlaps the map when its squared distance to the
       nearest map Gaussian is below this (1e-3 TUM, 5e-4 Replica). keyframe_threshold: a
@@ -40,7 +39,6 @@ class SensorProfile:
     max_gaussian_scale: float = 1.0
     tracking_pixel_stride: int = 5
     correspondence_distance: float = 0.03
-    min_target_opacity: float = 0.09
     new_gaussian_overlap: float = 1e-3
     keyframe_overlap: float = 1e-3
     keyframe_threshold: float = 0.81

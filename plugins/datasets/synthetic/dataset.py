@@ -110,7 +110,7 @@ class SyntheticDataset(Dataset):
 
     # small frames (320x240 by default) of a 6 x 5 x 3 m room: a dense sample stride
     default_sensor = SensorProfile(depth_scale=DEPTH_SCALE, depth_trunc=6.0, max_gaussian_scale=0.5,
-                                   tracking_pixel_stride=2, min_target_opacity=0.05)
+                                   tracking_pixel_stride=2)
 
     def __init__(self, cfg: SyntheticConfig):
         super().__init__(cfg)

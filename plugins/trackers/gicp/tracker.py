@@ -3,8 +3,9 @@
 Each frame's depth is back-projected on a fixed pixel grid (every `pixel_stride`-th pixel,
 no voxel filter); every point gets a covariance from its `knn` nearest neighbours (the source
 Gaussians), regularised (`ellipse` by default). The target is the map's trackable Gaussians
-with opacity above `min_target_opacity`, their covariances R diag(s^2) R^T regularised the
-same way (the reference code's rule that a map covariance with a median eigenvalue below 1e-3
+(with opacity above `min_target_opacity`, 0 by default) with the geometry they entered the map
+with (`target_geometry=entry`; the mapper's optimised one with `optimised`, as the reference
+code), their covariances R diag(s^2) R^T regularised the same way (the reference code's rule that a map covariance with a median eigenvalue below 1e-3
 becomes 1e-3 I is `target_min_median`, off by default: see GICPConfig). The pose minimises
 
     sum_i d_i^T (C_t,i + R C_s,i R^T)^-1 d_i,   d_i = mu_t,i - (R p_i + t)
@@ -40,7 +41,7 @@ from slamkit.geometry.transforms import backproject, invert_pose
 from slamkit.roles import Tracker, require
 from slamkit.types import Frame, FrameGaussians, TrackingResult
 from slamkit_plugins.trackers.gicp.alignment import Aligner, new_stats, orthonormalize
-from slamkit_plugins.trackers.gicp.config import GICPConfig, InitialGuess
+from slamkit_plugins.trackers.gicp.config import GICPConfig, InitialGuess, TargetGeometry
 from slamkit_plugins.trackers.gicp.fallbacks import FallbackPolicy
 from slamkit_plugins.trackers.gicp.kernels import create_kernels
 from slamkit_plugins.trackers.gicp.target import Target
@@ -54,7 +55,7 @@ class GICPTracker(Tracker):
 
     def __init__(self, cfg: GICPConfig):
         self.cfg = cfg
-        for name in ("pixel_stride", "max_correspondence_distance", "min_target_opacity"):
+        for name in ("pixel_stride", "max_correspondence_distance"):
             require(getattr(cfg, name) is not None, f"tracker.{name}", "a value (GICPConfig.with_sensor fills it from the dataset)", None)
         self.pixel_stride = int(cfg.pixel_stride)
         self.max_corr = float(cfg.max_correspondence_distance)
@@ -81,7 +82,7 @@ class GICPTracker(Tracker):
     def update_target(self, gaussian_map: GaussianMap) -> None:
         """Take the map's trackable Gaussians as the new target; regularise their covariances
         and build the KD-tree (the only place it is built)."""
-        snap = gaussian_map.tracking_target(self.min_opacity)
+        snap = gaussian_map.tracking_target(self.min_opacity, TargetGeometry(self.cfg.target_geometry).value)
         if len(snap.means) == 0:
             self.target = None
             return
