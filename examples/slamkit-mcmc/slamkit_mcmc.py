@@ -120,7 +120,7 @@ def shared_opacity(opacity: torch.Tensor, copies: torch.Tensor) -> torch.Tensor:
 
 def scale_factor(opacity: torch.Tensor, new_opacity: torch.Tensor, copies: torch.Tensor) -> torch.Tensor:
     """The factor on a source's standard deviations after it is split into copies + 1
-    Gaussians of opacity `new_opacity`: o / D (the module docstring's D), in float64."""
+    Gaussians of opacity `new_opacity`: o / D (the module docstring's D), computed in float64."""
     o, o_new = opacity.double(), new_opacity.double()
     t = torch.linspace(0.0, INTEGRAL_END, INTEGRAL_POINTS, dtype=torch.float64, device=o.device)
     profile = o_new[:, None] * torch.exp(-t * t)[None, :]
