@@ -52,9 +52,11 @@ $(VENV)/.installed: pyproject.toml $(VENV)/.torch
 	$(PY) -m pip install --quiet -e .
 	touch $@
 
-$(VENV)/.installed-test: pyproject.toml examples/slamkit-p2plane/pyproject.toml $(VENV)/.torch
+$(VENV)/.installed-test: pyproject.toml examples/slamkit-p2plane/pyproject.toml examples/slamkit-mcmc/pyproject.toml \
+		$(VENV)/.torch
 	$(PY) -m pip install --quiet -e ".[test]"  # includes the extras viewer (rerun-sdk) and mesh (open3d)
-	$(PY) -m pip install --quiet --no-deps -e examples/slamkit-p2plane  # the example third-party plugin
+	$(PY) -m pip install --quiet --no-deps -e examples/slamkit-p2plane  # the example third-party plugins:
+	$(PY) -m pip install --quiet --no-deps -e examples/slamkit-mcmc     # a tracker and a densification strategy
 	touch $(VENV)/.installed $@
 
 # The GPU check (docs/gpu.md) runs on a machine with no registry: what it needs beside that

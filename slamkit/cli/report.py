@@ -22,7 +22,8 @@ from slamkit.errors import DataError, SlamkitError
 from slamkit.formats.tum import read_tum_trajectory
 
 METRICS = ["ate_rmse_m", "ate_mean_m", "rpe_trans_rmse_m", "fps", "tracking_fps", "psnr", "ssim",
-           "psnr_train", "psnr_test", "depth_l1_cm", "num_keyframes", "num_gaussians", "lost_frames", "peak_memory_mb"]
+           "psnr_train", "psnr_test", "depth_l1_cm", "num_keyframes", "num_gaussians", "lost_frames", "peak_memory_mb",
+           "mapping_train_time_s", "mapping_train_cpu_s", "wall_time_s"]
 
 
 def find_runs(dirs: list[Path]) -> list[Path]:

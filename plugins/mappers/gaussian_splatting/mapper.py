@@ -22,6 +22,7 @@ removed or overwritten is dropped (`stale_steps`).
 from __future__ import annotations
 
 import logging
+import time
 from collections import deque
 from contextlib import contextmanager
 from typing import Any
@@ -61,6 +62,10 @@ class GaussianSplattingMapper(Mapper):
         self.steps = 0  # training steps taken (skipped and dropped ones excluded)
         self.skipped_steps = 0  # steps skipped for a non-finite loss or gradient
         self.stale_steps = 0  # steps dropped: rows were removed or overwritten during them
+        # Seconds in optimize() and the strategy's finish (final steps included): wall clock, and
+        # CPU time of the calling thread (all of the work with OMP_NUM_THREADS=1, whatever the load).
+        self.train_time_s = 0.0
+        self.train_cpu_s = 0.0
         self.last_loss: float | None = None
         self.timer = PhaseTimer()  # where the steps' time goes (metrics.json: mapping_step_ms)
         self.bind(GaussianMap())
@@ -88,7 +93,7 @@ class GaussianSplattingMapper(Mapper):
         """Up to `iterations` steps; returns the steps attempted (skipped and dropped ones
         included); 0 while there is no keyframe or no Gaussian, so a real-time mapping loop
         waits instead of spinning."""
-        done = 0
+        start, cpu_start, done = time.perf_counter(), time.thread_time(), 0
         while done < iterations and len(self.keyframes) and len(self.gaussian_map):
             with self.timer("view"):
                 kf_id = self.pending.popleft() if self.pending else self._sample()
@@ -98,12 +103,15 @@ class GaussianSplattingMapper(Mapper):
             self.train_step(view)
             self.timer.steps += 1
             done += 1
+        self._count_time(start, cpu_start)
         return done
 
     def finish(self) -> None:
+        start, cpu_start = time.perf_counter(), time.thread_time()
         with self.gaussian_map.lock:
             self.edit.sync()
             self.strategy.finish(self.edit)
+        self._count_time(start, cpu_start)
         stats = self.strategy.metrics()
         if stats.get("memory_guard_prunings"):
             log.info("memory guard (max_gaussians %s): %d Gaussians pruned in %d prunings",
@@ -121,11 +129,16 @@ class GaussianSplattingMapper(Mapper):
         first = self.keyframes[self.keyframes.ids[0]].camera if len(self.keyframes) else None
         metrics.update(self.strategy.metrics(), mapping_steps=self.steps, mapping_skipped_steps=self.skipped_steps,
                        mapping_stale_steps=self.stale_steps, mapping_step_ms=self.timer.per_step_ms(),
+                       mapping_train_time_s=self.train_time_s, mapping_train_cpu_s=self.train_cpu_s,
                        keyframe_memory_mb=self.keyframes.memory_bytes() / 2**20,
                        train_resolution=[first.width, first.height] if first else None)
         return metrics
 
     # -- training ----------------------------------------------------------------------------
+    def _count_time(self, start: float, cpu_start: float) -> None:
+        self.train_time_s += time.perf_counter() - start
+        self.train_cpu_s += time.thread_time() - cpu_start
+
     def _sample(self) -> int:
         ids = list(self.keyframes.ids)
         poses = {k: self.keyframes[k].pose for k in ids}
