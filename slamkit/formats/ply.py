@@ -17,13 +17,13 @@ the vertices. Anything else raises `slamkit.errors.DataError` naming the file an
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from slamkit.errors import DataError
+from slamkit.formats.atomic import atomic_open
 from slamkit.map.gaussian_map import GaussianMap, GaussianRows
 
 #: The degree-0 real spherical harmonic, 1 / (2 sqrt(pi)).
@@ -67,11 +67,9 @@ def save_ply(path: str | Path, gaussian_map: GaussianMap) -> None:
         data[f"rot_{i}"] = quats[:, i]
     header = "ply\nformat binary_little_endian 1.0\ncomment slamkit Gaussian map (3DGS layout, SH degree 0)\n"
     header += f"element vertex {n}\n" + "".join(f"property float {p}\n" for p in PROPERTIES) + "end_header\n"
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
+    with atomic_open(path, "wb") as f:
         f.write(header.encode("ascii"))
         f.write(data.tobytes())
-    os.replace(tmp, path)
 
 
 def _parse_header(path: Path, raw: bytes):

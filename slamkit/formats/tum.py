@@ -12,13 +12,12 @@ Bad input raises `slamkit.errors.DataError` naming the file and the line.
 from __future__ import annotations
 
 import math
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from slamkit.errors import DataError
+from slamkit.formats.atomic import write_atomic
 from slamkit.geometry.transforms import quat_to_rotmat, rotmat_to_quat
 
 
@@ -119,18 +118,7 @@ def write_tum_trajectory(path: str | Path, timestamps, poses) -> None:
     q = rotmat_to_quat(poses[:, :3, :3]) if len(poses) else np.zeros((0, 4))
     table = np.column_stack([ts, poses[:, :3, 3], q[:, 1:], q[:, :1]])
     body = "".join(f"{r[0]:.6f} " + " ".join(f"{v:.9f}" for v in r[1:]) + "\n" for r in table)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        os.fchmod(fd, 0o644)  # mkstemp makes it private; a trajectory is an ordinary output
-        with os.fdopen(fd, "w") as f:
-            f.write(body)  # no header: exactly one line per frame (the run-output contract)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_atomic(path, body)  # no header: exactly one line per frame (the run-output contract)
 
 
 def associate(first: np.ndarray, second: np.ndarray, max_difference: float) -> tuple[np.ndarray, np.ndarray]:

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from slamkit.formats.atomic import write_atomic
 from slamkit.formats.tum import write_tum_trajectory
 from slamkit.metrics import trajectory as evaluation
 from slamkit.registry.schema import RunConfig
@@ -151,9 +152,7 @@ def _peak_memory_mb() -> float:
 
 
 def _write_json_atomic(path: Path, data: dict) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2, default=float) + "\n")
-    os.replace(tmp, path)
+    write_atomic(path, json.dumps(data, indent=2, default=float) + "\n")
 
 
 def _summary(m: dict[str, Any]) -> str:
