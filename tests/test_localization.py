@@ -82,10 +82,15 @@ def test_replica_frames_10_19_localise_in_the_map_of_frames_0_9(tmp_path, replic
     assert lines[0].startswith("index,timestamp,localized,relocalized") and len(lines) == 11
 
 
-@pytest.mark.slow
-def test_localize_needs_a_map(tmp_path, replica_path):
-    proc = run_slamkit("dataset=replica", f"dataset.path={replica_path}", "mode=localize", cwd=tmp_path)
-    assert proc.returncode == 2 and "map: expected a run folder or checkpoint file" in proc.stderr
-    proc = run_slamkit("dataset=replica", f"dataset.path={replica_path}", "mode=localize",
-                       f"map={tmp_path / 'nothing'}", cwd=tmp_path)
-    assert proc.returncode == 2 and f"checkpoint {tmp_path / 'nothing'} not found" in proc.stderr
+def test_localize_needs_a_map(tmp_path):
+    from slamkit.errors import ConfigError
+    from slamkit.formats.checkpoint import CheckpointError
+    from slamkit.run.checkpoint import load_map
+    from slamkit.run.localization import localize_arguments
+
+    with pytest.raises(ConfigError, match="map: expected a run folder or checkpoint file with mode=localize"):
+        compose_run(["mode=localize"])
+    assert localize_arguments(["mode=localize", "map=out/run", "map.scale_c=3"]) == [
+        "mode=localize", "localize.map=out/run", "map.scale_c=3"]
+    with pytest.raises(CheckpointError, match=f"checkpoint {tmp_path / 'nothing'} not found"):
+        load_map(tmp_path / "nothing")

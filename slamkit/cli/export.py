@@ -159,6 +159,9 @@ def export_mesh(run_dir: Path, out: Path | None = None, voxel: float = 0.01, sdf
         rgbd = _render_rgbd(o3d, backend, gaussian_map, pose, camera, min_alpha, depth_trunc)
         volume.integrate(rgbd, intrinsic, _world_to_camera(pose))
     mesh = volume.extract_triangle_mesh()
+    if len(mesh.vertices) == 0:
+        raise DataError(f"{source}: no surface to mesh: no rendered pixel reached --min-alpha {min_alpha} (an "
+                        "untrained map, mapper=none, is faint: try --min-alpha 0.2)")
     mesh.compute_vertex_normals()
     out.parent.mkdir(parents=True, exist_ok=True)
     if not o3d.io.write_triangle_mesh(str(out), mesh):

@@ -45,7 +45,7 @@ from slamkit.types import Frame, TrackingResult
 log = logging.getLogger(__name__)
 
 #: Pixel stride of the frame points given to global registration (they are voxel-downsampled).
-REGISTRATION_PIXEL_STRIDE = 2
+REGISTRATION_PIXEL_STRIDE = 4
 
 
 @dataclass
