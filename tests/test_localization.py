@@ -81,6 +81,23 @@ def test_replica_frames_10_19_localise_in_the_map_of_frames_0_9(tmp_path, replic
     lines = (tmp_path / "loc" / "frames.csv").read_text().splitlines()
     assert lines[0].startswith("index,timestamp,localized,relocalized") and len(lines) == 11
 
+    # a frame the tracker loses (no depth) is not localised; the next one is registered again
+    from dataclasses import replace
+
+    from slamkit.run.checkpoint import load_map
+    from slamkit.run.localization import Localizer
+
+    registry = default_registry()
+    cfg, names = compose_run([*replica, "mode=localize", f"localize.map={tmp_path / 'map'}", "dataset.start=10"])
+    dataset = registry.create("dataset", names["dataset"], cfg.dataset)
+    localizer = Localizer(cfg, registry.create("tracker", names["tracker"], cfg.tracker, dataset.sensor),
+                          load_map(tmp_path / "map")[0])
+    first, blind, after = dataset[0], dataset[1], dataset[2]
+    steps = [localizer.step(first), localizer.step(replace(blind, depth=np.zeros_like(blind.depth))),
+             localizer.step(after)]
+    assert [(s.localized, s.relocalized) for s in steps] == [(True, True), (False, True), (True, True)]
+    assert np.linalg.norm(steps[2].pose[:3, 3] - after.gt_pose[:3, 3]) < 0.01
+
 
 def test_localize_needs_a_map(tmp_path):
     from slamkit.errors import ConfigError
