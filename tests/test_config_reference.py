@@ -30,6 +30,8 @@ EXPLICIT = {
     "viewer.application_id": "slamkit-test", "dataset.cache_dir": "{tmp}/cache", "rasterizer.prefer": ["torch"],
     "dataset.camera": "fr1", "dataset.max_frames": 5, "dataset.start": 2, "dataset.stride": 2,
     "dataset.path": "{data}", "dataset=tum:dataset.gt_path": "{data}/groundtruth.txt",
+    "dataset.color_topic": "/camera/rgb/image_color", "dataset.depth_topic": "/camera/depth/image",
+    "dataset.camera_info_topic": "/camera/rgb/camera_info", "dataset.groundtruth": "{data}/groundtruth.txt",
 }
 
 
@@ -128,6 +130,7 @@ def data(tmp_path_factory) -> dict[str, Path]:
     from slamkit_plugins.datasets.tum import TUMConfig, TUMDataset
     from test_datasets import make_sevenscenes
     from test_folder_dataset import make_folder
+    from rosbag_writer import write_tum_bag
 
     root = tmp_path_factory.mktemp("datasets")
     folder = make_folder(root / "folder", TUMDataset(TUMConfig(path=str(require_data(TUM)), max_frames=10)))
@@ -135,8 +138,10 @@ def data(tmp_path_factory) -> dict[str, Path]:
     shutil.copy(folder / "gt.txt", folder / "groundtruth.txt")
     (folder / "intrinsics.json").write_text(json.dumps(yaml.safe_load((folder / "intrinsics.yaml").read_text())))
     make_sevenscenes(root / "chess" / "seq-01", n=8)
+    bag = write_tum_bag(require_data(TUM), root / "fr1_mcap", 6, "mcap")  # a ROS2 bag folder
+    shutil.copy(TUM / "groundtruth.txt", bag / "groundtruth.txt")
     return {"tum": require_data(TUM), "replica": require_data(REPLICA), "folder": folder,
-            "sevenscenes": root / "chess" / "seq-01"}
+            "sevenscenes": root / "chess" / "seq-01", "rosbag": bag}
 
 
 def config_class(section: str) -> type:
