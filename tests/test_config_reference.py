@@ -32,12 +32,13 @@ EXPLICIT = {
     "dataset.path": "{data}", "dataset=tum:dataset.gt_path": "{data}/groundtruth.txt",
     "dataset.color_topic": "/camera/rgb/image_color", "dataset.depth_topic": "/camera/depth/image",
     "dataset.camera_info_topic": "/camera/rgb/camera_info", "dataset.groundtruth": "{data}/groundtruth.txt",
+    "objective.metric": "psnr", "viewer.host": "0.0.0.0",
 }
 
 
 def reference_keys() -> list[tuple[str, str, str, str]]:
     """(section, key, type, default) of every row of docs/configuration.md; section is "" for the
-    top level, "map" / "eval", or "role=name"."""
+    top level, "map" / "eval" / "objective", or "role=name"."""
     rows, section = [], ""
     for line in REFERENCE.read_text().splitlines():
         heading = re.match(r"#+ `(\w+)(?:=(\w+)|\.\*)`", line)
@@ -77,7 +78,7 @@ def candidates(key: str, type_: str, default: str, tmp: Path, data: Path | None 
 
 def base_overrides(section: str, tmp: Path, data: dict[str, Path]) -> list[str]:
     """What selects the plugin a key belongs to (and the data it needs)."""
-    if not section or section in ("map", "eval"):
+    if not section or section in ("map", "eval", "objective"):
         return []
     role, name = section.split("=")
     base = [f"{role}={name}"]
@@ -93,8 +94,8 @@ def built_config(section: str, key: str, run, slam, viewer, dataset):
     group = key.split(".")[0] if "." in key else ""
     if not group:
         return run
-    if group == "eval":
-        return run.eval
+    if group in ("eval", "objective"):
+        return getattr(run, group)
     if group == "map":
         return slam.map_growth
     objects = {"dataset": dataset, "tracker": slam.tracker, "keyframe": slam.keyframe_policy,
@@ -147,10 +148,10 @@ def data(tmp_path_factory) -> dict[str, Path]:
 def config_class(section: str) -> type:
     """The dataclass that holds a section's keys."""
     from slamkit.map.growth import MapGrowthConfig
-    from slamkit.registry.schema import EvalConfig, RunConfig
+    from slamkit.registry.schema import EvalConfig, ObjectiveConfig, RunConfig
 
-    if section in ("", "map", "eval"):
-        return {"": RunConfig, "map": MapGrowthConfig, "eval": EvalConfig}[section]
+    if section in ("", "map", "eval", "objective"):
+        return {"": RunConfig, "map": MapGrowthConfig, "eval": EvalConfig, "objective": ObjectiveConfig}[section]
     role, name = section.split("=")
     return default_registry().get(role, name).config
 
