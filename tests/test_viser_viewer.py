@@ -157,7 +157,7 @@ def test_a_replica_run_with_viser_exits_after_its_last_frame(tmp_path, replica_p
                        "viewer.port=0", "viewer.splat_keyframes=1", "viewer.render_every=2", f"hydra.run.dir={out}",
                        cwd=tmp_path, env_extra={"OMP_NUM_THREADS": "1"}, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    assert "viser viewer: open http://127.0.0.1:" in proc.stderr
+    assert "slamkit: the live map is at http://127.0.0.1:" in proc.stdout
     metrics = json.loads((out / "metrics.json").read_text())
     stats = json.loads((out / "viser.json").read_text())
     assert metrics["completed"] and stats["splats_sent"] == metrics["num_gaussians"] > 0  # the final map

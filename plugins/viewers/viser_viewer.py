@@ -145,7 +145,8 @@ class ViserViewer(Viewer):
         self._camera = camera
         self._worker = threading.Thread(target=self._work, name="slamkit-viser", daemon=True)
         self._worker.start()
-        log.warning("viser viewer: open %s in a browser", self.url)
+        log.info("viser viewer: serving %s", self.url)
+        print(f"slamkit: the live map is at {self.url} (viewer=viser)", flush=True)
 
     def show(self, view: ViewerFrame) -> None:
         with self._wake:
@@ -165,7 +166,7 @@ class ViserViewer(Viewer):
         self._worker = None
         self._write_stats()
         if self.cfg.keep_serving:
-            log.warning("viser viewer: the run is done; still serving %s (Ctrl-C to stop)", self.url)
+            log.info("viser viewer: the run is done; still serving %s", self.url)
             print(f"slamkit: the map is served at {self.url}; Ctrl-C to stop", flush=True)
             try:
                 while True:
