@@ -119,7 +119,7 @@ def main() -> None:
     os.environ.setdefault("RAY_AUTH_MODE", "disabled")
     # conf/hydra/launcher/ray.yaml takes the place of the Ray launcher's own config of that name on
     # purpose; Hydra 1.3 still validates it against that schema, and warns that this is deprecated.
-    warnings.filterwarnings("ignore", message=".*is validated against ConfigStore schema with the same name")
+    warnings.filterwarnings("ignore", message=r"(?s).*is validated against ConfigStore schema with the same name")
     _registry = discover()
     if EXPERIMENTS_DIR.is_dir() and not any(a.startswith("hydra.searchpath") for a in sys.argv[1:]):
         sys.argv.append(f"hydra.searchpath=[file://{EXPERIMENTS_DIR}]")
