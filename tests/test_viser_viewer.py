@@ -8,6 +8,7 @@ import asyncio
 import json
 import time
 import urllib.request
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -162,3 +163,35 @@ def test_a_replica_run_with_viser_exits_after_its_last_frame(tmp_path, replica_p
     stats = json.loads((out / "viser.json").read_text())
     assert metrics["completed"] and stats["splats_sent"] == metrics["num_gaussians"] > 0  # the final map
     assert stats["updates"]["render"]["count"] >= 1 and stats["updates"]["image"]["count"] >= 1
+
+
+@pytest.mark.slow
+def test_keep_serving_serves_the_page_after_the_run_until_sigterm(tmp_path):
+    import os
+    import re
+    import signal
+    import subprocess
+    import sys
+
+    out = tmp_path / "run"
+    cmd = [str(Path(sys.executable).with_name("slamkit")), "dataset=synthetic", "dataset.num_frames=4",
+           "dataset.width=64", "dataset.height=48", "mapper=none", "progress=false", "eval.plot=false",
+           "viewer=viser", "viewer.port=0", "viewer.keep_serving=true", f"hydra.run.dir={out}"]
+    proc = subprocess.Popen(cmd, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+                            env=dict(os.environ, OMP_NUM_THREADS="1"))
+    try:
+        url = None
+        for line in proc.stdout:  # the address, then the line saying the run is done
+            found = re.search(r"the map is served at (http://\S+);", line)
+            if found:
+                url = found.group(1)
+                break
+        assert url is not None and json.loads((out / "metrics.json").read_text())["completed"]
+        assert "<script" in urllib.request.urlopen(url, timeout=10).read().decode()  # still up after the run
+        time.sleep(1.0)
+        assert proc.poll() is None  # and still waiting
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=60) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()

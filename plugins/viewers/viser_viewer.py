@@ -17,7 +17,7 @@ frame to a worker thread and returns; the worker sends what is due, with bounded
 update (one map copy of at most map_max_points Gaussians, one render at render_scale, two
 small images). Frames that arrive while the worker is busy are skipped by it, not queued.
 After the last frame the final map is sent and the run exits, unless `keep_serving=true`
-keeps the page up until Ctrl-C. `RUN_DIR/viser.json` records the address and the cost of
+keeps the page up until Ctrl-C or SIGTERM. `RUN_DIR/viser.json` records the address and the cost of
 each kind of update (count, mean and max milliseconds in the worker thread).
 """
 
@@ -26,6 +26,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import signal
 import threading
 import time
 from dataclasses import dataclass
@@ -58,7 +59,7 @@ class ViserViewerConfig(ViewerConfig):
     (0 = not by time). image_every: frames between updates of the input image in the panel (0 =
     never). image_width: pixels, the width the panel's images are resized to. frustum_scale:
     metres, the drawn frustum's depth. keep_serving: after the last frame, keep serving the
-    page until Ctrl-C (false: the run exits after sending the final map). map_every (frames)
+    page until Ctrl-C or SIGTERM (false: the run exits after sending the final map). map_every (frames)
     also refreshes the splats when > 0.
     """
 
@@ -167,12 +168,8 @@ class ViserViewer(Viewer):
         self._write_stats()
         if self.cfg.keep_serving:
             log.info("viser viewer: the run is done; still serving %s", self.url)
-            print(f"slamkit: the map is served at {self.url}; Ctrl-C to stop", flush=True)
-            try:
-                while True:
-                    time.sleep(0.5)
-            except KeyboardInterrupt:
-                pass
+            print(f"slamkit: the map is served at {self.url}; Ctrl-C (or SIGTERM) to stop", flush=True)
+            _wait_for_interrupt()
         self.server.stop()
 
     # -- the worker thread -----------------------------------------------------------------
@@ -287,6 +284,22 @@ class ViserViewer(Viewer):
         stats = {"url": self.url, "splats_sent": self.splats_sent,
                  "updates": {k: c.summary() for k, c in self.costs.items()}}
         write_atomic(self.out_dir / STATS_FILE, json.dumps(stats, indent=1) + "\n")
+
+
+def _wait_for_interrupt() -> None:
+    """Block until Ctrl-C or SIGTERM (the latter caught only from the main thread)."""
+    stop = threading.Event()
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, lambda signum, frame: stop.set())
+    try:
+        while not stop.wait(0.5):
+            pass
+    except KeyboardInterrupt:
+        pass
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 @hookimpl
