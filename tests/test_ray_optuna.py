@@ -39,6 +39,42 @@ def _processes_mentioning(text: str) -> list[str]:
     return found
 
 
+def _stop_cluster(marker: str) -> None:
+    """Stop the Ray cluster whose processes' command lines mention `marker` (its temporary
+    folder), and their children (Ray's agents), by process id: `ray stop` would stop every Ray
+    cluster of the machine."""
+    import signal
+    import time
+
+    def family() -> set[int]:
+        pids = {int(line.split(":")[0]) for line in _processes_mentioning(marker)}
+        parents = {}
+        for pid in filter(str.isdigit, os.listdir("/proc")):
+            try:
+                state, parent = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[:2]
+            except (OSError, ValueError):
+                continue
+            if state != "Z":  # a zombie is gone already, waiting for its parent
+                parents[int(pid)] = int(parent)
+        pids &= set(parents)
+        grown = True
+        while grown:
+            children = {pid for pid, parent in parents.items() if parent in pids} - pids
+            grown = bool(children)
+            pids |= children
+        return pids
+
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        for pid in family():
+            try:
+                os.kill(pid, sig)
+            except ProcessLookupError:
+                pass
+        deadline = time.monotonic() + 15
+        while family() and time.monotonic() < deadline:
+            time.sleep(0.2)
+
+
 def _jobs(sweep: Path) -> dict[str, tuple[bytes, dict]]:
     """tracker -> (trajectory.txt bytes, metrics) of each job of a sweep."""
     import json
@@ -111,9 +147,9 @@ def test_ray_launcher_on_an_existing_cluster_by_address(tmp_path):
         assert proc.returncode == 0, proc.stderr[-3000:]
         assert sorted(_jobs(sweep)) == ["gicp", "kiss_icp"]
     finally:
-        subprocess.run([str(ray_exe), "stop", "--force"], env=env, capture_output=True, timeout=120)
-    leftover = _processes_mentioning(str(temp))
-    shutil.rmtree(temp, ignore_errors=True)
+        _stop_cluster(str(temp))
+        leftover = _processes_mentioning(str(temp))
+        shutil.rmtree(temp, ignore_errors=True)
     assert not leftover
 
 
