@@ -26,6 +26,8 @@ import time
 from pathlib import Path
 from typing import Callable
 
+from slamkit.cache import cache_dir
+
 #: Flags every library is built with. -ffp-contract=off and no -ffast-math: results must round as
 #: the numpy / torch reference does. -fno-math-errno only lets sqrt be inlined.
 BASE_FLAGS = ("-O3", "-std=c++17", "-shared", "-fPIC", "-pthread", "-ffp-contract=off", "-fno-math-errno",
@@ -47,8 +49,7 @@ def available_threads() -> int:
 
 
 def cache_root() -> Path:
-    root = os.environ.get("SLAMKIT_CACHE")
-    return Path(root) / "extensions" if root else Path.home() / ".cache" / "slamkit" / "extensions"
+    return cache_dir("extensions")
 
 
 def _cpu_id() -> str:

@@ -31,14 +31,17 @@ EXPLICIT = {
     "dataset.camera": "fr1", "dataset.max_frames": 5, "dataset.start": 2, "dataset.stride": 2,
     "dataset.path": "{data}", "dataset=tum:dataset.gt_path": "{data}/groundtruth.txt",
     "resume": "{tmp}/run", "localize.map": "{tmp}/run",
+    "dataset.color_topic": "/camera/rgb/image_color", "dataset.depth_topic": "/camera/depth/image",
+    "dataset.camera_info_topic": "/camera/rgb/camera_info", "dataset.groundtruth": "{data}/groundtruth.txt",
+    "objective.metric": "psnr", "viewer.host": "0.0.0.0", "viewer.map_as": "ellipsoids",
 }
 #: Top-level sections of keys that are not a role's (section -> the RunConfig field holding them).
-TOP_SECTIONS = ("map", "eval", "checkpoint", "localize")
+TOP_SECTIONS = ("map", "eval", "objective", "checkpoint", "localize")
 
 
 def reference_keys() -> list[tuple[str, str, str, str]]:
     """(section, key, type, default) of every row of docs/configuration.md; section is "" for the
-    top level, "map" / "eval", or "role=name"."""
+    top level, "map" / "eval" / "objective", or "role=name"."""
     rows, section = [], ""
     for line in REFERENCE.read_text().splitlines():
         heading = re.match(r"#+ `(\w+)(?:=(\w+)|\.\*)`", line)
@@ -94,7 +97,7 @@ def built_config(section: str, key: str, run, slam, viewer, dataset):
     group = key.split(".")[0] if "." in key else ""
     if not group:
         return run
-    if group in ("eval", "checkpoint", "localize"):
+    if group in ("eval", "objective", "checkpoint", "localize"):
         return getattr(run, group)
     if group == "map":
         return slam.map_growth
@@ -131,6 +134,7 @@ def data(tmp_path_factory) -> dict[str, Path]:
     from slamkit_plugins.datasets.tum import TUMConfig, TUMDataset
     from test_datasets import make_sevenscenes
     from test_folder_dataset import make_folder
+    from rosbag_writer import write_tum_bag
 
     root = tmp_path_factory.mktemp("datasets")
     folder = make_folder(root / "folder", TUMDataset(TUMConfig(path=str(require_data(TUM)), max_frames=10)))
@@ -138,18 +142,20 @@ def data(tmp_path_factory) -> dict[str, Path]:
     shutil.copy(folder / "gt.txt", folder / "groundtruth.txt")
     (folder / "intrinsics.json").write_text(json.dumps(yaml.safe_load((folder / "intrinsics.yaml").read_text())))
     make_sevenscenes(root / "chess" / "seq-01", n=8)
+    bag = write_tum_bag(require_data(TUM), root / "fr1_mcap", 6, "mcap")  # a ROS2 bag folder
+    shutil.copy(TUM / "groundtruth.txt", bag / "groundtruth.txt")
     return {"tum": require_data(TUM), "replica": require_data(REPLICA), "folder": folder,
-            "sevenscenes": root / "chess" / "seq-01"}
+            "sevenscenes": root / "chess" / "seq-01", "rosbag": bag}
 
 
 def config_class(section: str) -> type:
     """The dataclass that holds a section's keys."""
     from slamkit.map.growth import MapGrowthConfig
-    from slamkit.registry.schema import CheckpointConfig, EvalConfig, LocalizeConfig, RunConfig
+    from slamkit.registry.schema import CheckpointConfig, EvalConfig, LocalizeConfig, ObjectiveConfig, RunConfig
 
     if section in ("", *TOP_SECTIONS):
-        return {"": RunConfig, "map": MapGrowthConfig, "eval": EvalConfig, "checkpoint": CheckpointConfig,
-                "localize": LocalizeConfig}[section]
+        return {"": RunConfig, "map": MapGrowthConfig, "eval": EvalConfig, "objective": ObjectiveConfig,
+                "checkpoint": CheckpointConfig, "localize": LocalizeConfig}[section]
     role, name = section.split("=")
     return default_registry().get(role, name).config
 

@@ -42,6 +42,8 @@ def test_viewer_config_ranges_fail_in_one_line():
         RerunViewerConfig(jpeg_quality=101)
     with pytest.raises(ConfigError, match=r"viewer.render_scale"):
         RerunViewerConfig(render_scale=0.0)
+    with pytest.raises(ConfigError, match=r"viewer.map_as: expected splats or ellipsoids or points, got 'cubes'"):
+        RerunViewerConfig(map_as="cubes")
 
 
 def test_rerun_missing_is_a_one_line_config_error(monkeypatch):
@@ -105,6 +107,55 @@ def test_render_view_is_none_by_default_and_the_3dgs_map_render_otherwise():
     assert float(out.alpha.max()) > 0.5  # the Gaussians are in view
 
 
+def _rrd_map(path: Path) -> dict[str, list]:
+    """The columns of the last /world/map row of a recording, by their name."""
+    from rerun.chunk import RrdReader
+
+    columns = {}
+    for chunk in RrdReader(str(path)).stream().to_chunks():
+        if chunk.entity_path == "/world/map":
+            batch = chunk.to_record_batch()
+            columns = {name: batch.column(i).to_pylist()[-1] for i, name in enumerate(batch.schema.names)}
+    return columns
+
+
+@pytest.mark.parametrize("style", ["splats", "ellipsoids", "points"])
+def test_rerun_logs_the_map_as_gaussian_splats(tmp_path, style):
+    """viewer.map_as: splats (default) carry each Gaussian's centre, scales, rotation and colour
+    with opacity; ellipsoids the same shapes; points the centres only."""
+    pytest.importorskip("rerun", reason="rerun-sdk is the optional extra `viewer`")
+    from slamkit.geometry.transforms import quat_to_rotmat
+    from slamkit_plugins.viewers.rerun_viewer import RerunViewer, RerunViewerConfig
+
+    rng = np.random.default_rng(1)
+    n = 12
+    quats = rng.normal(size=(n, 4))
+    quats /= np.linalg.norm(quats, axis=1, keepdims=True)
+    scales = rng.uniform(0.01, 0.1, (n, 3))
+    colors, opacities = rng.uniform(0, 1, (n, 3)), rng.uniform(0.1, 0.9, n)
+    gm = GaussianMap()
+    gm.append(GaussianRows.from_shapes(rng.normal(size=(n, 3)), quats, scales, colors, opacities, np.ones(n, bool), 0))
+    view = _view(gm, _no_mapper(gm))
+    rrd = tmp_path / "map.rrd"
+    viewer = RerunViewer(RerunViewerConfig(save=str(rrd), render_every=0, map_every=1, map_as=style))
+    viewer.start(CAMERA, tmp_path)
+    viewer.show(view)
+    viewer.close(view)
+    cols = _rrd_map(rrd)
+    prefix = {"splats": "GaussianSplats3D", "ellipsoids": "Ellipsoids3D", "points": "Points3D"}[style]
+    centres = np.array(cols[f"{prefix}:{'positions' if style == 'points' else 'centers'}"])
+    np.testing.assert_allclose(centres, gm.means.detach().numpy(), atol=1e-6)
+    if style == "points":
+        return
+    sizes = np.array(cols[f"{prefix}:{'scales' if style == 'splats' else 'half_sizes'}"])
+    np.testing.assert_allclose(sizes, scales, rtol=1e-5)
+    xyzw = np.array(cols[f"{prefix}:quaternions"])
+    np.testing.assert_allclose(quat_to_rotmat(xyzw[:, [3, 0, 1, 2]]), quat_to_rotmat(quats), atol=1e-5)
+    rgba = np.array(cols[f"{prefix}:colors"], dtype=np.uint32)
+    channels = np.stack([(rgba >> s) & 0xFF for s in (24, 16, 8, 0)], axis=1)  # packed 0xRRGGBBAA
+    np.testing.assert_allclose(channels / 255, np.column_stack([colors, opacities]), atol=1 / 255 + 1e-3)
+
+
 def _rrd_rows(path: Path) -> tuple[Counter, dict[int, int]]:
     """Rows logged per entity (non-static), and the number of map points logged at each frame."""
     from rerun.chunk import RrdReader
@@ -119,7 +170,7 @@ def _rrd_rows(path: Path) -> tuple[Counter, dict[int, int]]:
         if chunk.entity_path == "/world/map":
             batch = chunk.to_record_batch()
             frames = batch.column(batch.schema.names.index("frame")).to_pylist()
-            positions = batch.column(batch.schema.names.index("Points3D:positions")).to_pylist()
+            positions = batch.column(batch.schema.names.index("GaussianSplats3D:centers")).to_pylist()
             map_sizes.update({f: len(p) for f, p in zip(frames, positions)})
     return rows, map_sizes
 

@@ -10,7 +10,11 @@ Needs the optional extra `viewer` (`pip install -e '.[viewer]'`, rerun-sdk). Ent
     world/trajectory/estimate     LineStrips3D: camera centres so far (metres)
     world/trajectory/ground_truth LineStrips3D: the ground-truth centres so far, when the data has them
     world/keyframes               Points3D: the keyframes' camera centres
-    world/map                     Points3D: Gaussian centres in their colour (subsampled)
+    world/map                     GaussianSplats3D: the map's Gaussians (centres, scales as standard
+                                  deviations in metres, rotations, colour with opacity as alpha;
+                                  subsampled); map_as=ellipsoids: Ellipsoids3D of one standard
+                                  deviation (also where a rerun-sdk lacks splats); map_as=points:
+                                  Points3D of the centres
     render/rgb, render/depth      Image, DepthImage: the mapper's render from the estimated pose
 
 Rendering and the map are logged every `render_every` / `map_every` frames (and the map once more
@@ -28,7 +32,7 @@ import numpy as np
 
 from slamkit.errors import ConfigError
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import MapPoints, Viewer, ViewerConfig, ViewerFrame, require
+from slamkit.roles import MapGaussians, MapPoints, Viewer, ViewerConfig, ViewerFrame, require
 from slamkit.types import Camera
 
 log = logging.getLogger(__name__)
@@ -37,6 +41,8 @@ log = logging.getLogger(__name__)
 DEFAULT_RECORDING = "recording.rrd"
 #: uint16 depth images hold millimetres (0 = invalid; at most 65.535 m).
 DEPTH_UNITS_PER_METRE = 1000.0
+#: viewer.map_as: how the map's Gaussians are logged
+MAP_STYLES = ("splats", "ellipsoids", "points")
 
 
 @dataclass
@@ -50,7 +56,8 @@ class RerunViewerConfig(ViewerConfig):
     input colour and depth images (0 = never). log_depth: log the input depth image.
     jpeg_quality: JPEG quality of the logged colour images, 1-100 (0 = uncompressed; a
     640x480 TUM frame is ~60 kB as JPEG 90, 920 kB raw). application_id: the recording's name in
-    the viewer.
+    the viewer. map_as: how the map is logged: splats (GaussianSplats3D), ellipsoids
+    (Ellipsoids3D, one standard deviation) or points (Points3D of the centres).
     """
 
     save: str | None = None
@@ -60,6 +67,7 @@ class RerunViewerConfig(ViewerConfig):
     log_depth: bool = True
     jpeg_quality: int = 90
     application_id: str = "slamkit"
+    map_as: str = "splats"
 
     def validate(self) -> None:
         super().validate()
@@ -67,6 +75,7 @@ class RerunViewerConfig(ViewerConfig):
         require(0 <= self.jpeg_quality <= 100, "viewer.jpeg_quality", "in [0, 100] (0 = uncompressed)",
                 self.jpeg_quality)
         require(self.save is None or self.save.strip() != "", "viewer.save", "null or a file path", self.save)
+        require(self.map_as in MAP_STYLES, "viewer.map_as", " or ".join(MAP_STYLES), self.map_as)
 
 
 def _import_rerun():
@@ -165,10 +174,21 @@ class RerunViewer(Viewer):
         self.stream.log("render/depth", self._depth_image(out.expected_depth().cpu().numpy()))
 
     def _log_map(self, view: ViewerFrame) -> None:
-        points: MapPoints = view.map_points(self.cfg.map_max_points)
+        rr, style = self.rr, self.cfg.map_as
         self._last_map_frame = view.frame.index
-        self.stream.log("world/map", self.rr.Points3D(points.positions, colors=points.colors,
-                                                      radii=np.clip(points.radii, 0.001, 0.05)))
+        if style == "points":
+            points: MapPoints = view.map_points(self.cfg.map_max_points)
+            self.stream.log("world/map", rr.Points3D(points.positions, colors=points.colors,
+                                                     radii=np.clip(points.radii, 0.001, 0.05)))
+            return
+        g: MapGaussians = view.map_gaussians(self.cfg.map_max_points)
+        xyzw = g.quats[:, [1, 2, 3, 0]]  # rerun's quaternion order
+        rgba = (np.column_stack([g.colors, g.opacities]) * 255 + 0.5).astype(np.uint8)
+        if style == "splats" and hasattr(rr, "GaussianSplats3D"):
+            self.stream.log("world/map", rr.GaussianSplats3D(g.means, scales=g.scales, quaternions=xyzw, colors=rgba))
+        else:  # ellipsoids, asked for or where this rerun-sdk has no splats
+            self.stream.log("world/map", rr.Ellipsoids3D(centers=g.means, half_sizes=g.scales, quaternions=xyzw,
+                                                         colors=rgba, fill_mode="solid"))
 
     def _color_image(self, rgb: np.ndarray):
         """rgb (H,W,3) uint8 (or float in [0,1]) as a Rerun image, JPEG-compressed if asked."""

@@ -11,9 +11,11 @@ SLAMKIT_DEBUG=1 for the traceback.
 from __future__ import annotations
 
 import logging
+import math
 import os
 import re
 import sys
+import warnings
 from pathlib import Path
 
 from slamkit.registry.compose import CONF_DIR, EXPERIMENTS_DIR, compose_run, register
@@ -69,8 +71,19 @@ def _is_sweep(override: str) -> bool:
     return False
 
 
-def _task(cfg) -> None:
+def _score(run_cfg, metrics: dict) -> float | None:
+    """The run's score for an optimising sweeper (`objective.*`): metrics[objective.metric] when
+    it is a finite number, else objective.failed_value (e.g. no ground truth for the ATE)."""
+    value = metrics.get(run_cfg.objective.metric)
+    if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
+        return float(value)
+    return run_cfg.objective.failed_value
+
+
+def _task(cfg) -> float | None:
+    """One run; returns its score (`_score`) for sweepers that optimise it."""
     from hydra.core.hydra_config import HydraConfig
+    from omegaconf import OmegaConf
 
     from slamkit.run import localization, pipeline
     from slamkit.registry.schema import Mode, validate_config
@@ -79,6 +92,7 @@ def _task(cfg) -> None:
     hydra_cfg = HydraConfig.get()
     names = {role: hydra_cfg.runtime.choices[role] for role in ROLE_KEYS}
     out_dir = Path(hydra_cfg.runtime.output_dir)
+    failed_value = OmegaConf.select(cfg, "objective.failed_value", default=None)  # also for a config that fails
     try:
         run_cfg = validate_config(cfg)
         program = localization if run_cfg.mode is Mode.localize else pipeline
@@ -87,11 +101,16 @@ def _task(cfg) -> None:
         log.error("%s", exc)
         if os.environ.get("SLAMKIT_DEBUG"):
             raise
-        _fail(str(exc))
+        if failed_value is None:
+            _fail(str(exc))
+        print(f"slamkit: error: {exc}", file=sys.stderr)  # a search goes on with the next trial
+        print(f"slamkit: the run failed; its score is objective.failed_value = {failed_value}")
+        return float(failed_value)
     print(f"slamkit: {program.summary(metrics)}")
     print(f"slamkit: outputs in {out_dir}")
-    if not metrics["completed"]:
+    if not metrics["completed"]:  # interrupted (Ctrl-C, SIGTERM): stop, also a search
         sys.exit(130)
+    return _score(run_cfg, metrics)
 
 
 def main() -> None:
@@ -107,6 +126,12 @@ def main() -> None:
         if os.environ.get("SLAMKIT_DEBUG"):
             raise
         _fail(str(exc))
+    # hydra/launcher=ray: a local Ray cluster writes no token under the home folder
+    # (conf/hydra/launcher/ray.yaml); a cluster that uses tokens needs RAY_AUTH_MODE=token.
+    os.environ.setdefault("RAY_AUTH_MODE", "disabled")
+    # conf/hydra/launcher/ray.yaml takes the place of the Ray launcher's own config of that name on
+    # purpose; Hydra 1.3 still validates it against that schema, and warns that this is deprecated.
+    warnings.filterwarnings("ignore", message=r"(?s).*is validated against ConfigStore schema with the same name")
     _registry = discover()
     if EXPERIMENTS_DIR.is_dir() and not any(a.startswith("hydra.searchpath") for a in sys.argv[1:]):
         sys.argv.append(f"hydra.searchpath=[file://{EXPERIMENTS_DIR}]")

@@ -21,9 +21,20 @@ EXPERIMENTS_DIR = Path(__file__).resolve().parents[2] / "experiments"
 
 
 def register(registry: Registry) -> None:
-    """Put the run schema and every plugin's config into Hydra's ConfigStore."""
+    """Put the run schema and every plugin's config into Hydra's ConfigStore, and the resolvers
+    that conf/hydra/launcher/ray.yaml uses: `${slamkit.cache:NAME}` (the project cache's folder
+    NAME, `slamkit.cache.cache_dir`) and `${slamkit.local_only:ADDRESS,VALUE}` (VALUE when
+    ADDRESS is null or empty, i.e. for a cluster the command starts itself, else null)."""
+    from omegaconf import OmegaConf
+
+    from slamkit.cache import cache_dir
+
     register_configs(registry)
     register_run_config()
+    if not OmegaConf.has_resolver("slamkit.cache"):
+        OmegaConf.register_new_resolver("slamkit.cache", lambda name="": str(cache_dir(str(name))))
+    if not OmegaConf.has_resolver("slamkit.local_only"):  # a setting for a cluster this command starts
+        OmegaConf.register_new_resolver("slamkit.local_only", lambda address, value: None if address else value)
 
 
 def compose_run(overrides: list[str] | tuple[str, ...] = (), registry: Registry | None = None

@@ -87,6 +87,18 @@ class LocalizeConfig(PluginConfig):
 
 
 @dataclass
+class ObjectiveConfig:
+    """What a run returns to a Hydra sweeper that optimises (hydra/sweeper=optuna; docs/search.md).
+    metric: the metrics.json key whose value is the run's score (ate_rmse_m, psnr, fps, ...; the
+    sweeper's direction says whether lower or higher is better). failed_value: the score of a
+    run that fails (a bad value, a plugin error, an interrupted run) or lacks the metric (no
+    ground truth); null = a failed run stops the sweep with exit status 2, as a single run."""
+
+    metric: str = "ate_rmse_m"
+    failed_value: float | None = None
+
+
+@dataclass
 class RunConfig(PluginConfig):
     """Top-level keys (`run_schema` adds one group per role). mode: sequential (fixed mapping
     iterations per frame, deterministic), realtime, or localize (tracking in a saved map,
@@ -109,6 +121,7 @@ class RunConfig(PluginConfig):
 
     map: MapGrowthConfig = field(default_factory=MapGrowthConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
+    objective: ObjectiveConfig = field(default_factory=ObjectiveConfig)
     mode: Mode = Mode.sequential
     iterations_per_frame: int = 10
     fps_limit: float | None = None

@@ -10,7 +10,7 @@ from slamkit.roles.mapping import KeyframeSampler, Mapper, MapOptimizer, Mapping
 from slamkit.roles.strategy import DensifyStrategy, KeyframeView, StepInfo, StrategyConfig
 from slamkit.roles.table import ROLE_KEYS, ROLES, Role, role, role_of
 from slamkit.roles.tracking import KeyframeHistory, KeyframePolicy, Tracker
-from slamkit.roles.viewer import MapPoints, Viewer, ViewerConfig, ViewerFrame
+from slamkit.roles.viewer import MapGaussians, MapPoints, Viewer, ViewerConfig, ViewerFrame
 
 __all__ = [
     "ROLES", "ROLE_KEYS", "Role", "role", "role_of", "PluginConfig", "require",
@@ -18,5 +18,5 @@ __all__ = [
     "Tracker", "KeyframePolicy", "KeyframeHistory",
     "Mapper", "Rasterizer", "RenderOutput", "KeyframeSampler", "DensifyStrategy", "StrategyConfig", "MapOptimizer",
     "MappingLoss", "TrainingView", "KeyframeView", "StepInfo",
-    "Viewer", "ViewerConfig", "ViewerFrame", "MapPoints",
+    "Viewer", "ViewerConfig", "ViewerFrame", "MapPoints", "MapGaussians",
 ]

@@ -7,7 +7,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 
+from slamkit.geometry.transforms import covariance_from_scales
 from slamkit.map.gaussian_map import GaussianMap
 from slamkit.map.rendering import RenderOutput
 from slamkit.roles.config import PluginConfig, require
@@ -51,6 +53,29 @@ class MapPoints:
 
 
 @dataclass
+class MapGaussians:
+    """Gaussians for display as splats, in their natural form (not the optimiser's):
+    means (N,3) float32 world metres; quats (N,4) float32 unit quaternions (w, x, y, z),
+    world-from-Gaussian rotation; scales (N,3) float32 standard deviations in metres along the
+    Gaussian's axes; opacities (N,) float32 in (0, 1); colors (N,3) float32 RGB in [0, 1]; out
+    of `total` Gaussians in the map."""
+
+    means: np.ndarray
+    quats: np.ndarray
+    scales: np.ndarray
+    opacities: np.ndarray
+    colors: np.ndarray
+    total: int
+
+    def __len__(self) -> int:
+        return len(self.means)
+
+    def covariances(self) -> np.ndarray:
+        """(N,3,3) float32 world-frame covariances R diag(s^2) R^T in m^2."""
+        return covariance_from_scales(self.quats.astype(np.float64), self.scales.astype(np.float64)).astype(np.float32)
+
+
+@dataclass
 class ViewerFrame:
     """What a viewer sees of one processed frame.
 
@@ -58,7 +83,7 @@ class ViewerFrame:
     the estimated camera-to-world pose (4x4, metres, OpenCV axes). keyframe, lost: the
     tracker's and keyframe policy's outcome. trajectory, gt_trajectory: (n,3) camera centres
     in world metres of the frames so far (gt: the frames that have ground truth). The map and
-    the mapper are shared with the running SLAM: use `map_points` and `render`, which copy
+    the mapper are shared with the running SLAM: use `map_gaussians`, `map_points` and `render`, which copy
     under the map's lock.
     """
 
@@ -71,17 +96,23 @@ class ViewerFrame:
     gaussian_map: GaussianMap
     mapper: Mapper
 
-    def map_points(self, max_points: int) -> MapPoints:
-        """An even subsample (every k-th row) of at most `max_points` Gaussian centres."""
+    def map_gaussians(self, max_points: int) -> MapGaussians:
+        """An even subsample (every k-th row) of at most `max_points` Gaussians, copied under
+        the map's lock."""
         gm = self.gaussian_map
         with gm.lock:
             total = len(gm)
             step = max(1, -(-total // max_points))
-            means = gm.means.detach()[::step].cpu().numpy().astype(np.float32)
-            colors = gm.colors.detach()[::step].clamp(0, 1).cpu().numpy()
-            log_scales = gm.log_scales.detach()[::step].cpu().numpy()
-        radii = np.exp(log_scales.mean(axis=1)).astype(np.float32) if len(log_scales) else np.zeros(0, np.float32)
-        return MapPoints(means, (colors * 255 + 0.5).astype(np.uint8), radii, total)
+            columns = (gm.means.detach()[::step], torch.nn.functional.normalize(gm.quats.detach()[::step], dim=1),
+                       gm.scales.detach()[::step], gm.opacities.detach()[::step], gm.colors.detach()[::step].clamp(0, 1))
+            means, quats, scales, opacities, colors = (c.float().cpu().numpy().copy() for c in columns)
+        return MapGaussians(means, quats, scales, opacities, colors, total)
+
+    def map_points(self, max_points: int) -> MapPoints:
+        """An even subsample (every k-th row) of at most `max_points` Gaussian centres."""
+        g = self.map_gaussians(max_points)
+        radii = np.exp(np.log(g.scales).mean(axis=1)).astype(np.float32) if len(g) else np.zeros(0, np.float32)
+        return MapPoints(g.means, (g.colors * 255 + 0.5).astype(np.uint8), radii, g.total)
 
     def render(self, scale: float = 1.0) -> RenderOutput | None:
         """The mapper's render from the estimated pose at `scale` of the frame's resolution,

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from slamkit.cache import cache_dir
 from slamkit.errors import DataError
 from slamkit.roles import Dataset, DatasetConfig, SensorProfile, require
 from slamkit.types import Camera, Frame
@@ -99,8 +100,7 @@ def _write_npz(f, arrays) -> None:
 
 def default_cache_dir() -> Path:
     """$SLAMKIT_CACHE/synthetic, else ~/.cache/slamkit/synthetic."""
-    root = os.environ.get("SLAMKIT_CACHE")
-    return Path(root) / "synthetic" if root else Path.home() / ".cache" / "slamkit" / "synthetic"
+    return cache_dir("synthetic")
 
 
 class SyntheticDataset(Dataset):
