@@ -148,9 +148,9 @@ def test_centres_explain_an_untrained_map_where_the_render_does_not():
 # -- end to end: a looped real sequence ---------------------------------------------------------
 
 LOOP = ["dataset=tum", "dataset.start=120", "dataset.stride=3", "dataset.passes=3",  # 10 frames a pass
-        "mapper.resolution_scale=0.25", "mapper.eval_resolution_scale=0.25", "mapper.eval_every=5",
-        "mapper.save_images=0", "keyframe=every_n", "keyframe.tracking_every=2", "final_iterations=0",
-        "progress=false", "eval.plot=false"]
+        "keyframe=every_n", "keyframe.tracking_every=2", "final_iterations=0", "progress=false", "eval.plot=false"]
+MAPPING = ["mapper=gaussian_splatting", "mapper.resolution_scale=0.25", "mapper.eval_resolution_scale=0.25",
+           "mapper.eval_every=5", "mapper.save_images=0"]
 
 
 def loop_run(tmp_path, tum_path, name: str, *overrides: str) -> tuple[list[int], dict]:
@@ -179,9 +179,9 @@ def test_a_looped_sequence_stops_growing_the_map_after_the_first_pass(tmp_path, 
     the first add at most 10% of what the first added; with every keyframe's Gaussians admitted
     (skip_covered off) they add at least half as much again. Tracking is the same."""
     run_mode = ["mode=realtime", "fps_limit=30"] if mode == "realtime" else ["iterations_per_frame=2"]
-    bounded, m_bounded = loop_run(tmp_path, tum_path, "bounded", "mapper=gaussian_splatting", *run_mode)
-    unbounded, m_unbounded = loop_run(tmp_path, tum_path, "unbounded", "mapper=gaussian_splatting",
-                                      "strategy.skip_covered=false", *run_mode)
+    bounded, m_bounded = loop_run(tmp_path, tum_path, "bounded", *MAPPING, *run_mode)
+    unbounded, m_unbounded = loop_run(tmp_path, tum_path, "unbounded", *MAPPING, "strategy.skip_covered=false",
+                                      *run_mode)
     assert len(bounded) == len(unbounded) == 28
     first, later = growth_by_pass(bounded)
     assert first > 5000 and later <= 0.1 * first, (first, later)
