@@ -1,16 +1,21 @@
 """Long-run memory: resident memory and map size against frame count on a long synthetic
-sequence (default 2000 frames), through the CLI. Prints a table every `--every` frames and
-writes JSON.
+sequence (default 2000 frames), or a real one looped (`--dataset`, `--path`, `--passes`: the
+frames played back and forth), through the CLI. Prints a table every `--every` frames and
+writes JSON (`benchmarks/plot_long_run.py` plots it).
 
     python benchmarks/long_run.py --frames 2000 --out benchmarks/results/long_run.json
     OMP_NUM_THREADS=1 python benchmarks/long_run.py --frames 2000 --mapper --max-gaussians none,200000 \\
         --time-limit 1500 --out benchmarks/results/long_run_mapper.json
+    OMP_NUM_THREADS=1 python benchmarks/long_run.py --dataset tum --path ../shared/data/tum_fr1_rpy_first150 \\
+        --passes 4 --mapper --variant before=strategy.skip_covered=false --variant after= --out looped.json
 
 `--mapper` runs the 3DGS mapper with settings cheap enough for a CPU (`--iterations` steps per
 frame, no final iterations, evaluation of every `--eval-every`-th frame); `--max-gaussians`
 runs one variant per value (`none` = no memory guard). `--time-limit` stops a run that is still
 going after that many seconds (SIGTERM: slamkit writes what it has; the run is reported as
-incomplete, up to the frame it reached). `--set KEY=VALUE` passes any other slamkit override.
+incomplete, up to the frame it reached). `--set KEY=VALUE` passes any other slamkit override;
+`--variant LABEL="OVERRIDES"` (repeatable, space-separated overrides) runs one variant per label
+instead of one per memory cap.
 """
 
 from __future__ import annotations
@@ -29,7 +34,15 @@ from pathlib import Path
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--frames", type=int, default=2000)
+    parser.add_argument("--frames", type=int, default=None,
+                        help="synthetic: frames to generate (default 2000); a real dataset: frames played, all passes "
+                             "counted (default all)")
+    parser.add_argument("--dataset", default="synthetic", help="dataset plugin (synthetic, tum, replica, ...)")
+    parser.add_argument("--path", default=None, help="the dataset's folder (a real dataset)")
+    parser.add_argument("--passes", type=int, default=1, help="play the frames back and forth this many times")
+    parser.add_argument("--variant", action="append", default=[], metavar='LABEL="OVERRIDES"',
+                        help="one run with these extra overrides (repeatable)")
+    parser.add_argument("--sample-every", type=int, default=10, help="frames between the JSON's samples")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="extra slamkit override")
     parser.add_argument("--every", type=int, default=250, help="frames between table rows")
     parser.add_argument("--mapper", action="store_true", help="map with mapper=gaussian_splatting")
@@ -42,26 +55,48 @@ def main() -> int:
     args = parser.parse_args()
     if args.max_gaussians and not args.mapper:
         parser.error("--max-gaussians needs --mapper")
+    if args.max_gaussians and args.variant:
+        parser.error("--max-gaussians and --variant: choose one")
+    if args.dataset != "synthetic" and not args.path:
+        parser.error(f"--dataset {args.dataset} needs --path")
     runs = [run_variant(args, label, overrides) for label, overrides in variants(args)]
     if len(runs) > 1:
         print_comparison(runs)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"frames": args.frames, "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
+    args.out.write_text(json.dumps({"frames": args.frames, "dataset": args.dataset, "passes": args.passes,
+                                    "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
                                     "runs": runs}, indent=2) + "\n")
     return 0 if all(r["returncode"] in (0, 130) for r in runs) else 1
 
 
 def variants(args) -> list[tuple[str, list[str]]]:
     """(label, slamkit overrides) for each run."""
-    base = {"dataset.num_frames": str(args.frames), "progress": "false", "eval.plot": "false"}
+    if args.dataset == "synthetic":
+        base = {"dataset.num_frames": str(args.frames or 2000)}
+    else:
+        base = {"dataset": args.dataset, "dataset.path": str(Path(args.path).resolve())}
+        if args.frames:
+            base["dataset.max_frames"] = str(args.frames)
+    if args.passes > 1:
+        base["dataset.passes"] = str(args.passes)
+    base.update({"progress": "false", "eval.plot": "false"})
     if args.mapper:
         base.update({"mapper": "gaussian_splatting", "iterations_per_frame": str(args.iterations),
                      "final_iterations": "0", "mapper.eval_every": str(args.eval_every)})
     for item in args.set:  # the user's values win
         key, _, value = item.partition("=")
         base[key] = value
-    caps = [c.strip() for c in args.max_gaussians.split(",")] if args.max_gaussians else [None]
     out = []
+    for item in args.variant:
+        label, _, extra = item.partition("=")
+        overrides = dict(base)
+        for override in extra.split():
+            key, _, value = override.partition("=")
+            overrides[key] = value
+        out.append((label, [f"{k}={v}" for k, v in overrides.items()]))
+    if out:
+        return out
+    caps = [c.strip() for c in args.max_gaussians.split(",")] if args.max_gaussians else [None]
     for cap in caps:
         overrides = dict(base)
         if cap is not None:
@@ -96,7 +131,7 @@ def run_variant(args, label: str, overrides: list[str]) -> dict:
     return {"label": label, "command": "slamkit " + " ".join(overrides), "returncode": proc.returncode,
             "stopped_by_time_limit": stopped, "process_wall_s": wall, "run_dir": str(run_dir), "metrics": metrics,
             "checkpoints": checkpoints,
-            "samples": [{k: r[k] for k in ("index", "num_gaussians", "rss_mb")} for r in rows[::10]]}
+            "samples": [{k: r[k] for k in ("index", "num_gaussians", "rss_mb")} for r in rows[::args.sample_every]]}
 
 
 def table(rows: list[dict], every: int) -> list[dict]:

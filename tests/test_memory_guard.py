@@ -60,7 +60,7 @@ def test_guard_prunes_the_least_opaque_down_to_the_margin_and_spares_new_rows(ra
     version = gm.version
     add(mapper, frame, new_rows=new)
     assert len(gm) == 256 and gm.version > version
-    assert mapper.strategy.stats == {"pruned_by_memory_guard": 84, "memory_guard_prunings": 1}
+    assert mapper.strategy.stats == {"pruned_by_memory_guard": 84, "memory_guard_prunings": 1, "skipped_as_covered": 0}
     torch.testing.assert_close(gm.means.detach()[-40:], new_means, rtol=0, atol=0)  # the new rows stay
     old = before[:N]
     kept = torch.sort(old, descending=True).values[:216]
@@ -166,6 +166,7 @@ def test_guarded_replica_run_stays_under_the_cap_keeps_the_most_opaque_and_track
                                   "mapper=gaussian_splatting", "mapper.resolution_scale=0.25", "final_iterations=0",
                                   "mapper.eval_resolution_scale=0.25", "mapper.save_images=0",
                                   f"strategy.max_gaussians={cap}", "strategy.memory_guard_margin=0.1",
+                                  "strategy.skip_covered=false",  # every keyframe adds its ~8k Gaussians
                                   "iterations_per_frame=2"])
     gm, mapper = slam.gaussian_map, slam.mapper
     recorder = slam.tracker = RecordingTracker(slam.tracker)
@@ -285,6 +286,7 @@ def test_cli_run_with_the_guard_reports_pruning_and_stays_under_the_cap(tmp_path
     proc = run_slamkit(
         "dataset=synthetic", "dataset.num_frames=12", "dataset.width=64", "dataset.height=48", "tracker=gicp",
         "keyframe=every_n", "keyframe.tracking_every=2", "mapper=gaussian_splatting", "strategy.max_gaussians=1000",
+        "strategy.skip_covered=false",
         "final_iterations=2", "mapper.save_images=0", "iterations_per_frame=2", f"mode={mode}",
         "progress=false", "eval.plot=false", f"hydra.run.dir={out}", cwd=tmp_path, timeout=300,
     )

@@ -1,22 +1,17 @@
 """Densification strategies (`strategy=gsicp|3dgs`) through the mapper's hooks, and the growth
-control every strategy has (`strategy.skip_covered`)."""
+control every strategy has (`strategy.skip_covered`: tests/test_map_bound.py)."""
 
 from __future__ import annotations
 
 import math
 
-import numpy as np
 import pytest
 import torch
 
 from mapping_scenes import N, add, make_map, make_mapper, plane_scene, pose_x, render_frame, start_map, state_follows_map
 from slamkit.errors import ConfigError
-from slamkit.map.growth import MapGrowthConfig
 from slamkit.registry.discovery import create_rasterizer
-from slamkit.roles import SensorProfile, Tracker
-from slamkit.run.slam import SLAM
-from slamkit.types import FrameGaussians, TrackingResult
-from slamkit_plugins.keyframes.every_n import EveryNKeyframeConfig, EveryNKeyframePolicy
+from slamkit.roles import SensorProfile
 from slamkit_plugins.strategies.densify_3dgs import Densify3DGSConfig
 
 
@@ -95,35 +90,3 @@ def test_strategy_settings_are_validated():
         Densify3DGSConfig(densify_every=0)
     with pytest.raises(ConfigError, match="strategy.covered_alpha"):
         Densify3DGSConfig(covered_alpha=1.0)
-
-
-class PlaneTracker(Tracker):
-    """Ground-truth poses; its keyframe Gaussians: 20 on the map's wall, 10 floating in front."""
-
-    def track(self, frame, gaussian_map):
-        rng = np.random.default_rng(3)
-        on = np.c_[rng.uniform(-0.6, 0.6, (20, 2)), np.full(20, 2.0)]
-        front = np.c_[rng.uniform(-0.6, 0.6, (10, 2)), np.full(10, 1.4)]
-        new = np.r_[on, front].astype(np.float32)
-        g = FrameGaussians(new, np.tile(np.eye(3) * 1e-4, (30, 1, 1)), np.full((30, 3), 0.5), new[:, 2],
-                           np.ones(30, bool))
-        return TrackingResult(frame.gt_pose, gaussians=g)
-
-
-@pytest.mark.parametrize("skip_covered", [True, False])
-def test_skip_covered_admits_only_what_the_map_does_not_explain(frame, skip_covered):
-    """Map growth is one step: the strategy decides before anything is appended."""
-    means, quats, scales, colors, _ = plane_scene(opacity=0.99)
-    gm = make_map(means, quats, scales * 2, colors, 0.99)  # an opaque wall at z = 2 m
-    mapper = make_mapper(gm, strategy=("gsicp", {"skip_covered": skip_covered}))
-    slam = SLAM(PlaneTracker(), EveryNKeyframePolicy(EveryNKeyframeConfig(tracking_every=1)), mapper, gm,
-                MapGrowthConfig(), iterations_per_frame=0)
-    slam.initialize(np.eye(4))
-    structure = gm.structure_version
-    slam.step(frame)
-    if skip_covered:
-        assert len(gm) == N + 10  # only the floating ones
-        assert bool((gm.means.detach()[N:, 2] < 1.5).all())
-    else:
-        assert len(gm) == N + 30
-    assert gm.structure_version == structure  # nothing was added and then removed

@@ -109,7 +109,7 @@ class MCMCConfig(StrategyConfig):
                 self.max_scale)
 
     def with_sensor(self, sensor: SensorProfile) -> MCMCConfig:
-        return self.fill_nulls(max_scale=sensor.max_gaussian_scale)
+        return super().with_sensor(sensor).fill_nulls(max_scale=sensor.max_gaussian_scale)
 
 
 def shared_opacity(opacity: torch.Tensor, copies: torch.Tensor) -> torch.Tensor:

@@ -33,7 +33,7 @@ class PruneConfig(StrategyConfig):
                 self.max_scale)
 
     def with_sensor(self, sensor: SensorProfile) -> PruneConfig:
-        return self.fill_nulls(max_scale=sensor.max_gaussian_scale)
+        return super().with_sensor(sensor).fill_nulls(max_scale=sensor.max_gaussian_scale)
 
 
 class PruneStrategy(DensifyStrategy):

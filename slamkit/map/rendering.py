@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from slamkit.map.gaussian_map import GaussianMap
-from slamkit.geometry.transforms import invert_pose, project_points
+from slamkit.geometry.transforms import invert_pose
 from slamkit.types import Camera
 
 
@@ -99,20 +99,3 @@ def render_map(rasterizer: Rasterizer, gaussian_map: GaussianMap, pose: np.ndarr
         )
     return RenderOutput(out.color.detach(), out.depth.detach(), out.alpha.detach())
 
-
-def covered_by_render(points: torch.Tensor, render: RenderOutput, world_to_camera: torch.Tensor, camera: Camera,
-                      min_alpha: float, depth_tolerance: float) -> torch.Tensor:
-    """(N,) bool: the world points (N,3, metres) whose pixel in `render` (made with
-    `world_to_camera` and `camera`) is covered: alpha > min_alpha and an expected depth (depth /
-    alpha) within depth_tolerance metres of the point's camera depth. Points behind the camera
-    or outside the image are not covered."""
-    w2c = world_to_camera.to(device=points.device, dtype=torch.float32)
-    u, v, z = project_points(points.float(), w2c, camera)
-    u, v = torch.round(u).long(), torch.round(v).long()
-    inside = (z > 1e-6) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
-    covered = torch.zeros(len(points), dtype=torch.bool, device=points.device)
-    ui, vi = u[inside], v[inside]
-    alpha = render.alpha[vi, ui]
-    depth = render.depth[vi, ui] / alpha.clamp_min(1e-6)
-    covered[inside] = (alpha > min_alpha) & ((depth - z[inside]).abs() < depth_tolerance)
-    return covered

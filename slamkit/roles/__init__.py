@@ -7,7 +7,7 @@ from slamkit.map.rendering import Rasterizer, RenderOutput
 from slamkit.roles.config import PluginConfig, require
 from slamkit.roles.dataset import Dataset, DatasetConfig, OnError, SensorProfile
 from slamkit.roles.mapping import KeyframeSampler, Mapper, MapOptimizer, MappingLoss, TrainingView
-from slamkit.roles.strategy import DensifyStrategy, KeyframeView, StepInfo, StrategyConfig
+from slamkit.roles.strategy import CoverageTest, DensifyStrategy, KeyframeView, StepInfo, StrategyConfig
 from slamkit.roles.table import ROLE_KEYS, ROLES, Role, role, role_of
 from slamkit.roles.tracking import KeyframeHistory, KeyframePolicy, Tracker
 from slamkit.roles.viewer import MapGaussians, MapPoints, Viewer, ViewerConfig, ViewerFrame
@@ -16,7 +16,7 @@ __all__ = [
     "ROLES", "ROLE_KEYS", "Role", "role", "role_of", "PluginConfig", "require",
     "Dataset", "DatasetConfig", "OnError", "SensorProfile",
     "Tracker", "KeyframePolicy", "KeyframeHistory",
-    "Mapper", "Rasterizer", "RenderOutput", "KeyframeSampler", "DensifyStrategy", "StrategyConfig", "MapOptimizer",
+    "Mapper", "Rasterizer", "RenderOutput", "KeyframeSampler", "DensifyStrategy", "StrategyConfig", "CoverageTest", "MapOptimizer",
     "MappingLoss", "TrainingView", "KeyframeView", "StepInfo",
     "Viewer", "ViewerConfig", "ViewerFrame", "MapPoints", "MapGaussians",
 ]

@@ -12,11 +12,13 @@ duplicate, split, reset opacity, update), which keeps every per-row state aligne
 - `finish(edit)`: after the last training step.
 
 Every strategy also has the growth controls of `StrategyConfig`: `skip_covered` (no new
-Gaussian where the map already explains the keyframe) and the memory guard `max_gaussians`.
+Gaussian where the map already explains the keyframe, on by default: the map is bounded by the
+scene, not by how long the camera looks at it) and the memory guard `max_gaussians`.
 """
 
 from __future__ import annotations
 
+import enum
 import logging
 import math
 from abc import ABC
@@ -27,23 +29,47 @@ import torch
 
 from slamkit.map.gaussian_map import GaussianRows
 from slamkit.map.editing import MapEdit
-from slamkit.map.rendering import RenderOutput, covered_by_render
+from slamkit.map.coverage import covered_by_render, occupied_by_centres
+from slamkit.map.rendering import RenderOutput
 from slamkit.roles.config import PluginConfig, require
+from slamkit.roles.dataset import SensorProfile
 from slamkit.roles.mapping import TrainingView
 from slamkit.types import Camera
 
 log = logging.getLogger(__name__)
 
 
+class CoverageTest(enum.Enum):
+    """Where `skip_covered` takes the map to explain a keyframe's view (`slamkit.map.coverage`):
+    centres: a map Gaussian's centre lies in the new Gaussian's image cell (covered_cell x
+    covered_cell pixels of the input image) at a camera depth within covered_depth_tolerance;
+    render: the map rendered from the keyframe (training resolution) has alpha > covered_alpha
+    at its pixel and an expected depth within covered_depth_tolerance; either: one of the two."""
+
+    centres = "centres"
+    render = "render"
+    either = "either"
+
+
 @dataclass
 class StrategyConfig(PluginConfig):
     """Growth controls every strategy takes (a strategy's config derives from this one).
 
-    skip_covered: a keyframe adds no Gaussian where the map already explains its view: a new
-      Gaussian is left out when the map rendered at the keyframe's pose (training resolution)
-      has alpha > covered_alpha at its pixel and an expected depth (depth / alpha) within
-      covered_depth_tolerance metres of its own.
-    covered_alpha, covered_depth_tolerance: those two thresholds (metres for the tolerance).
+    skip_covered: a keyframe adds no Gaussian where the map already explains its view (the test
+      is `coverage`), except those the tracker aligns to (trackable: new surface for the
+      tracking target, which the keyframe's own overlap test already limits), so tracking is
+      unchanged. Off, every keyframe adds all its Gaussians and a camera revisiting a scene
+      grows the map without bound.
+    coverage: the test (CoverageTest): centres (no render, and no training needed, so it
+      bounds the map in real-time mode too), render, or either.
+    covered_cell: input-image pixels; the cell of the centres test (null = the dataset's
+      `SensorProfile.tracking_pixel_stride`, the spacing of a keyframe's Gaussians: 5 TUM, 10
+      Replica, so a view holds about one Gaussian per cell and surface, as one keyframe gives
+      it). Smaller cells allow a denser map (half the stride: up to ~4x) that a looped sequence
+      fills only slowly, pass after pass (docs/results.md).
+    covered_alpha: the render test's alpha threshold.
+    covered_depth_tolerance: metres; how far a point's camera depth may be from the map's (the
+      render's expected depth, or a centre's) to count as explained, in both tests.
     max_gaussians: memory guard, null = unlimited (the paper's behaviour). When a keyframe's
       Gaussians (or densification) take the map above this many, the least opaque Gaussians
       (the keyframe's own new Gaussians, whose opacity is still the initial value and says
@@ -53,13 +79,17 @@ class StrategyConfig(PluginConfig):
     memory_guard_margin: the fraction of max_gaussians freed below the cap when the guard prunes.
     """
 
-    skip_covered: bool = False
+    skip_covered: bool = True
+    coverage: CoverageTest = CoverageTest.centres
+    covered_cell: float | None = None
     covered_alpha: float = 0.9
     covered_depth_tolerance: float = 0.05
     max_gaussians: int | None = None
     memory_guard_margin: float = 0.1
 
     def validate(self) -> None:
+        require(self.covered_cell is None or self.covered_cell > 0, "strategy.covered_cell",
+                "null or > 0 pixels", self.covered_cell)
         require(0 < self.covered_alpha < 1, "strategy.covered_alpha", "in (0, 1)", self.covered_alpha)
         require(self.covered_depth_tolerance > 0, "strategy.covered_depth_tolerance", "> 0 metres",
                 self.covered_depth_tolerance)
@@ -68,16 +98,28 @@ class StrategyConfig(PluginConfig):
         require(0 <= self.memory_guard_margin < 1, "strategy.memory_guard_margin", "in [0, 1)",
                 self.memory_guard_margin)
 
+    def with_sensor(self, sensor: SensorProfile) -> StrategyConfig:
+        """Fills covered_cell; a strategy's config that fills its own fields calls this first."""
+        return self.fill_nulls(covered_cell=default_covered_cell(sensor))
+
+
+def default_covered_cell(sensor: SensorProfile) -> float:
+    """The centres test's cell (input pixels) for a sensor: its tracking pixel stride."""
+    return float(sensor.tracking_pixel_stride)
+
 
 @dataclass
 class KeyframeView:
     """The keyframe whose Gaussians are being admitted: its camera at the training resolution,
-    world_to_camera (4,4) float32 tensor, and `render()`, the current map rendered from it
-    (computed on first call)."""
+    world_to_camera (4,4) float32 tensor, `render()`, the current map rendered from it (computed
+    on first call), its camera at the input resolution (None: `camera`), and the map's Gaussian
+    centres (M,3) world metres (None: not given, an empty map)."""
 
     camera: Camera
     world_to_camera: torch.Tensor
     render: Callable[[], RenderOutput]
+    input_camera: Camera | None = None
+    centres: torch.Tensor | None = None
 
 
 @dataclass
@@ -102,16 +144,31 @@ class DensifyStrategy(ABC):
     def __init__(self, cfg: StrategyConfig):
         self.cfg = cfg
         self.state: dict[str, torch.Tensor] = {}
-        self.stats: dict[str, int] = {"pruned_by_memory_guard": 0, "memory_guard_prunings": 0}
+        self.stats: dict[str, int] = {"pruned_by_memory_guard": 0, "memory_guard_prunings": 0,
+                                      "skipped_as_covered": 0}
 
     def admit(self, new: GaussianRows, view: KeyframeView) -> torch.Tensor | None:
-        """Which new Gaussians enter the map (bool mask), None for all: with skip_covered, those
-        whose pixel the map does not already cover at a consistent depth."""
+        """Which new Gaussians enter the map (bool mask), None for all: with skip_covered, the
+        trackable ones and those where the map does not explain the view (`covered`)."""
         if not self.cfg.skip_covered or len(new) == 0:
             return None
-        covered = covered_by_render(new.means, view.render(), view.world_to_camera, view.camera,
-                                    self.cfg.covered_alpha, self.cfg.covered_depth_tolerance)
-        return ~covered
+        enter = ~self.covered(new.means, view) | new.trackable.to(new.means.device)
+        self.stats["skipped_as_covered"] += int((~enter).sum())
+        return enter
+
+    def covered(self, points: torch.Tensor, view: KeyframeView) -> torch.Tensor:
+        """(N,) bool: the world points (N,3, metres) where the map already explains the
+        keyframe's view, by the configured `coverage` test."""
+        cfg, test = self.cfg, CoverageTest(self.cfg.coverage)
+        covered = torch.zeros(len(points), dtype=torch.bool, device=points.device)
+        if test is not CoverageTest.render and view.centres is not None:
+            cell = cfg.covered_cell if cfg.covered_cell is not None else default_covered_cell(SensorProfile())
+            covered |= occupied_by_centres(points, view.centres, view.world_to_camera, view.input_camera or view.camera,
+                                           cell, cfg.covered_depth_tolerance)
+        if test is not CoverageTest.centres:
+            covered |= covered_by_render(points, view.render(), view.world_to_camera, view.camera,
+                                         cfg.covered_alpha, cfg.covered_depth_tolerance)
+        return covered
 
     def after_keyframe(self, edit: MapEdit, new_rows: slice) -> None:
         """A keyframe's Gaussians are in the map at `new_rows`: enforce the memory guard."""

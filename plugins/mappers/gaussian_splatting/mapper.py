@@ -81,7 +81,9 @@ class GaussianSplattingMapper(Mapper):
         camera = self.keyframes.training_camera(frame.camera)
         w2c = torch.as_tensor(invert_pose(np.asarray(pose, dtype=np.float64)), dtype=torch.float32,
                               device=self.gaussian_map.device)
-        return self.strategy.admit(new, KeyframeView(camera, w2c, lambda: self.render(w2c, camera)))
+        view = KeyframeView(camera, w2c, lambda: self.render(w2c, camera), input_camera=frame.camera,
+                            centres=self.gaussian_map.means.detach())
+        return self.strategy.admit(new, view)
 
     def add_keyframe(self, frame, result, kind, new_rows) -> None:
         keyframe = self.keyframes.add(frame, result.pose, kind)
