@@ -18,7 +18,7 @@ from slamkit.errors import ConfigError
 from slamkit.map.gaussian_map import GaussianMap
 from slamkit.geometry.transforms import backproject, invert_pose, make_pose, nearest_rotation, rotation_angle_deg, transform_points
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import PluginConfig, Tracker, require
+from slamkit.roles import PluginConfig, Tracker, require, thread_count
 from slamkit.types import Frame, TrackingResult
 
 
@@ -37,7 +37,7 @@ class SmallGICPConfig(PluginConfig):
     keyframe_translation: float = 0.05
     keyframe_rotation_deg: float = 5.0
     max_range: float | None = None
-    num_threads: int = 2
+    num_threads: int = thread_count(2)
     min_points: int = 100
 
     def validate(self) -> None:
@@ -46,6 +46,7 @@ class SmallGICPConfig(PluginConfig):
         require(self.max_correspondence_distance > 0, "tracker.max_correspondence_distance", "> 0 metres",
                 self.max_correspondence_distance)
         require(self.knn >= 3, "tracker.knn", "an integer >= 3", self.knn)
+        require(self.num_threads >= 1, "tracker.num_threads", "an integer >= 1", self.num_threads)
 
 
 class SmallGICPTracker(Tracker):
