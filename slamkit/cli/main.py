@@ -91,10 +91,20 @@ def _task(cfg) -> None:
         sys.exit(130)
 
 
+def _escape_unencodable_output() -> None:
+    """Text the terminal's encoding cannot hold (a file name that is not UTF-8, kept by Python as
+    surrogate escapes) is printed and logged backslash-escaped instead of raising a logging error
+    (the log file's handler does the same: conf/config.yaml)."""
+    for stream in (sys.stdout, sys.stderr):
+        if hasattr(stream, "reconfigure"):
+            stream.reconfigure(errors="backslashreplace")
+
+
 def main() -> None:
     import hydra
 
     global _registry
+    _escape_unencodable_output()
     _registry = discover()
     if EXPERIMENTS_DIR.is_dir() and not any(a.startswith("hydra.searchpath") for a in sys.argv[1:]):
         sys.argv.append(f"hydra.searchpath=[file://{EXPERIMENTS_DIR}]")
