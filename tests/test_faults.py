@@ -71,6 +71,8 @@ FAULTS = [
     Fault("fps-limit-inf", ("mode=realtime", "fps_limit=inf"), 2, "fps_limit: expected a finite number"),
     Fault("seed-negative", ("seed=-1",), 2, "seed: expected an integer from 0 to 2^32 - 1"),
     Fault("seed-huge", ("seed=1099511627776",), 2, "seed: expected an integer from 0 to 2^32 - 1"),
+    Fault("mapper-seed-negative", ("mapper=gaussian_splatting", "mapper.seed=-1"), 2, "mapper.seed: expected"),
+    Fault("kiss-min-points-0", ("tracker=kiss_icp", "tracker.min_points=0"), 2, "tracker.min_points: expected"),
     Fault("mapping-threads-huge", (f"mapping_threads={HUGE}",), 2, "mapping_threads: expected at most"),
     Fault("tracker-threads-huge", (f"tracker.num_threads={HUGE}",), 2, "tracker.num_threads: expected at most"),
     Fault("rasterizer-threads-huge", ("mapper=gaussian_splatting", "rasterizer=cpu", f"rasterizer.num_threads={HUGE}"),

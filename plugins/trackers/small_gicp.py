@@ -47,6 +47,13 @@ class SmallGICPConfig(PluginConfig):
                 self.max_correspondence_distance)
         require(self.knn >= 3, "tracker.knn", "an integer >= 3", self.knn)
         require(self.num_threads >= 1, "tracker.num_threads", "an integer >= 1", self.num_threads)
+        require(self.max_iterations >= 1, "tracker.max_iterations", "an integer >= 1", self.max_iterations)
+        require(self.keyframe_translation >= 0, "tracker.keyframe_translation", ">= 0 metres",
+                self.keyframe_translation)
+        require(self.keyframe_rotation_deg >= 0, "tracker.keyframe_rotation_deg", ">= 0 degrees",
+                self.keyframe_rotation_deg)
+        require(self.max_range is None or self.max_range > 0, "tracker.max_range", "null or > 0 metres", self.max_range)
+        require(self.min_points >= 1, "tracker.min_points", "an integer >= 1", self.min_points)
 
 
 class SmallGICPTracker(Tracker):
