@@ -218,9 +218,14 @@ def test_fault(fault: Fault, tmp_path, monkeypatch, capsys):
 
 # --- every key: the rules every config value shares (slamkit.roles.check_values) ------------------
 
-def _float_and_thread_keys():
-    """(overrides selecting the key's plugin, key, "nan" | "threads") for every float key of the
-    configuration reference and every field declared a thread count (`thread_count`)."""
+#: Numeric keys for which a negative value is meaningful (none today): every other one has a range.
+NEGATIVE_OK: set[str] = set()
+
+
+def _numeric_keys():
+    """(overrides selecting the key's plugin, key, "nan" | "negative" | "threads") for every float
+    key of the configuration reference (nan), every int or float key (negative) and every field
+    declared a thread count (`thread_count`)."""
     import dataclasses
 
     from test_config_reference import PARTS, config_class, reference_keys
@@ -234,8 +239,11 @@ def _float_and_thread_keys():
         base = [section] if "=" in section else []
         if section.partition("=")[0] in PARTS:
             base.append("mapper=gaussian_splatting")
-        if "float" in [t.strip() for t in type_.split("|")]:
+        kinds = [t.strip() for t in type_.split("|")]
+        if "float" in kinds:
             cases.append((base, key, "nan"))
+        if {"int", "float"} & set(kinds) and key not in NEGATIVE_OK:
+            cases.append((base, key, "negative"))
         field = {f.name: f for f in dataclasses.fields(config_class(section))}.get(key.split(".")[-1])
         if field is not None and field.metadata.get(THREADS):
             cases.append((base, key, "threads"))
@@ -243,19 +251,21 @@ def _float_and_thread_keys():
 
 
 @pytest.mark.slow  # composes the config once per key
-def test_every_float_key_refuses_nan_and_inf_and_every_thread_count_is_bounded_by_the_machine():
-    """Through the composition the command uses: each bad value is one ConfigError line naming
-    its key; a thread count equal to the machine's CPUs is accepted."""
+def test_every_numeric_key_has_a_range_and_every_thread_count_is_bounded_by_the_machine():
+    """Through the composition the command uses, a float key refuses nan and -inf, a numeric key
+    -1 (unless NEGATIVE_OK), a thread count the machine's CPUs + 1: each with one ConfigError line
+    naming the key; a thread count equal to the machine's CPUs is accepted."""
     from slamkit.errors import ConfigError
     from slamkit.registry.compose import compose_run
     from slamkit.roles.config import machine_threads
 
-    cases = _float_and_thread_keys()
+    cases = _numeric_keys()
     threads = [key for _, key, kind in cases if kind == "threads"]
-    assert len(cases) > 80 and {"mapping_threads", "tracker.num_threads", "loss.num_threads"} <= set(threads)
+    assert len(cases) > 200 and {"mapping_threads", "tracker.num_threads", "loss.num_threads"} <= set(threads)
+    bad = {"nan": ["nan", "-inf"], "negative": ["-1"], "threads": [str(machine_threads() + 1)]}
     failures = []
     for base, key, kind in cases:
-        for value in (["nan", "-inf"] if kind == "nan" else [str(machine_threads() + 1)]):
+        for value in bad[kind]:
             try:
                 compose_run([*base, f"{key}={value}"])
                 failures.append(f"{key}={value} accepted")
