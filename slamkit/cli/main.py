@@ -2,6 +2,8 @@
 
 `slamkit` alone runs the default pipeline on the built-in synthetic sequence; any config value
 is an override (`slamkit dataset=tum dataset.path=... tracker=kiss_icp`), `-m` runs sweeps.
+`slamkit resume=RUN_DIR [overrides]` continues a run from its checkpoint (in RUN_DIR);
+`slamkit mode=localize map=RUN_DIR dataset=...` tracks a sequence in a saved map.
 User errors (a bad file, a bad value) print one line and exit with status 2; set
 SLAMKIT_DEBUG=1 for the traceback.
 """
@@ -70,8 +72,8 @@ def _is_sweep(override: str) -> bool:
 def _task(cfg) -> None:
     from hydra.core.hydra_config import HydraConfig
 
-    from slamkit.run import pipeline
-    from slamkit.registry.schema import validate_config
+    from slamkit.run import localization, pipeline
+    from slamkit.registry.schema import Mode, validate_config
 
     registry = _registry or default_registry()  # launchers run jobs in fresh processes
     hydra_cfg = HydraConfig.get()
@@ -79,13 +81,14 @@ def _task(cfg) -> None:
     out_dir = Path(hydra_cfg.runtime.output_dir)
     try:
         run_cfg = validate_config(cfg)
-        metrics = pipeline.run(run_cfg, registry, names, out_dir)
+        program = localization if run_cfg.mode is Mode.localize else pipeline
+        metrics = program.run(run_cfg, registry, names, out_dir)
     except SlamkitError as exc:
         log.error("%s", exc)
         if os.environ.get("SLAMKIT_DEBUG"):
             raise
         _fail(str(exc))
-    print(f"slamkit: {pipeline.summary(metrics)}")
+    print(f"slamkit: {program.summary(metrics)}")
     print(f"slamkit: outputs in {out_dir}")
     if not metrics["completed"]:
         sys.exit(130)
@@ -103,8 +106,17 @@ def _escape_unencodable_output() -> None:
 def main() -> None:
     import hydra
 
+    from slamkit.run.checkpoint import resume_arguments
+    from slamkit.run.localization import localize_arguments
+
     global _registry
     _escape_unencodable_output()
+    try:
+        sys.argv[1:] = resume_arguments(localize_arguments(sys.argv[1:]))
+    except SlamkitError as exc:
+        if os.environ.get("SLAMKIT_DEBUG"):
+            raise
+        _fail(str(exc))
     _registry = discover()
     if EXPERIMENTS_DIR.is_dir() and not any(a.startswith("hydra.searchpath") for a in sys.argv[1:]):
         sys.argv.append(f"hydra.searchpath=[file://{EXPERIMENTS_DIR}]")

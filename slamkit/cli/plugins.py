@@ -82,7 +82,7 @@ def text_listing(registry: Registry) -> str:
 
 def markdown_reference(registry: Registry) -> str:
     """The configuration reference: top-level keys, then each role's plugins and fields."""
-    from slamkit.registry.schema import EvalConfig, RunConfig
+    from slamkit.registry.schema import CheckpointConfig, EvalConfig, LocalizeConfig, RunConfig
     from slamkit.map.growth import MapGrowthConfig
 
     out = ["# Configuration reference", "",
@@ -94,12 +94,12 @@ def markdown_reference(registry: Registry) -> str:
            "image size when the dataset is opened (a 1 to 170 degree field of view, the principal point",
            "inside the image).", ""]
 
-    groups = {r.key for r in ROLES} | {"map", "eval", "defaults"}
+    groups = {r.key for r in ROLES} | {"map", "eval", "defaults", "checkpoint", "localize"}
 
     def table(prefix: str, cls: type) -> None:
         out.extend(["| key | type | default | meaning |", "|---|---|---|---|"])
         for name, ftype, default, doc in config_fields(cls):
-            if name not in groups:
+            if prefix or name not in groups:
                 cells = (c.replace("|", "\\|") for c in (ftype, default, doc))  # a pipe would split the cell
                 out.append("| `{}{}` | {} | `{}` | {} |".format(prefix, name, *cells))
         out.append("")
@@ -110,6 +110,10 @@ def markdown_reference(registry: Registry) -> str:
     table("map.", MapGrowthConfig)
     out += ["## `eval.*`", ""]
     table("eval.", EvalConfig)
+    out += ["## `checkpoint.*`: the map checkpoint (`resume=RUN_DIR`, docs/checkpoints.md)", ""]
+    table("checkpoint.", CheckpointConfig)
+    out += ["## `localize.*`: `mode=localize`, tracking in a saved map (docs/checkpoints.md)", ""]
+    table("localize.", LocalizeConfig)
     for role in ROLES:
         builtin = {n: e for n, e in registry.plugins[role.key].items() if e.source.endswith("(slamkit)")}
         if not builtin:

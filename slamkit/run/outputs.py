@@ -43,6 +43,7 @@ class RunState:
     refine_time_s: float = 0.0
     completed: bool = False
     error: str | None = None
+    previous_wall_s: float = 0.0  # wall time of the runs this one resumes (slamkit.run.checkpoint)
 
     def record_unreadable(self, timestamp: float) -> None:
         """A frame that could not be read (dataset.on_error=skip): lost, keeps the last pose."""
@@ -98,13 +99,13 @@ def write_outputs(cfg: RunConfig, slam: SLAM, dataset, state: RunState, wall_s: 
     metrics: dict[str, Any] = {
         "num_frames": n,
         "num_keyframes": state.num_keyframes,
-        "fps": n / wall_s if wall_s > 0 else None,
+        "fps": n / (wall_s + state.previous_wall_s) if wall_s > 0 else None,
         "tracking_fps": n / state.tracking_time_s if state.tracking_time_s > 0 else None,
         "stream_fps": n / state.stream_time_s if state.stream_time_s > 0 else None,
         "stream_time_s": state.stream_time_s,
         "tracking_time_s": state.tracking_time_s,
         "mapping_time_s": state.mapping_time_s,
-        "wall_time_s": wall_s,
+        "wall_time_s": wall_s + state.previous_wall_s,
         "mapping_iterations": state.mapping_iterations,
         "refine_iterations": state.refine_iterations,
         "refine_time_s": state.refine_time_s,

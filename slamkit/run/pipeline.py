@@ -10,9 +10,7 @@ from __future__ import annotations
 import csv
 import inspect
 import logging
-import signal
 import time
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -25,8 +23,10 @@ from slamkit.metrics import trajectory as evaluation
 from slamkit.native import available_threads
 from slamkit.registry.discovery import Registry
 from slamkit.registry.schema import Mode, RunConfig
+from slamkit.run import checkpoint
 from slamkit.run.outputs import RunState, rss_mb, summary, write_camera, write_outputs
 from slamkit.run.prefetch import UnreadableFrame, prefetched
+from slamkit.run.signals import StopSignals
 from slamkit.run.slam import SLAM, MappingThread, StepResult
 from slamkit.run.viewing import ViewerFeed
 from slamkit.types import Frame
@@ -85,24 +85,6 @@ def build(cfg: RunConfig, registry: Registry, names: dict[str, str]):
     return dataset, slam, create("viewer")
 
 
-@contextmanager
-def _sigterm_as_interrupt():
-    """SIGTERM stops the run like Ctrl-C does, so outputs are written either way."""
-
-    def handler(signum, frame):
-        raise KeyboardInterrupt(f"signal {signum}")
-
-    try:
-        previous = signal.signal(signal.SIGTERM, handler)
-    except ValueError:  # not the main thread
-        yield
-        return
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-
-
 def run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Path) -> dict[str, Any]:
     """Run SLAM as configured and write the outputs into `out_dir`; return the metrics."""
     threads_before = torch.get_num_threads()
@@ -122,17 +104,22 @@ def _run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Pat
              dataset.camera, names["tracker"], names["mapper"], names["keyframe"])
     write_camera(out_dir / "camera.json", dataset.camera, dataset.depth_trunc)
     state = RunState()
+    first = checkpoint.resume(cfg, names, slam, state)  # checkpoint: continue a saved run (resume=RUN_DIR)
+    checkpoints = checkpoint.CheckpointWriter(cfg, names, slam, state, dataset, out_dir)
     viewer.start(dataset.camera, out_dir)
     start = time.perf_counter()
     try:
-        with _sigterm_as_interrupt(), open(out_dir / "frames.csv", "w", newline="") as frames_log:
-            _loop(cfg, dataset, slam, state, csv.writer(frames_log), frames_log, viewer)
-            _refine(slam, cfg.refinement_iterations(), state)
-        slam.mapper.finish()
-        state.completed = True
+        with StopSignals() as stop, open(out_dir / "frames.csv", "a" if first else "w", newline="") as frames_log:
+            _loop(cfg, dataset, slam, state, csv.writer(frames_log), frames_log, viewer, stop, checkpoints, first)
+            _refine(slam, cfg.refinement_iterations(), state, stop)
+            with stop.deferred():
+                slam.mapper.finish()
+                state.completed = True
+                checkpoints.save("end")  # checkpoint: end of the run
     except KeyboardInterrupt as exc:
         state.error = f"interrupted ({exc or 'SIGINT'})"
         log.warning("run interrupted after %d frames; writing what it has", len(state.poses))
+        checkpoints.save("interrupted")  # checkpoint: on SIGINT / SIGTERM
     except Exception as exc:
         state.error = f"{type(exc).__name__}: {exc}"
         log.error("run failed after %d frames: %s; writing what it has", len(state.poses), state.error)
@@ -145,13 +132,22 @@ def _run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Pat
     return metrics
 
 
-def _refine(slam: SLAM, iterations: int, state: RunState) -> None:
+#: Refinement steps taken between two chances to stop (a stop signal waits for the chunk).
+REFINE_CHUNK = 10
+
+
+def _refine(slam: SLAM, iterations: int, state: RunState, stop: StopSignals) -> None:
     """The map's refinement after the stream: `iterations` more mapping steps, timed apart."""
     if not iterations:
         return
-    start = time.perf_counter()
-    state.refine_iterations = slam.mapper.optimize(iterations)
-    state.refine_time_s = time.perf_counter() - start
+    start, state.refine_iterations = time.perf_counter(), 0
+    while state.refine_iterations < iterations:
+        with stop.deferred():
+            done = slam.mapper.optimize(min(REFINE_CHUNK, iterations - state.refine_iterations))
+            state.refine_iterations += done
+            state.refine_time_s = time.perf_counter() - start
+        if not done:
+            break
     log.info("refinement: %d mapping steps in %.1f s", state.refine_iterations, state.refine_time_s)
 
 
@@ -192,21 +188,25 @@ class InputClock:
         return now >= arrival + self.period
 
 
-def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, writer, log_file, viewer: ViewerFeed) -> None:
+def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, writer, log_file, viewer: ViewerFeed,
+          stop: StopSignals, checkpoints: checkpoint.CheckpointWriter, first: int = 0) -> None:
+    """Frames `first`.. of the dataset (a resumed run starts after its checkpoint's last frame)."""
     from tqdm import tqdm
 
-    writer.writerow(["index", "timestamp", "keyframe", "lost", "tracking_ms", "mapping_ms", "iterations",
-                     "correspondence_ratio", "num_gaussians", "rss_mb", "note"])
+    if not first:
+        writer.writerow(["index", "timestamp", "keyframe", "lost", "tracking_ms", "mapping_ms", "iterations",
+                         "correspondence_ratio", "num_gaussians", "rss_mb", "note"])
     realtime = cfg.mode is Mode.realtime
     clock = InputClock(cfg.fps_limit if realtime else None)
     mapping = MappingThread(slam.mapper) if realtime else None
-    bar = tqdm(total=len(dataset), unit="frame", disable=None if cfg.progress else True, dynamic_ncols=True)
+    bar = tqdm(total=len(dataset), initial=first, unit="frame", disable=None if cfg.progress else True,
+               dynamic_ncols=True)
     start = time.perf_counter()
     try:
         if mapping:
             mapping.start()
         skip_errors = cfg.dataset.on_error.value == "skip"
-        for frame in prefetched(dataset, cfg.dataset.prefetch, skip_errors):
+        for frame in prefetched(dataset, cfg.dataset.prefetch, skip_errors, first):
             if isinstance(frame, UnreadableFrame):
                 log.warning("frame %d skipped: %s", frame.index, frame.error)
                 state.record_unreadable(frame.timestamp)
@@ -216,16 +216,18 @@ def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, writer, log_file
                 continue
             if not state.poses:
                 slam.initialize(frame.gt_pose if frame.gt_pose is not None else np.eye(4))
-            if clock.wait(frame.index) and cfg.drop_frames and state.poses:
+            if clock.wait(frame.index - first) and cfg.drop_frames and state.poses:
                 state.record_dropped(frame)
                 writer.writerow([frame.index, f"{frame.timestamp:.6f}", "none", 0, "", "", 0, "", "", "", "dropped"])
                 bar.update(1)
                 continue
-            step = slam.track(frame) if realtime else slam.step(frame)
-            if mapping:
-                mapping.check()
-            state.record(frame, step)
-            _log_frame(writer, frame, step, len(slam.gaussian_map))
+            with stop.deferred():  # a frame's step and its record, whole or not at all
+                step = slam.track(frame) if realtime else slam.step(frame)
+                if mapping:
+                    mapping.check()
+                state.record(frame, step)
+                _log_frame(writer, frame, step, len(slam.gaussian_map))
+                checkpoints.after_frame()  # checkpoint: every N keyframes
             viewer.show(frame, step.tracking.pose, step.keyframe, step.tracking.lost)
             bar.update(1)
             every = cfg.eval.running_ate_every
@@ -233,7 +235,7 @@ def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, writer, log_file
                 bar.set_postfix_str(_running_ate(state), refresh=False)
                 log_file.flush()
     finally:
-        state.stream_time_s = time.perf_counter() - start
+        state.stream_time_s += time.perf_counter() - start
         bar.close()
         if mapping:
             _stop_mapping(mapping, state)
