@@ -11,6 +11,7 @@ Conventions used everywhere in slamkit:
 from __future__ import annotations
 
 import enum
+import math
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -27,6 +28,32 @@ class Camera:
     fy: float
     cx: float
     cy: float
+
+    #: Degrees: the narrowest and the widest field of view a pinhole camera's focal length may give.
+    FIELD_OF_VIEW_DEG = (1.0, 170.0)
+
+    def implausible(self) -> list[tuple[str, str]]:
+        """(field, what was expected) for each intrinsic outside sensible bounds for the image
+        size: a positive whole size; fx and fy giving a field of view from 1 to 170 degrees
+        across the width and the height; the principal point (cx, cy) inside the image. Empty
+        when the camera is plausible."""
+        found = []
+        for name, size in (("width", self.width), ("height", self.height)):
+            if not (isinstance(size, (int, np.integer)) and size > 0):
+                found.append((name, "a whole number of pixels > 0"))
+        if found:
+            return found
+        narrow, wide = (math.radians(d) / 2 for d in self.FIELD_OF_VIEW_DEG)
+        for name, focal, size, axis in (("fx", self.fx, self.width, "wide"), ("fy", self.fy, self.height, "high")):
+            low, high = size / (2 * math.tan(wide)), size / (2 * math.tan(narrow))
+            if not low <= focal <= high:  # NaN fails too
+                found.append((name, f"{low:.4g} to {high:.4g} pixels for an image {size} pixels {axis}, "
+                                    f"a field of view of {self.FIELD_OF_VIEW_DEG[0]:g} to "
+                                    f"{self.FIELD_OF_VIEW_DEG[1]:g} degrees"))
+        for name, centre, size, axis in (("cx", self.cx, self.width, "wide"), ("cy", self.cy, self.height, "high")):
+            if not 0 <= centre <= size:
+                found.append((name, f"0 to {size} pixels, inside an image {size} pixels {axis}"))
+        return found
 
     @property
     def K(self) -> np.ndarray:

@@ -30,6 +30,7 @@ EXPLICIT = {
     "viewer.application_id": "slamkit-test", "dataset.cache_dir": "{tmp}/cache", "rasterizer.prefer": ["torch"],
     "dataset.camera": "fr1", "dataset.max_frames": 5, "dataset.start": 2, "dataset.stride": 2,
     "dataset.path": "{data}", "dataset=tum:dataset.gt_path": "{data}/groundtruth.txt",
+    "dataset.fx": 500.0, "dataset.fy": 500.0,  # plausible for every dataset's image size (Camera.implausible)
     "resume": "{tmp}/run", "localize.map": "{tmp}/run",
     "dataset.color_topic": "/camera/rgb/image_color", "dataset.depth_topic": "/camera/depth/image",
     "dataset.camera_info_topic": "/camera/rgb/camera_info", "dataset.groundtruth": "{data}/groundtruth.txt",
@@ -161,11 +162,14 @@ def config_class(section: str) -> type:
 
 
 def valid_value(section: str, key: str, type_: str, default: str, tmp: Path, data: dict[str, Path]):
-    """The first candidate that the key's config dataclass accepts (its validate())."""
+    """The first candidate that the key's config dataclass accepts (its validate() and the rules
+    every key shares, `check_values`)."""
+    from slamkit.roles import check_values
+
     field, reasons = key.split(".")[-1], []
     for value in candidates(key, type_, default, tmp, data.get(section.partition("=")[2]), section):
         try:
-            config_class(section)(**{field: value})
+            check_values(config_class(section)(**{field: value}))
             return value
         except (SlamkitError, TypeError, ValueError) as exc:
             reasons.append(f"{value!r}: {exc}")

@@ -113,7 +113,7 @@ def read_intrinsics(path: Path, depth_scale: float | None = None) -> tuple[Camer
             continue
         try:
             numbers[key] = float(value)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):  # OverflowError: an integer beyond float's range
             raise DataError(f"intrinsics file {path}: {key} = {value!r} is not a number") from None
         positive = numbers[key] > 0 if key not in ("cx", "cy") else True
         if not (math.isfinite(numbers[key]) and positive):
@@ -123,6 +123,8 @@ def read_intrinsics(path: Path, depth_scale: float | None = None) -> tuple[Camer
             raise DataError(f"intrinsics file {path}: {key} = {values[key]!r} (expected a whole number of pixels)")
     camera = Camera(int(numbers["width"]), int(numbers["height"]),
                     numbers["fx"], numbers["fy"], numbers["cx"], numbers["cy"])
+    for key, expected in camera.implausible():
+        raise DataError(f"intrinsics file {path}: {key} = {values[key]!r} (expected {expected})")
     return camera, numbers["depth_scale"], numbers.get("depth_trunc")
 
 

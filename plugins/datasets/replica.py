@@ -13,6 +13,7 @@ import dataclasses
 
 import json
 import logging
+import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -51,12 +52,14 @@ def read_cam_params(path: Path) -> tuple[Camera, float | None]:
         cam = json.loads(path.read_text())["camera"]
         c = Camera(int(cam["w"]), int(cam["h"]), float(cam["fx"]), float(cam["fy"]), float(cam["cx"]), float(cam["cy"]))
         scale = float(cam["scale"]) if "scale" in cam else None
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        reason = f"missing key {exc}" if isinstance(exc, KeyError) else str(exc).splitlines()[0]
+    except (OSError, ValueError, KeyError, TypeError, OverflowError) as exc:
+        reason = f"missing key {exc}" if isinstance(exc, KeyError) else (str(exc).splitlines() or [type(exc).__name__])[0]
         expected = '{"camera": {w, h, fx, fy, cx, cy, scale}}'
         raise DataError(f"cannot read {path}: {reason} (expected {expected})") from None
-    if min(c.width, c.height) <= 0 or min(c.fx, c.fy) <= 0 or (scale is not None and scale <= 0):
-        raise DataError(f"{path}: non-positive image size, focal length or scale (expected positive values)")
+    for name, expected in c.implausible():
+        raise DataError(f"{path}: camera {name} = {getattr(c, name)!r} (expected {expected})")
+    if scale is not None and not (math.isfinite(scale) and scale > 0):
+        raise DataError(f"{path}: camera scale = {scale!r} (expected a finite number > 0 of raw units per metre)")
     return c, scale
 
 

@@ -19,7 +19,7 @@ import torch
 from slamkit.errors import ConfigError
 from slamkit.map.rendering import RenderOutput
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import MappingLoss, PluginConfig, TrainingView, require
+from slamkit.roles import MappingLoss, PluginConfig, TrainingView, require, thread_count
 from slamkit_plugins.losses import fused_rgbd_loss as rgbd
 
 
@@ -44,7 +44,7 @@ class L1SSIMDepthConfig(PluginConfig):
     weight_depth: float = 0.1
     depth_unit: float = 10.0
     backend: Backend = Backend.auto
-    num_threads: int = 0
+    num_threads: int = thread_count(0)
 
     def validate(self) -> None:
         for name in ("weight_l1", "weight_ssim", "weight_depth"):

@@ -29,7 +29,7 @@ from slamkit.errors import ConfigError
 from slamkit.native import NativeLibrary
 from slamkit.plugin import PluginSpec, hookimpl
 from slamkit.map.rendering import Rasterizer, RenderOutput
-from slamkit.roles import PluginConfig, require
+from slamkit.roles import PluginConfig, require, thread_count
 from slamkit.types import Camera
 
 SOURCE = Path(__file__).resolve().parent / "csrc" / "cpu_rasterizer.cpp"
@@ -42,7 +42,7 @@ class CPURasterizerConfig(PluginConfig):
     threads). native: compile for this machine's CPU (-march=native; the cached library is keyed
     by the CPU model, so a copied cache is rebuilt rather than crashing on another CPU)."""
 
-    num_threads: int = 0
+    num_threads: int = thread_count(0)
     native: bool = True
 
     def validate(self) -> None:

@@ -51,6 +51,7 @@ class Densify3DGSConfig(PruneConfig):
                 self.densify_max_gaussians)
         require(self.reset_opacity_every >= 0, "strategy.reset_opacity_every", "an integer >= 0 (0 = never)",
                 self.reset_opacity_every)
+        require(0 <= self.seed < 2**64, "strategy.seed", "an integer from 0 to 2^64 - 1 (torch's seed range)", self.seed)
 
 
 class Densify3DGSStrategy(PruneStrategy):

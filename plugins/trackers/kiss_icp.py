@@ -49,6 +49,12 @@ class KissICPConfig(PluginConfig):
         require(self.voxel_size > 0, "tracker.voxel_size", "> 0 metres", self.voxel_size)
         require(self.initial_threshold > 0, "tracker.initial_threshold", "> 0 metres", self.initial_threshold)
         require(self.min_range >= 0, "tracker.min_range", ">= 0 metres", self.min_range)
+        require(self.max_range is None or self.max_range > self.min_range, "tracker.max_range",
+                f"null or > tracker.min_range ({self.min_range} metres)", self.max_range)
+        require(self.min_motion >= 0, "tracker.min_motion", ">= 0 metres", self.min_motion)
+        require(self.max_points_per_voxel >= 1, "tracker.max_points_per_voxel", "an integer >= 1",
+                self.max_points_per_voxel)
+        require(self.min_points >= 1, "tracker.min_points", "an integer >= 1", self.min_points)
 
 
 class KissICPTracker(Tracker):

@@ -18,7 +18,7 @@ from slamkit.errors import ConfigError
 from slamkit.map.gaussian_map import GaussianMap
 from slamkit.geometry.transforms import backproject, invert_pose, make_pose, nearest_rotation, rotation_angle_deg, transform_points
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import PluginConfig, Tracker, require
+from slamkit.roles import PluginConfig, Tracker, require, thread_count
 from slamkit.types import Frame, TrackingResult
 
 
@@ -37,7 +37,7 @@ class SmallGICPConfig(PluginConfig):
     keyframe_translation: float = 0.05
     keyframe_rotation_deg: float = 5.0
     max_range: float | None = None
-    num_threads: int = 2
+    num_threads: int = thread_count(2)
     min_points: int = 100
 
     def validate(self) -> None:
@@ -46,6 +46,14 @@ class SmallGICPConfig(PluginConfig):
         require(self.max_correspondence_distance > 0, "tracker.max_correspondence_distance", "> 0 metres",
                 self.max_correspondence_distance)
         require(self.knn >= 3, "tracker.knn", "an integer >= 3", self.knn)
+        require(self.num_threads >= 1, "tracker.num_threads", "an integer >= 1", self.num_threads)
+        require(self.max_iterations >= 1, "tracker.max_iterations", "an integer >= 1", self.max_iterations)
+        require(self.keyframe_translation >= 0, "tracker.keyframe_translation", ">= 0 metres",
+                self.keyframe_translation)
+        require(self.keyframe_rotation_deg >= 0, "tracker.keyframe_rotation_deg", ">= 0 degrees",
+                self.keyframe_rotation_deg)
+        require(self.max_range is None or self.max_range > 0, "tracker.max_range", "null or > 0 metres", self.max_range)
+        require(self.min_points >= 1, "tracker.min_points", "an integer >= 1", self.min_points)
 
 
 class SmallGICPTracker(Tracker):

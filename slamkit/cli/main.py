@@ -113,6 +113,15 @@ def _task(cfg) -> float | None:
     return _score(run_cfg, metrics)
 
 
+def _escape_unencodable_output() -> None:
+    """Text the terminal's encoding cannot hold (a file name that is not UTF-8, kept by Python as
+    surrogate escapes) is printed and logged backslash-escaped instead of raising a logging error
+    (the log file's handler does the same: conf/config.yaml)."""
+    for stream in (sys.stdout, sys.stderr):
+        if hasattr(stream, "reconfigure"):
+            stream.reconfigure(errors="backslashreplace")
+
+
 def main() -> None:
     import hydra
 
@@ -120,6 +129,7 @@ def main() -> None:
     from slamkit.run.localization import localize_arguments
 
     global _registry
+    _escape_unencodable_output()
     try:
         sys.argv[1:] = resume_arguments(localize_arguments(sys.argv[1:]))
     except SlamkitError as exc:

@@ -57,6 +57,7 @@ class MapGrowthConfig(PluginConfig):
 
     def validate(self) -> None:
         require(self.scale_c > 0, "map.scale_c", "> 0", self.scale_c)
+        require(self.scale_p >= 0, "map.scale_p", ">= 0", self.scale_p)
         require(0 < self.initial_opacity < 1, "map.initial_opacity", "in (0, 1)", self.initial_opacity)
         require(
             self.new_gaussian_overlap is None or self.new_gaussian_overlap >= 0,

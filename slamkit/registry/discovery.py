@@ -93,14 +93,23 @@ class Registry:
 
 def _check_hydra_can_hold(config: type, label: str) -> None:
     """PluginError unless OmegaConf can make a structured config of `config` (every field of a
-    type Hydra supports, with defaults it can hold)."""
+    type Hydra supports, with defaults it can hold) and build the config object from it (its
+    defaults pass its `validate`), as a run that selects the plugin will."""
     from omegaconf import OmegaConf
 
     try:
-        OmegaConf.structured(config)
+        node = OmegaConf.structured(config)
     except Exception as exc:
-        raise PluginError(f"{label}: config {config.__name__} cannot be a Hydra config: "
-                          f"{str(exc).strip().splitlines()[0]}") from None
+        raise PluginError(f"{label}: config {config.__name__} cannot be a Hydra config: {_first_line(exc)}") from None
+    try:
+        OmegaConf.to_object(node)
+    except Exception as exc:
+        raise PluginError(f"{label}: config {config.__name__} cannot be built from its defaults: "
+                          f"{_first_line(exc)}") from None
+
+
+def _first_line(exc: BaseException) -> str:
+    return (str(exc).strip().splitlines() or [type(exc).__name__])[0]
 
 
 def _manager() -> pluggy.PluginManager:
@@ -125,13 +134,18 @@ def discover() -> Registry:
 
 
 def register_configs(registry: Registry) -> None:
-    """Put each plugin's config dataclass into Hydra's ConfigStore under its role's group."""
+    """Put each plugin's config dataclass into Hydra's ConfigStore under its role's group; one
+    that cannot be stored is reported by name (a warning) and left out of the registry."""
     from hydra.core.config_store import ConfigStore
 
     store = ConfigStore.instance()
     for role, plugins in registry.plugins.items():
-        for name, entry in plugins.items():
-            store.store(group=role, name=name, node=entry.spec.config, provider=entry.source)
+        for name, entry in list(plugins.items()):
+            try:
+                store.store(group=role, name=name, node=entry.spec.config, provider=entry.source)
+            except Exception as exc:
+                del plugins[name]
+                registry._fail(entry.source, exc)
 
 
 _discovered: Registry | None = None

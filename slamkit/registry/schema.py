@@ -16,7 +16,7 @@ from omegaconf import MISSING, DictConfig, OmegaConf
 
 from slamkit.errors import ConfigError
 from slamkit.map.growth import MapGrowthConfig
-from slamkit.roles import ROLES, PluginConfig, require
+from slamkit.roles import ROLES, PluginConfig, check_values, require, thread_count
 
 
 class Mode(enum.Enum):
@@ -36,12 +36,16 @@ class Device(enum.Enum):
 
 
 @dataclass
-class EvalConfig:
+class EvalConfig(PluginConfig):
     """plot: write trajectory.png. running_ate_every: frames between running-ATE updates of the
     progress bar (0 = off)."""
 
     plot: bool = True
     running_ate_every: int = 10
+
+    def validate(self) -> None:
+        require(self.running_ate_every >= 0, "eval.running_ate_every", "an integer >= 0 (0: off)",
+                self.running_ate_every)
 
 
 @dataclass
@@ -128,7 +132,7 @@ class RunConfig(PluginConfig):
     drop_frames: bool = False
     seed: int = 0
     progress: bool = True
-    mapping_threads: int = 0
+    mapping_threads: int = thread_count(0)
     final_iterations: int | None = None
     mapping_device: Device = Device.auto
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
@@ -158,6 +162,7 @@ class RunConfig(PluginConfig):
         require(self.iterations_per_frame >= 0, "iterations_per_frame", ">= 0", self.iterations_per_frame)
         require(self.fps_limit is None or self.fps_limit > 0, "fps_limit", "null or > 0", self.fps_limit)
         require(self.mapping_threads >= 0, "mapping_threads", "an integer >= 0 (0: automatic)", self.mapping_threads)
+        require(0 <= self.seed < 2**32, "seed", "an integer from 0 to 2^32 - 1 (numpy's seed range)", self.seed)
         require(self.mode is not Mode.localize or bool(self.localize.map), "map",
                 "a run folder or checkpoint file with mode=localize (map=RUN_DIR)", self.localize.map)
         require(self.mode is not Mode.localize or not self.resume, "resume", "null with mode=localize", self.resume)
@@ -180,7 +185,9 @@ def register_run_config() -> None:
 
 def validate_config(cfg: DictConfig) -> RunConfig:
     """Turn the composed config into a RunConfig whose groups are the plugins' config
-    dataclasses, running every `validate`. Raises ConfigError (one line) on a wrong value."""
+    dataclasses, running every `validate`, then the rules every value shares
+    (`slamkit.roles.check_values`: finite numbers, thread counts bounded by the machine).
+    Raises ConfigError (one line naming the key) on a wrong value."""
     try:
         run = OmegaConf.to_object(cfg)
     except ConfigError:
@@ -192,4 +199,5 @@ def validate_config(cfg: DictConfig) -> RunConfig:
     for r in ROLES:
         if not is_dataclass(getattr(run, r.key)):
             raise ConfigError(f"{r.key}: no plugin selected (use {r.key}=NAME)")
+    check_values(run)
     return run

@@ -4,7 +4,7 @@ from `PluginConfig`; the registry builds the subclass with the validated config 
 mapper, the parts it names in `Mapper.parts`)."""
 
 from slamkit.map.rendering import Rasterizer, RenderOutput
-from slamkit.roles.config import PluginConfig, require
+from slamkit.roles.config import PluginConfig, check_values, require, thread_count, unlimited
 from slamkit.roles.dataset import Dataset, DatasetConfig, OnError, SensorProfile
 from slamkit.roles.mapping import KeyframeSampler, Mapper, MapOptimizer, MappingLoss, TrainingView
 from slamkit.roles.strategy import CoverageTest, DensifyStrategy, KeyframeView, StepInfo, StrategyConfig
@@ -13,7 +13,7 @@ from slamkit.roles.tracking import KeyframeHistory, KeyframePolicy, Tracker
 from slamkit.roles.viewer import MapGaussians, MapPoints, Viewer, ViewerConfig, ViewerFrame
 
 __all__ = [
-    "ROLES", "ROLE_KEYS", "Role", "role", "role_of", "PluginConfig", "require",
+    "ROLES", "ROLE_KEYS", "Role", "role", "role_of", "PluginConfig", "require", "thread_count", "unlimited", "check_values",
     "Dataset", "DatasetConfig", "OnError", "SensorProfile",
     "Tracker", "KeyframePolicy", "KeyframeHistory",
     "Mapper", "Rasterizer", "RenderOutput", "KeyframeSampler", "DensifyStrategy", "StrategyConfig", "CoverageTest", "MapOptimizer",

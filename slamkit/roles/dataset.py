@@ -9,7 +9,8 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import Sequence
 
-from slamkit.roles.config import PluginConfig, require
+from slamkit.errors import DataError
+from slamkit.roles.config import PluginConfig, require, unlimited
 from slamkit.types import Camera, Frame
 
 
@@ -70,7 +71,7 @@ class DatasetConfig(PluginConfig):
     stride: int = 1
     max_frames: int | None = None
     passes: int = 1
-    depth_trunc: float | None = None
+    depth_trunc: float | None = unlimited(None)
     fx: float | None = None
     fy: float | None = None
     cx: float | None = None
@@ -88,6 +89,34 @@ class DatasetConfig(PluginConfig):
         for name in ("fx", "fy"):
             v = getattr(self, name)
             require(v is None or v > 0, f"dataset.{name}", "null or > 0 pixels", v)
+        for name in ("cx", "cy"):
+            v = getattr(self, name)
+            require(v is None or v >= 0, f"dataset.{name}", "null or >= 0 pixels", v)
+
+
+class BackAndForth(Sequence[int]):
+    """`passes` passes over the raw frames `one`, forward, backward, forward, ... (the frame at
+    each turn once), cut at `limit` frames (None: all). Computed per index, so that a huge
+    `dataset.passes` costs no memory."""
+
+    def __init__(self, one: range, passes: int, limit: int | None):
+        self.one = one
+        total = len(one) + (passes - 1) * (len(one) - 1)
+        self.length = total if limit is None else min(total, limit)
+
+    def __len__(self) -> int:
+        return self.length
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            return [self[k] for k in range(*i.indices(self.length))]
+        if i < 0:
+            i += self.length
+        if not 0 <= i < self.length:
+            raise IndexError(i)
+        period = 2 * (len(self.one) - 1)
+        k = i % period
+        return self.one[k if k < len(self.one) else period - k]
 
 
 class Dataset(ABC):
@@ -123,6 +152,16 @@ class Dataset(ABC):
         c = self.cfg
         return self.native_camera.with_overrides(fx=c.fx, fy=c.fy, cx=c.cx, cy=c.cy)
 
+    def check_camera(self) -> None:
+        """Check the run's intrinsics against the image size (`Camera.implausible`): a
+        ConfigError naming `dataset.KEY` for an override, a DataError for the dataset's own."""
+        camera = self.camera
+        for name, expected in camera.implausible():
+            value = getattr(camera, name)
+            require(getattr(self.cfg, name, None) is None, f"dataset.{name}", expected, value)
+            raise DataError(f"dataset at {self.cfg.path or '(built in)'}: camera {name} = {value!r} "
+                            f"(expected {expected})")
+
     @property
     def sensor(self) -> SensorProfile:
         """The sensor profile other parts read (`default_sensor`, with `dataset.depth_trunc`)."""
@@ -154,11 +193,9 @@ class Dataset(ABC):
         """The raw frame of each frame of the run (see DatasetConfig: start, stride, passes,
         max_frames)."""
         one = range(self.cfg.start, self.num_available(), self.cfg.stride)
-        frames: Sequence[int] = one
         if self.cfg.passes > 1 and len(one) > 1:
-            forward, backward = list(one), list(one)[-2::-1]
-            frames = forward + [r for p in range(1, self.cfg.passes) for r in (backward if p % 2 else forward[1:])]
-        return frames if self.cfg.max_frames is None else frames[: self.cfg.max_frames]
+            return BackAndForth(one, self.cfg.passes, self.cfg.max_frames)
+        return one if self.cfg.max_frames is None else one[: self.cfg.max_frames]
 
     def __len__(self) -> int:
         return len(self.raw_indices())

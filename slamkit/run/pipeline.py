@@ -54,7 +54,8 @@ class Blamed:
             except SlamkitError:
                 raise
             except Exception as exc:
-                log.exception("%s %r failed in %s()", self._role, self._name, attr)
+                # the traceback goes to the log file (INFO), not to the terminal (WARNING and above)
+                log.info("%s %r failed in %s()", self._role, self._name, attr, exc_info=True)
                 message = f"{self._role} plugin {self._name!r} failed in {attr}(): {type(exc).__name__}: {exc}"
                 raise PluginError(message.splitlines()[0]) from exc
 
@@ -68,6 +69,7 @@ def build(cfg: RunConfig, registry: Registry, names: dict[str, str]):
     dataset = registry.create("dataset", names["dataset"], cfg.dataset)
     if len(dataset) == 0:
         raise DataError(f"dataset {names['dataset']!r} at {cfg.dataset.path!r}: no frames selected")
+    dataset.check_camera()
     sensor = dataset.sensor
 
     def create(role: str, **parts):

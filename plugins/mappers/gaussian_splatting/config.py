@@ -49,3 +49,4 @@ class GaussianSplattingConfig(PluginConfig):
         require(self.coarse_steps >= 0, "mapper.coarse_steps", "an integer >= 0 (0 = off)", self.coarse_steps)
         require(self.eval_every >= 1, "mapper.eval_every", "an integer >= 1", self.eval_every)
         require(self.save_images >= 0, "mapper.save_images", "an integer >= 0", self.save_images)
+        require(self.seed >= 0, "mapper.seed", "an integer >= 0 (numpy's generator seed)", self.seed)

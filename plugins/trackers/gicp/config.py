@@ -6,7 +6,7 @@ import enum
 from dataclasses import dataclass
 
 from slamkit.geometry.gaussians import Regularization
-from slamkit.roles import PluginConfig, SensorProfile, require
+from slamkit.roles import PluginConfig, SensorProfile, require, thread_count
 from slamkit_plugins.trackers.gicp.kernels import Kernels
 
 
@@ -94,7 +94,7 @@ class GICPConfig(PluginConfig):
     lm_lambda: float = 1e-9
     lm_max_tries: int = 10
     kernels: Kernels = Kernels.auto
-    num_threads: int | None = None
+    num_threads: int | None = thread_count(None)
 
     def validate(self) -> None:
         require(self.pixel_stride is None or self.pixel_stride >= 1,

@@ -1,0 +1,198 @@
+"""The inputs of the fault suite (tests/test_faults.py): data folders made from the first frames
+of the shared TUM sequence, their damages, and throwaway third-party plugins installed as a
+distribution with entry points (a tmp dist-info on sys.path)."""
+
+from __future__ import annotations
+
+import shutil
+import sys
+from pathlib import Path
+from typing import Callable
+
+from conftest import TUM, make_plugin_dist, require_data
+
+FRAMES = 8
+
+
+# --- inputs a case starts from ------------------------------------------------------------------
+
+def tiny_tum(root: Path, frames: int = FRAMES) -> Path:
+    """A TUM folder holding the first `frames` frames of the shared sequence (files copied)."""
+    src = require_data(TUM)
+    (root / "rgb").mkdir(parents=True)
+    (root / "depth").mkdir()
+    for name in ("rgb", "depth"):
+        lines = [ln for ln in (src / f"{name}.txt").read_text().splitlines() if not ln.startswith("#")][:frames]
+        (root / f"{name}.txt").write_text("\n".join(lines) + "\n")
+        for line in lines:
+            rel = line.split()[1]
+            shutil.copy(src / rel, root / rel)
+    shutil.copy(src / "groundtruth.txt", root / "groundtruth.txt")
+    return root
+
+
+INTRINSICS = "fx: 517.3\nfy: 516.5\ncx: 318.6\ncy: 255.3\nwidth: 640\nheight: 480\ndepth_scale: 5000\n"
+
+
+def folder_scene(root: Path, intrinsics: str = INTRINSICS) -> Path:
+    """A `dataset=folder` scene (color/, depth/, intrinsics.yaml) from the tiny TUM copy."""
+    tum = tiny_tum(root.parent / f"{root.name}_tum")
+    (root / "color").mkdir(parents=True)
+    (root / "depth").mkdir()
+    for rgb, depth in zip(sorted((tum / "rgb").iterdir()), sorted((tum / "depth").iterdir())):
+        shutil.copy(rgb, root / "color" / rgb.name)
+        shutil.copy(depth, root / "depth" / rgb.name)
+    (root / "intrinsics.yaml").write_text(intrinsics)
+    return root
+
+
+def tum_with(damage: Callable[[Path], None]) -> Callable[[Path], Path]:
+    def make(root: Path) -> Path:
+        damage(tiny_tum(root))
+        return root
+
+    return make
+
+
+def folder_with(intrinsics: str = INTRINSICS, damage: Callable[[Path], None] = lambda root: None):
+    def make(root: Path) -> Path:
+        damage(folder_scene(root, intrinsics))
+        return root
+
+    return make
+
+
+def truncate_depth(root: Path, index: int = 5) -> None:
+    victim = sorted((root / "depth").iterdir())[index]
+    victim.write_bytes(victim.read_bytes()[:200])
+
+
+def duplicate_timestamp(root: Path) -> None:
+    lines = (root / "rgb.txt").read_text().splitlines()
+    (root / "rgb.txt").write_text("\n".join([*lines, lines[-1]]) + "\n")
+
+
+def non_utf8_name(root: Path) -> None:
+    """A colour image whose file name is not UTF-8 (a Latin-1 byte), without its depth image."""
+    first = sorted((root / "color").iterdir())[0]
+    shutil.copy(first, root / "color" / "caf\udce9.png")  # the file system gets the byte 0xe9
+
+
+# --- plugins a case installs (a tmp dist-info with entry points, on sys.path) --------------------
+
+STILL_TRACKER = """
+    from dataclasses import dataclass
+    from slamkit.plugin import PluginSpec, hookimpl
+    from slamkit.roles import PluginConfig, Tracker
+    from slamkit.types import TrackingResult
+
+    @dataclass
+    class StillConfig(PluginConfig):
+        fail_at: int = -1
+
+    class StillTracker(Tracker):
+        '''Reports the first pose for every frame; raises at frame `fail_at`.'''
+        def __init__(self, cfg):
+            self.cfg = cfg
+        def initialize(self, first_pose):
+            self.pose = first_pose.copy()
+        def track(self, frame, gaussian_map):
+            if frame.index == self.cfg.fail_at:
+                raise ValueError("simulated failure")
+            return TrackingResult(pose=self.pose)
+
+    @hookimpl
+    def slamkit_plugins():
+        return [PluginSpec("still", StillTracker, StillConfig)]
+"""
+
+#: A config field type Hydra cannot hold (a numpy array), declared as a type, not only a value.
+ARRAY_CONFIG = """
+    from dataclasses import dataclass, field
+    import numpy as np
+    from slamkit.plugin import PluginSpec, hookimpl
+    from slamkit.roles import PluginConfig, Tracker
+
+    @dataclass
+    class ArrayConfig(PluginConfig):
+        weights: np.ndarray = field(default_factory=lambda: np.ones(3))
+
+    class ArrayTracker(Tracker):
+        def __init__(self, cfg):
+            self.cfg = cfg
+        def track(self, frame, gaussian_map):
+            raise NotImplementedError
+
+    @hookimpl
+    def slamkit_plugins():
+        return [PluginSpec("array_weights", ArrayTracker, ArrayConfig)]
+"""
+
+#: Hydra can hold these fields, though they are unusual: an enum whose values are not strings, a
+#: union of scalars, bytes, an untyped tuple.
+UNUSUAL_CONFIG = """
+    import enum
+    from dataclasses import dataclass
+    from typing import Any, Union
+    from slamkit.plugin import PluginSpec, hookimpl
+    from slamkit.roles import PluginConfig, Tracker
+
+    class Level(enum.Enum):
+        low = 1.5
+        high = 2
+
+    @dataclass
+    class UnusualConfig(PluginConfig):
+        '''level: how hard it tries.'''
+        level: Level = Level.low
+        either: Union[int, str] = 1
+        raw: bytes = b"x"
+        pair: tuple = (1.0, 2.0)
+
+    class UnusualTracker(Tracker):
+        def __init__(self, cfg):
+            self.cfg = cfg
+        def track(self, frame, gaussian_map):
+            raise NotImplementedError
+
+    @hookimpl
+    def slamkit_plugins():
+        return [PluginSpec("unusual", UnusualTracker, UnusualConfig)]
+"""
+
+#: Its defaults fail its own validate: reported when loaded, not when a run selects it.
+BAD_DEFAULTS = """
+    from dataclasses import dataclass
+    from slamkit.plugin import PluginSpec, hookimpl
+    from slamkit.roles import PluginConfig, Tracker, require
+
+    @dataclass
+    class BadDefaultsConfig(PluginConfig):
+        radius: float = -1.0
+        def validate(self):
+            require(self.radius > 0, "tracker.radius", "> 0 metres", self.radius)
+
+    class BadDefaultsTracker(Tracker):
+        def __init__(self, cfg):
+            self.cfg = cfg
+        def track(self, frame, gaussian_map):
+            raise NotImplementedError
+
+    @hookimpl
+    def slamkit_plugins():
+        return [PluginSpec("bad_defaults", BadDefaultsTracker, BadDefaultsConfig)]
+"""
+
+PLUGINS = {"still": STILL_TRACKER, "array": ARRAY_CONFIG, "broken": "raise ImportError('needs libfoo')\n",
+           "unusual": UNUSUAL_CONFIG, "bad_defaults": BAD_DEFAULTS}
+
+
+def install(*names: str) -> Callable[[Path], None]:
+    """A maker that installs the named `PLUGINS` as one distribution on sys.path."""
+
+    def make(root: Path) -> None:
+        site = make_plugin_dist(root / "site", "slamkit-fault-plugins", {f"fault_{n}": PLUGINS[n] for n in names},
+                                {n: f"fault_{n}" for n in names})
+        sys.path.insert(0, str(site))
+
+    return make
