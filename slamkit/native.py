@@ -1,4 +1,5 @@
-"""Compiled helpers built on first use: one C++17 source file behind a C ABI, loaded with ctypes.
+"""Compiled helpers built on first use: one C++17 source file behind a C ABI (plus the shared
+headers of slamkit/csrc), loaded with ctypes.
 
 A library is compiled with the system C++ compiler (`$CXX`, else `c++`; a few seconds) and
 cached by a hash of the source, the flags, the compiler version and (for -march=native) the CPU
@@ -29,6 +30,11 @@ from typing import Callable
 #: the numpy / torch reference does. -fno-math-errno only lets sqrt be inlined.
 BASE_FLAGS = ("-O3", "-std=c++17", "-shared", "-fPIC", "-pthread", "-ffp-contract=off", "-fno-math-errno",
               "-DNDEBUG")
+
+
+#: Headers every library may include (`#include "slk_thread_pool.h"`): on the include path and in
+#: the build hash, so a changed header rebuilds the libraries that use it.
+INCLUDE_DIR = Path(__file__).resolve().parent / "csrc"
 
 
 def available_threads() -> int:
@@ -97,7 +103,8 @@ class NativeLibrary:
         for native in ([True, False] if self.native else [False]):
             flags = list(self.flags) + (["-march=native"] if native else [])
             digest = hashlib.sha256()
-            for part in (self.source.read_bytes(), " ".join(flags).encode(), version.encode(),
+            headers = [h.read_bytes() for h in sorted(INCLUDE_DIR.glob("*.h"))]
+            for part in (self.source.read_bytes(), *headers, " ".join(flags).encode(), version.encode(),
                          platform.machine().encode()):
                 digest.update(part)
             if native:
@@ -121,8 +128,8 @@ class NativeLibrary:
         fd, tmp = tempfile.mkstemp(suffix=".so.tmp", dir=path.parent)
         os.close(fd)
         try:
-            proc = subprocess.run([exe, *flags, str(self.source), "-o", tmp], capture_output=True, text=True,
-                                  timeout=600)
+            proc = subprocess.run([exe, *flags, f"-I{INCLUDE_DIR}", str(self.source), "-o", tmp],
+                                  capture_output=True, text=True, timeout=600)
             if proc.returncode != 0:
                 first = next((ln for ln in proc.stderr.splitlines() if "error" in ln), proc.stderr.strip()[:200])
                 raise RuntimeError(f"compiling {self.source.name} failed: {first.strip()}")

@@ -30,7 +30,10 @@ EXPLICIT = {
     "viewer.application_id": "slamkit-test", "dataset.cache_dir": "{tmp}/cache", "rasterizer.prefer": ["torch"],
     "dataset.camera": "fr1", "dataset.max_frames": 5, "dataset.start": 2, "dataset.stride": 2,
     "dataset.path": "{data}", "dataset=tum:dataset.gt_path": "{data}/groundtruth.txt",
+    "resume": "{tmp}/run", "localize.map": "{tmp}/run",
 }
+#: Top-level sections of keys that are not a role's (section -> the RunConfig field holding them).
+TOP_SECTIONS = ("map", "eval", "checkpoint", "localize")
 
 
 def reference_keys() -> list[tuple[str, str, str, str]]:
@@ -75,7 +78,7 @@ def candidates(key: str, type_: str, default: str, tmp: Path, data: Path | None 
 
 def base_overrides(section: str, tmp: Path, data: dict[str, Path]) -> list[str]:
     """What selects the plugin a key belongs to (and the data it needs)."""
-    if not section or section in ("map", "eval"):
+    if not section or section in TOP_SECTIONS:
         return []
     role, name = section.split("=")
     base = [f"{role}={name}"]
@@ -91,8 +94,8 @@ def built_config(section: str, key: str, run, slam, viewer, dataset):
     group = key.split(".")[0] if "." in key else ""
     if not group:
         return run
-    if group == "eval":
-        return run.eval
+    if group in ("eval", "checkpoint", "localize"):
+        return getattr(run, group)
     if group == "map":
         return slam.map_growth
     objects = {"dataset": dataset, "tracker": slam.tracker, "keyframe": slam.keyframe_policy,
@@ -142,10 +145,11 @@ def data(tmp_path_factory) -> dict[str, Path]:
 def config_class(section: str) -> type:
     """The dataclass that holds a section's keys."""
     from slamkit.map.growth import MapGrowthConfig
-    from slamkit.registry.schema import EvalConfig, RunConfig
+    from slamkit.registry.schema import CheckpointConfig, EvalConfig, LocalizeConfig, RunConfig
 
-    if section in ("", "map", "eval"):
-        return {"": RunConfig, "map": MapGrowthConfig, "eval": EvalConfig}[section]
+    if section in ("", *TOP_SECTIONS):
+        return {"": RunConfig, "map": MapGrowthConfig, "eval": EvalConfig, "checkpoint": CheckpointConfig,
+                "localize": LocalizeConfig}[section]
     role, name = section.split("=")
     return default_registry().get(role, name).config
 

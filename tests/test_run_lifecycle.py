@@ -117,8 +117,10 @@ def test_stop_signals_defer_in_phases_that_change_the_map_and_stop_at_once_elsew
         assert stop.signal == "SIGTERM"
         with pytest.raises(KeyboardInterrupt, match="SIGTERM"):
             stop.check()  # the next safe point
+        assert not stop.cut_short  # a whole state: the checkpoint is written from it
         with pytest.raises(KeyboardInterrupt, match="SIGINT"):
             _raise_signal_and_settle(signal.SIGINT)  # a second signal: at once
+        assert stop.cut_short  # maybe in the middle of a step: no checkpoint from it
         with stop.writing():
             _raise_signal_and_settle(signal.SIGINT)  # never while the outputs are written
     fresh = StopSignals()
@@ -126,6 +128,7 @@ def test_stop_signals_defer_in_phases_that_change_the_map_and_stop_at_once_elsew
         fresh.enter(Phase.evaluate)
         with pytest.raises(KeyboardInterrupt, match="SIGINT"):
             _raise_signal_and_settle(signal.SIGINT)
+        assert not fresh.cut_short  # the evaluation changes nothing kept
     assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before  # handlers given back
 
 

@@ -58,6 +58,7 @@ class TorchAdam(MapOptimizer):
     def __init__(self, cfg: AdamConfig):
         self.cfg = cfg
         self.adam: torch.optim.Adam | None = None
+        self.restored: dict[str, dict] = {}  # state from a checkpoint, until Adam is made
 
     def _groups(self) -> dict[str, dict]:
         return {g["name"]: g for g in self.adam.param_groups} if self.adam is not None else {}
@@ -67,6 +68,9 @@ class TorchAdam(MapOptimizer):
             lrs = self.cfg.learning_rates()
             self.adam = torch.optim.Adam([{"params": [params[n]], "lr": lrs[n], "name": n} for n in PARAMETERS],
                                          betas=(self.cfg.beta1, self.cfg.beta2), eps=self.cfg.eps)
+            for name, state in self.restored.items():
+                self.adam.state[params[name]] = state
+            self.restored = {}
         for name, group in self._groups().items():
             old, new = group["params"][0], params[name]
             if old is not new:  # the map replaced the tensor; its state rows were kept aligned
@@ -80,6 +84,8 @@ class TorchAdam(MapOptimizer):
             p.grad = None
 
     def _state(self, name: str) -> dict:
+        if self.adam is None:
+            return self.restored.get(name, {})
         group = self._groups().get(name)
         return self.adam.state.get(group["params"][0], {}) if group is not None else {}
 
@@ -96,6 +102,17 @@ class TorchAdam(MapOptimizer):
 
     def reset(self) -> None:
         self.adam = None
+        self.restored = {}
+
+    def state_dict(self) -> dict:
+        """Adam's moments and step count of each parameter (those it has state for)."""
+        return {name: dict(self._state(name)) for name in PARAMETERS if self._state(name)}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Adam's state from `state_dict()`; it becomes the state of the map's parameters at the
+        next step."""
+        self.adam = None
+        self.restored = {name: {k: torch.as_tensor(v) for k, v in s.items()} for name, s in state.items()}
 
 
 @hookimpl

@@ -105,6 +105,15 @@ class VisibleAdam(MapOptimizer):
     def reset(self) -> None:
         self.moments, self.steps = {}, torch.zeros(0)
 
+    def state_dict(self) -> dict:
+        """Moments per parameter, each row's step count and the optimiser's."""
+        return {"moments": {k: [m, v] for k, (m, v) in self.moments.items()}, "steps": self.steps, "calls": self.calls}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.moments = {k: (torch.as_tensor(m), torch.as_tensor(v)) for k, (m, v) in state["moments"].items()}
+        self.steps = torch.as_tensor(state["steps"])
+        self.calls = int(state["calls"])
+
     @torch.no_grad()
     def step(self, params: dict[str, torch.Tensor], grads: dict[str, torch.Tensor]) -> None:
         n = next(iter(params.values())).shape[0]

@@ -61,6 +61,14 @@ class Densify3DGSStrategy(PruneStrategy):
         self.state = {"grad_sum": torch.zeros(0), "grad_count": torch.zeros(0)}
         self.generator = torch.Generator().manual_seed(cfg.seed)
 
+    def state_dict(self) -> dict:
+        return {**super().state_dict(), "generator": self.generator.get_state()}
+
+    def load_state_dict(self, state: dict) -> None:
+        super().load_state_dict(state)
+        if "generator" in state:
+            self.generator.set_state(torch.as_tensor(state["generator"], dtype=torch.uint8))
+
     def step_post_backward(self, edit: MapEdit, info: StepInfo) -> None:
         cfg = self.cfg
         if "means" in info.grads:

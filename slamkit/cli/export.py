@@ -1,4 +1,9 @@
-"""`slamkit-export`: turn a run's outputs into other formats.
+"""`slamkit-export`: turn a run's outputs or its map checkpoint into other formats.
+
+`SOURCE` is a run folder or a map checkpoint file (`RUN_DIR/checkpoint.zip`, written by every
+run: see `slamkit.run.checkpoint`); a run folder's map is its map.ply, or its checkpoint when it
+has no map.ply (`mapper=none`). `slamkit-export ply SOURCE [--out FILE]` writes the map in the
+3DGS PLY layout that splat viewers open (default: map.ply beside the checkpoint).
 
 `slamkit-export mesh RUN_DIR [--voxel 0.01] [--out RUN_DIR/mesh.ply]` makes a triangle mesh of
 the Gaussian map: it renders depth and colour from every keyframe pose (`keyframes.txt`,
@@ -26,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from slamkit.errors import DataError, SlamkitError
+from slamkit.geometry.registration import import_open3d
 from slamkit.types import Camera
 
 #: The TSDF truncation distance is this many voxels unless --sdf-trunc is given.
@@ -72,13 +78,6 @@ def _unit_interval(text: str) -> float:
     return value
 
 
-def import_open3d():
-    """open3d, or a one-line SlamkitError saying how to install it."""
-    try:
-        import open3d
-    except ImportError as exc:
-        raise SlamkitError(f"open3d is not installed ({exc}); install it with pip install -e '.[mesh]'") from None
-    return open3d
 
 
 def read_camera(path: Path) -> tuple[Camera, float | None]:
@@ -130,16 +129,26 @@ def export_mesh(run_dir: Path, out: Path | None = None, voxel: float = 0.01, sdf
     from slamkit.formats.ply import load_ply
     from slamkit.registry.discovery import create_rasterizer
 
-    run_dir = Path(run_dir)
-    map_ply = check_run_dir(run_dir)
-    camera, run_depth_trunc = read_camera(run_dir / "camera.json")
-    poses = read_keyframe_poses(run_dir / "keyframes.txt")[::every]
+    from slamkit.run import checkpoint
+
+    source = Path(run_dir)
+    start = time.perf_counter()
+    if _is_checkpoint(source):
+        gaussian_map, saved = checkpoint.load_map(source)
+        camera, run_depth_trunc = Camera(**saved["camera"]), saved.get("depth_trunc")
+        poses = checkpoint.keyframe_poses(saved)[::every]
+        if not len(poses):
+            raise DataError(f"{source}: the checkpoint's run made no keyframe, so there is no view to fuse")
+        run_dir = source if source.is_dir() else source.parent
+    else:
+        map_ply = check_run_dir(source)
+        camera, run_depth_trunc = read_camera(source / "camera.json")
+        poses = read_keyframe_poses(source / "keyframes.txt")[::every]
+        gaussian_map, run_dir = load_ply(map_ply), source
     o3d = import_open3d()
     out = Path(out) if out is not None else run_dir / "mesh.ply"
     depth_trunc = depth_trunc or run_depth_trunc or FALLBACK_DEPTH_TRUNC
     camera = camera if scale == 1.0 else camera.scaled(scale)
-    start = time.perf_counter()
-    gaussian_map = load_ply(map_ply)
     backend = create_rasterizer(rasterizer)
     volume = o3d.pipelines.integration.ScalableTSDFVolume(
         voxel_length=voxel, sdf_trunc=sdf_trunc or SDF_TRUNC_VOXELS * voxel,
@@ -150,11 +159,37 @@ def export_mesh(run_dir: Path, out: Path | None = None, voxel: float = 0.01, sdf
         rgbd = _render_rgbd(o3d, backend, gaussian_map, pose, camera, min_alpha, depth_trunc)
         volume.integrate(rgbd, intrinsic, _world_to_camera(pose))
     mesh = volume.extract_triangle_mesh()
+    if len(mesh.vertices) == 0:
+        raise DataError(f"{source}: no surface to mesh: no rendered pixel reached --min-alpha {min_alpha} (an "
+                        "untrained map, mapper=none, is faint: try --min-alpha 0.2)")
     mesh.compute_vertex_normals()
     out.parent.mkdir(parents=True, exist_ok=True)
     if not o3d.io.write_triangle_mesh(str(out), mesh):
         raise DataError(f"cannot write the mesh to {out}")
     return MeshResult(out, len(mesh.vertices), len(mesh.triangles), len(poses), time.perf_counter() - start)
+
+
+def _is_checkpoint(source: Path) -> bool:
+    """A checkpoint file, or a run folder without map.ply that has a checkpoint."""
+    from slamkit.formats.checkpoint import CHECKPOINT_NAME
+
+    if source.is_dir():
+        return not (source / "map.ply").is_file() and (source / CHECKPOINT_NAME).is_file()
+    return source.is_file() or source.suffix == ".zip"
+
+
+def export_ply(source: Path, out: Path | None = None) -> tuple[Path, int]:
+    """Write a checkpoint's map (SOURCE: the file or its run folder) as a 3DGS PLY (default:
+    map.ply beside the checkpoint); returns (the file, its Gaussians)."""
+    from slamkit.formats.checkpoint import checkpoint_path
+    from slamkit.formats.ply import save_ply
+    from slamkit.run import checkpoint
+
+    path = checkpoint_path(source)
+    gaussian_map, _ = checkpoint.load_map(path)
+    out = Path(out) if out is not None else path.parent / "map.ply"
+    save_ply(out, gaussian_map)
+    return out, len(gaussian_map)
 
 
 def _world_to_camera(pose: np.ndarray) -> np.ndarray:
@@ -181,7 +216,8 @@ def _parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     mesh = commands.add_parser("mesh", help="TSDF mesh of a run's Gaussian map (needs open3d: pip install -e '.[mesh]')",
                                description="Fuse renders of RUN_DIR/map.ply at the keyframe poses into a TSDF mesh.")
-    mesh.add_argument("run_dir", type=Path, metavar="RUN_DIR", help="a slamkit run folder (mapper=gaussian_splatting)")
+    mesh.add_argument("run_dir", type=Path, metavar="SOURCE",
+                      help="a slamkit run folder (mapper=gaussian_splatting) or its checkpoint.zip")
     mesh.add_argument("--out", type=Path, default=None, help="mesh file (.ply, .obj, ...; default RUN_DIR/mesh.ply)")
     mesh.add_argument("--voxel", type=_positive_float, default=0.01, help="TSDF voxel size in metres (default 0.01)")
     mesh.add_argument("--sdf-trunc", type=_positive_float, default=None,
@@ -194,12 +230,20 @@ def _parser() -> argparse.ArgumentParser:
                       help="render resolution relative to the run's camera (default 1)")
     mesh.add_argument("--every", type=_positive_int, default=1, help="use every n-th keyframe (default 1)")
     mesh.add_argument("--rasterizer", default="auto", help="rasteriser backend: auto | cpu | torch | gsplat")
+    ply = commands.add_parser("ply", help="a map checkpoint's Gaussians as a 3DGS PLY (splat viewers open it)",
+                              description="Write the map of a checkpoint in the 3DGS PLY layout.")
+    ply.add_argument("source", type=Path, metavar="SOURCE", help="a run folder with checkpoint.zip, or the file")
+    ply.add_argument("--out", type=Path, default=None, help="PLY file (default: map.ply beside the checkpoint)")
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
+        if args.command == "ply":
+            path, n = export_ply(args.source, args.out)
+            print(f"slamkit-export: {n} Gaussians: {path}")
+            return 0
         result = export_mesh(args.run_dir, args.out, args.voxel, args.sdf_trunc, args.depth_trunc, args.min_alpha,
                              args.scale, args.every, args.rasterizer)
     except SlamkitError as exc:

@@ -2,6 +2,8 @@
 
 `slamkit` alone runs the default pipeline on the built-in synthetic sequence; any config value
 is an override (`slamkit dataset=tum dataset.path=... tracker=kiss_icp`), `-m` runs sweeps.
+`slamkit resume=RUN_DIR [overrides]` continues a run from its checkpoint (in RUN_DIR);
+`slamkit mode=localize map=RUN_DIR dataset=...` tracks a sequence in a saved map.
 Exit status (docs/architecture.md, "Run outputs"): 0 completed; 2 a user error (a bad file, a
 bad value, an output folder that cannot be made), one line, SLAMKIT_DEBUG=1 for the traceback;
 1 an environment failure (a full disk: what the run kept is named); 3 tracking failed (no frame
@@ -117,9 +119,9 @@ def _task(cfg) -> None:
     from hydra.types import RunMode
 
     from slamkit.registry.discovery import default_registry
-    from slamkit.registry.schema import validate_config
+    from slamkit.registry.schema import Mode, validate_config
     from slamkit.roles import ROLE_KEYS
-    from slamkit.run import pipeline
+    from slamkit.run import localization, pipeline
     from slamkit.run.outputs import FAILED, INTERRUPTED as STOPPED
 
     global _stop
@@ -130,13 +132,14 @@ def _task(cfg) -> None:
     _stop = StopSignals()
     try:
         run_cfg = validate_config(cfg)
-        metrics = pipeline.run(run_cfg, registry, names, out_dir, _stop)
+        program = localization if run_cfg.mode is Mode.localize else pipeline
+        metrics = program.run(run_cfg, registry, names, out_dir, _stop)
     except SlamkitError as exc:
         log.error("%s", exc)
         if os.environ.get("SLAMKIT_DEBUG"):
             raise
         _fail(str(exc), exc.exit_status)
-    print(f"slamkit: {pipeline.summary(metrics)}")
+    print(f"slamkit: {program.summary(metrics)}")
     print(f"slamkit: outputs in {out_dir}")
     if metrics["status"] == STOPPED:
         sys.exit(INTERRUPTED)
@@ -172,7 +175,15 @@ def _main() -> None:
 
     from slamkit.registry.compose import CONF_DIR, EXPERIMENTS_DIR, register
     from slamkit.registry.discovery import discover
+    from slamkit.run.checkpoint import resume_arguments
+    from slamkit.run.localization import localize_arguments
 
+    try:
+        sys.argv[1:] = resume_arguments(localize_arguments(sys.argv[1:]))
+    except SlamkitError as exc:
+        if os.environ.get("SLAMKIT_DEBUG"):
+            raise
+        _fail(str(exc), exc.exit_status)
     _registry = discover()
     if EXPERIMENTS_DIR.is_dir() and not any(a.startswith("hydra.searchpath") for a in sys.argv[1:]):
         sys.argv.append(f"hydra.searchpath=[file://{EXPERIMENTS_DIR}]")

@@ -20,8 +20,11 @@ from slamkit.roles import ROLES, PluginConfig, require
 
 
 class Mode(enum.Enum):
+    """sequential and realtime build a map (SLAM); localize tracks in a saved map (`localize.map`)."""
+
     sequential = "sequential"
     realtime = "realtime"
+    localize = "localize"
 
 
 class Device(enum.Enum):
@@ -50,9 +53,52 @@ class EvalConfig(PluginConfig):
 
 
 @dataclass
+class CheckpointConfig(PluginConfig):
+    """The run's map checkpoint (RUN_DIR/checkpoint.zip, what `resume=` and `mode=localize`
+    read). save: write it at the end of the run and when the run is interrupted (SIGINT,
+    SIGTERM). every_keyframes: also write it every this many keyframes (0 = only then)."""
+
+    save: bool = True
+    every_keyframes: int = 0
+
+    def validate(self) -> None:
+        require(self.every_keyframes >= 0, "checkpoint.every_keyframes", "an integer >= 0", self.every_keyframes)
+
+
+@dataclass
+class LocalizeConfig(PluginConfig):
+    """`mode=localize`: tracking in a saved map, which stays as it is (docs/checkpoints.md). The
+    first frame, and any frame where tracking is lost, is placed by global registration of its
+    points against the map's trackable Gaussians (FPFH + RANSAC, then G-ICP, with open3d) and
+    tracked by the run's tracker from there. map: the run folder or checkpoint file of the map
+    (`map=RUN_DIR` on the command line). voxel: metres, both clouds are downsampled to this for
+    global registration. min_inlier_fraction: a frame is localised when at least this fraction of
+    its trackable points has a map Gaussian within the tracker's correspondence distance.
+    ransac_iterations: RANSAC's iteration limit. ransac_confidence: RANSAC's stopping confidence.
+    attempts: RANSAC runs (other seeds) per global registration before the frame counts as not
+    localised."""
+
+    map: str | None = None
+    voxel: float = 0.05
+    min_inlier_fraction: float = 0.3
+    ransac_iterations: int = 100000
+    ransac_confidence: float = 0.999
+    attempts: int = 3
+
+    def validate(self) -> None:
+        require(self.voxel > 0, "localize.voxel", "> 0 metres", self.voxel)
+        require(0 <= self.min_inlier_fraction <= 1, "localize.min_inlier_fraction", "in [0, 1]",
+                self.min_inlier_fraction)
+        require(self.ransac_iterations >= 1, "localize.ransac_iterations", "an integer >= 1", self.ransac_iterations)
+        require(0 < self.ransac_confidence < 1, "localize.ransac_confidence", "in (0, 1)", self.ransac_confidence)
+        require(self.attempts >= 1, "localize.attempts", "an integer >= 1", self.attempts)
+
+
+@dataclass
 class RunConfig(PluginConfig):
     """Top-level keys (`run_schema` adds one group per role). mode: sequential (fixed mapping
-    iterations per frame, deterministic) or realtime. iterations_per_frame: mapper steps per frame in sequential mode. fps_limit:
+    iterations per frame, deterministic), realtime, or localize (tracking in a saved map,
+    `localize.*`). iterations_per_frame: mapper steps per frame in sequential mode. fps_limit:
     input frames per second in realtime mode (null = as fast as possible). drop_frames: in
     realtime mode, skip a frame when the next one has already arrived (a live camera's
     behaviour) instead of processing every frame late. seed: for every
@@ -65,7 +111,9 @@ class RunConfig(PluginConfig):
     the paper's real-time system stops mapping with the stream). mapping_device: auto | cpu | cuda: where the map's
     tensors and the mapper's keyframes live (auto = the GPU when CUDA is available, as the
     paper maps on the GPU; the tracker always runs on the CPU and takes its target from the map
-    as a CPU copy)."""
+    as a CPU copy). checkpoint: the map checkpoint (CheckpointConfig). resume: a run folder
+    (or checkpoint file) whose run this one continues (`slamkit resume=RUN_DIR`). localize:
+    `mode=localize`'s settings (LocalizeConfig)."""
 
     map: MapGrowthConfig = field(default_factory=MapGrowthConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
@@ -78,6 +126,9 @@ class RunConfig(PluginConfig):
     mapping_threads: int = 0
     final_iterations: int | None = None
     mapping_device: Device = Device.auto
+    checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
+    resume: str | None = None
+    localize: LocalizeConfig = field(default_factory=LocalizeConfig)
 
     def device(self) -> str:
         """The torch device the map lives on ("cpu" or "cuda"); ConfigError when cuda is asked
@@ -102,6 +153,9 @@ class RunConfig(PluginConfig):
         require(self.iterations_per_frame >= 0, "iterations_per_frame", ">= 0", self.iterations_per_frame)
         require(self.fps_limit is None or self.fps_limit > 0, "fps_limit", "null or > 0", self.fps_limit)
         require(self.mapping_threads >= 0, "mapping_threads", "an integer >= 0 (0: automatic)", self.mapping_threads)
+        require(self.mode is not Mode.localize or bool(self.localize.map), "map",
+                "a run folder or checkpoint file with mode=localize (map=RUN_DIR)", self.localize.map)
+        require(self.mode is not Mode.localize or not self.resume, "resume", "null with mode=localize", self.resume)
 
 
 def run_schema() -> type:

@@ -58,6 +58,16 @@ class Mapper(ABC):
         after `save_map`; may write images into `out_dir` (None: write nothing)."""
         return {}
 
+    def state_dict(self) -> dict[str, Any]:
+        """What the mapper needs to go on training where a run stopped (saved in the map
+        checkpoint beside the map's rows, `slamkit.run.checkpoint`): its keyframes, optimiser
+        and strategy state, counters; JSON values and arrays (numpy or torch). {} by default."""
+        return {}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Take back a `state_dict()` (arrays as numpy arrays or CPU tensors), after `bind` and
+        after the map's rows are restored. Nothing by default."""
+
     def render_view(self, pose: np.ndarray, camera: Camera) -> RenderOutput | None:
         """The map as this mapper renders it from `pose` (4x4 camera-to-world, metres) for
         `camera`, without gradients (for viewers); None when the mapper cannot render (the
@@ -127,6 +137,14 @@ class MapOptimizer(ABC):
     @abstractmethod
     def reset(self) -> None:
         """Forget all state (zero rows)."""
+
+    def state_dict(self) -> dict[str, Any]:
+        """The optimiser's state (per-row moments, step counts) for a map checkpoint: JSON values
+        and tensors."""
+        return {}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Take back a `state_dict()` (CPU tensors; `edit_rows` moves them to the map's device)."""
 
     def row_state(self) -> dict[str, list[torch.Tensor]]:
         """Copies of the per-row state tensors, by parameter name (for inspection and tests)."""

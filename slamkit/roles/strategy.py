@@ -127,6 +127,15 @@ class DensifyStrategy(ABC):
         """Counters for the run's metrics.json."""
         return dict(self.stats)
 
+    def state_dict(self) -> dict:
+        """The per-row statistics and counters, for a map checkpoint."""
+        return {"state": dict(self.state), "stats": dict(self.stats)}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Take back a `state_dict()`; `state` is updated in place (the MapEdit holds it)."""
+        self.state.update({k: torch.as_tensor(v) for k, v in state.get("state", {}).items()})
+        self.stats.update(state.get("stats", {}))
+
     def enforce_memory_guard(self, edit: MapEdit, protect: slice | None = None) -> int:
         """When the map holds more than max_gaussians, remove the least opaque Gaussians (ties:
         older rows first) until floor((1 - memory_guard_margin) max_gaussians) remain; rows in

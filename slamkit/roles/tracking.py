@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -30,6 +31,15 @@ class Tracker(ABC):
         others; every CPU otherwise), given before the first frame. A tracker whose config fixes
         its thread count keeps it. The default ignores it."""
 
+    def state_dict(self) -> dict[str, Any]:
+        """What this tracker needs to go on where a run stopped (saved in the map checkpoint,
+        `slamkit.run.checkpoint`): JSON values and arrays (numpy or torch). {} by default."""
+        return {}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Take back a `state_dict()` (arrays as numpy arrays or CPU tensors), after `initialize`
+        and before the next frame. Nothing by default."""
+
 
 @dataclass
 class KeyframeHistory:
@@ -54,3 +64,14 @@ class KeyframePolicy(ABC):
     @abstractmethod
     def decide(self, frame: Frame, result: TrackingResult) -> KeyframeKind:
         """The keyframe kind of `frame` given its tracking result."""
+
+    def state_dict(self) -> dict[str, Any]:
+        """What the policy needs to go on where a run stopped (the map checkpoint): by default
+        its `history` (a KeyframeHistory), if it keeps one there."""
+        history = getattr(self, "history", None)
+        return {"history": vars(history).copy()} if isinstance(history, KeyframeHistory) else {}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Take back a `state_dict()`."""
+        if "history" in state and isinstance(getattr(self, "history", None), KeyframeHistory):
+            self.history = KeyframeHistory(**state["history"])

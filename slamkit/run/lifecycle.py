@@ -11,7 +11,9 @@ next safe point (`check()`: between frames, between mapping steps), so that what
 whole map and a whole trajectory; a second signal stops it at once. In start-up and the
 evaluation, which change nothing that is kept, a signal stops the run at once. While the outputs
 are being written, signals are noted and never interrupt the writing (SIGKILL still can, and the
-files are written atomically for that).
+files are written atomically for that). A run stopped at a safe point writes its checkpoint
+(`slamkit.run.checkpoint`); one cut in the middle of a step by a second signal keeps the last
+checkpoint written before (`cut_short`).
 
 Test hook: `SLAMKIT_PAUSE_AT=PHASE` (or `stream@N`: after N frames) makes the run print
 ``slamkit: paused at PHASE`` on stderr when it reaches that point and wait there (up to 60 s) for
@@ -61,6 +63,9 @@ class StopSignals:
         self.phase = Phase.startup
         self._deferring = False
         self._writing = False
+        #: True once a signal stopped the run at once in a phase that changes the map (a second
+        #: signal): its state may be half-updated, and no checkpoint is written from it.
+        self.cut_short = False
 
     @contextmanager
     def installed(self) -> Iterator["StopSignals"]:
@@ -109,6 +114,7 @@ class StopSignals:
             log.warning("%s: stopping after the current step (%s); send it again to stop at once",
                         name, self.phase.value)
             return
+        self.cut_short = self.cut_short or self._deferring
         raise KeyboardInterrupt(name)
 
 

@@ -2,7 +2,8 @@
 (`RunOutputs`), each written atomically as soon as what it holds is known, in the order of their
 value: camera.json at start-up; trajectory.txt, keyframes.txt, groundtruth.txt, the tracking
 metrics (metrics.json) and trajectory.png when the stream ends; the map (the mapper's
-`save_map`, map.ply) after the refinement; the evaluation merged into metrics.json last.
+`save_map`, map.ply) and the checkpoint (checkpoint.zip) after the refinement, or as the run
+stops early; the evaluation merged into metrics.json last.
 
 A file that cannot be written (a full disk) is logged and noted (`RunOutputs.unwritten`), and the
 others are still tried: metrics.json is small and is written where space allows."""
@@ -22,10 +23,12 @@ import numpy as np
 import torch
 
 from slamkit.formats.atomic import write_atomic
+from slamkit.formats.checkpoint import CHECKPOINT_NAME
 from slamkit.formats.tum import write_tum_trajectory
 from slamkit.metrics import trajectory as evaluation
 from slamkit.registry.schema import RunConfig
-from slamkit.run.lifecycle import Phase
+from slamkit.run.checkpoint import CheckpointWriter
+from slamkit.run.lifecycle import Phase, StopSignals
 from slamkit.run.slam import SLAM, StepResult
 from slamkit.types import Frame
 
@@ -57,6 +60,7 @@ class RunState:
     status: str = RUNNING
     error: str | None = None
     evaluation: dict[str, Any] = field(default_factory=dict)  # the mapper's rendering metrics
+    previous_wall_s: float = 0.0  # wall time of the runs this one resumes (slamkit.run.checkpoint)
 
     @property
     def completed(self) -> bool:
@@ -133,10 +137,14 @@ def write_camera(path: Path, camera, depth_trunc: float) -> None:
 
 class RunOutputs:
     """The files of one run in `out_dir` (see the module docstring). `kept` lists the files
-    written, `unwritten` the ones that could not be (name -> why)."""
+    written, `unwritten` the ones that could not be (name -> why). With `checkpoints`, the map's
+    save also writes the run's checkpoint (`slamkit.run.checkpoint`); `stop` says whether a
+    signal cut a step in half (then no checkpoint is written from that state)."""
 
-    def __init__(self, cfg: RunConfig, slam: SLAM, state: RunState, out_dir: Path):
+    def __init__(self, cfg: RunConfig, slam: SLAM, state: RunState, out_dir: Path,
+                 checkpoints: CheckpointWriter | None = None, stop: StopSignals | None = None):
         self.cfg, self.slam, self.state, self.out_dir = cfg, slam, state, out_dir
+        self.checkpoints, self.stop = checkpoints, stop
         self.kept: list[str] = []
         self.unwritten: dict[str, str] = {}
         self.start = time.perf_counter()  # the first frame's
@@ -180,9 +188,13 @@ class RunOutputs:
 
     def save_map(self) -> None:
         """The map trained so far (the mapper's `save_map`: map.ply), once the mapper has stopped
-        changing it: the run's one place for what it keeps of its map. A run already stopping
-        (interrupted twice, failed) logs a map it cannot write instead of raising."""
+        changing it, then the checkpoint: the run's one place for what it keeps of its map. A run
+        already stopping (interrupted twice, failed) logs a map it cannot write instead of raising."""
         self.map_saved = True
+        self._save_map_ply()
+        self._save_checkpoint()
+
+    def _save_map_ply(self) -> None:
         try:
             written = self.slam.mapper.save_map(self.out_dir) or []
         except OSError as exc:
@@ -196,6 +208,26 @@ class RunOutputs:
             log.error("the map could not be written: %s: %s", type(exc).__name__, exc)
             return
         self.kept += [Path(p).name for p in written]
+
+    def _save_checkpoint(self) -> None:
+        """checkpoint.zip: `end` after the refinement, `interrupted` when a signal stopped the run
+        at a safe point. None from a failed run, nor from a state a second signal cut in half (the
+        last checkpoint written, every N keyframes, stays)."""
+        status = self.state.status
+        if self.checkpoints is None or status == FAILED:
+            return
+        if self.stop is not None and self.stop.cut_short:
+            log.warning("no checkpoint from this state: a second signal stopped the run in the middle of a step")
+            return
+        try:
+            path = self.checkpoints.save("end" if status == RUNNING else "interrupted")
+        except OSError as exc:
+            self._unwritten(Path(exc.filename).name if exc.filename else CHECKPOINT_NAME, exc)
+            if status == RUNNING:
+                raise
+            return
+        if path is not None and path.name not in self.kept:
+            self.kept.append(path.name)
 
     def save_metrics(self) -> dict[str, Any]:
         """metrics.json as the run stands; returns the metrics."""
@@ -226,14 +258,15 @@ class RunOutputs:
 
 
 def run_metrics(cfg: RunConfig, slam: SLAM, state: RunState, wall_s: float) -> dict[str, Any]:
-    """metrics.json's content for the run as it stands (`wall_s`: seconds since its first frame).
+    """metrics.json's content for the run as it stands (`wall_s`: seconds since its first frame;
+    a resumed run adds the wall time of the runs before it).
     A run whose tracking failed presents no trajectory error (ate_*, rpe_* null)."""
     n = len(state.poses)
     poses = state.trajectory()
     failure = state.tracking_failure(cfg.eval.max_lost_fraction) if n else None
     ate = evaluation.ate(poses, state.gt_poses) if n and not failure else None
     rpe = evaluation.rpe(poses, state.gt_poses) if n > 1 and not failure else None
-    slam_s = state.slam_time_s if state.slam_time_s is not None else wall_s
+    slam_s = (state.slam_time_s if state.slam_time_s is not None else wall_s) + state.previous_wall_s
     metrics: dict[str, Any] = {
         "num_frames": n,
         "num_keyframes": state.num_keyframes,
@@ -327,11 +360,13 @@ class FrameLog:
     COLUMNS = ["index", "timestamp", "keyframe", "lost", "tracking_ms", "mapping_ms", "iterations",
                "correspondence_ratio", "num_gaussians", "rss_mb", "note"]
 
-    def __init__(self, path: Path):
+    def __init__(self, path: Path, append: bool = False):
+        """`append`: extend the log of the run this one resumes (no header)."""
         self.path = path
-        self._file = self._guard(open, path, "w", newline="")
+        self._file = self._guard(open, path, "a" if append else "w", newline="")
         self._writer = csv.writer(self._file)
-        self._row(self.COLUMNS)
+        if not append:
+            self._row(self.COLUMNS)
 
     def frame(self, frame: Frame, step: StepResult, num_gaussians: int) -> None:
         result = step.tracking

@@ -24,6 +24,7 @@ from slamkit.metrics import trajectory as evaluation
 from slamkit.native import available_threads
 from slamkit.registry.discovery import Registry
 from slamkit.registry.schema import Mode, RunConfig
+from slamkit.run import checkpoint
 from slamkit.run.lifecycle import Phase, StopSignals, pause_point
 from slamkit.run.outputs import COMPLETED, FAILED, INTERRUPTED, FrameLog, RunOutputs, RunState, summary
 from slamkit.run.prefetch import UnreadableFrame, prefetched
@@ -108,9 +109,11 @@ def _run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Pat
     log.info("%s: %d frames, camera %s; tracker %s, mapper %s, keyframes %s", names["dataset"], len(dataset),
              dataset.camera, names["tracker"], names["mapper"], names["keyframe"])
     state = RunState()
-    outputs = RunOutputs(cfg, slam, state, out_dir)
+    first = checkpoint.resume(cfg, names, slam, state)  # checkpoint: continue a saved run (resume=RUN_DIR)
+    checkpoints = checkpoint.CheckpointWriter(cfg, names, slam, state, dataset, out_dir)
+    outputs = RunOutputs(cfg, slam, state, out_dir, checkpoints, stop)
     try:
-        _phases(cfg, dataset, slam, state, outputs, viewer, stop)
+        _phases(cfg, dataset, slam, state, outputs, viewer, stop, first)
     except KeyboardInterrupt as exc:
         state.stop(INTERRUPTED, f"interrupted ({str(exc) or 'SIGINT'}) during {state.phase.value}")
         log.warning("run interrupted during %s after %d frames; writing what it has", state.phase.value,
@@ -141,15 +144,18 @@ def _run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Pat
 
 
 def _phases(cfg: RunConfig, dataset, slam: SLAM, state: RunState, outputs: RunOutputs, viewer: ViewerFeed,
-            stop: StopSignals) -> None:
+            stop: StopSignals, first: int = 0) -> None:
     """The run after start-up, each phase's outputs written as soon as it ends: the stream, then
-    the trajectory and the tracking metrics; the refinement, then the map; the evaluation, then
-    the metrics with it. A run whose tracking failed stops after the stream."""
+    the trajectory and the tracking metrics; the refinement, then the map and the checkpoint; the
+    evaluation, then the metrics with it. A run whose tracking failed stops after the stream. A
+    resumed run streams from frame `first` and extends frames.csv."""
     _enter(Phase.stream, state, stop)
     outputs.save_camera(dataset.camera, dataset.depth_trunc)
     viewer.start(dataset.camera, outputs.out_dir)
-    with FrameLog(outputs.out_dir / "frames.csv") as frames_log:
-        _loop(cfg, dataset, slam, state, frames_log, viewer, stop)
+    if first < len(dataset):  # frames to stream: the refinement after them starts over
+        state.refine_iterations, state.refine_time_s = 0, 0.0
+    with FrameLog(outputs.out_dir / "frames.csv", append=first > 0) as frames_log:
+        _loop(cfg, dataset, slam, state, frames_log, viewer, stop, outputs.checkpoints, first)
     failure = state.tracking_failure(cfg.eval.max_lost_fraction)
     if failure:
         state.stop(FAILED, failure)
@@ -175,19 +181,19 @@ def _enter(phase: Phase, state: RunState, stop: StopSignals) -> None:
 
 
 def _refine(slam: SLAM, iterations: int, state: RunState, stop: StopSignals) -> None:
-    """The map's refinement after the stream: up to `iterations` more mapping steps, timed
-    apart, stopping between two steps on a signal."""
-    if not iterations:
+    """The map's refinement after the stream: up to `iterations` mapping steps in all (a resumed
+    run does those its checkpoint had not), timed apart, stopping between two steps on a signal."""
+    if state.refine_iterations >= iterations:
         return
-    start = time.perf_counter()
+    start, before = time.perf_counter(), state.refine_time_s
     try:
-        for _ in range(iterations):
+        while state.refine_iterations < iterations:
             stop.check()
             if not slam.mapper.optimize(1):
                 break
             state.refine_iterations += 1
     finally:
-        state.refine_time_s = time.perf_counter() - start
+        state.refine_time_s = before + time.perf_counter() - start
     log.info("refinement: %d mapping steps in %.1f s", state.refine_iterations, state.refine_time_s)
 
 
@@ -229,31 +235,35 @@ class InputClock:
 
 
 def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, frames_log: FrameLog, viewer: ViewerFeed,
-          stop: StopSignals) -> None:
-    """The stream: every frame tracked (and mapped, in sequential mode; beside a mapping thread
-    in real-time mode), logged to frames.csv and shown; a signal stops it between two frames."""
+          stop: StopSignals, checkpoints: checkpoint.CheckpointWriter, first: int = 0) -> None:
+    """The stream: frames `first`.. (a resumed run starts after its checkpoint's last frame)
+    tracked (and mapped, in sequential mode; beside a mapping thread in real-time mode), logged to
+    frames.csv and shown, the checkpoint written every N keyframes; a signal stops it between
+    two frames."""
     from tqdm import tqdm
 
     realtime = cfg.mode is Mode.realtime
     clock = InputClock(cfg.fps_limit if realtime else None)
     mapping = MappingThread(slam.mapper) if realtime else None
-    bar = tqdm(total=len(dataset), unit="frame", disable=None if cfg.progress else True, dynamic_ncols=True)
+    bar = tqdm(total=len(dataset), initial=first, unit="frame", disable=None if cfg.progress else True,
+               dynamic_ncols=True)
     start = time.perf_counter()
     try:
         if mapping:
             mapping.start()
         skip_errors = cfg.dataset.on_error.value == "skip"
-        for frame in prefetched(dataset, cfg.dataset.prefetch, skip_errors):
+        for frame in prefetched(dataset, cfg.dataset.prefetch, skip_errors, first):
             stop.check()
             if isinstance(frame, UnreadableFrame):
                 log.warning("frame %d skipped: %s", frame.index, frame.error)
                 state.record_unreadable(frame.timestamp)
                 frames_log.unreadable(frame.index, frame.timestamp, frame.error)
-            elif clock.wait(frame.index) and cfg.drop_frames and state.poses:
+            elif clock.wait(frame.index - first) and cfg.drop_frames and state.poses:
                 state.record_dropped(frame)
                 frames_log.dropped(frame)
             else:
                 _track(frame, slam, state, frames_log, viewer, mapping)
+                checkpoints.after_frame()  # checkpoint: every N keyframes
             bar.update(1)
             every = cfg.eval.running_ate_every
             if every and len(state.poses) % every == 0:
@@ -261,7 +271,7 @@ def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, frames_log: Fram
                 frames_log.flush()
             pause_point(f"stream@{len(state.poses)}", stop)
     finally:
-        state.stream_time_s = time.perf_counter() - start
+        state.stream_time_s += time.perf_counter() - start
         bar.close()
         if mapping:
             _stop_mapping(mapping, state)

@@ -21,15 +21,16 @@ class UnreadableFrame:
     error: DataError
 
 
-def prefetched(dataset: Dataset, ahead: int = 8, skip_errors: bool = False) -> Iterator[Frame | UnreadableFrame]:
-    """Yield dataset[0], dataset[1], ... while up to `ahead` later frames load in the
+def prefetched(dataset: Dataset, ahead: int = 8, skip_errors: bool = False,
+               first: int = 0) -> Iterator[Frame | UnreadableFrame]:
+    """Yield dataset[first], dataset[first + 1], ... while up to `ahead` later frames load in the
     background (image decoding releases the GIL). A DataError is raised at that frame's turn,
     after the frames before it, or yielded as an UnreadableFrame when `skip_errors`."""
     n = len(dataset)
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="slamkit-prefetch") as pool:
-        pending = deque(pool.submit(dataset.__getitem__, i) for i in range(min(max(ahead, 1), n)))
-        next_index = len(pending)
-        index = 0
+        pending = deque(pool.submit(dataset.__getitem__, i) for i in range(first, min(first + max(ahead, 1), n)))
+        next_index = first + len(pending)
+        index = first
         try:
             while pending:
                 future = pending.popleft()

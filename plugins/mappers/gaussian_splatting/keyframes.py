@@ -137,8 +137,31 @@ class KeyframeStore:
     def add(self, frame: Frame, pose: np.ndarray, kind: KeyframeKind) -> Keyframe:
         """Store `frame` at the training resolution as the next keyframe, seen from `pose`."""
         image, depth, camera = resize_rgbd(frame.rgb, frame.depth, frame.camera, self.resolution_scale)
-        rgb, d = quantize(image, depth)
-        kf = Keyframe(len(self.ids), frame.index, kind, np.asarray(pose, dtype=np.float64).copy(), camera)
+        return self.put(frame.index, kind, pose, camera, *quantize(image, depth))
+
+    def state_dict(self) -> dict:
+        """Every keyframe (ids, kinds, poses, cameras, images) for a map checkpoint; the images as
+        stacked arrays (K,h,w,3) uint8 and (K,h,w) uint16 (KEYFRAME_DEPTH_STEP units)."""
+        kfs = self.values()
+        images = [kf.arrays() for kf in kfs]
+        return {"frame_index": [kf.frame_index for kf in kfs], "kind": [kf.kind.value for kf in kfs],
+                "pose": np.array([kf.pose for kf in kfs]).reshape(-1, 4, 4),
+                "camera": [[kf.camera.width, kf.camera.height, kf.camera.fx, kf.camera.fy, kf.camera.cx,
+                            kf.camera.cy] for kf in kfs],
+                "rgb": np.stack([rgb for rgb, _ in images]) if images else np.zeros((0, 1, 1, 3), np.uint8),
+                "depth": np.stack([d for _, d in images]) if images else np.zeros((0, 1, 1), np.uint16)}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Add the keyframes of a `state_dict()` (to an empty store)."""
+        for i, index in enumerate(state["frame_index"]):
+            camera = Camera(int(state["camera"][i][0]), int(state["camera"][i][1]), *map(float, state["camera"][i][2:]))
+            self.put(int(index), KeyframeKind(state["kind"][i]), state["pose"][i], camera,
+                     np.ascontiguousarray(state["rgb"][i]), np.ascontiguousarray(state["depth"][i]))
+
+    def put(self, frame_index: int, kind: KeyframeKind, pose: np.ndarray, camera: Camera, rgb: np.ndarray,
+            d: np.ndarray) -> Keyframe:
+        """Store the next keyframe from its training-resolution images (uint8 colour, uint16 depth)."""
+        kf = Keyframe(len(self.ids), frame_index, kind, np.asarray(pose, dtype=np.float64).copy(), camera)
         path = self._path(kf.id)
         if path is None:
             kf.rgbd = (rgb, d)

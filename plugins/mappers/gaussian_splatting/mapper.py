@@ -119,6 +119,31 @@ class GaussianSplattingMapper(Mapper):
             log.info("memory guard (max_gaussians %s): %d Gaussians pruned in %d prunings",
                      self.strategy.cfg.max_gaussians, stats["pruned_by_memory_guard"], stats["memory_guard_prunings"])
 
+    def state_dict(self) -> dict[str, Any]:
+        """Keyframes, the training schedule (pending, steps per keyframe, the sampler's random
+        state), counters, the optimiser's and the strategy's state."""
+        with self.gaussian_map.lock:  # copies (C calls) of what a mapping thread changes outside the lock
+            pending, trained = self.pending.copy(), dict(self.trained)
+            return {"keyframes": self.keyframes.state_dict(), "pending": list(pending),
+                    "trained": [[k, v] for k, v in trained.items()], "rng": self.rng.bit_generator.state,
+                    "steps": self.steps, "skipped_steps": self.skipped_steps, "stale_steps": self.stale_steps,
+                    "train_time_s": self.train_time_s, "train_cpu_s": self.train_cpu_s, "last_loss": self.last_loss,
+                    "optimizer": self.optimizer.state_dict(), "strategy": self.strategy.state_dict()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.keyframes.load_state_dict(state["keyframes"])
+        self.pending = deque(int(k) for k in state["pending"])
+        self.trained = {int(k): int(v) for k, v in state["trained"]}
+        self.rng.bit_generator.state = state["rng"]
+        self.steps, self.skipped_steps, self.stale_steps = (int(state[k]) for k in ("steps", "skipped_steps",
+                                                                                     "stale_steps"))
+        self.train_time_s, self.train_cpu_s = float(state["train_time_s"]), float(state["train_cpu_s"])
+        self.last_loss = state["last_loss"]
+        device = self.gaussian_map.device
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.optimizer.edit_rows(lambda name, v: v.to(device))
+        self.strategy.load_state_dict(state["strategy"])
+
     def render_view(self, pose: np.ndarray, camera: Camera) -> RenderOutput:
         """The map from `pose` (camera-to-world) with the mapper's rasteriser, no gradients."""
         return render_map(self.rasterizer, self.gaussian_map, pose, camera)

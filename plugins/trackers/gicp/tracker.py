@@ -90,6 +90,24 @@ class GICPTracker(Tracker):
         self.target = Target(snap.means, cov, snap.version, self.kernels)
         self.tree_builds += 1
 
+    def state_dict(self) -> dict:
+        """The motion model's last two poses, the first pose, and the target (means, regularised
+        covariances and the map version they were taken at)."""
+        state = {"first_pose": self.first_pose, "poses": np.array(self.poses).reshape(-1, 4, 4),
+                 "tree_builds": self.tree_builds}
+        if self.target is not None:
+            state["target"] = {"means": self.target.means32, "covariances": self.target.covariances.copy(),
+                               "version": self.target.version}
+        return state
+
+    def load_state_dict(self, state: dict) -> None:
+        self.first_pose = np.asarray(state["first_pose"], dtype=np.float64)
+        self.poses = list(np.asarray(state["poses"], dtype=np.float64).reshape(-1, 4, 4))
+        self.tree_builds = int(state.get("tree_builds", 0))
+        target = state.get("target")
+        self.target = None if target is None else Target(np.asarray(target["means"]), np.asarray(
+            target["covariances"], dtype=np.float64), int(target["version"]), self.kernels)
+
     def predict(self) -> np.ndarray:
         """The pose the optimisation starts from (camera-to-world)."""
         if not self.poses:

@@ -1,0 +1,273 @@
+"""Maps that outlive a run: what a run's checkpoint holds, writing it, and continuing from it.
+
+A checkpoint (`RUN_DIR/checkpoint.zip`, the file format is `slamkit.formats.checkpoint`) holds
+
+- `map`: every row of the shared GaussianMap (the 3DGS parameters, the trackable flags, the
+  keyframe of origin and the entry geometry the tracker aligns to), and its version;
+- `slam`: the keyframe count and the last pose; `tracker`, `keyframe`, `mapper`: each role's
+  `state_dict()` (G-ICP: its target and motion model; the 3DGS mapper: its keyframes with their
+  training images, the optimiser's moments, the strategy's statistics, the sampler's random state);
+- `run`: the trajectory so far (timestamps, poses, ground truth), keyframe rows and counters;
+- in meta.json: the resolved config, the command-line overrides and plugins of the run, the
+  camera, the dataset selection, the last frame index and why it was written (`end`,
+  `keyframes`, `interrupted`).
+
+`CheckpointWriter` writes it every `checkpoint.every_keyframes` keyframes during the stream
+(`slamkit.run.pipeline`), and where the run saves its map (`RunOutputs.save_map`): after the
+refinement, and when a signal stops the run at a safe point; `restore` puts a run back where
+its checkpoint left it (`slamkit resume=RUN_DIR`, see `resume_arguments`); `load_map` reads the
+map alone (`mode=localize`, slamkit-export).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import json
+import logging
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from slamkit.formats.checkpoint import (CHECKPOINT_NAME, CheckpointError, checkpoint_path, read_checkpoint,
+                                        read_meta, write_checkpoint)
+from slamkit.map.gaussian_map import GaussianMap, GaussianRows
+from slamkit.types import Camera
+
+log = logging.getLogger(__name__)
+
+#: The map's row fields and each one's width (0: one value per row).
+MAP_FIELDS = {"means": 3, "quats": 4, "log_scales": 3, "opacity_logits": 0, "colors": 3, "trackable": 0,
+              "keyframe_id": 0, "entry_means": 3, "entry_quats": 4, "entry_log_scales": 3}
+#: RunState's counters kept in a checkpoint.
+RUN_COUNTERS = ("num_keyframes", "lost_frames", "dropped_frames", "mapping_iterations", "tracking_time_s",
+                "mapping_time_s", "stream_time_s", "refine_iterations", "refine_time_s")
+#: The dataset settings a resumed run must share with the run it continues.
+SAME_SELECTION = ("path", "start", "stride", "passes")
+
+
+class CheckpointWriter:
+    """Writes the run's checkpoint (atomically) at the points the pipeline calls it at."""
+
+    def __init__(self, cfg, names: dict[str, str], slam, state, dataset, out_dir: Path):
+        self.cfg, self.names, self.slam, self.state, self.dataset = cfg, names, slam, state, dataset
+        self.path = Path(out_dir) / CHECKPOINT_NAME
+        self.overrides = _hydra_overrides(Path(out_dir))
+        self.started = time.perf_counter()
+        self.saved_keyframes = slam.num_keyframes
+
+    def after_frame(self) -> None:
+        """Every `checkpoint.every_keyframes` keyframes (0: never)."""
+        every = self.cfg.checkpoint.every_keyframes
+        if every and self.slam.num_keyframes - self.saved_keyframes >= every:
+            self.save("keyframes")
+
+    def save(self, reason: str) -> Path | None:
+        """Write the checkpoint now (`reason`: end | keyframes | interrupted); None when
+        `checkpoint.save` is off or nothing was tracked yet."""
+        if not self.cfg.checkpoint.save or not self.state.poses:
+            return None
+        start = time.perf_counter()
+        with self.slam.gaussian_map.lock:
+            state = capture(self.slam, self.state, time.perf_counter() - self.started)
+        n = len(self.state.poses)
+        camera = self.dataset.camera
+        meta = {"created": datetime.now(timezone.utc).isoformat(timespec="seconds"), "reason": reason,
+                "last_frame_index": n - 1, "num_frames": n, "completed": reason == "end",
+                "plugins": dict(self.names), "overrides": self.overrides, "config": config_dict(self.cfg),
+                "camera": {"width": int(camera.width), "height": int(camera.height),
+                           **{k: float(getattr(camera, k)) for k in ("fx", "fy", "cx", "cy")}},
+                "depth_trunc": _finite_or_none(self.dataset.depth_trunc),
+                "dataset": {k: getattr(self.cfg.dataset, k) for k in SAME_SELECTION}}
+        size = write_checkpoint(self.path, meta, state)
+        self.saved_keyframes = self.slam.num_keyframes
+        log.info("checkpoint (%s) after frame %d: %s, %.1f MB in %.2f s", reason, n - 1, self.path, size / 2**20,
+                 time.perf_counter() - start)
+        return self.path
+
+
+def capture(slam, run_state, wall_s: float) -> dict[str, Any]:
+    """The state of `slam` and the run (call under the map's lock)."""
+    gm = slam.gaussian_map
+    rows = gm.rows()
+    return {"map": {name: getattr(rows, name) for name in MAP_FIELDS}, "map_version": gm.version,
+            "slam": {"num_keyframes": slam.num_keyframes, "last_pose": slam.last_pose},
+            "tracker": slam.tracker.state_dict(), "keyframe": slam.keyframe_policy.state_dict(),
+            "mapper": slam.mapper.state_dict(), "run": _run_state(run_state, wall_s)}
+
+
+def _run_state(s, wall_s: float) -> dict[str, Any]:
+    n = len(s.poses)
+    gt = np.full((n, 4, 4), np.nan)
+    has_gt = np.array([p is not None for p in s.gt_poses], dtype=bool)
+    for i in np.flatnonzero(has_gt):
+        gt[i] = s.gt_poses[i]
+    return {"timestamps": np.asarray(s.timestamps, dtype=np.float64), "poses": np.array(s.poses).reshape(n, 4, 4),
+            "gt_poses": gt, "has_gt": has_gt, "keyframe_rows": np.asarray(s.keyframe_rows, dtype=np.int64),
+            "wall_time_s": s.previous_wall_s + wall_s, **{k: getattr(s, k) for k in RUN_COUNTERS}}
+
+
+def load(source: str | Path) -> dict[str, Any]:
+    """A checkpoint (RUN_DIR or the file), its contents checked: CheckpointError (one line)."""
+    path = checkpoint_path(source)
+    checkpoint = read_checkpoint(path)
+    _check(path, checkpoint)
+    return checkpoint
+
+
+def _check(path: Path, checkpoint: dict[str, Any]) -> None:
+    """What every use of a checkpoint relies on: the meta keys, the map's rows and the run's
+    trajectory, consistent in shape."""
+    def fail(what: str):
+        raise CheckpointError(f"checkpoint {path}: {what} (the file was edited or written by another program)")
+
+    for key in ("last_frame_index", "plugins", "config", "camera"):
+        if key not in checkpoint:
+            fail(f"meta.json has no {key!r}")
+    state = checkpoint.get("state")
+    if not isinstance(state, dict) or not all(k in state for k in ("map", "slam", "run", "tracker", "mapper")):
+        fail("its state lacks map, slam, run, tracker or mapper")
+    rows = state["map"]
+    n = None
+    for name, width in MAP_FIELDS.items():
+        value = rows.get(name) if isinstance(rows, dict) else None
+        if not isinstance(value, torch.Tensor):
+            fail(f"map field {name!r} is missing")
+        shape = tuple(value.shape)
+        n = shape[0] if n is None and shape else n
+        if shape != ((n, width) if width else (n,)):
+            fail(f"map field {name!r} has shape {shape}, expected {(n, width) if width else (n,)}")
+    run = state["run"]
+    frames = checkpoint["last_frame_index"] + 1 if isinstance(checkpoint["last_frame_index"], int) else None
+    for key in ("timestamps", "poses", "gt_poses", "has_gt"):
+        value = run.get(key) if isinstance(run, dict) else None
+        if not isinstance(value, np.ndarray) or frames is None or len(value) != frames:
+            fail(f"run.{key} does not hold one entry per frame up to last_frame_index")
+    try:
+        Camera(**checkpoint["camera"])
+    except TypeError:
+        fail("its camera is not width, height, fx, fy, cx, cy")
+
+
+def resume(cfg, names: dict[str, str], slam, run_state) -> int:
+    """With `resume=` set, restore its checkpoint into `slam` and `run_state` and return the
+    first frame still to process; 0 (nothing done) otherwise."""
+    if not cfg.resume:
+        return 0
+    checkpoint = load(cfg.resume)
+    check_resumable(checkpoint, cfg, names, cfg.resume)
+    first = restore(checkpoint, slam, run_state)
+    log.info("resumed from %s (%s after frame %d): %d Gaussians, %d keyframes", checkpoint_path(cfg.resume),
+             checkpoint.get("reason"), first - 1, len(slam.gaussian_map), slam.num_keyframes)
+    return first
+
+
+def restore(checkpoint: dict[str, Any], slam, run_state) -> int:
+    """Put `slam` (built from the same config) and `run_state` (empty) back where the checkpoint
+    left them; returns the index of the first frame still to process."""
+    state = checkpoint["state"]
+    gm = slam.gaussian_map
+    gm.append(map_rows(state["map"]))
+    gm.version = int(state["map_version"])
+    slam.num_keyframes = int(state["slam"]["num_keyframes"])
+    last_pose = state["slam"]["last_pose"]
+    slam.last_pose = None if last_pose is None else np.asarray(last_pose, dtype=np.float64)
+    if slam.last_pose is not None:
+        slam.tracker.initialize(slam.last_pose)  # a tracker that saves nothing goes on from the last pose
+    slam.tracker.load_state_dict(state["tracker"])
+    slam.keyframe_policy.load_state_dict(state.get("keyframe", {}))
+    slam.mapper.load_state_dict(state["mapper"])
+    run = state["run"]
+    run_state.timestamps = [float(t) for t in run["timestamps"]]
+    run_state.poses = list(np.asarray(run["poses"], dtype=np.float64))
+    run_state.gt_poses = [p if ok else None for p, ok in zip(np.asarray(run["gt_poses"]), run["has_gt"])]
+    run_state.keyframe_rows = [int(i) for i in run["keyframe_rows"]]
+    for key in RUN_COUNTERS:
+        setattr(run_state, key, type(getattr(run_state, key))(run[key]))
+    run_state.previous_wall_s = float(run["wall_time_s"])
+    return int(checkpoint["last_frame_index"]) + 1
+
+
+def check_resumable(checkpoint: dict[str, Any], cfg, names: dict[str, str], source: str | Path) -> None:
+    """ConfigError-like CheckpointError when this run cannot continue the checkpoint's: other
+    plugins, or another frame selection of the dataset (its max_frames may differ)."""
+    for role, name in checkpoint["plugins"].items():
+        if names.get(role) != name:
+            raise CheckpointError(f"resume={source}: the checkpoint was made with {role}={name}, this run has "
+                                  f"{role}={names.get(role)} (a resumed run keeps its plugins)")
+    saved = checkpoint.get("dataset", {})
+    for key in SAME_SELECTION:
+        if key in saved and saved[key] != getattr(cfg.dataset, key):
+            raise CheckpointError(f"resume={source}: dataset.{key} is {getattr(cfg.dataset, key)!r}, the checkpoint's "
+                                  f"run had {saved[key]!r} (raise dataset.max_frames to go further)")
+
+
+def map_rows(rows: dict[str, torch.Tensor]) -> GaussianRows:
+    """The checkpoint's map rows as GaussianRows (CPU tensors)."""
+    return GaussianRows(**{name: rows[name] for name in MAP_FIELDS})
+
+
+def load_map(source: str | Path, device: str | torch.device = "cpu") -> tuple[GaussianMap, dict[str, Any]]:
+    """(the checkpoint's GaussianMap on `device`, the whole checkpoint) from RUN_DIR or the file."""
+    checkpoint = load(source)
+    gm = GaussianMap(device)
+    gm.append(map_rows(checkpoint["state"]["map"]))
+    return gm, checkpoint
+
+
+def keyframe_poses(checkpoint: dict[str, Any]) -> np.ndarray:
+    """(K,4,4) camera-to-world poses of the checkpoint's keyframes (the run's trajectory rows)."""
+    run = checkpoint["state"]["run"]
+    return np.asarray(run["poses"], dtype=np.float64)[np.asarray(run["keyframe_rows"], dtype=np.int64)]
+
+
+def resume_arguments(argv: list[str]) -> list[str]:
+    """The command line of `slamkit resume=RUN_DIR [overrides]`: the overrides of the run that
+    wrote the checkpoint, then the new ones (which replace those of the same key), and
+    `hydra.run.dir=RUN_DIR` so that the run's files are extended in place. `argv` unchanged
+    without resume=. CheckpointError when the checkpoint cannot be read."""
+    resume = [a for a in argv if a.startswith("resume=")]
+    if not resume:
+        return argv
+    source = Path(resume[-1].partition("=")[2])
+    meta = read_meta(checkpoint_path(source))
+    overrides = meta.get("overrides")
+    if not isinstance(overrides, list):
+        raise CheckpointError(f"resume={source}: the checkpoint has no command line to resume (it was written "
+                              "outside the slamkit command)")
+
+    def key(override: str) -> str:
+        return override.lstrip("+~").partition("=")[0]
+
+    given = {key(a) for a in argv if "=" in a}
+    kept = [o for o in overrides if key(o) not in given and not key(o).startswith("hydra")]
+    out_dir = source if source.is_dir() else source.parent
+    run_dir = [] if "hydra.run.dir" in given else [f"hydra.run.dir={out_dir}"]
+    return kept + argv + run_dir
+
+
+def config_dict(cfg) -> dict[str, Any]:
+    """The resolved run config as JSON values (enums by value)."""
+    def default(value):
+        return value.value if isinstance(value, enum.Enum) else str(value)
+
+    return json.loads(json.dumps(dataclasses.asdict(cfg), default=default))
+
+
+def _hydra_overrides(out_dir: Path) -> list[str] | None:
+    """The command-line overrides Hydra recorded for this run (None outside the slamkit command)."""
+    path = out_dir / ".hydra" / "overrides.yaml"
+    if not path.is_file():
+        return None
+    import yaml
+
+    overrides = yaml.safe_load(path.read_text())
+    return [str(o) for o in overrides] if isinstance(overrides, list) else None
+
+
+def _finite_or_none(value: float) -> float | None:
+    return float(value) if np.isfinite(value) else None
