@@ -22,11 +22,12 @@ import tempfile
 from pathlib import Path
 
 from slamkit.errors import ConfigError, SlamkitError
-from slamkit.run.lifecycle import StopSignals, interrupt_on_sigterm, pause_point
+from slamkit.run.lifecycle import StopSignals, pause_point
 
 log = logging.getLogger("slamkit")
 _registry = None  # the plugin Registry, discovered once by main()
 _stop: StopSignals | None = None  # the current run's, for the message of an interruption
+_startup: StopSignals | None = None  # the command's, from its start to the run's
 _failed_runs: list[str] = []  # a sweep's runs whose tracking failed (the sweep goes on)
 
 #: Exit status of a run whose tracking failed, and of an interrupted run.
@@ -125,6 +126,8 @@ def _task(cfg) -> None:
     from slamkit.run.outputs import FAILED, INTERRUPTED as STOPPED
 
     global _stop
+    if _startup is not None:
+        _startup.release()  # Hydra has composed the config: a signal noted meanwhile stops the command here
     registry = _registry or default_registry()  # launchers run jobs in fresh processes
     hydra_cfg = HydraConfig.get()
     names = {role: hydra_cfg.runtime.choices[role] for role in ROLE_KEYS}
@@ -152,11 +155,11 @@ def _task(cfg) -> None:
 
 def main() -> None:
     """The `slamkit` command (see the module docstring)."""
-    global _stop
-    _stop = None
+    global _stop, _startup
+    _stop, _startup = None, StopSignals()
     _failed_runs.clear()
     try:
-        with interrupt_on_sigterm():
+        with _startup.installed():
             _main()
     except KeyboardInterrupt as exc:
         phase = _stop.phase.value if _stop else "startup"
@@ -188,6 +191,7 @@ def _main() -> None:
     if EXPERIMENTS_DIR.is_dir() and not any(a.startswith("hydra.searchpath") for a in sys.argv[1:]):
         sys.argv.append(f"hydra.searchpath=[file://{EXPERIMENTS_DIR}]")
     register(_registry)
+    _startup.hold()  # Hydra and OmegaConf cut by a KeyboardInterrupt report another error: hold it
     try:
         _check_output_dir(sys.argv[1:])
         _check_plugin_overrides(_registry, sys.argv[1:])
@@ -197,7 +201,10 @@ def _main() -> None:
             raise
         _fail(str(exc))
     app = hydra.main(version_base=None, config_path=str(CONF_DIR), config_name="config")(_task)
-    app()
+    try:
+        app()
+    finally:
+        _startup.release()  # --help, --cfg: no task
 
 
 if __name__ == "__main__":

@@ -9,7 +9,8 @@ it ends (`slamkit.run.pipeline`), so a run cut in any phase keeps those of the p
 the trajectory (stream, refine, map) the first signal is only noted, and the run stops at the
 next safe point (`check()`: between frames, between mapping steps), so that what is written is a
 whole map and a whole trajectory; a second signal stops it at once. In start-up and the
-evaluation, which change nothing that is kept, a signal stops the run at once. While the outputs
+evaluation, which change nothing that is kept, a signal stops the run at once (held only while
+Hydra composes the config, `hold()`: cut there, Hydra reports another error). While the outputs
 are being written, signals are noted and never interrupt the writing (SIGKILL still can, and the
 files are written atomically for that). A run stopped at a safe point writes its checkpoint
 (`slamkit.run.checkpoint`); one cut in the middle of a step by a second signal keeps the last
@@ -89,6 +90,17 @@ class StopSignals:
         log.info("phase: %s", phase.value)
         pause_point(phase.value, self)
 
+    def hold(self) -> None:
+        """Note signals (a second one still stops at once) until `release()`: start-up while Hydra
+        composes the config, which a KeyboardInterrupt would leave half-done and report as
+        another error."""
+        self._deferring = True
+
+    def release(self) -> None:
+        """End `hold()`: a signal noted meanwhile raises KeyboardInterrupt now."""
+        self._deferring = self.phase in DEFERRED
+        self.check()
+
     def check(self) -> None:
         """A safe point: raise KeyboardInterrupt if a signal has asked the run to stop."""
         if self.signal is not None:
@@ -128,21 +140,3 @@ def pause_point(point: str, stop: StopSignals | None = None) -> None:
     deadline = time.monotonic() + PAUSE_TIMEOUT_S
     while time.monotonic() < deadline and (stop is None or stop.signal is None):
         time.sleep(0.01)
-
-
-@contextmanager
-def interrupt_on_sigterm() -> Iterator[None]:
-    """SIGTERM raises KeyboardInterrupt as SIGINT does (start-up, before a run's StopSignals)."""
-
-    def handler(signum, frame):
-        raise KeyboardInterrupt(signal.Signals(signum).name)
-
-    try:
-        previous = signal.signal(signal.SIGTERM, handler)
-    except ValueError:  # not the main thread
-        yield
-        return
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)

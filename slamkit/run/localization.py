@@ -40,7 +40,7 @@ from slamkit.registry.discovery import Registry
 from slamkit.registry.schema import RunConfig
 from slamkit.run import checkpoint
 from slamkit.run.prefetch import prefetched
-from slamkit.run.lifecycle import Phase, StopSignals
+from slamkit.run.lifecycle import Phase, StopSignals, pause_point
 from slamkit.run.outputs import COMPLETED, FAILED, INTERRUPTED
 from slamkit.types import Frame, TrackingResult
 
@@ -175,6 +175,7 @@ def _run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Pat
                 writer.writerow([done.index, f"{done.timestamp:.6f}", int(done.localized), int(done.relocalized),
                                  "" if done.inlier_fraction is None else f"{done.inlier_fraction:.4f}",
                                  f"{1e3 * done.tracking_s:.2f}", f"{1e3 * done.registration_s:.2f}"])
+                pause_point(f"stream@{len(frames)}", stop)
         stop.check()
     except KeyboardInterrupt as exc:
         status, error = INTERRUPTED, f"interrupted ({str(exc) or 'SIGINT'}) during {stop.phase.value}"
