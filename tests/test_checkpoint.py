@@ -90,21 +90,6 @@ def test_damaged_checkpoints_fail_with_one_line_naming_the_file(tmp_path):
         assert isinstance(error, SlamkitError)  # the CLI prints it as one line, exit status 2
 
 
-def test_a_stop_signal_waits_for_the_deferred_block():
-    from slamkit.run.signals import StopSignals
-
-    finished, before = [], signal.getsignal(signal.SIGTERM)
-    with pytest.raises(KeyboardInterrupt, match="SIGTERM"):
-        with StopSignals() as stop:
-            with stop.deferred():
-                os.kill(os.getpid(), signal.SIGTERM)
-                time.sleep(0.05)
-                finished.append(True)  # the block ran to its end
-            finished.append(False)  # never reached: the signal is raised when the block ends
-    assert finished == [True]
-    assert signal.getsignal(signal.SIGTERM) == before  # handlers restored
-
-
 SAVER = """
 import sys, numpy as np
 from slamkit.formats.checkpoint import write_checkpoint

@@ -53,3 +53,23 @@ def test_realtime_run_interrupted_by_a_signal_writes_consistent_outputs(sig, tmp
     assert 5 <= metrics["num_frames"] < 120
     assert len(timestamps) == metrics["num_frames"]
     assert metrics["ate_rmse_m"] is not None
+
+
+def test_realtime_mapping_run_interrupted_keeps_the_map_trained_so_far(tmp_path):
+    """SIGINT once 4 frames are in (the run says so and waits: SLAMKIT_PAUSE_AT): the mapping
+    thread is stopped, then the map it trained is written (map.ply) with the trajectory."""
+    from slamkit.formats.ply import load_ply
+    from test_run_lifecycle import Slamkit, tiny
+
+    out = tmp_path / "run"
+    run = Slamkit(*tiny(mode="realtime", dataset__num_frames=12), f"hydra.run.dir={out}", cwd=tmp_path,
+                  pause_at="stream@4")
+    run.wait_for("slamkit: paused at stream@4")
+    run.send(signal.SIGINT)
+    code, stdout, stderr = run.finish()
+    assert code == 130 and "Traceback" not in stderr, stderr[-3000:]
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert (metrics["status"], metrics["phase"], metrics["num_frames"]) == ("interrupted", "stream", 4)
+    assert metrics["mapping_iterations"] > 0  # the mapping thread trained the map meanwhile
+    assert len(load_ply(out / "map.ply")) == metrics["num_gaussians"] > 0
+    assert len(read_tum_trajectory(out / "trajectory.txt")[0]) == 4

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import signal
 from pathlib import Path
 
 import numpy as np
@@ -97,6 +98,27 @@ def test_replica_frames_10_19_localise_in_the_map_of_frames_0_9(tmp_path, replic
              localizer.step(after)]
     assert [(s.localized, s.relocalized) for s in steps] == [(True, True), (False, True), (True, True)]
     assert np.linalg.norm(steps[2].pose[:3, 3] - after.gt_pose[:3, 3]) < 0.01
+
+
+@pytest.mark.slow
+def test_an_interrupted_localisation_keeps_its_frames_and_exits_130(tmp_path, tum_path):
+    from test_run_lifecycle import Slamkit
+
+    tum = ("dataset=tum", f"dataset.path={tum_path}", "mapper=none")
+    _run(tmp_path, tmp_path / "map", *tum, "dataset.max_frames=5")
+    out = tmp_path / "loc"
+    run = Slamkit(*tum, "mode=localize", f"map={tmp_path / 'map'}", "dataset.max_frames=8", "progress=false",
+                  f"hydra.run.dir={out}", cwd=tmp_path, pause_at="stream@3")
+    run.wait_for("slamkit: paused at stream@3")
+    run.send(signal.SIGTERM)
+    code, stdout, stderr = run.finish()
+    assert code == 130 and "Traceback" not in stderr, stderr[-3000:]
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert (metrics["status"], metrics["completed"], metrics["num_frames"]) == ("interrupted", False, 3)
+    assert metrics["error"] == "interrupted (SIGTERM) during stream"
+    assert "(incomplete: interrupted (SIGTERM) during stream)" in stdout
+    timestamps, _ = read_tum_trajectory(out / "trajectory.txt")
+    assert len(timestamps) == metrics["localized_frames"] > 0
 
 
 def test_localize_needs_a_map(tmp_path):

@@ -282,6 +282,8 @@ def test_evaluate_reports_train_and_test_views_and_writes_outputs(truth_frames, 
     assert m["eval_frames"] == 2 and m["eval_train_frames"] == 1 and m["mapping_steps"] == 20
     assert m["psnr"] == pytest.approx((m["psnr_train"] + m["psnr_test"]) / 2)
     assert sorted(p.name for p in tmp_path.glob("render_*.png")) == ["render_0000.png", "render_0001.png"]
+    assert not (tmp_path / "map.ply").exists()  # the run writes the map before evaluating (save_map)
+    assert mapper.save_map(tmp_path) == [tmp_path / "map.ply"]
     assert len(load_ply(tmp_path / "map.ply")) == m["num_gaussians"] == len(mapper.gaussian_map)
     half = make_mapper(mapper.gaussian_map, mapper={"eval_resolution_scale": 0.5})
     assert half.evaluate(truth_frames, poses, None)["eval_frames"] == 2

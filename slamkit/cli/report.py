@@ -2,7 +2,11 @@
 directories), written into the first DIR as report.csv, report.md and PNG plots.
 
 A row is one configuration: the overrides that differ between runs (the swept values) and the
-metrics. Runs that differ only in `seed` are one row: mean and standard deviation.
+metrics. Runs that differ only in `seed` are one row: mean and standard deviation. The `status`
+column says what became of the runs (metrics.json's `status`: completed, interrupted, failed;
+running for a run still going or killed): only completed runs are aggregated and plotted, each
+unfinished run is a row of its own with its error (`--include-unfinished` aggregates them too),
+and a run whose metrics.json cannot be read is a row (status unreadable) with the reason.
 """
 
 from __future__ import annotations
@@ -17,13 +21,16 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from slamkit.metrics import trajectory as evaluation
 from slamkit.errors import DataError, SlamkitError
+from slamkit.formats.atomic import atomic_open, write_atomic
+from slamkit.formats.plots import save_figure
 from slamkit.formats.tum import read_tum_trajectory
+from slamkit.metrics import trajectory as evaluation
 
 METRICS = ["ate_rmse_m", "ate_mean_m", "rpe_trans_rmse_m", "fps", "tracking_fps", "psnr", "ssim",
            "psnr_train", "psnr_test", "depth_l1_cm", "num_keyframes", "num_gaussians", "lost_frames", "peak_memory_mb",
-           "mapping_train_time_s", "mapping_train_cpu_s", "wall_time_s"]
+           "mapping_train_time_s", "mapping_train_cpu_s", "wall_time_s", "num_frames"]
+STATUSES = ("completed", "interrupted", "failed", "running")
 
 
 def find_runs(dirs: list[Path]) -> list[Path]:
@@ -35,18 +42,57 @@ def find_runs(dirs: list[Path]) -> list[Path]:
 
 
 def load_run(run: Path) -> dict:
-    overrides_file = run / ".hydra" / "overrides.yaml"
-    overrides = yaml.safe_load(overrides_file.read_text()) if overrides_file.exists() else []
+    """A run's settings (its overrides), metrics, `status` and `error`; a metrics.json (or
+    overrides.yaml) that cannot be read gives status "unreadable", no metrics and the reason."""
+    entry = {"run": run, "settings": {}, "metrics": {}, "status": "unreadable", "error": None}
+    try:
+        entry["settings"] = _settings(run / ".hydra" / "overrides.yaml")
+        entry["metrics"] = _metrics(run / "metrics.json")
+    except DataError as exc:
+        entry["error"] = str(exc)
+        return entry
+    entry["status"], entry["error"] = _status(entry["metrics"])
+    return entry
+
+
+def _settings(path: Path) -> dict[str, str]:
+    try:
+        overrides = yaml.safe_load(path.read_text()) if path.exists() else []
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        raise DataError(f"{path}: not readable as YAML ({str(exc).splitlines()[0]})") from None
+    if not isinstance(overrides, (list, type(None))):
+        raise DataError(f"{path}: a YAML {type(overrides).__name__}, expected a list of overrides")
     settings = {}
     for item in overrides or []:
-        key, _, value = item.lstrip("+~").partition("=")
+        key, _, value = str(item).lstrip("+~").partition("=")
         if not key.startswith("hydra"):
             settings[key] = value
+    return settings
+
+
+def _metrics(path: Path) -> dict:
     try:
-        metrics = json.loads((run / "metrics.json").read_text())
+        metrics = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DataError(f"{path}: not readable ({str(exc).splitlines()[0]})") from None
     except json.JSONDecodeError as exc:
-        raise DataError(f"{run / 'metrics.json'}: not valid JSON ({exc})") from exc
-    return {"run": run, "settings": settings, "metrics": metrics}
+        raise DataError(f"{path}: not valid JSON ({exc})") from None
+    if not isinstance(metrics, dict):
+        raise DataError(f"{path}: a JSON {type(metrics).__name__}, expected an object of metrics")
+    return metrics
+
+
+def _status(metrics: dict) -> tuple[str, str | None]:
+    """(status, error) of a run's metrics; runs written before `status` existed are completed,
+    or interrupted / failed after their error."""
+    error = metrics.get("error")
+    error = None if error is None else str(error)
+    status = metrics.get("status")
+    if status in STATUSES:
+        return status, error
+    if metrics.get("completed") is True:
+        return "completed", error
+    return ("interrupted" if error is None or error.startswith("interrupted") else "failed"), error
 
 
 def swept_keys(runs: list[dict]) -> list[str]:
@@ -54,21 +100,34 @@ def swept_keys(runs: list[dict]) -> list[str]:
     return [k for k in keys if len({r["settings"].get(k) for r in runs}) > 1]
 
 
-def aggregate(runs: list[dict]) -> tuple[list[str], list[dict]]:
-    """Rows keyed by the swept values other than seed, with mean/std/n per metric."""
-    keys = [k for k in swept_keys(runs) if k != "seed"]
+def aggregate(runs: list[dict], include_unfinished: bool = False) -> tuple[list[str], list[dict]]:
+    """Rows keyed by the swept values other than seed, with mean/std/n per metric: the completed
+    runs (all readable runs with `include_unfinished`) of each configuration in one row, then
+    each other run in a row of its own (its metrics as they stand, its error)."""
+    keys = [k for k in swept_keys([r for r in runs if r["status"] != "unreadable"]) if k != "seed"]
+    pooled = [r for r in runs if r["status"] == "completed" or (include_unfinished and r["status"] != "unreadable")]
     groups: dict[tuple, list[dict]] = defaultdict(list)
-    for r in runs:
+    for r in pooled:
         groups[tuple(r["settings"].get(k, "") for k in keys)].append(r)
-    rows = []
-    for values, members in groups.items():
-        row = {"config": dict(zip(keys, values)), "runs": [str(m["run"]) for m in members], "n": len(members)}
-        for name in METRICS:
-            vals = [m["metrics"].get(name) for m in members]
-            vals = [float(v) for v in vals if isinstance(v, (int, float))]
-            row[name] = (float(np.mean(vals)), float(np.std(vals))) if vals else None
-        rows.append(row)
+    rows = [_row(keys, values, members, pooled=True) for values, members in groups.items()]
+    rows += [_row(keys, tuple(r["settings"].get(k, "") for k in keys), [r], pooled=False)
+             for r in runs if r not in pooled]
     return keys, rows
+
+
+def _row(keys: list[str], values: tuple, members: list[dict], pooled: bool) -> dict:
+    statuses = sorted({m["status"] for m in members}, key=lambda s: (s != "completed", s))
+    row = {"config": dict(zip(keys, values)), "runs": [str(m["run"]) for m in members], "n": len(members),
+           "status": statuses[0] if len(statuses) == 1 else ", ".join(
+               f"{sum(m['status'] == s for m in members)} {s}" for s in statuses),
+           "error": "; ".join(f"{m['run'].name}: {m['error']}" if len(members) > 1 else m["error"]
+                              for m in members if m["error"]),
+           "aggregate": pooled}
+    for name in METRICS:
+        vals = [m["metrics"].get(name) for m in members]
+        vals = [float(v) for v in vals if isinstance(v, (int, float)) and not isinstance(v, bool)]
+        row[name] = (float(np.mean(vals)), float(np.std(vals))) if vals else None
+    return row
 
 
 def _fmt(cell, n: int) -> str:
@@ -81,18 +140,19 @@ def _fmt(cell, n: int) -> str:
 
 def write_tables(out: Path, keys: list[str], rows: list[dict]) -> None:
     metrics = [m for m in METRICS if any(r[m] is not None for r in rows)]
-    with open(out / "report.csv", "w", newline="") as f:
+    with atomic_open(out / "report.csv", "w") as f:
         writer = csv.writer(f)
-        writer.writerow(keys + ["n"] + [c for m in metrics for c in (m, m + "_std")])
+        writer.writerow(keys + ["status", "n"] + [c for m in metrics for c in (m, m + "_std")] + ["error"])
         for r in rows:
             cells = [c for m in metrics for c in (r[m] or (None, None))]
-            writer.writerow([r["config"][k] for k in keys] + [r["n"]] + ["" if c is None else c for c in cells])
-    header = keys + ["n"] + metrics
+            writer.writerow([r["config"][k] for k in keys] + [r["status"], r["n"]]
+                            + ["" if c is None else c for c in cells] + [r["error"]])
+    header = keys + ["status", "n"] + metrics + ["error"]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for r in rows:
-        lines.append("| " + " | ".join([r["config"][k] for k in keys] + [str(r["n"])]
-                                       + [_fmt(r[m], r["n"]) for m in metrics]) + " |")
-    (out / "report.md").write_text("\n".join(lines) + "\n")
+        cells = [r["config"][k] for k in keys] + [r["status"], str(r["n"])] + [_fmt(r[m], r["n"]) for m in metrics]
+        lines.append("| " + " | ".join(cells + [r["error"].replace("|", "/") or "-"]) + " |")
+    write_atomic(out / "report.md", "\n".join(lines) + "\n")
 
 
 def _label(row: dict) -> str:
@@ -100,8 +160,10 @@ def _label(row: dict) -> str:
 
 
 def write_plots(out: Path, rows: list[dict]) -> list[Path]:
+    """A bar chart per metric and the trajectories, of the aggregated rows only."""
     from matplotlib.figure import Figure
 
+    rows = [r for r in rows if r["aggregate"]]
     written = []
     for name in METRICS:
         if not any(r[name] is not None for r in rows):
@@ -114,7 +176,7 @@ def write_plots(out: Path, rows: list[dict]) -> list[Path]:
         ax.set_xticks(range(len(rows)), [_label(r) for r in rows], rotation=20, ha="right", fontsize=8)
         ax.set_ylabel(name)
         path = out / f"bar_{name}.png"
-        fig.savefig(path, dpi=100)
+        save_figure(fig, path)
         written.append(path)
     written.append(_plot_trajectories(out, rows))
     return [p for p in written if p]
@@ -128,9 +190,10 @@ def _plot_trajectories(out: Path, rows: list[dict]) -> Path | None:
     gt_drawn = False
     for r in rows:
         run = Path(r["runs"][0])
-        if not (run / "trajectory.txt").exists():
+        try:
+            t_est, est = read_tum_trajectory(run / "trajectory.txt")
+        except DataError:  # no trajectory (a run without frames), or not one: not drawn
             continue
-        t_est, est = read_tum_trajectory(run / "trajectory.txt")
         positions = est[:, :3, 3]
         if (run / "groundtruth.txt").exists():
             t_gt, gt = read_tum_trajectory(run / "groundtruth.txt")
@@ -153,7 +216,7 @@ def _plot_trajectories(out: Path, rows: list[dict]) -> Path | None:
     ax.set_aspect("equal", adjustable="datalim")
     ax.legend(fontsize=7)
     path = out / "trajectories.png"
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path)
     return path
 
 
@@ -161,10 +224,12 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="slamkit-report", description=__doc__.split("\n\n")[0])
     parser.add_argument("dirs", nargs="+", type=Path, help="multirun or run directories")
     parser.add_argument("--out", type=Path, default=None, help="where to write (default: the first DIR)")
+    parser.add_argument("--include-unfinished", action="store_true",
+                        help="aggregate interrupted, failed and running runs with the completed ones")
     args = parser.parse_args(argv)
     try:
         runs = [load_run(r) for r in find_runs(args.dirs)]
-        keys, rows = aggregate(runs)
+        keys, rows = aggregate(runs, args.include_unfinished)
         out = args.out or args.dirs[0]
         out.mkdir(parents=True, exist_ok=True)
         write_tables(out, keys, rows)
@@ -173,8 +238,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"slamkit-report: error: {exc}", file=sys.stderr)
         return 2
     print((out / "report.md").read_text(), end="")
-    print(f"slamkit-report: {len(runs)} runs, {len(rows)} rows; wrote report.csv, report.md and plots into {out}",
-          file=sys.stderr)
+    counts = ", ".join(f"{sum(r['status'] == s for r in runs)} {s}" for s in (*STATUSES, "unreadable")
+                       if any(r["status"] == s for r in runs))
+    print(f"slamkit-report: {len(runs)} runs ({counts}), {len(rows)} rows; wrote report.csv, report.md and plots "
+          f"into {out}", file=sys.stderr)
     return 0
 
 

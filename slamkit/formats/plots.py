@@ -1,10 +1,13 @@
-"""Trajectory plots written as PNG files (matplotlib, imported lazily, no display needed)."""
+"""Trajectory plots written as PNG files (matplotlib, imported lazily, no display needed),
+atomically (`save_figure`)."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
+
+from slamkit.formats.atomic import atomic_open
 
 AXES = "xyz"
 
@@ -50,6 +53,11 @@ def plot_trajectory(path_png, est_aligned_positions, gt_positions=None, title: s
             ax.set_xlabel("frame index")
     fig.suptitle(title)
     path_png = Path(path_png)
-    path_png.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path_png, dpi=100)
+    save_figure(fig, path_png)
     return path_png
+
+
+def save_figure(fig, path_png: str | Path) -> None:
+    """Write a matplotlib figure as a PNG file (100 dpi), atomically."""
+    with atomic_open(path_png, "wb") as f:
+        fig.savefig(f, format="png", dpi=100)

@@ -38,10 +38,18 @@ class Device(enum.Enum):
 @dataclass
 class EvalConfig(PluginConfig):
     """plot: write trajectory.png. running_ate_every: frames between running-ATE updates of the
-    progress bar (0 = off)."""
+    progress bar (0 = off). max_lost_fraction: a run that loses more than this fraction of the
+    frames it takes in (tracking lost or unreadable; dropped frames excluded), or tracks none,
+    has failed: it reports no ATE, skips the refinement and the evaluation, and exits with
+    status 3 (1.0: only a run that tracked no frame fails)."""
 
     plot: bool = True
     running_ate_every: int = 10
+    max_lost_fraction: float = 0.5
+
+    def validate(self) -> None:
+        require(0.0 <= self.max_lost_fraction <= 1.0, "eval.max_lost_fraction", "a fraction in [0, 1]",
+                self.max_lost_fraction)
 
     def validate(self) -> None:
         require(self.running_ate_every >= 0, "eval.running_ate_every", "an integer >= 0 (0: off)",

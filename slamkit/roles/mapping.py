@@ -47,8 +47,15 @@ class Mapper(ABC):
         """Called once after the last frame and any refinement steps (`optimize` calls), to
         wrap up (e.g. a last pruning)."""
 
+    def save_map(self, out_dir) -> list:
+        """Write the map as trained so far into the folder `out_dir` (e.g. map.ply) and return
+        the paths written; [] (the default) for a mapper that keeps no map. Called after the
+        refinement, and when the run stops early, with no mapping step running."""
+        return []
+
     def evaluate(self, frames, poses: list[np.ndarray], out_dir) -> dict[str, Any]:
-        """Rendering metrics (psnr, ssim, ...) for the run's metrics.json; {} if none."""
+        """Rendering metrics (psnr, ssim, ...) for the run's metrics.json; {} if none. Called
+        after `save_map`; may write images into `out_dir` (None: write nothing)."""
         return {}
 
     def state_dict(self) -> dict[str, Any]:

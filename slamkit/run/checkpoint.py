@@ -12,10 +12,11 @@ A checkpoint (`RUN_DIR/checkpoint.zip`, the file format is `slamkit.formats.chec
   camera, the dataset selection, the last frame index and why it was written (`end`,
   `keyframes`, `interrupted`).
 
-`CheckpointWriter` writes it at the end of a run, every `checkpoint.every_keyframes` keyframes
-and when the run is interrupted; `restore` puts a run back where its checkpoint left it
-(`slamkit resume=RUN_DIR`, see `resume_arguments`); `load_map` reads the map alone
-(`mode=localize`, slamkit-export).
+`CheckpointWriter` writes it every `checkpoint.every_keyframes` keyframes during the stream
+(`slamkit.run.pipeline`), and where the run saves its map (`RunOutputs.save_map`): after the
+refinement, and when a signal stops the run at a safe point; `restore` puts a run back where
+its checkpoint left it (`slamkit resume=RUN_DIR`, see `resume_arguments`); `load_map` reads the
+map alone (`mode=localize`, slamkit-export).
 """
 
 from __future__ import annotations
@@ -76,7 +77,7 @@ class CheckpointWriter:
         n = len(self.state.poses)
         camera = self.dataset.camera
         meta = {"created": datetime.now(timezone.utc).isoformat(timespec="seconds"), "reason": reason,
-                "last_frame_index": n - 1, "num_frames": n, "completed": self.state.completed,
+                "last_frame_index": n - 1, "num_frames": n, "completed": reason == "end",
                 "plugins": dict(self.names), "overrides": self.overrides, "config": config_dict(self.cfg),
                 "camera": {"width": int(camera.width), "height": int(camera.height),
                            **{k: float(getattr(camera, k)) for k in ("fx", "fy", "cx", "cy")}},

@@ -11,7 +11,8 @@ registered globally again (up to `localize.attempts` RANSAC seeds), as is every 
 is. Outputs in the run folder: trajectory.txt (the localised frames' poses, TUM format),
 frames.csv (per frame: localised, relocalised, inlier fraction, times),
 metrics.json (localised frames, relocalisations, ATE over the localised frames SE(3)-aligned
-and in the map's own frame, frames/s).
+and in the map's own frame, frames/s, `status`); trajectory.txt and metrics.json are written
+atomically, also when a signal (SIGINT, SIGTERM: between two frames) or an error stops the run.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from slamkit.errors import DataError
+from slamkit.errors import DataError, OutputError
 from slamkit.formats.atomic import write_atomic
 from slamkit.formats.checkpoint import checkpoint_path
 from slamkit.formats.tum import write_tum_trajectory
@@ -39,7 +40,8 @@ from slamkit.registry.discovery import Registry
 from slamkit.registry.schema import RunConfig
 from slamkit.run import checkpoint
 from slamkit.run.prefetch import prefetched
-from slamkit.run.signals import StopSignals
+from slamkit.run.lifecycle import Phase, StopSignals, pause_point
+from slamkit.run.outputs import COMPLETED, FAILED, INTERRUPTED
 from slamkit.types import Frame, TrackingResult
 
 log = logging.getLogger(__name__)
@@ -135,9 +137,17 @@ class Localizer:
         return best
 
 
-def run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Path) -> dict[str, Any]:
+def run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Path,
+        stop: StopSignals | None = None) -> dict[str, Any]:
     """Localise the dataset's frames in `cfg.localize.map`; write the outputs into `out_dir` and
-    return the metrics."""
+    return the metrics (`status`: completed, or interrupted: SIGINT and SIGTERM stop it between
+    two frames, `slamkit.run.lifecycle.StopSignals`, and it writes what it has)."""
+    stop = stop or StopSignals()
+    with stop.installed():
+        return _run(cfg, registry, names, out_dir, stop)
+
+
+def _run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Path, stop: StopSignals) -> dict[str, Any]:
     out_dir.mkdir(parents=True, exist_ok=True)
     gaussian_map, saved = checkpoint.load_map(cfg.localize.map)
     dataset = registry.create("dataset", names["dataset"], cfg.dataset)
@@ -151,30 +161,44 @@ def run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Path
     log.info("localising %d frames in %s (%d Gaussians, features in %.1f s)", len(dataset),
              checkpoint_path(cfg.localize.map), len(gaussian_map), setup_s)
     frames: list[LocalizedFrame] = []
-    error = None
+    status, error = COMPLETED, None
     try:
-        with StopSignals() as stop, open(out_dir / "frames.csv", "w", newline="") as log_file:
+        stop.enter(Phase.stream)
+        with open(out_dir / "frames.csv", "w", newline="") as log_file:
             writer = csv.writer(log_file)
             writer.writerow(["index", "timestamp", "localized", "relocalized", "inlier_fraction", "tracking_ms",
                              "registration_ms"])
             for frame in prefetched(dataset, cfg.dataset.prefetch):
-                with stop.deferred():
-                    done = localizer.step(frame)
-                    frames.append(done)
-                    writer.writerow([done.index, f"{done.timestamp:.6f}", int(done.localized), int(done.relocalized),
-                                     "" if done.inlier_fraction is None else f"{done.inlier_fraction:.4f}",
-                                     f"{1e3 * done.tracking_s:.2f}", f"{1e3 * done.registration_s:.2f}"])
+                stop.check()
+                done = localizer.step(frame)
+                frames.append(done)
+                writer.writerow([done.index, f"{done.timestamp:.6f}", int(done.localized), int(done.relocalized),
+                                 "" if done.inlier_fraction is None else f"{done.inlier_fraction:.4f}",
+                                 f"{1e3 * done.tracking_s:.2f}", f"{1e3 * done.registration_s:.2f}"])
+                pause_point(f"stream@{len(frames)}", stop)
+        stop.check()
     except KeyboardInterrupt as exc:
-        error = f"interrupted ({exc or 'SIGINT'})"
+        status, error = INTERRUPTED, f"interrupted ({str(exc) or 'SIGINT'}) during {stop.phase.value}"
         log.warning("localisation interrupted after %d frames; writing what it has", len(frames))
-    metrics = _metrics(frames, localizer, time.perf_counter() - start, setup_s, str(checkpoint_path(cfg.localize.map)),
-                       len(gaussian_map), error)
-    _write(out_dir, frames, metrics)
+    except Exception as exc:
+        status, error = FAILED, f"{type(exc).__name__}: {exc}"
+        log.error("localisation failed after %d frames: %s; writing what it has", len(frames), error)
+        if isinstance(exc, OSError):  # the environment (a full disk): exit status 1, naming the file
+            raise OutputError(f"localisation stopped: {exc.filename or out_dir}: {exc.strerror or exc}") from exc
+        raise
+    finally:
+        with stop.writing():
+            metrics = _metrics(frames, localizer, time.perf_counter() - start, setup_s,
+                               str(checkpoint_path(cfg.localize.map)), len(gaussian_map), status, error)
+            try:
+                _write(out_dir, frames, metrics)
+            except OSError as exc:  # a full disk: exit status 1, naming the file
+                raise OutputError(f"could not write {exc.filename or out_dir}: {exc.strerror or exc}") from exc
     return metrics
 
 
 def _metrics(frames: list[LocalizedFrame], localizer: Localizer, wall_s: float, setup_s: float, map_path: str,
-             map_gaussians: int, error: str | None) -> dict[str, Any]:
+             map_gaussians: int, status: str, error: str | None) -> dict[str, Any]:
     n = len(frames)
     ok = np.array([f.localized for f in frames], dtype=bool)
     poses = np.array([f.pose if f.localized else np.full((4, 4), np.nan) for f in frames]).reshape(n, 4, 4)
@@ -193,7 +217,7 @@ def _metrics(frames: list[LocalizedFrame], localizer: Localizer, wall_s: float, 
         "ate_rmse_m": aligned.rmse_m if aligned else None, "ate_mean_m": aligned.mean_m if aligned else None,
         "ate_frames": aligned.num if aligned else 0,
         "map_frame_rmse_m": in_map.rmse_m if in_map else None,
-        "completed": error is None, "error": error,
+        "completed": status == COMPLETED, "status": status, "error": error,
     }
 
 
@@ -206,9 +230,9 @@ def _write(out_dir: Path, frames: list[LocalizedFrame], metrics: dict[str, Any])
 
 
 def summary(m: dict[str, Any]) -> str:
-    """One line for the terminal."""
+    """One line for the terminal (and why the run stopped early)."""
     ate = "n/a" if m["ate_rmse_m"] is None else f"{100 * m['ate_rmse_m']:.2f} cm"
     fps = "n/a" if not m["fps"] else f"{m['fps']:.1f}"
     text = (f"localised {m['localized_frames']}/{m['num_frames']} frames, ATE RMSE {ate} over them, {fps} frames/s, "
             f"{m['relocalizations']} global registrations")
-    return text if m["completed"] else text + " (incomplete)"
+    return text if m["completed"] else text + f" (incomplete: {m['error']})"

@@ -1,27 +1,41 @@
-"""The run's outputs: what a run has produced so far (`RunState`), and writing it out
-(trajectory.txt, keyframes.txt, groundtruth.txt, camera.json, metrics.json, trajectory.png) with
-the one-line summary. Written atomically, also for a run that stopped early."""
+"""The run's outputs: what a run has produced so far (`RunState`), its metrics, and the files
+(`RunOutputs`), each written atomically as soon as what it holds is known, in the order of their
+value: camera.json at start-up; trajectory.txt, keyframes.txt, groundtruth.txt, the tracking
+metrics (metrics.json) and trajectory.png when the stream ends; the map (the mapper's
+`save_map`, map.ply) and the checkpoint (checkpoint.zip) after the refinement, or as the run
+stops early; the evaluation merged into metrics.json last.
+
+A file that cannot be written (a full disk) is logged and noted (`RunOutputs.unwritten`), and the
+others are still tried: metrics.json is small and is written where space allows."""
 
 from __future__ import annotations
 
+import csv
 import json
 import logging
 import os
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import torch
 
 from slamkit.formats.atomic import write_atomic
+from slamkit.formats.checkpoint import CHECKPOINT_NAME
 from slamkit.formats.tum import write_tum_trajectory
 from slamkit.metrics import trajectory as evaluation
 from slamkit.registry.schema import RunConfig
+from slamkit.run.checkpoint import CheckpointWriter
+from slamkit.run.lifecycle import Phase, StopSignals
 from slamkit.run.slam import SLAM, StepResult
 from slamkit.types import Frame
 
 log = logging.getLogger(__name__)
+
+#: metrics.json's `status`: what became of the run.
+COMPLETED, INTERRUPTED, FAILED, RUNNING = "completed", "interrupted", "failed", "running"
 
 
 @dataclass
@@ -41,9 +55,24 @@ class RunState:
     stream_time_s: float = 0.0  # from the first frame to the last one tracked
     refine_iterations: int = 0  # mapping steps after the stream
     refine_time_s: float = 0.0
-    completed: bool = False
+    slam_time_s: float | None = None  # from the first frame to the end of the refinement
+    phase: Phase = Phase.startup  # the phase the run is in (done once completed)
+    status: str = RUNNING
     error: str | None = None
+    evaluation: dict[str, Any] = field(default_factory=dict)  # the mapper's rendering metrics
     previous_wall_s: float = 0.0  # wall time of the runs this one resumes (slamkit.run.checkpoint)
+
+    @property
+    def completed(self) -> bool:
+        return self.status == COMPLETED
+
+    def stop(self, status: str, error: str | None) -> None:
+        """The run ends (completed, interrupted or failed) in its current phase; the first
+        reason given is kept."""
+        if self.status == RUNNING:
+            self.status, self.error = status, error
+            if status == COMPLETED:
+                self.phase = Phase.done
 
     def record_unreadable(self, timestamp: float) -> None:
         """A frame that could not be read (dataset.on_error=skip): lost, keeps the last pose."""
@@ -72,6 +101,31 @@ class RunState:
         self.tracking_time_s += step.tracking_time_s
         self.mapping_time_s += step.mapping_time_s
 
+    def lost_fraction(self) -> float:
+        """Lost frames (tracking lost or unreadable) over the frames the run took in (dropped
+        ones excluded); 1.0 when it took in none."""
+        taken = len(self.poses) - self.dropped_frames
+        return self.lost_frames / taken if taken > 0 else 1.0
+
+    def tracking_failure(self, max_lost_fraction: float) -> str | None:
+        """Why the run's trajectory is not a result (no frame tracked, or more than
+        `max_lost_fraction` of the frames lost); None when it is."""
+        taken = len(self.poses) - self.dropped_frames
+        if taken - self.lost_frames <= 0:
+            return f"tracking failed: no frame tracked ({self.lost_frames} of {taken} frames lost)"
+        if self.lost_fraction() > max_lost_fraction:
+            return (f"tracking failed: {self.lost_frames} of {taken} frames lost, more than "
+                    f"eval.max_lost_fraction={max_lost_fraction:g}")
+        return None
+
+    def trajectory(self) -> np.ndarray:
+        """(N, 4, 4) camera-to-world poses; the unreadable first frames take the first pose."""
+        n = len(self.poses)
+        poses = np.array(self.poses).reshape(n, 4, 4)
+        finite = np.flatnonzero(np.isfinite(poses).all(axis=(1, 2)))
+        poses[: finite[0] if len(finite) else n] = poses[finite[0]] if len(finite) else np.eye(4)
+        return poses
+
 
 def write_camera(path: Path, camera, depth_trunc: float) -> None:
     """The run's camera as JSON: width, height (pixels), fx, fy, cx, cy (pixels) and
@@ -81,39 +135,160 @@ def write_camera(path: Path, camera, depth_trunc: float) -> None:
     _write_json_atomic(path, data)
 
 
-def write_outputs(cfg: RunConfig, slam: SLAM, dataset, state: RunState, wall_s: float, out_dir: Path) -> dict[str, Any]:
-    """Write trajectory.txt, metrics.json and the plot; return the metrics."""
+class RunOutputs:
+    """The files of one run in `out_dir` (see the module docstring). `kept` lists the files
+    written, `unwritten` the ones that could not be (name -> why). With `checkpoints`, the map's
+    save also writes the run's checkpoint (`slamkit.run.checkpoint`); `stop` says whether a
+    signal cut a step in half (then no checkpoint is written from that state)."""
+
+    def __init__(self, cfg: RunConfig, slam: SLAM, state: RunState, out_dir: Path,
+                 checkpoints: CheckpointWriter | None = None, stop: StopSignals | None = None):
+        self.cfg, self.slam, self.state, self.out_dir = cfg, slam, state, out_dir
+        self.checkpoints, self.stop = checkpoints, stop
+        self.kept: list[str] = []
+        self.unwritten: dict[str, str] = {}
+        self.start = time.perf_counter()  # the first frame's
+        self.trajectory_saved = self.map_saved = False
+
+    def keep(self, name: str, write: Callable[[], Any]) -> bool:
+        """Run `write` (which writes `name`). An OSError (a full disk, a read-only folder) is
+        logged and noted in `unwritten`; it is raised while the run is going (the run stops
+        and keeps what it can), not once it is stopping (the other files are still tried)."""
+        try:
+            write()
+        except OSError as exc:
+            self._unwritten(name, exc)
+            if self.state.status == RUNNING:
+                raise
+            return False
+        if name not in self.kept:
+            self.kept.append(name)
+        return True
+
+    def save_camera(self, camera, depth_trunc: float) -> None:
+        self.keep("camera.json", lambda: write_camera(self.out_dir / "camera.json", camera, depth_trunc))
+
+    def save_trajectory(self) -> None:
+        """When the stream ends: trajectory.txt, keyframes.txt, groundtruth.txt, the tracking
+        metrics (metrics.json) and trajectory.png."""
+        state, out = self.state, self.out_dir
+        self.trajectory_saved = True
+        poses = state.trajectory()
+        self.keep("trajectory.txt", lambda: write_tum_trajectory(out / "trajectory.txt", state.timestamps, poses))
+        rows = state.keyframe_rows
+        self.keep("keyframes.txt", lambda: write_tum_trajectory(out / "keyframes.txt", [state.timestamps[i] for i in rows],
+                                                                 poses[rows].reshape(-1, 4, 4)))
+        has_gt = [i for i, p in enumerate(state.gt_poses) if p is not None and np.all(np.isfinite(p))]
+        if has_gt:  # beside the estimate, for evo and slamkit-report
+            self.keep("groundtruth.txt", lambda: write_tum_trajectory(
+                out / "groundtruth.txt", [state.timestamps[i] for i in has_gt], np.array([state.gt_poses[i] for i in has_gt])))
+        metrics = self.save_metrics()
+        if self.cfg.eval.plot and len(poses):
+            self.keep("trajectory.png", lambda: self._plot(poses, metrics))
+
+    def save_map(self) -> None:
+        """The map trained so far (the mapper's `save_map`: map.ply), once the mapper has stopped
+        changing it, then the checkpoint: the run's one place for what it keeps of its map. A run
+        already stopping (interrupted twice, failed) logs a map it cannot write instead of raising."""
+        self.map_saved = True
+        self._save_map_ply()
+        self._save_checkpoint()
+
+    def _save_map_ply(self) -> None:
+        try:
+            written = self.slam.mapper.save_map(self.out_dir) or []
+        except OSError as exc:
+            self._unwritten(Path(exc.filename).name if exc.filename else "map.ply", exc)
+            if self.state.status == RUNNING:
+                raise
+            return
+        except Exception as exc:
+            if self.state.status == RUNNING:
+                raise
+            log.error("the map could not be written: %s: %s", type(exc).__name__, exc)
+            return
+        self.kept += [Path(p).name for p in written]
+
+    def _save_checkpoint(self) -> None:
+        """checkpoint.zip: `end` after the refinement, `interrupted` when a signal stopped the run
+        at a safe point. None from a failed run, nor from a state a second signal cut in half (the
+        last checkpoint written, every N keyframes, stays)."""
+        status = self.state.status
+        if self.checkpoints is None or status == FAILED:
+            return
+        if self.stop is not None and self.stop.cut_short:
+            log.warning("no checkpoint from this state: a second signal stopped the run in the middle of a step")
+            return
+        try:
+            path = self.checkpoints.save("end" if status == RUNNING else "interrupted")
+        except OSError as exc:
+            self._unwritten(Path(exc.filename).name if exc.filename else CHECKPOINT_NAME, exc)
+            if status == RUNNING:
+                raise
+            return
+        if path is not None and path.name not in self.kept:
+            self.kept.append(path.name)
+
+    def save_metrics(self) -> dict[str, Any]:
+        """metrics.json as the run stands; returns the metrics."""
+        metrics = run_metrics(self.cfg, self.slam, self.state, time.perf_counter() - self.start)
+        self.keep("metrics.json", lambda: _write_json_atomic(self.out_dir / "metrics.json", metrics))
+        return metrics
+
+    def save_all(self) -> dict[str, Any]:
+        """What the run has not written yet (its trajectory, its map), then metrics.json as it
+        ends; returns the metrics."""
+        if not self.trajectory_saved:
+            self.save_trajectory()
+        if not self.map_saved:
+            self.save_map()
+        return self.save_metrics()
+
+    def _unwritten(self, name: str, exc: OSError) -> None:
+        self.unwritten[name] = exc.strerror or str(exc)
+        log.error("could not write %s: %s", self.out_dir / name, self.unwritten[name])
+
+    def _plot(self, poses: np.ndarray, metrics: dict[str, Any]) -> None:
+        from slamkit.formats.plots import plot_trajectory
+
+        ate = evaluation.ate(poses, self.state.gt_poses)
+        has_gt = ate.rmse_m is not None
+        plot_trajectory(self.out_dir / "trajectory.png", ate.est_aligned if has_gt else poses[:, :3, 3],
+                        ate.gt_positions if has_gt else None, title=_summary(metrics))
+
+
+def run_metrics(cfg: RunConfig, slam: SLAM, state: RunState, wall_s: float) -> dict[str, Any]:
+    """metrics.json's content for the run as it stands (`wall_s`: seconds since its first frame;
+    a resumed run adds the wall time of the runs before it).
+    A run whose tracking failed presents no trajectory error (ate_*, rpe_* null)."""
     n = len(state.poses)
-    poses = np.array(state.poses).reshape(n, 4, 4)
-    finite = np.flatnonzero(np.isfinite(poses).all(axis=(1, 2)))
-    poses[: finite[0] if len(finite) else n] = poses[finite[0]] if len(finite) else np.eye(4)  # unreadable first frames
-    write_tum_trajectory(out_dir / "trajectory.txt", state.timestamps, poses)
-    write_tum_trajectory(out_dir / "keyframes.txt", [state.timestamps[i] for i in state.keyframe_rows],
-                         poses[state.keyframe_rows].reshape(-1, 4, 4))
-    has_gt = [i for i, p in enumerate(state.gt_poses) if p is not None and np.all(np.isfinite(p))]
-    if has_gt:  # beside the estimate, for evo and slamkit-report
-        write_tum_trajectory(out_dir / "groundtruth.txt", [state.timestamps[i] for i in has_gt],
-                             np.array([state.gt_poses[i] for i in has_gt]))
-    ate = evaluation.ate(poses, state.gt_poses) if n else None
-    rpe = evaluation.rpe(poses, state.gt_poses) if n > 1 else None
+    poses = state.trajectory()
+    failure = state.tracking_failure(cfg.eval.max_lost_fraction) if n else None
+    ate = evaluation.ate(poses, state.gt_poses) if n and not failure else None
+    rpe = evaluation.rpe(poses, state.gt_poses) if n > 1 and not failure else None
+    slam_s = (state.slam_time_s if state.slam_time_s is not None else wall_s) + state.previous_wall_s
     metrics: dict[str, Any] = {
         "num_frames": n,
         "num_keyframes": state.num_keyframes,
-        "fps": n / (wall_s + state.previous_wall_s) if wall_s > 0 else None,
+        "fps": n / slam_s if slam_s > 0 else None,
         "tracking_fps": n / state.tracking_time_s if state.tracking_time_s > 0 else None,
         "stream_fps": n / state.stream_time_s if state.stream_time_s > 0 else None,
         "stream_time_s": state.stream_time_s,
         "tracking_time_s": state.tracking_time_s,
         "mapping_time_s": state.mapping_time_s,
-        "wall_time_s": wall_s + state.previous_wall_s,
+        "wall_time_s": slam_s,
         "mapping_iterations": state.mapping_iterations,
         "refine_iterations": state.refine_iterations,
         "refine_time_s": state.refine_time_s,
         "lost_frames": state.lost_frames,
+        "lost_fraction": state.lost_fraction() if n else None,
+        "tracking_failure": failure,  # why no trajectory error is reported
         "dropped_frames": state.dropped_frames,
         "mode": cfg.mode.value,
         "mapping_threads": torch.get_num_threads(),
         "completed": state.completed,
+        "status": state.status,
+        "phase": state.phase.value,
         "error": state.error,
         "ate_rmse_m": ate.rmse_m if ate else None,
         "ate_mean_m": ate.mean_m if ate else None,
@@ -121,19 +296,9 @@ def write_outputs(cfg: RunConfig, slam: SLAM, dataset, state: RunState, wall_s: 
         "rpe_trans_rmse_m": rpe["trans_rmse_m"] if rpe else None,
         "rpe_rot_rmse_deg": rpe["rot_rmse_deg"] if rpe else None,
         "num_gaussians": len(slam.gaussian_map),
-        "peak_memory_mb": _peak_memory_mb(),
     }
-    if state.completed:
-        metrics.update(slam.mapper.evaluate(dataset, state.poses, out_dir))
-    _write_json_atomic(out_dir / "metrics.json", metrics)
-    log.info("%s", summary(metrics))
-    if cfg.eval.plot and n:
-        from slamkit.formats.plots import plot_trajectory
-
-        has_gt = ate is not None and ate.rmse_m is not None
-        est = ate.est_aligned if has_gt else poses[:, :3, 3]
-        gt = ate.gt_positions if has_gt else None
-        plot_trajectory(out_dir / "trajectory.png", est, gt, title=_summary(metrics))
+    metrics.update(state.evaluation)
+    metrics["peak_memory_mb"] = _peak_memory_mb()  # so far: after the evaluation in the last write
     return metrics
 
 
@@ -159,7 +324,12 @@ def _write_json_atomic(path: Path, data: dict) -> None:
 def _summary(m: dict[str, Any]) -> str:
     """Frames, ATE and the system's frames/s: the stream's in real-time mode (the frames/s the
     live system kept up with), the whole run's otherwise."""
-    ate = "n/a (no ground truth)" if m["ate_rmse_m"] is None else f"{100 * m['ate_rmse_m']:.2f} cm"
+    if m["ate_rmse_m"] is not None:
+        ate = f"{100 * m['ate_rmse_m']:.2f} cm"
+    elif m.get("tracking_failure"):
+        ate = "not reported"
+    else:
+        ate = "n/a (no frames)" if not m["num_frames"] else "n/a (no ground truth)"
     realtime = m.get("mode") == "realtime"
     fps = m["stream_fps"] if realtime else m["fps"]
     fps = f"{fps:.1f} frames/s" + (" in real time" if realtime else "") if fps else "n/a frames/s"
@@ -167,10 +337,75 @@ def _summary(m: dict[str, Any]) -> str:
 
 
 def summary(m: dict[str, Any]) -> str:
-    """One line for the terminal."""
+    """One line for the terminal: the result, or why there is none."""
     text = _summary(m) + f", {m['num_keyframes']} keyframes, {m['lost_frames']} lost"
     if m.get("psnr") is not None:
         text += f", PSNR {m['psnr']:.2f} dB"
     if m.get("refine_iterations"):
         text += f" after {m['refine_iterations']} refinement steps ({m['refine_time_s']:.1f} s)"
-    return text if m["completed"] else text + " (incomplete)"
+    status = m.get("status", COMPLETED if m["completed"] else INTERRUPTED)
+    if status == COMPLETED:
+        return text
+    if status == INTERRUPTED:
+        return text + f" (incomplete: interrupted during {m.get('phase', '?')})"
+    return text + f" (failed: {m.get('error')})"
+
+
+class FrameLog:
+    """frames.csv: one row per input frame (keyframe kind, lost flag and reason, tracking and
+    mapping time in ms, ...), appended as the stream goes and flushed every `flush` call and at
+    the end. A log, not written atomically: after a kill its last row may be cut short; a reader
+    drops a last line that has no line end. An OSError names the file."""
+
+    COLUMNS = ["index", "timestamp", "keyframe", "lost", "tracking_ms", "mapping_ms", "iterations",
+               "correspondence_ratio", "num_gaussians", "rss_mb", "note"]
+
+    def __init__(self, path: Path, append: bool = False):
+        """`append`: extend the log of the run this one resumes (no header)."""
+        self.path = path
+        self._file = self._guard(open, path, "a" if append else "w", newline="")
+        self._writer = csv.writer(self._file)
+        if not append:
+            self._row(self.COLUMNS)
+
+    def frame(self, frame: Frame, step: StepResult, num_gaussians: int) -> None:
+        result = step.tracking
+        self._row([frame.index, f"{frame.timestamp:.6f}", step.keyframe.value, int(result.lost),
+                   f"{1e3 * step.tracking_time_s:.2f}", f"{1e3 * step.mapping_time_s:.2f}", step.mapping_iterations,
+                   _fmt(result.correspondence_ratio), num_gaussians, f"{rss_mb():.1f}",
+                   result.stats.get("lost_reason", "")])
+
+    def unreadable(self, index: int, timestamp: float, error: Exception) -> None:
+        self._row([index, f"{timestamp:.6f}", "none", 1, "", "", 0, "", "", "", f"unreadable: {error}"])
+
+    def dropped(self, frame: Frame) -> None:
+        self._row([frame.index, f"{frame.timestamp:.6f}", "none", 0, "", "", 0, "", "", "", "dropped"])
+
+    def flush(self) -> None:
+        self._guard(self._file.flush)
+
+    def close(self) -> None:
+        self._guard(self._file.close)
+
+    def __enter__(self) -> "FrameLog":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        try:
+            self.close()
+        except OSError:
+            if exc[0] is None:  # an error already on its way says what went wrong first
+                raise
+
+    def _row(self, cells: list) -> None:
+        self._guard(self._writer.writerow, cells)
+
+    def _guard(self, call, *args, **kwargs):
+        try:
+            return call(*args, **kwargs)
+        except OSError as exc:
+            raise OSError(exc.errno, exc.strerror or str(exc), str(self.path)) from exc
+
+
+def _fmt(value: float | None) -> str:
+    return "" if value is None else f"{value:.4f}"

@@ -1,13 +1,14 @@
-"""Running SLAM on a dataset: building the roles from config, the frame loop (sequential or
-beside a mapping thread, paced like a camera), the progress bar, the viewer, the per-frame log
-(frames.csv) and the refinement after the stream; the outputs are `slamkit.run.outputs`.
+"""Running SLAM on a dataset: building the roles from config, then the run's phases
+(`slamkit.run.lifecycle.Phase`): the stream (the frame loop, sequential or beside a mapping thread,
+paced like a camera, with the progress bar, the viewer and the per-frame log), the refinement,
+the map and the evaluation, each phase's outputs written as soon as it ends
+(`slamkit.run.outputs`), and what the run has kept when a signal or an error stops it.
 
 The algorithm itself is `slamkit.run.slam.SLAM`; this module is the I/O around it.
 """
 
 from __future__ import annotations
 
-import csv
 import inspect
 import logging
 import time
@@ -17,17 +18,17 @@ from typing import Any
 import numpy as np
 import torch
 
-from slamkit.errors import DataError, PluginError, SlamkitError
+from slamkit.errors import DataError, OutputError, PluginError, SlamkitError
 from slamkit.map.gaussian_map import GaussianMap
 from slamkit.metrics import trajectory as evaluation
 from slamkit.native import available_threads
 from slamkit.registry.discovery import Registry
 from slamkit.registry.schema import Mode, RunConfig
 from slamkit.run import checkpoint
-from slamkit.run.outputs import RunState, rss_mb, summary, write_camera, write_outputs
+from slamkit.run.lifecycle import Phase, StopSignals, pause_point
+from slamkit.run.outputs import COMPLETED, FAILED, INTERRUPTED, FrameLog, RunOutputs, RunState, summary
 from slamkit.run.prefetch import UnreadableFrame, prefetched
-from slamkit.run.signals import StopSignals
-from slamkit.run.slam import SLAM, MappingThread, StepResult
+from slamkit.run.slam import SLAM, MappingThread
 from slamkit.run.viewing import ViewerFeed
 from slamkit.types import Frame
 
@@ -51,7 +52,7 @@ class Blamed:
         def call(*args, **kwargs):
             try:
                 return value(*args, **kwargs)
-            except SlamkitError:
+            except (SlamkitError, OSError):  # the user's input, the environment (a full disk)
                 raise
             except Exception as exc:
                 # the traceback goes to the log file (INFO), not to the terminal (WARNING and above)
@@ -85,69 +86,116 @@ def build(cfg: RunConfig, registry: Registry, names: dict[str, str]):
     return dataset, slam, create("viewer")
 
 
-def run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Path) -> dict[str, Any]:
-    """Run SLAM as configured and write the outputs into `out_dir`; return the metrics."""
+def run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Path,
+        stop: StopSignals | None = None) -> dict[str, Any]:
+    """Run SLAM as configured, writing the outputs into `out_dir` phase by phase
+    (`slamkit.run.outputs`); return the final metrics (`status`: completed, interrupted, or
+    failed when tracking failed). SIGINT and SIGTERM stop the run at a safe point
+    (`slamkit.run.lifecycle.StopSignals`) and it keeps what it has. OutputError when a file
+    could not be written (a full disk): the others were, metrics.json where space allowed."""
     threads_before = torch.get_num_threads()
     torch.set_num_threads(mapping_threads(cfg))
+    stop = stop or StopSignals()
     try:
-        return _run(cfg, registry, names, out_dir)
+        with stop.installed():
+            return _run(cfg, registry, names, out_dir, stop)
     finally:
         torch.set_num_threads(threads_before)
 
 
-def _run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Path) -> dict[str, Any]:
+def _run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Path, stop: StopSignals) -> dict[str, Any]:
     out_dir.mkdir(parents=True, exist_ok=True)
     np.random.seed(cfg.seed)
     dataset, slam, viewer = build(cfg, registry, names)
     viewer = ViewerFeed(viewer, names["viewer"], slam.gaussian_map, slam.mapper)
     log.info("%s: %d frames, camera %s; tracker %s, mapper %s, keyframes %s", names["dataset"], len(dataset),
              dataset.camera, names["tracker"], names["mapper"], names["keyframe"])
-    write_camera(out_dir / "camera.json", dataset.camera, dataset.depth_trunc)
     state = RunState()
     first = checkpoint.resume(cfg, names, slam, state)  # checkpoint: continue a saved run (resume=RUN_DIR)
     checkpoints = checkpoint.CheckpointWriter(cfg, names, slam, state, dataset, out_dir)
-    viewer.start(dataset.camera, out_dir)
-    start = time.perf_counter()
+    outputs = RunOutputs(cfg, slam, state, out_dir, checkpoints, stop)
     try:
-        with StopSignals() as stop, open(out_dir / "frames.csv", "a" if first else "w", newline="") as frames_log:
-            _loop(cfg, dataset, slam, state, csv.writer(frames_log), frames_log, viewer, stop, checkpoints, first)
-            _refine(slam, cfg.refinement_iterations(), state, stop)
-            with stop.deferred():
-                slam.mapper.finish()
-                state.completed = True
-                checkpoints.save("end")  # checkpoint: end of the run
+        _phases(cfg, dataset, slam, state, outputs, viewer, stop, first)
     except KeyboardInterrupt as exc:
-        state.error = f"interrupted ({exc or 'SIGINT'})"
-        log.warning("run interrupted after %d frames; writing what it has", len(state.poses))
-        checkpoints.save("interrupted")  # checkpoint: on SIGINT / SIGTERM
+        state.stop(INTERRUPTED, f"interrupted ({str(exc) or 'SIGINT'}) during {state.phase.value}")
+        log.warning("run interrupted during %s after %d frames; writing what it has", state.phase.value,
+                    len(state.poses))
+    except OSError as exc:  # the environment: a full disk, a folder gone
+        state.stop(FAILED, f"{type(exc).__name__}: {exc}")
+        if not outputs.unwritten:  # not one of the outputs' writes: name the file the error names
+            outputs.unwritten[Path(exc.filename).name if exc.filename else "outputs"] = exc.strerror or str(exc)
+        log.error("run failed during %s: %s; writing what it has", state.phase.value, state.error)
     except Exception as exc:
-        state.error = f"{type(exc).__name__}: {exc}"
-        log.error("run failed after %d frames: %s; writing what it has", len(state.poses), state.error)
+        state.stop(FAILED, f"{type(exc).__name__}: {exc}")
+        log.error("run failed during %s after %d frames: %s; writing what it has", state.phase.value,
+                  len(state.poses), state.error)
         raise
     finally:
-        try:
-            metrics = write_outputs(cfg, slam, dataset, state, time.perf_counter() - start, out_dir)
-        finally:
-            viewer.close()
+        with stop.writing():
+            try:
+                metrics = outputs.save_all()
+            finally:
+                viewer.close()
+    if outputs.unwritten:
+        name, why = next(iter(outputs.unwritten.items()))
+        more = f" (and {len(outputs.unwritten) - 1} more)" if len(outputs.unwritten) > 1 else ""
+        raise OutputError(f"could not write {out_dir / name}{more}: {why}; kept in {out_dir}: "
+                          f"{', '.join(outputs.kept) or 'nothing'}")
+    log.info("%s", summary(metrics))
     return metrics
 
 
-#: Refinement steps taken between two chances to stop (a stop signal waits for the chunk).
-REFINE_CHUNK = 10
+def _phases(cfg: RunConfig, dataset, slam: SLAM, state: RunState, outputs: RunOutputs, viewer: ViewerFeed,
+            stop: StopSignals, first: int = 0) -> None:
+    """The run after start-up, each phase's outputs written as soon as it ends: the stream, then
+    the trajectory and the tracking metrics; the refinement, then the map and the checkpoint; the
+    evaluation, then the metrics with it. A run whose tracking failed stops after the stream. A
+    resumed run streams from frame `first` and extends frames.csv."""
+    _enter(Phase.stream, state, stop)
+    outputs.save_camera(dataset.camera, dataset.depth_trunc)
+    viewer.start(dataset.camera, outputs.out_dir)
+    if first < len(dataset):  # frames to stream: the refinement after them starts over
+        state.refine_iterations, state.refine_time_s = 0, 0.0
+    with FrameLog(outputs.out_dir / "frames.csv", append=first > 0) as frames_log:
+        _loop(cfg, dataset, slam, state, frames_log, viewer, stop, outputs.checkpoints, first)
+    failure = state.tracking_failure(cfg.eval.max_lost_fraction)
+    if failure:
+        state.stop(FAILED, failure)
+        log.error("%s", failure)
+        return
+    _enter(Phase.refine, state, stop)
+    outputs.save_trajectory()
+    _refine(slam, cfg.refinement_iterations(), state, stop)
+    slam.mapper.finish()
+    state.slam_time_s = time.perf_counter() - outputs.start
+    _enter(Phase.map, state, stop)
+    outputs.save_map()
+    _enter(Phase.evaluate, state, stop)
+    outputs.save_metrics()
+    state.evaluation = slam.mapper.evaluate(dataset, state.poses, outputs.out_dir)
+    state.stop(COMPLETED, None)
+
+
+def _enter(phase: Phase, state: RunState, stop: StopSignals) -> None:
+    stop.check()  # a signal noted during the phase before
+    state.phase = phase
+    stop.enter(phase)
 
 
 def _refine(slam: SLAM, iterations: int, state: RunState, stop: StopSignals) -> None:
-    """The map's refinement after the stream: `iterations` more mapping steps, timed apart."""
-    if not iterations:
+    """The map's refinement after the stream: up to `iterations` mapping steps in all (a resumed
+    run does those its checkpoint had not), timed apart, stopping between two steps on a signal."""
+    if state.refine_iterations >= iterations:
         return
-    start, state.refine_iterations = time.perf_counter(), 0
-    while state.refine_iterations < iterations:
-        with stop.deferred():
-            done = slam.mapper.optimize(min(REFINE_CHUNK, iterations - state.refine_iterations))
-            state.refine_iterations += done
-            state.refine_time_s = time.perf_counter() - start
-        if not done:
-            break
+    start, before = time.perf_counter(), state.refine_time_s
+    try:
+        while state.refine_iterations < iterations:
+            stop.check()
+            if not slam.mapper.optimize(1):
+                break
+            state.refine_iterations += 1
+    finally:
+        state.refine_time_s = before + time.perf_counter() - start
     log.info("refinement: %d mapping steps in %.1f s", state.refine_iterations, state.refine_time_s)
 
 
@@ -188,14 +236,14 @@ class InputClock:
         return now >= arrival + self.period
 
 
-def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, writer, log_file, viewer: ViewerFeed,
+def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, frames_log: FrameLog, viewer: ViewerFeed,
           stop: StopSignals, checkpoints: checkpoint.CheckpointWriter, first: int = 0) -> None:
-    """Frames `first`.. of the dataset (a resumed run starts after its checkpoint's last frame)."""
+    """The stream: frames `first`.. (a resumed run starts after its checkpoint's last frame)
+    tracked (and mapped, in sequential mode; beside a mapping thread in real-time mode), logged to
+    frames.csv and shown, the checkpoint written every N keyframes; a signal stops it between
+    two frames."""
     from tqdm import tqdm
 
-    if not first:
-        writer.writerow(["index", "timestamp", "keyframe", "lost", "tracking_ms", "mapping_ms", "iterations",
-                         "correspondence_ratio", "num_gaussians", "rss_mb", "note"])
     realtime = cfg.mode is Mode.realtime
     clock = InputClock(cfg.fps_limit if realtime else None)
     mapping = MappingThread(slam.mapper) if realtime else None
@@ -207,38 +255,42 @@ def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, writer, log_file
             mapping.start()
         skip_errors = cfg.dataset.on_error.value == "skip"
         for frame in prefetched(dataset, cfg.dataset.prefetch, skip_errors, first):
+            stop.check()
             if isinstance(frame, UnreadableFrame):
                 log.warning("frame %d skipped: %s", frame.index, frame.error)
                 state.record_unreadable(frame.timestamp)
-                writer.writerow([frame.index, f"{frame.timestamp:.6f}", "none", 1, "", "", 0, "", "", "",
-                                 f"unreadable: {frame.error}"])
-                bar.update(1)
-                continue
-            if not state.poses:
-                slam.initialize(frame.gt_pose if frame.gt_pose is not None else np.eye(4))
-            if clock.wait(frame.index - first) and cfg.drop_frames and state.poses:
+                frames_log.unreadable(frame.index, frame.timestamp, frame.error)
+            elif clock.wait(frame.index - first) and cfg.drop_frames and state.poses:
                 state.record_dropped(frame)
-                writer.writerow([frame.index, f"{frame.timestamp:.6f}", "none", 0, "", "", 0, "", "", "", "dropped"])
-                bar.update(1)
-                continue
-            with stop.deferred():  # a frame's step and its record, whole or not at all
-                step = slam.track(frame) if realtime else slam.step(frame)
-                if mapping:
-                    mapping.check()
-                state.record(frame, step)
-                _log_frame(writer, frame, step, len(slam.gaussian_map))
+                frames_log.dropped(frame)
+            else:
+                _track(frame, slam, state, frames_log, viewer, mapping)
                 checkpoints.after_frame()  # checkpoint: every N keyframes
-            viewer.show(frame, step.tracking.pose, step.keyframe, step.tracking.lost)
             bar.update(1)
             every = cfg.eval.running_ate_every
             if every and len(state.poses) % every == 0:
                 bar.set_postfix_str(_running_ate(state), refresh=False)
-                log_file.flush()
+                frames_log.flush()
+            pause_point(f"stream@{len(state.poses)}", stop)
     finally:
         state.stream_time_s += time.perf_counter() - start
         bar.close()
         if mapping:
             _stop_mapping(mapping, state)
+
+
+def _track(frame: Frame, slam: SLAM, state: RunState, frames_log: FrameLog, viewer: ViewerFeed,
+           mapping: MappingThread | None) -> None:
+    if slam.last_pose is None:  # the first frame tracked
+        slam.initialize(frame.gt_pose if frame.gt_pose is not None else np.eye(4))
+    step = slam.track(frame) if mapping else slam.step(frame)
+    if mapping:
+        mapping.check()
+    state.record(frame, step)
+    frames_log.frame(frame, step, len(slam.gaussian_map))
+    if step.tracking.lost:
+        log.warning("frame %d lost: %s", frame.index, step.tracking.stats.get("lost_reason", "?"))
+    viewer.show(frame, step.tracking.pose, step.keyframe, step.tracking.lost)
 
 
 def _stop_mapping(mapping: MappingThread, state: RunState) -> None:
@@ -249,22 +301,6 @@ def _stop_mapping(mapping: MappingThread, state: RunState) -> None:
         state.mapping_time_s += mapping.busy_time_s
 
 
-def _log_frame(writer, frame: Frame, step: StepResult, num_gaussians: int) -> None:
-    result = step.tracking
-    writer.writerow([frame.index, f"{frame.timestamp:.6f}", step.keyframe.value, int(result.lost),
-                     f"{1e3 * step.tracking_time_s:.2f}", f"{1e3 * step.mapping_time_s:.2f}",
-                     step.mapping_iterations, _fmt(result.correspondence_ratio), num_gaussians,
-                     f"{rss_mb():.1f}", result.stats.get("lost_reason", "")])
-    if result.lost:
-        log.warning("frame %d lost: %s", frame.index, result.stats.get("lost_reason", "?"))
-
-
-def _fmt(value: float | None) -> str:
-    return "" if value is None else f"{value:.4f}"
-
-
 def _running_ate(state: RunState) -> str:
-    result = evaluation.ate(np.array(state.poses), state.gt_poses)
+    result = evaluation.ate(state.trajectory(), state.gt_poses)
     return "ATE n/a" if result.rmse_m is None else f"ATE {100 * result.rmse_m:.2f} cm"
-
-

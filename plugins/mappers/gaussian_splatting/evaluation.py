@@ -3,7 +3,7 @@
 PSNR / SSIM are masked by valid depth (`slamkit.metrics.images`) and reported for the keyframes
 (training views: psnr_train, ssim_train), the other frames (held-out views: psnr_test,
 ssim_test) and all (psnr, ssim); depth L1 in cm over valid pixels. A few render | ground-truth
-images and map.ply go into the run folder.
+images go into the run folder (written atomically).
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ def evaluate_renders(render: Callable[[np.ndarray, Camera], RenderOutput], gauss
                      save_images: int = 0, out_dir: Path | None = None) -> dict[str, Any]:
     """Metrics of `render(pose, camera)` (no gradients) against every `every`-th frame of
     `dataset`, at `scale` of its resolution; `train_frames` are the keyframes' frame indices.
-    Writes `save_images` render | ground-truth images and map.ply into `out_dir` (when given)."""
+    Writes `save_images` render | ground-truth images into `out_dir` (when given)."""
     n = min(len(dataset), len(poses))
     indices = list(range(0, n, every))
     n_img = min(save_images, len(indices))
@@ -56,11 +56,6 @@ def evaluate_renders(render: Callable[[np.ndarray, Camera], RenderOutput], gauss
     metrics.update(depth_l1_cm=None if l1 is None else 100.0 * l1, num_gaussians=len(gaussian_map),
                    eval_frames=len(indices), eval_train_frames=len(rows["train"]),
                    eval_time_s=time.perf_counter() - start)
-    if out_dir is not None:
-        from slamkit.formats.ply import save_ply
-
-        Path(out_dir).mkdir(parents=True, exist_ok=True)
-        save_ply(Path(out_dir) / "map.ply", gaussian_map)
     return metrics
 
 
@@ -72,5 +67,8 @@ def _finite_mean(values: list[float]) -> float | None:
 def _save_side_by_side(path: Path, render: torch.Tensor, truth: torch.Tensor) -> None:
     from PIL import Image
 
+    from slamkit.formats.atomic import atomic_open
+
     both = torch.cat([render, truth], dim=1).clamp(0, 1)
-    Image.fromarray((both.cpu().numpy() * 255 + 0.5).astype(np.uint8)).save(path)
+    with atomic_open(path, "wb") as f:
+        Image.fromarray((both.cpu().numpy() * 255 + 0.5).astype(np.uint8)).save(f, format="PNG")

@@ -25,11 +25,13 @@ import logging
 import time
 from collections import deque
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
+from slamkit.formats.ply import save_ply
 from slamkit.map.gaussian_map import GaussianMap
 from slamkit.geometry.transforms import invert_pose
 from slamkit.map.editing import MapEdit
@@ -147,6 +149,13 @@ class GaussianSplattingMapper(Mapper):
     def render_view(self, pose: np.ndarray, camera: Camera) -> RenderOutput:
         """The map from `pose` (camera-to-world) with the mapper's rasteriser, no gradients."""
         return render_map(self.rasterizer, self.gaussian_map, pose, camera)
+
+    def save_map(self, out_dir) -> list[Path]:
+        """map.ply (the 3DGS PLY layout) of the map as it stands, taken under the map's lock."""
+        path = Path(out_dir) / "map.ply"
+        with self.gaussian_map.lock:
+            save_ply(path, self.gaussian_map)
+        return [path]
 
     def evaluate(self, dataset, poses: list[np.ndarray], out_dir) -> dict[str, Any]:
         cfg = self.cfg

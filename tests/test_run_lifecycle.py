@@ -1,0 +1,527 @@
+"""Nothing lost on any exit (issue 20) and the run's failure paths (issue 19), through the real
+commands: a signal in each phase of a run (sent once the run says it has reached that phase,
+`SLAMKIT_PAUSE_AT`), a signal during start-up, a run whose tracking failed, slamkit-report on
+unfinished and unreadable runs, an output folder that cannot be made, a full disk, peak memory
+taken after the evaluation, and kill -9 at random moments."""
+
+from __future__ import annotations
+
+import csv
+import errno
+import json
+import os
+import queue
+import random
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from slamkit.cli import main as slamkit_cli
+from slamkit.cli.report import main as report_main
+from slamkit.formats.checkpoint import CHECKPOINT_NAME, read_checkpoint, read_meta
+from slamkit.formats.ply import load_ply
+from slamkit.formats.tum import read_tum_trajectory
+from slamkit.run.lifecycle import Phase, StopSignals
+
+from conftest import make_plugin_dist, run_slamkit
+
+#: A short run with every phase and output: 6 synthetic frames mapped by 3DGS, refined, evaluated.
+TINY = {"dataset": "synthetic", "dataset.num_frames": 6, "dataset.width": 64, "dataset.height": 48,
+        "keyframe": "every_n", "keyframe.tracking_every": 3, "mapper": "gaussian_splatting", "final_iterations": 4,
+        "mapper.save_images": 2, "iterations_per_frame": 2, "progress": "false"}
+
+
+def tiny(**changes) -> list[str]:
+    """TINY's overrides with `changes` (keys with "__" for "."), e.g. tiny(mode="realtime")."""
+    values = dict(TINY, **{k.replace("__", "."): v for k, v in changes.items()})
+    return [f"{k}={v}" for k, v in values.items()]
+
+
+TINY_MAPPING = tuple(tiny())
+CONTRACT_KEYS = {"num_frames", "num_keyframes", "fps", "tracking_fps", "tracking_time_s", "mapping_time_s",
+                 "lost_frames", "completed", "ate_rmse_m", "ate_mean_m", "status", "phase", "error"}
+
+
+class Slamkit:
+    """A `slamkit` process whose stderr is read line by line (to see where it has paused)."""
+
+    def __init__(self, *args: str, cwd: Path, pause_at: str | None = None, env: dict | None = None):
+        env = dict(os.environ, **(env or {}))
+        if pause_at:
+            env["SLAMKIT_PAUSE_AT"] = pause_at
+        exe = Path(sys.executable).with_name("slamkit")
+        self.proc = subprocess.Popen([str(exe), *args], cwd=cwd, env=env, stdout=subprocess.PIPE,
+                                     stderr=subprocess.PIPE, text=True)
+        self.lines: queue.Queue[str | None] = queue.Queue()
+        self.stderr: list[str] = []
+        self.reader = threading.Thread(target=self._read, daemon=True)
+        self.reader.start()
+
+    def _read(self) -> None:
+        for line in self.proc.stderr:
+            self.stderr.append(line)
+            self.lines.put(line)
+        self.lines.put(None)
+
+    def wait_for(self, text: str, timeout: float = 300) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            try:
+                line = self.lines.get(timeout=1)
+            except queue.Empty:
+                continue
+            if line is None:
+                pytest.fail(f"slamkit ended before {text!r}: {''.join(self.stderr)[-3000:]}")
+            if text in line:
+                return
+        self.proc.kill()
+        pytest.fail(f"slamkit never said {text!r}")
+
+    def send(self, sig: int) -> None:
+        self.proc.send_signal(sig)
+
+    def finish(self, timeout: float = 300) -> tuple[int, str, str]:
+        try:
+            stdout = self.proc.stdout.read()
+            self.proc.wait(timeout=timeout)
+        finally:
+            self.proc.kill()
+        self.reader.join(timeout=10)
+        return self.proc.returncode, stdout, "".join(self.stderr)
+
+
+def _metrics(out: Path) -> dict:
+    return json.loads((out / "metrics.json").read_text())
+
+
+# -- the signal handling itself (StopSignals), in this process ----------------------------------
+
+def _raise_signal_and_settle(sig: int) -> None:
+    os.kill(os.getpid(), sig)
+    time.sleep(0.05)  # the handler runs in the main thread at the next bytecode
+
+
+def test_stop_signals_defer_in_phases_that_change_the_map_and_stop_at_once_elsewhere():
+    before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    stop = StopSignals()
+    with stop.installed():
+        stop.enter(Phase.stream)
+        _raise_signal_and_settle(signal.SIGTERM)  # noted: the frame in hand finishes
+        assert stop.signal == "SIGTERM"
+        with pytest.raises(KeyboardInterrupt, match="SIGTERM"):
+            stop.check()  # the next safe point
+        assert not stop.cut_short  # a whole state: the checkpoint is written from it
+        with pytest.raises(KeyboardInterrupt, match="SIGINT"):
+            _raise_signal_and_settle(signal.SIGINT)  # a second signal: at once
+        assert stop.cut_short  # maybe in the middle of a step: no checkpoint from it
+        with stop.writing():
+            _raise_signal_and_settle(signal.SIGINT)  # never while the outputs are written
+    fresh = StopSignals()
+    with fresh.installed():
+        fresh.enter(Phase.evaluate)
+        with pytest.raises(KeyboardInterrupt, match="SIGINT"):
+            _raise_signal_and_settle(signal.SIGINT)
+        assert not fresh.cut_short  # the evaluation changes nothing kept
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before  # handlers given back
+
+
+# -- issue 20 point 1: a signal in any phase keeps the outputs of the phases before it ----------
+
+@pytest.mark.slow
+@pytest.mark.parametrize("point,sig,phase", [("stream@3", signal.SIGINT, "stream"), ("refine", signal.SIGTERM, "refine"),
+                                             ("map", signal.SIGINT, "map"), ("evaluate", signal.SIGTERM, "evaluate")])
+def test_a_signal_in_each_phase_keeps_the_earlier_phases_outputs_and_the_map(point, sig, phase, tmp_path):
+    out = tmp_path / "run"
+    run = Slamkit(*TINY_MAPPING, f"hydra.run.dir={out}", cwd=tmp_path, pause_at=point)
+    run.wait_for(f"slamkit: paused at {point}")
+    run.send(sig)
+    code, stdout, stderr = run.finish()
+    assert code == 130, stderr[-3000:]
+    assert "Traceback" not in stderr
+    assert f"(incomplete: interrupted during {phase})" in stdout
+    metrics = _metrics(out)
+    assert CONTRACT_KEYS <= set(metrics)
+    assert (metrics["completed"], metrics["status"], metrics["phase"]) == (False, "interrupted", phase)
+    assert metrics["error"] == f"interrupted ({sig.name}) during {phase}"
+    frames = 3 if phase == "stream" else 6
+    timestamps, poses = read_tum_trajectory(out / "trajectory.txt")
+    assert len(timestamps) == metrics["num_frames"] == frames and np.isfinite(poses).all()
+    assert metrics["ate_rmse_m"] is not None  # the trajectory so far is a result
+    assert len(load_ply(out / "map.ply")) == metrics["num_gaussians"] > 0  # the map trained so far
+    assert "psnr" not in metrics and not list(out.glob("render_*.png"))  # the evaluation never ran
+    assert metrics["refine_iterations"] == (0 if phase in ("stream", "refine") else 4)  # paused before the first
+    saved = read_meta(out / CHECKPOINT_NAME)  # written where the map is: at the end of the refinement, or on the stop
+    assert saved["reason"] == ("interrupted" if phase in ("stream", "refine") else "end")
+    assert saved["num_frames"] == frames
+    assert not list(out.glob(".*.tmp"))
+
+
+@pytest.mark.slow
+def test_a_completed_run_says_so_and_takes_peak_memory_after_the_evaluation(tmp_path):
+    """A mapper whose evaluation holds 400 MB: peak_memory_mb sees it (it was read before the
+    evaluation, so it did not); the phases' files are all there."""
+    site = make_plugin_dist(tmp_path / "site", "slamkit-hungry-mapper", {"hungry_mapper": HUNGRY_MAPPER},
+                            {"hungry": "hungry_mapper"})
+    out = tmp_path / "run"
+    proc = run_slamkit("dataset.num_frames=8", "mapper=hungry", "progress=false", f"hydra.run.dir={out}",
+                       cwd=tmp_path, env_extra={"PYTHONPATH": str(site)})
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    metrics = _metrics(out)
+    assert (metrics["completed"], metrics["status"], metrics["phase"], metrics["error"]) == (True, "completed", "done", None)
+    assert metrics["held_mb"] == 400
+    rss = [float(r["rss_mb"]) for r in csv.DictReader(open(out / "frames.csv"))]
+    assert metrics["peak_memory_mb"] > max(rss) + 300
+    assert metrics["map_saved_before"] is True and (out / "hungry_map.txt").read_text() == "saved"
+
+
+HUNGRY_MAPPER = """
+import numpy as np
+from dataclasses import dataclass
+from slamkit.plugin import PluginSpec, hookimpl
+from slamkit.roles import Mapper, PluginConfig
+
+@dataclass
+class HungryConfig(PluginConfig):
+    held_mb: int = 400
+
+class HungryMapper(Mapper):
+    def __init__(self, cfg):
+        self.cfg, self.frames = cfg, 0
+
+    def add_keyframe(self, frame, result, kind, new_rows):
+        pass
+
+    def optimize(self, iterations):
+        return 0
+
+    def save_map(self, out_dir):
+        path = out_dir / "hungry_map.txt"
+        path.write_text("saved")
+        return [path]
+
+    def evaluate(self, frames, poses, out_dir):
+        held = np.ones(self.cfg.held_mb * 2**20, dtype=np.uint8)  # written: resident
+        return {"held_mb": int(held.sum()) // 2**20, "map_saved_before": (out_dir / "hungry_map.txt").exists()}
+
+@hookimpl
+def slamkit_plugins():
+    return [PluginSpec("hungry", HungryMapper, HungryConfig)]
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_during_startup_is_one_line_and_status_130(sig, tmp_path):
+    out = tmp_path / "run"
+    run = Slamkit("progress=false", f"hydra.run.dir={out}", cwd=tmp_path, pause_at="startup")
+    run.wait_for("slamkit: paused at startup")
+    run.send(sig)
+    code, stdout, stderr = run.finish()
+    assert code == 130
+    assert stderr.strip().splitlines()[-1] == f"slamkit: interrupted ({sig.name}) during start-up"
+    assert "Traceback" not in stderr and not out.exists()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("delay_s", [1.0, 2.5])
+def test_sigint_while_plugins_load_prints_no_traceback(delay_s, tmp_path):
+    """No hook: SIGINT at a fixed time after the start, while torch and the plugins import."""
+    run = Slamkit("progress=false", f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
+    time.sleep(delay_s)
+    run.send(signal.SIGINT)
+    code, stdout, stderr = run.finish()
+    assert code == 130 and "Traceback" not in stderr, stderr[-3000:]
+    if "(incomplete: interrupted during " not in stdout:  # an unloaded machine may have reached the stream
+        assert stderr.strip().splitlines()[-1].startswith("slamkit: interrupted (SIGINT) during ")
+
+
+# -- issue 20 point 2: a run that tracked no frame, or lost too many, has failed ---------------
+
+@pytest.mark.slow
+def test_a_run_that_tracks_no_frame_fails_with_no_ate(tmp_path):
+    out = tmp_path / "run"
+    proc = run_slamkit("dataset.num_frames=10", "dataset.depth_trunc=1e-6", "progress=false", f"hydra.run.dir={out}",
+                       cwd=tmp_path)
+    assert proc.returncode == 3, proc.stdout + proc.stderr[-3000:]
+    assert "ATE RMSE not reported" in proc.stdout and "(failed: tracking failed: no frame tracked" in proc.stdout
+    metrics = _metrics(out)
+    assert (metrics["completed"], metrics["status"]) == (False, "failed")
+    assert metrics["error"] == "tracking failed: no frame tracked (10 of 10 frames lost)"
+    assert metrics["ate_rmse_m"] is None and metrics["rpe_trans_rmse_m"] is None and metrics["lost_fraction"] == 1.0
+    assert len(read_tum_trajectory(out / "trajectory.txt")[0]) == 10
+
+
+@pytest.mark.slow
+def test_losing_more_than_max_lost_fraction_fails_the_run(tum_path, tmp_path):
+    """12 TUM frames of which 4 colour images are unreadable (dataset.on_error=skip): 4/12 lost
+    fails with eval.max_lost_fraction=0.25, and is a result with the default 0.5."""
+    from test_cli import _tiny_tum_copy
+
+    seq = _tiny_tum_copy(tum_path, tmp_path / "rgbd_dataset_freiburg1_x", frames=12)
+    rgb = [l.split()[1] for l in (seq / "rgb.txt").read_text().splitlines()]
+    for i in (3, 5, 7, 9):
+        (seq / rgb[i]).write_bytes(b"not a png")
+    args = ("dataset=tum", f"dataset.path={seq}", "dataset.on_error=skip", "mapper=none", "progress=false")
+    failed = run_slamkit(*args, "eval.max_lost_fraction=0.25", f"hydra.run.dir={tmp_path / 'strict'}", cwd=tmp_path)
+    assert failed.returncode == 3, failed.stderr[-3000:]
+    metrics = _metrics(tmp_path / "strict")
+    assert metrics["error"] == "tracking failed: 4 of 12 frames lost, more than eval.max_lost_fraction=0.25"
+    assert metrics["ate_rmse_m"] is None and metrics["lost_fraction"] == pytest.approx(4 / 12)
+    ok = run_slamkit(*args, f"hydra.run.dir={tmp_path / 'default'}", cwd=tmp_path)
+    assert ok.returncode == 0, ok.stderr[-3000:]
+    assert _metrics(tmp_path / "default")["ate_rmse_m"] is not None
+
+
+@pytest.mark.slow
+def test_a_sweep_goes_on_past_a_failed_run_and_the_report_keeps_it_apart(tmp_path):
+    sweep = tmp_path / "sweep"
+    proc = run_slamkit("-m", "dataset.depth_trunc=1e-6,5", "dataset.num_frames=8", "progress=false",
+                       f"hydra.sweep.dir={sweep}", cwd=tmp_path)
+    assert proc.returncode == 3, proc.stderr[-3000:]
+    assert proc.stderr.strip().splitlines()[-1].startswith("slamkit: error: tracking failed in 1 of the sweep's runs: ")
+    assert sorted(_metrics(d)["status"] for d in sweep.iterdir() if d.is_dir()) == ["completed", "failed"]
+    exe = Path(sys.executable).with_name("slamkit-report")
+    report = subprocess.run([str(exe), str(sweep)], capture_output=True, text=True)
+    assert report.returncode == 0, report.stderr
+    rows = {r["dataset.depth_trunc"]: r for r in csv.DictReader(open(sweep / "report.csv"))}
+    assert rows["5"]["status"] == "completed" and float(rows["5"]["ate_rmse_m"]) < 0.05
+    assert rows["1e-06"]["status"] == "failed" and rows["1e-06"]["ate_rmse_m"] == ""
+    assert rows["1e-06"]["error"].startswith("tracking failed: no frame tracked")
+
+
+# -- issue 20 point 3: slamkit-report on unfinished and unreadable runs ------------------------
+
+def _fake_run(root: Path, name: str, tracker: str, metrics: dict | str) -> Path:
+    run = root / name
+    (run / ".hydra").mkdir(parents=True)
+    (run / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump([f"tracker={tracker}"]))
+    (run / "metrics.json").write_text(metrics if isinstance(metrics, str) else json.dumps(metrics))
+    return run
+
+
+def _done(ate: float, **more) -> dict:
+    return {"num_frames": 20, "completed": True, "status": "completed", "error": None, "ate_rmse_m": ate, **more}
+
+
+def test_report_shows_status_keeps_unfinished_runs_apart_and_unreadable_runs_as_rows(tmp_path, capsys):
+    _fake_run(tmp_path, "0", "gicp", _done(0.02))
+    _fake_run(tmp_path, "1", "kiss_icp", _done(0.04))
+    _fake_run(tmp_path, "2", "gicp", {"num_frames": 5, "completed": False, "status": "interrupted",
+                                      "phase": "stream", "error": "interrupted (SIGINT) during stream", "ate_rmse_m": 0.001})
+    _fake_run(tmp_path, "3", "gicp", {"num_frames": 20, "completed": False, "error": "RuntimeError: boom"})  # before `status`
+    _fake_run(tmp_path, "4", "gicp", "[1, 2, 3]")
+    _fake_run(tmp_path, "5", "gicp", '{"num_frames": 3, "ate_')
+    assert report_main([str(tmp_path)]) == 0
+    rows = list(csv.DictReader(open(tmp_path / "report.csv")))
+    by_status = {r["status"]: r for r in rows}
+    assert [r["status"] for r in rows] == ["completed", "completed", "interrupted", "failed", "unreadable", "unreadable"]
+    gicp = next(r for r in rows if r["tracker"] == "gicp" and r["status"] == "completed")
+    assert gicp["n"] == "1" and float(gicp["ate_rmse_m"]) == 0.02  # the 5-frame run is not averaged in
+    assert by_status["interrupted"]["error"] == "interrupted (SIGINT) during stream"
+    assert float(by_status["interrupted"]["num_frames"]) == 5
+    assert by_status["failed"]["error"] == "RuntimeError: boom"
+    errors = sorted(r["error"] for r in rows if r["status"] == "unreadable")
+    assert errors[0] == f"{tmp_path / '4' / 'metrics.json'}: a JSON list, expected an object of metrics"
+    assert errors[1].startswith(f"{tmp_path / '5' / 'metrics.json'}: not valid JSON")
+    err = capsys.readouterr().err
+    assert "6 runs (2 completed, 1 interrupted, 1 failed, 2 unreadable), 6 rows" in err
+    assert "| gicp | interrupted | 1 |" in (tmp_path / "report.md").read_text()
+
+    assert report_main([str(tmp_path), "--include-unfinished"]) == 0
+    rows = list(csv.DictReader(open(tmp_path / "report.csv")))
+    gicp = next(r for r in rows if r["tracker"] == "gicp" and r["n"] == "3")
+    assert gicp["status"] == "1 completed, 1 failed, 1 interrupted"
+    assert float(gicp["ate_rmse_m"]) == pytest.approx((0.02 + 0.001) / 2)
+    assert [r["status"] for r in rows].count("unreadable") == 2
+
+
+# -- issue 19: the output folder, a full disk --------------------------------------------------
+
+def _slamkit_in_process(monkeypatch, capsys, *args: str) -> tuple[int, str, str]:
+    """The `slamkit` entry point in this process: (exit status, stdout, stderr)."""
+    monkeypatch.setattr(sys, "argv", ["slamkit", *args])
+    with pytest.raises(SystemExit) as exit_:
+        slamkit_cli.main()
+        sys.exit(0)
+    said = capsys.readouterr()
+    return exit_.value.code, said.out, said.err
+
+
+@pytest.mark.parametrize("where", ["a file", "under a file", "a multirun's file"])
+def test_an_output_folder_that_is_a_file_is_one_line(where, tmp_path, monkeypatch, capsys):
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    key, path, args = "hydra.run.dir", afile, ()
+    if where == "under a file":
+        path = afile / "run"
+    elif where == "a multirun's file":
+        key, args = "hydra.sweep.dir", ("-m", "seed=0,1")
+    code, out, err = _slamkit_in_process(monkeypatch, capsys, *args, f"{key}={path}")
+    assert code == 2
+    assert err.strip().splitlines() == [f"slamkit: error: {key}={path}: {afile} is a file, expected a folder (or a "
+                                        f"path that can be created) for the run's outputs"]
+    assert afile.read_text() == "x"
+
+
+def test_an_output_folder_that_cannot_be_created_is_one_line(monkeypatch, capsys):
+    """/proc takes no folders, root or not (no read-only mount can be made here)."""
+    code, out, err = _slamkit_in_process(monkeypatch, capsys, "hydra.run.dir=/proc/slamkit/run")
+    assert code == 2
+    line, = err.strip().splitlines()
+    assert line.startswith("slamkit: error: hydra.run.dir=/proc/slamkit/run: cannot create a folder in /proc (")
+    assert line.endswith("); expected a writable place for the run's outputs")
+
+
+def _fail_fsync_of(monkeypatch, name: str | None) -> None:
+    """os.fsync fails with ENOSPC (a full disk) for the atomic writes of `name` (None: of every
+    file: their temporary files are .NAME.XXXX.tmp)."""
+    fsync = os.fsync
+
+    def failing(fd):
+        temporary = os.path.basename(os.readlink(f"/proc/self/fd/{fd}"))
+        if temporary.startswith(f".{name}.") or (name is None and temporary.endswith(".tmp")):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", failing)
+
+
+@pytest.mark.slow
+def test_a_full_disk_while_writing_the_map_keeps_the_rest_and_says_so(tmp_path, monkeypatch, capsys):
+    out = tmp_path / "run"
+    _fail_fsync_of(monkeypatch, "map.ply")
+    code, stdout, stderr = _slamkit_in_process(monkeypatch, capsys, *TINY_MAPPING, f"hydra.run.dir={out}")
+    assert code == 1 and "Traceback" not in stderr
+    assert stderr.strip().splitlines()[-1] == (
+        f"slamkit: error: could not write {out / 'map.ply'}: No space left on device; kept in {out}: camera.json, "
+        "trajectory.txt, keyframes.txt, groundtruth.txt, metrics.json, trajectory.png")
+    metrics = _metrics(out)
+    assert (metrics["completed"], metrics["status"], metrics["phase"]) == (False, "failed", "map")
+    assert metrics["error"] == "OSError: [Errno 28] No space left on device"
+    assert len(read_tum_trajectory(out / "trajectory.txt")[0]) == metrics["num_frames"] == 6
+    assert not (out / "map.ply").exists() and not list(out.glob(".*.tmp"))
+
+
+@pytest.mark.slow
+def test_a_full_disk_for_every_file_is_still_one_line(tmp_path, monkeypatch, capsys):
+    out = tmp_path / "run"
+    _fail_fsync_of(monkeypatch, None)
+    code, stdout, stderr = _slamkit_in_process(monkeypatch, capsys, "dataset.num_frames=5", "progress=false",
+                                               f"hydra.run.dir={out}")
+    assert code == 1 and "Traceback" not in stderr
+    assert stderr.strip().splitlines()[-1] == (f"slamkit: error: could not write {out / 'camera.json'} (and 3 more): "
+                                               f"No space left on device; kept in {out}: nothing")
+    # camera.json failed at the stream's start; then trajectory.txt, keyframes.txt, metrics.json
+    assert not (out / "metrics.json").exists() and not list(out.glob(".*.tmp"))
+
+
+@pytest.mark.slow
+def test_a_file_size_limit_keeps_the_small_files(tmp_path):
+    """A real write failure (RLIMIT_FSIZE: EFBIG past 64 KB): map.ply does not fit, the
+    trajectory and metrics.json do, and the run says which."""
+    out = tmp_path / "run"
+    warm = run_slamkit(*tiny(final_iterations=0), f"hydra.run.dir={tmp_path / 'warm'}", cwd=tmp_path)
+    assert warm.returncode == 0, warm.stderr[-3000:]  # caches (the synthetic sequence) written without the limit
+
+    def limit():
+        import resource
+
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (64 * 1024, 64 * 1024))
+
+    exe = Path(sys.executable).with_name("slamkit")
+    proc = subprocess.run([str(exe), *tiny(mapper__save_images=0), "eval.plot=false", f"hydra.run.dir={out}"],
+                          cwd=tmp_path, capture_output=True, text=True, preexec_fn=limit, timeout=600)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr[-3000:]
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last.startswith(f"slamkit: error: could not write {out / 'map.ply'}: File too large; kept in {out}: ")
+    assert "trajectory.txt" in last and "metrics.json" in last
+    metrics = _metrics(out)
+    assert (metrics["status"], metrics["phase"]) == ("failed", "map")
+    assert len(read_tum_trajectory(out / "trajectory.txt")[0]) == 6 and not (out / "map.ply").exists()
+
+
+# -- issue 19 point 4: kill -9 at random moments leaves every file whole or absent --------------
+
+OUTPUT_NAMES = {"trajectory.txt", "keyframes.txt", "groundtruth.txt", "metrics.json", "camera.json", "map.ply",
+                "frames.csv", "trajectory.png", "slamkit.log", CHECKPOINT_NAME}
+
+
+def _check_whole(out: Path) -> list[str]:
+    """Every file in a run folder killed at any moment: whole (it parses), or absent. frames.csv and
+    slamkit.log are logs appended line by line: only a last line without its end may be cut."""
+    seen = []
+    for path in sorted(p for p in out.rglob("*") if p.is_file()):
+        name = path.name
+        if name.startswith(".") and name.endswith(".tmp"):
+            continue  # an atomic write's temporary file, never renamed: not an output
+        seen.append(name)
+        if path.parent.name == ".hydra":
+            assert isinstance(yaml.safe_load(path.read_text()), (dict, list)), path
+            continue
+        assert name in OUTPUT_NAMES or re.fullmatch(r"render_\d{4}\.png", name), path
+        if name.endswith(".txt"):
+            timestamps, poses = read_tum_trajectory(path)
+            assert np.isfinite(poses).all()
+        elif name.endswith(".json"):
+            data = json.loads(path.read_text())
+            assert isinstance(data, dict) and (name != "metrics.json" or CONTRACT_KEYS <= set(data))
+        elif name == "map.ply":
+            load_ply(path)
+        elif name == CHECKPOINT_NAME:
+            read_checkpoint(path)  # CRC-checked: whole
+        elif name.endswith(".png"):
+            from PIL import Image
+
+            with Image.open(path) as im:
+                im.load()
+        elif name == "frames.csv":
+            text = path.read_text()
+            lines = text.split("\n")
+            whole = lines[:-1]  # the last piece has no line end: it may be cut
+            assert all(len(row) == 11 for row in csv.reader(whole)), path
+    return seen
+
+
+def _stream_start(run: Slamkit, out: Path) -> float:
+    """Wait until the run's stream starts (camera.json written); the time it did."""
+    while not (out / "camera.json").exists():
+        if run.proc.poll() is not None:
+            pytest.fail(f"slamkit ended before its stream: {''.join(run.stderr)[-3000:]}")
+        time.sleep(0.01)
+    return time.monotonic()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["sequential", "realtime"])
+def test_kill_9_at_random_moments_leaves_every_file_whole_or_absent(mode, tmp_path):
+    """Ten kills at moments drawn uniformly over the run after its start-up (stream, refinement,
+    map, evaluation, the writes between them), as long as a calibration run took."""
+    args = tiny(dataset__num_frames=12, final_iterations=200, mode=mode)
+    calibration = tmp_path / "calibration"
+    first = Slamkit(*args, f"hydra.run.dir={calibration}", cwd=tmp_path)
+    start = _stream_start(first, calibration)
+    code, _, stderr = first.finish()
+    duration = time.monotonic() - start
+    assert code == 0 and _metrics(calibration)["completed"], stderr[-3000:]
+    _check_whole(calibration)
+    outcomes = []
+    for seed in range(10):
+        out = tmp_path / f"kill{seed}"
+        delay = random.Random(seed).uniform(0, duration)
+        run = Slamkit(*args, f"hydra.run.dir={out}", cwd=tmp_path)
+        time.sleep(max(0.0, _stream_start(run, out) + delay - time.monotonic()))
+        run.proc.kill()
+        run.finish()
+        seen = _check_whole(out)
+        status = f"{_metrics(out)['status']}@{_metrics(out)['phase']}" if "metrics.json" in seen else "-"
+        outcomes.append(f"{delay:.1f}s:{status}:{'map' if 'map.ply' in seen else '-'}")
+    print(f"kill -9 ({mode}; stream start to exit {duration:.1f} s): " + " ".join(outcomes))
