@@ -218,8 +218,9 @@ def test_fault(fault: Fault, tmp_path, monkeypatch, capsys):
 
 # --- every key: the rules every config value shares (slamkit.roles.check_values) ------------------
 
-#: Numeric keys for which a negative value is meaningful (none today): every other one has a range.
-NEGATIVE_OK: set[str] = set()
+#: Numeric keys for which a negative value is meaningful: every other one has a range. A failed
+#: run's score may be any number (e.g. below every real score of a maximised metric).
+NEGATIVE_OK: set[str] = {"objective.failed_value"}
 
 
 def _numeric_keys():

@@ -50,8 +50,6 @@ class EvalConfig(PluginConfig):
     def validate(self) -> None:
         require(0.0 <= self.max_lost_fraction <= 1.0, "eval.max_lost_fraction", "a fraction in [0, 1]",
                 self.max_lost_fraction)
-
-    def validate(self) -> None:
         require(self.running_ate_every >= 0, "eval.running_ate_every", "an integer >= 0 (0: off)",
                 self.running_ate_every)
 
