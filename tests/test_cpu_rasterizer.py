@@ -141,6 +141,35 @@ def test_same_pixel_gaussian_pairs_as_the_torch_backend(cpu):
         assert abs(cpu.last_num_pairs - reference.last_num_pairs) <= 2, (cpu.last_num_pairs, reference.last_num_pairs)
 
 
+def test_gaussians_around_the_image_border_are_kept_exactly_when_they_cover_a_pixel(cpu):
+    """The cheap off-screen cull before the projection drops only Gaussians that cover no
+    pixel: centres scattered within a few extents outside the border, elongated and turned
+    every way, render the torch backend's pairs and image."""
+    g = torch.Generator().manual_seed(5)
+    n = 800
+    z = 0.5 + 2.5 * torch.rand(n, generator=g, dtype=F64)
+    scales = torch.exp(math.log(0.002) + math.log(40.0) * torch.rand(n, 3, generator=g, dtype=F64))
+    extent_px = 3.0 * scales.max(1).values * CAM.fx / z  # ~3 sigma in pixels
+    side = torch.randint(0, 4, (n,), generator=g)
+    along = torch.rand(n, generator=g, dtype=F64)
+    out = extent_px * (2.0 * torch.rand(n, generator=g, dtype=F64) - 0.5)  # -0.5 .. 1.5 extents outside
+    u = torch.where(side == 0, -out, torch.where(side == 1, CAM.width - 1 + out, along * CAM.width))
+    v = torch.where(side == 2, -out, torch.where(side == 3, CAM.height - 1 + out, along * CAM.height))
+    pc = torch.stack([(u - CAM.cx) / CAM.fx * z, (v - CAM.cy) / CAM.fy * z, z], -1)
+    quats = torch.randn(n, 4, generator=g, dtype=F64)
+    opacities = 0.02 + 0.97 * torch.rand(n, generator=g, dtype=F64)
+    colors = torch.rand(n, 3, generator=g, dtype=F64)
+    w2c = torch.eye(4, dtype=F64)
+    args = [x.to(F32) for x in (pc, quats, scales, opacities, colors, w2c)]
+    reference = TorchRasterizer()
+    with torch.no_grad():
+        ours = cpu.render(*args, CAM)
+        ref = reference.render(*args, CAM)
+    assert reference.last_num_pairs > 1000  # many of them reach into the image
+    assert abs(cpu.last_num_pairs - reference.last_num_pairs) <= 2, (cpu.last_num_pairs, reference.last_num_pairs)
+    assert rel_err(ours.color.double(), ref.color.double()) < TOL
+
+
 def test_deterministic_across_thread_counts(cpu):
     scene = hard_scene(700, 3)
     background = torch.tensor([0.3, 0.3, 0.3], dtype=F64)

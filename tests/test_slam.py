@@ -45,3 +45,30 @@ def test_tracking_threads_default_to_one_in_realtime_mode(monkeypatch):
     monkeypatch.setenv("OMP_NUM_THREADS", "3")
     assert tracking_threads(RunConfig(mode=Mode.sequential)) == 3
     assert tracking_threads(RunConfig(mode=Mode.realtime)) == 1
+
+
+def test_the_mapping_thread_shortens_the_gil_switch_interval_while_it_runs():
+    """The mapping thread's torch calls and the tracker's Python code take turns on the GIL:
+    while the thread runs, the interval is the one asked for, and stop() restores Python's."""
+    import sys
+    import threading
+
+    from slamkit.run.slam import MappingThread
+
+    class Recorder:
+        def __init__(self):
+            self.seen, self.ran = [], threading.Event()
+
+        def optimize(self, steps):
+            self.seen.append(sys.getswitchinterval())
+            self.ran.set()
+            return steps
+
+    before = sys.getswitchinterval()
+    mapper = Recorder()
+    thread = MappingThread(mapper, switch_interval_s=2e-4)
+    thread.start()
+    assert mapper.ran.wait(10)
+    thread.stop()
+    assert mapper.seen and all(abs(s - 2e-4) < 1e-9 for s in mapper.seen)
+    assert sys.getswitchinterval() == before

@@ -16,6 +16,7 @@ from omegaconf import MISSING, DictConfig, OmegaConf
 
 from slamkit.errors import ConfigError
 from slamkit.map.growth import MapGrowthConfig
+from slamkit.run.slam import SWITCH_INTERVAL_S
 from slamkit.roles import ROLES, PluginConfig, check_values, require, thread_count
 
 
@@ -118,7 +119,10 @@ class RunConfig(PluginConfig):
     behaviour) instead of processing every frame late. seed: for every
     random choice. progress: show a progress bar. mapping_threads: torch threads for mapping
     (0: every CPU in sequential mode; every CPU but one in realtime mode, where the tracking
-    thread runs beside the mapping thread). final_iterations: mapping steps after the last
+    thread runs beside the mapping thread). switch_interval: seconds; in realtime mode, Python's
+    thread switch interval while the mapping thread runs (how long a thread waiting for the GIL
+    may wait; Python's default is 0.005, which stalls both threads: slamkit.run.slam's
+    SWITCH_INTERVAL_S). final_iterations: mapping steps after the last
     frame, the map's refinement (null: 400 in sequential mode, so that a short sequence, 20
     Replica frames at 10 steps a frame, is trained for ~600 steps in all, its training views'
     PSNR still rising at 350; none in real-time mode, whose map is what the stream trained, as
@@ -139,6 +143,7 @@ class RunConfig(PluginConfig):
     seed: int = 0
     progress: bool = True
     mapping_threads: int = thread_count(0)
+    switch_interval: float = SWITCH_INTERVAL_S
     final_iterations: int | None = None
     mapping_device: Device = Device.auto
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
@@ -167,6 +172,7 @@ class RunConfig(PluginConfig):
                 "null or an integer >= 0", self.final_iterations)
         require(self.iterations_per_frame >= 0, "iterations_per_frame", ">= 0", self.iterations_per_frame)
         require(self.fps_limit is None or self.fps_limit > 0, "fps_limit", "null or > 0", self.fps_limit)
+        require(0 < self.switch_interval <= 1, "switch_interval", "in (0, 1] seconds", self.switch_interval)
         require(self.mapping_threads >= 0, "mapping_threads", "an integer >= 0 (0: automatic)", self.mapping_threads)
         require(0 <= self.seed < 2**32, "seed", "an integer from 0 to 2^32 - 1 (numpy's seed range)", self.seed)
         require(self.mode is not Mode.localize or bool(self.localize.map), "map",

@@ -80,9 +80,9 @@ def build(cfg: RunConfig, registry: Registry, names: dict[str, str]):
     tracker, policy = create("tracker"), create("keyframe")
     tracker.use_threads(tracking_threads(cfg))
     mapper = create("mapper", **parts)
+    growth = cfg.map.with_sensor(sensor).for_mode(cfg.mode is Mode.realtime)
     slam = SLAM(Blamed(tracker, "tracker", names["tracker"]), Blamed(policy, "keyframe", names["keyframe"]),
-                Blamed(mapper, "mapper", names["mapper"]), GaussianMap(cfg.device()), cfg.map.with_sensor(sensor),
-                cfg.iterations_per_frame)
+                Blamed(mapper, "mapper", names["mapper"]), GaussianMap(cfg.device()), growth, cfg.iterations_per_frame)
     return dataset, slam, create("viewer")
 
 
@@ -246,7 +246,7 @@ def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, frames_log: Fram
 
     realtime = cfg.mode is Mode.realtime
     clock = InputClock(cfg.fps_limit if realtime else None)
-    mapping = MappingThread(slam.mapper) if realtime else None
+    mapping = MappingThread(slam.mapper, cfg.switch_interval) if realtime else None
     bar = tqdm(total=len(dataset), initial=first, unit="frame", disable=None if cfg.progress else True,
                dynamic_ncols=True)
     start = time.perf_counter()

@@ -144,6 +144,27 @@ inline double camera_z(const Camera& cam, const float* m) {
   return cam.R[6] * m[0] + cam.R[7] * m[1] + cam.R[8] * m[2] + cam.t[2];
 }
 
+// True when the Gaussian surely covers no pixel, from a bound on its extent that is cheap to
+// compute (most Gaussians of a map are outside a given view; `project` costs ~10x this). The
+// ellipse's half-extents are sqrt(level sxx) and sqrt(level syy), and sxx, syy <= the trace of
+// J R S^2 R^T J^T + 0.3 <= smax^2 |J|_F^2 + 0.3 (J with the clamped tx, ty as in `project`); the
+// bound is widened by 1 % and 2 px, far beyond rounding, so it never culls a Gaussian `project`
+// would keep.
+inline bool surely_off_screen(const Camera& cam, const float* m, const float* s, float o) {
+  const double* R = cam.R;
+  double p[3];
+  for (int i = 0; i < 3; ++i) p[i] = R[3 * i] * m[0] + R[3 * i + 1] * m[1] + R[3 * i + 2] * m[2] + cam.t[i];
+  const double iz = 1.0 / p[2];
+  const double tx = std::min(std::max(p[0] * iz, -cam.lim_x0), cam.lim_x1);
+  const double ty = std::min(std::max(p[1] * iz, -cam.lim_y0), cam.lim_y1);
+  const double smax = std::max(std::fabs((double)s[0]), std::max(std::fabs((double)s[1]), std::fabs((double)s[2])));
+  const double j2 = (cam.fx * cam.fx * (1 + tx * tx) + cam.fy * cam.fy * (1 + ty * ty)) * iz * iz;
+  const double level = std::max(2.0 * std::log(255.0 * (double)o), 0.0);
+  const double r = 1.01 * std::sqrt(level * (j2 * smax * smax + EPS_2D)) + 2.0;
+  const double u = cam.fx * p[0] * iz + cam.cx, v = cam.fy * p[1] * iz + cam.cy;
+  return u + r < 0.0 || u - r > cam.W - 1 || v + r < 0.0 || v - r > cam.H - 1;
+}
+
 void project(const Camera& cam, const float* m, const float* q, const float* s, Projection& P) {
   const double* R = cam.R;
   for (int i = 0; i < 3; ++i)
@@ -472,6 +493,7 @@ void forward(State& S, const float* means, const float* quats, const float* scal
     for (int64_t i = b; i < e; ++i) {
       float o = opac[i];
       if (!(camera_z(cam, means + 3 * i) > NEAR_PLANE) || !(o > alpha_min)) continue;
+      if (surely_off_screen(cam, means + 3 * i, scales + 3 * i, o)) continue;
       project(cam, means + 3 * i, quats + 4 * i, scales + 3 * i, P);
       Splat& s = tmp[i];
       s.u = (float)P.u;
