@@ -57,6 +57,10 @@ class TorchAdam(MapOptimizer):
 
     def __init__(self, cfg: AdamConfig):
         self.cfg = cfg
+        # torch's first Adam imports torch._dynamo (~1.3 s, holding the GIL): at start-up here,
+        # not in the first mapping step (in real time that is during the stream, and it stalled
+        # the tracking thread as well)
+        torch.optim.Adam([torch.zeros(1, requires_grad=True)])
         self.adam: torch.optim.Adam | None = None
         self.restored: dict[str, dict] = {}  # state from a checkpoint, until Adam is made
 
