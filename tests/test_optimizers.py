@@ -53,10 +53,11 @@ def visible(kernels: str, **fields) -> VisibleAdam:
 KERNELS = ["torch", "compiled"]
 
 
-@pytest.mark.parametrize("make", [lambda: TorchAdam(AdamConfig()), lambda: visible("torch"),
+@pytest.mark.parametrize("make", [lambda: TorchAdam(AdamConfig()), lambda: TorchAdam(AdamConfig(fused=False)),
+                                  lambda: visible("torch"),
                                   lambda: visible("compiled"), lambda: visible("torch", only_visible=False),
                                   lambda: visible("compiled", only_visible=False)],
-                         ids=["adam", "visible_adam", "visible_adam_compiled", "visible_adam_dense",
+                         ids=["adam", "adam_unfused", "visible_adam", "visible_adam_compiled", "visible_adam_dense",
                               "visible_adam_dense_compiled"])
 def test_every_row_seen_every_step_is_torch_adam(make):
     ours, theirs = params(50), params(50)
