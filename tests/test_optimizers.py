@@ -175,3 +175,18 @@ def test_global_bias_correction_on_rows_seen_every_step_is_torch_adam_too(kernel
         optimizer.step(ours, g)
         reference_step(ref, theirs, g)
     close(ours, theirs, 6)
+
+
+def test_adam_takes_gradients_in_any_layout():
+    """An expanded (stride-0) or transposed gradient updates as its contiguous copy does (torch's
+    fused kernel read such a gradient as laid out like its parameter: NaN moments)."""
+    ours, theirs = params(30), params(30)
+    optimizer, ref = TorchAdam(AdamConfig()), reference(theirs)
+    for step in range(3):
+        g = grads(30, step)
+        odd = {k: v[:1].expand_as(v) if k in ("quats", "colors") else v for k, v in g.items()}
+        with torch.no_grad():
+            optimizer.step(ours, odd)
+        reference_step(ref, theirs, {k: v.contiguous() for k, v in odd.items()})
+    close(ours, theirs, 3)
+    assert all(torch.isfinite(v).all() for v in ours.values())

@@ -87,7 +87,10 @@ class TorchAdam(MapOptimizer):
                 group["params"] = [new]
                 if state is not None:
                     self.adam.state[new] = state
-            new.grad = grads.get(name)
+            grad = grads.get(name)
+            # the fused kernel reads grad as laid out like its parameter (an expanded, stride-0
+            # gradient, as an autograd sum's, gave NaN moments)
+            new.grad = grad.contiguous() if grad is not None else None
         self.adam.step()
         for p in params.values():
             p.grad = None
