@@ -217,8 +217,9 @@ def test_export_reads_a_checkpoint(tmp_path, replica_path, capsys):
     from slamkit.cli.export import main as export_main
 
     out = tmp_path / "run"
+    # the paper's scale alignment: 1-3 mm Gaussians at opacity 0.1, too faint to mesh at alpha 0.5
     proc = run_slamkit("dataset=replica", f"dataset.path={replica_path}", "dataset.max_frames=3", "mapper=none",
-                       "progress=false", f"hydra.run.dir={out}", cwd=tmp_path)
+                       "map.scale_alignment=z_pow", "progress=false", f"hydra.run.dir={out}", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert not (out / "map.ply").exists()  # mapper=none: the checkpoint is the map
     assert export_main(["ply", str(out / CHECKPOINT_NAME), "--out", str(tmp_path / "m.ply")]) == 0
