@@ -129,19 +129,86 @@ def test_without_a_compiler_auto_falls_back_and_compiled_says_why(monkeypatch, t
     assert create_kernels(Kernels.numpy).name == "numpy"
 
 
+def _brute_force_nearest(means, queries, max_distance):
+    """The nearest mean by (float32 squared distance summed x, y, z in turn, index) within
+    max_distance: (squared distances, inf where none; indices, len(means) where none)."""
+    diff = queries[:, None, :] - means[None, :, :]  # float32
+    d2 = (diff[..., 0] * diff[..., 0] + diff[..., 1] * diff[..., 1]) + diff[..., 2] * diff[..., 2]
+    best = np.argmin(d2, axis=1)  # the first (lowest index) of equal minima
+    best_d2 = d2[np.arange(len(queries)), best]
+    inside = best_d2 <= np.float32(max_distance) ** 2
+    return np.where(inside, best_d2, np.float32(np.inf)), np.where(inside, best, len(means)).astype(np.uint32)
+
+
+def _hints(rng, reference_idx, n):
+    """No hint, the right answer, and random hints (some out of range: none)."""
+    return (None, reference_idx, rng.integers(0, n + 5, size=len(reference_idx)).astype(np.uint32))
+
+
+@pytest.mark.parametrize("cell_factor", [0.3, 1.0, 2.0, 7.0])
+def test_compiled_grid_equals_brute_force_with_ties(library, cell_factor):
+    """Means and queries on a 1 cm lattice (many equal distances, duplicate means): the grid
+    returns the lowest-index mean among the nearest, for any cell size, distance and hint."""
+    from slamkit_plugins.trackers.gicp.kernels import CompiledGrid
+
+    rng = np.random.default_rng(11)
+    means = (rng.integers(0, 20, size=(1500, 3)) * 0.01).astype(np.float32)
+    means[1000:1100] = means[:100]  # duplicates: the lower index wins
+    queries = (rng.integers(-3, 23, size=(2000, 3)) * 0.01).astype(np.float32)
+    queries[:50] = means[1000:1050]  # exactly on a duplicated mean
+    for max_distance in (0.005, 0.01, 0.03, 0.1):
+        ref_d2, ref_idx = _brute_force_nearest(means, queries, max_distance)
+        grid = CompiledGrid(library, means, cell_factor * max_distance, num_threads=2)
+        for hint in _hints(rng, ref_idx, len(means)):
+            d2, idx = grid.nearest(queries, max_distance, hint=hint)
+            np.testing.assert_array_equal(idx, ref_idx)
+            np.testing.assert_array_equal(d2, ref_d2)
+    assert np.all(_brute_force_nearest(means, queries[:50], 0.01)[1] < 100)
+
+
+def test_compiled_grid_equals_pykdtree_on_random_clouds(library):
+    """Continuous random means (a wide box, a thin slab) and queries: the same matches as pykdtree,
+    at the grid's own distance and at three times it (the coarse-to-fine fallback's)."""
+    from slamkit_plugins.trackers.gicp.kernels import CompiledGrid, PyKDTreeIndex
+
+    rng = np.random.default_rng(12)
+    for scale in ([2.0, 2.0, 2.0], [3.0, 3.0, 0.02]):
+        means = (rng.uniform(-1, 1, size=(20000, 3)) * scale + [0, 0, 2]).astype(np.float32)
+        queries = (means[rng.choice(len(means), 5000)] + rng.normal(scale=0.03, size=(5000, 3))).astype(np.float32)
+        grid = CompiledGrid(library, means, 0.06, num_threads=1)
+        for max_distance in (0.03, 0.09):
+            ref_d2, ref_idx = PyKDTreeIndex(means).nearest(queries, max_distance)
+            for hint in _hints(rng, ref_idx, len(means)):
+                d2, idx = grid.nearest(queries, max_distance, hint=hint)
+                np.testing.assert_array_equal(idx, ref_idx)
+                np.testing.assert_array_equal(d2, ref_d2)
+
+
+def test_compiled_grid_answers_far_and_non_finite_queries_with_none(library):
+    from slamkit_plugins.trackers.gicp.kernels import CompiledGrid
+
+    means = np.array([[0, 0, 1], [0.01, 0, 1]], dtype=np.float32)
+    queries = np.array([[0, 0, 1.001], [50, 0, 1], [np.nan, 0, 1], [np.inf, 0, 0], [0.02, 0, 1]], dtype=np.float32)
+    d2, idx = CompiledGrid(library, means, 0.06).nearest(queries, 0.03)
+    assert idx.tolist() == [0, 2, 2, 2, 1]
+    assert np.isinf(d2[1:4]).all() and d2[0] == pytest.approx(1e-6, rel=1e-3)
+    d2, idx = CompiledGrid(library, np.zeros((0, 3), np.float32), 0.06).nearest(queries, 0.03)
+    assert idx.tolist() == [0] * 5 and np.isinf(d2).all()
+
+
 def test_compiled_nearest_neighbours_equal_pykdtree(library, tum_frames):
     """Real map-like points (a frame's back-projection) and queries offset by up to ~4 cm: the
     same matches within 3 cm as pykdtree, with or without a hint (a wrong hint included)."""
-    from slamkit_plugins.trackers.gicp.kernels import CompiledKDTree, PyKDTreeIndex
+    from slamkit_plugins.trackers.gicp.kernels import PyKDTreeIndex
 
     rng = np.random.default_rng(5)
     frame = tum_frames[0]
     means, _ = backproject(np.asarray(frame.depth), frame.camera, 3)
     queries = (means[rng.choice(len(means), 4000)] + rng.normal(scale=0.02, size=(4000, 3))).astype(np.float32)
     ref_d2, ref_idx = PyKDTreeIndex(means).nearest(queries, 0.03)
-    tree = CompiledKDTree(library, means, num_threads=2)
-    for hint in (None, ref_idx, rng.integers(0, len(means) + 5, size=4000).astype(np.uint32)):
-        d2, idx = tree.nearest(queries, 0.03, hint=hint)
+    index = CompiledKernels(library, num_threads=2).nearest_index(means, 0.03)
+    for hint in _hints(rng, ref_idx, len(means)):
+        d2, idx = index.nearest(queries, 0.03, hint=hint)
         assert np.array_equal(idx, ref_idx)
         np.testing.assert_array_equal(d2, ref_d2)
     assert 0.2 < np.mean(ref_idx < len(means)) < 1.0  # both matched and unmatched queries

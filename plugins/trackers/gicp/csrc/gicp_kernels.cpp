@@ -6,6 +6,9 @@
 //   k-th found (a bound on how far in the image a 3D ball of that radius projects). Points it
 //   cannot prove are flagged, and the caller redoes them with a KD-tree: the whole is exact k-NN,
 //   ties at the k-th distance going to the lower index as in the numpy reference.
+// slk_grid_build / slk_grid_nearest: the nearest target mean within the correspondence distance,
+//   by a uniform grid of cells over the means (exactly the nearest by float32 distance, ties to
+//   the lower index, as pykdtree).
 // slk_gicp_linearize / slk_gicp_cost: the normal equations of one Levenberg-Marquardt step and
 //   the cost of a trial pose with the same correspondences and weights.
 //
@@ -15,6 +18,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <limits>
 #include <thread>
 #include <vector>
@@ -162,53 +166,14 @@ void add_correspondence(const double* s, const double* u, const double* R, const
 
 
 // ---------------------------------------------------------------------------------------------
-// A KD-tree over the target means for the per-iteration nearest-neighbour search.
-// Squared distances are summed in float32 dimension by dimension, as pykdtree does for float32
-// data, and an equal distance goes to the lower index, so the result does not depend on the
-// tree's shape. A hint (the previous iteration's match) starts the search with a small radius.
-struct KDNode {
-  float split;
-  int32_t dim;       // -1: leaf
-  int32_t lo, hi;    // leaf: range in `order`
-  int32_t child[2];  // inner: below / above split
-};
-
-struct KDTree {
-  std::vector<float> points;   // (N,3) as given
-  std::vector<float> sorted;   // (N,3) in leaf order
-  std::vector<int32_t> order;  // leaf order -> index
-  std::vector<KDNode> nodes;
-  int leaf_size = 16;
-
-  int build(int lo, int hi) {
-    const int id = int(nodes.size());
-    nodes.push_back(KDNode{0.f, -1, lo, hi, {-1, -1}});
-    if (hi - lo <= leaf_size) return id;
-    float mn[3] = {1e30f, 1e30f, 1e30f}, mx[3] = {-1e30f, -1e30f, -1e30f};
-    for (int i = lo; i < hi; ++i)
-      for (int d = 0; d < 3; ++d) {
-        const float v = points[3 * size_t(order[i]) + d];
-        mn[d] = std::min(mn[d], v);
-        mx[d] = std::max(mx[d], v);
-      }
-    int dim = 0;
-    for (int d = 1; d < 3; ++d)
-      if (mx[d] - mn[d] > mx[dim] - mn[dim]) dim = d;
-    if (!(mx[dim] > mn[dim])) return id;  // all points equal: one leaf
-    const int mid = lo + (hi - lo) / 2;
-    std::nth_element(order.begin() + lo, order.begin() + mid, order.begin() + hi, [&](int32_t a, int32_t b) {
-      return points[3 * size_t(a) + dim] < points[3 * size_t(b) + dim];
-    });
-    const float split = points[3 * size_t(order[mid]) + dim];
-    const int left = build(lo, mid);
-    const int right = build(mid, hi);
-    nodes[id].dim = dim;
-    nodes[id].split = split;
-    nodes[id].child[0] = left;
-    nodes[id].child[1] = right;
-    return id;
-  }
-};
+// A uniform grid over the target means for the per-iteration nearest-neighbour search: the means
+// sorted by cell, and a hash table (open addressing) from each occupied cell to its run of means.
+// A query scans the cells of the box [q - r, q + r] (r: the search radius, or the hint's distance
+// when smaller), skipping those farther from q than the best mean found so far. Squared distances are
+// summed in float32 dimension by dimension, as pykdtree does for float32 data, and an equal
+// distance goes to the lower index: the result is the nearest mean by (float32 distance, index)
+// whatever the cell size. A hint (the previous iteration's match) starts the search with a small
+// radius.
 
 inline float dist2(const float* a, const float* b) {
   const float dx = a[0] - b[0], dy = a[1] - b[1], dz = a[2] - b[2];
@@ -218,80 +183,186 @@ inline float dist2(const float* a, const float* b) {
   return d;
 }
 
-void nearest(const KDTree& tree, const float* q, float& best_d, int32_t& best_i) {
-  int32_t stack[128];
-  float stack_gap[128];
-  int top = 0;
-  stack[top] = 0;
-  stack_gap[top++] = 0.f;
-  while (top > 0) {
-    --top;
-    const KDNode& node = tree.nodes[stack[top]];
-    const float gap = stack_gap[top];  // a lower bound on the squared distance to the node's cell
-    if (gap > best_d) continue;
-    if (node.dim < 0) {
-      for (int k = node.lo; k < node.hi; ++k) {
-        const float d = dist2(q, &tree.sorted[3 * size_t(k)]);
-        const int32_t i = tree.order[k];
-        if (d < best_d || (d == best_d && i < best_i)) best_d = d, best_i = i;
-      }
-      continue;
-    }
-    const float diff = q[node.dim] - node.split;
-    const int near = diff < 0 ? 0 : 1;
-    if (top + 2 > 128) continue;  // cannot happen for trees of < 2^60 points
-    stack[top] = node.child[1 - near];  // the far side, visited later if still within reach
-    stack_gap[top++] = std::max(gap, diff * diff);
-    stack[top] = node.child[near];
-    stack_gap[top++] = gap;
-  }
+// A (float32 squared distance, index) pair as one integer ordered as the pairs are (the bits of
+// a float >= 0 are ordered as its value): the nearest by distance, ties to the lower index, is
+// the minimum.
+inline uint64_t pack(float d, uint32_t index) {
+  uint32_t bits;
+  std::memcpy(&bits, &d, 4);
+  return (uint64_t(bits) << 32) | index;
 }
+inline float distance_of(uint64_t key) {
+  const uint32_t bits = uint32_t(key >> 32);
+  float d;
+  std::memcpy(&d, &bits, 4);
+  return d;
+}
+inline uint32_t index_of(uint64_t key) { return uint32_t(key); }
 
+struct GridPoint {
+  float x[3];
+  int32_t index;
+};
+
+struct GridCell {
+  uint64_t key;  // kEmpty: a free slot
+  int32_t start, count;
+};
+
+constexpr uint64_t kEmpty = ~uint64_t(0);
+constexpr int kAxisBits = 21;  // cell coordinates per axis: [0, 2^21)
+
+struct CellGrid {
+  double origin[3];  // the corner of cell (0, 0, 0), metres
+  double inv_h = 1.0, h = 1.0;
+  int64_t extent[3] = {0, 0, 0};  // cells per axis (occupied bounding box)
+  std::vector<float> means;       // (n,3) as given
+  std::vector<GridPoint> points;  // by cell, then index
+  std::vector<GridCell> table;
+  uint64_t mask = 0;
+  int n = 0;
+
+  static uint64_t key_of(int64_t a, int64_t b, int64_t c) {
+    return (uint64_t(a) << (2 * kAxisBits)) | (uint64_t(b) << kAxisBits) | uint64_t(c);
+  }
+  int shift = 60;  // 64 - log2(table size): Fibonacci hashing takes the product's top bits
+  uint64_t slot_of(uint64_t key) const { return (key * 0x9E3779B97F4A7C15ull) >> shift; }
+  // The cell coordinate along axis a of coordinate v (as a double, before clamping).
+  double cell_coord(double v, int a) const { return std::floor((v - origin[a]) * inv_h); }
+
+  const GridCell* find(uint64_t key) const {
+    for (uint64_t s = slot_of(key);; s = (s + 1) & mask) {
+      const GridCell& cell = table[s];
+      if (cell.key == key) return &cell;
+      if (cell.key == kEmpty) return nullptr;
+    }
+  }
+
+  void build(int count, const float* xyz, double cell_size) {
+    n = count;
+    means.assign(xyz, xyz + 3 * size_t(n));
+    double lo[3] = {0, 0, 0}, hi[3] = {0, 0, 0};
+    for (int i = 0; i < n; ++i)
+      for (int a = 0; a < 3; ++a) {
+        const double v = xyz[3 * size_t(i) + a];
+        lo[a] = i ? std::min(lo[a], v) : v;
+        hi[a] = i ? std::max(hi[a], v) : v;
+      }
+    h = cell_size;
+    for (int a = 0; a < 3; ++a)  // coarser cells where the box would not fit in 2^21 cells
+      h = std::max(h, (hi[a] - lo[a]) / double((1 << kAxisBits) - 2));
+    inv_h = 1.0 / h;
+    for (int a = 0; a < 3; ++a) origin[a] = lo[a];
+    for (int a = 0; a < 3; ++a) extent[a] = int64_t(cell_coord(hi[a], a)) + 1;
+    std::vector<uint64_t> keys(n);
+    for (int i = 0; i < n; ++i) {
+      int64_t c[3];
+      for (int a = 0; a < 3; ++a)
+        c[a] = std::min<int64_t>(extent[a] - 1, std::max<int64_t>(0, int64_t(cell_coord(xyz[3 * size_t(i) + a], a))));
+      keys[i] = key_of(c[0], c[1], c[2]);
+    }
+    uint64_t capacity = 16;
+    shift = 60;
+    while (capacity < 2 * uint64_t(n)) capacity *= 2, --shift;
+    mask = capacity - 1;
+    table.assign(capacity, GridCell{kEmpty, 0, 0});
+    std::vector<uint32_t> slot(n);
+    std::vector<uint64_t> used;
+    for (int i = 0; i < n; ++i) {  // count the means of each cell
+      uint64_t s = slot_of(keys[i]);
+      while (table[s].key != kEmpty && table[s].key != keys[i]) s = (s + 1) & mask;
+      if (table[s].key == kEmpty) table[s].key = keys[i], used.push_back(s);
+      table[s].count++;
+      slot[i] = uint32_t(s);
+    }
+    int32_t start = 0;
+    for (uint64_t s : used) table[s].start = start, start += table[s].count, table[s].count = 0;
+    points.resize(n);
+    for (int i = 0; i < n; ++i) {  // in index order: each cell's run ascending by index
+      GridCell& cell = table[slot[i]];
+      GridPoint& p = points[size_t(cell.start) + cell.count++];
+      for (int a = 0; a < 3; ++a) p.x[a] = xyz[3 * size_t(i) + a];
+      p.index = i;
+    }
+  }
+
+  // The nearest mean to q by (float32 squared distance, index) better than `best`, a
+  // (distance, index) key (see pack); returns the better key.
+  uint64_t nearest(const float* q, uint64_t best) const {
+    if (n == 0 || !(std::isfinite(q[0]) && std::isfinite(q[1]) && std::isfinite(q[2]))) return best;
+    // A mean whose float32 squared distance is <= d is within this of q along each axis
+    // (rounding makes the float32 distance at most a few ulps smaller than the true one).
+    const double reach = std::sqrt(double(distance_of(best))) * (1.0 + 1e-6);
+    int64_t lo[3], hi[3];
+    double u[3];  // q in cell units
+    for (int a = 0; a < 3; ++a) {
+      u[a] = (double(q[a]) - origin[a]) * inv_h;
+      const double l = cell_coord(double(q[a]) - reach, a), r = cell_coord(double(q[a]) + reach, a);
+      if (r < 0 || l >= double(extent[a])) return best;
+      lo[a] = l < 0 ? 0 : int64_t(l);
+      hi[a] = r >= double(extent[a]) ? extent[a] - 1 : int64_t(r);
+    }
+    // Squared distance (m^2) from q to cell c along axis a, less a margin for rounding, and
+    // times a factor below 1: a float32 distance exceeds the true one by far less.
+    auto gap2 = [&](int a, int64_t c) {
+      const double g = std::max(double(c) - u[a], u[a] - double(c + 1)) - 1e-6;
+      return g > 0 ? g * g * (h * h * (1.0 - 1e-5)) : 0.0;
+    };
+    for (int64_t a = lo[0]; a <= hi[0]; ++a) {
+      const double da = gap2(0, a);
+      if (da > distance_of(best)) continue;
+      for (int64_t b = lo[1]; b <= hi[1]; ++b) {
+        const double dab = da + gap2(1, b);
+        if (dab > distance_of(best)) continue;
+        for (int64_t c = lo[2]; c <= hi[2]; ++c) {
+          if (dab + gap2(2, c) > distance_of(best)) continue;
+          const GridCell* cell = find(key_of(a, b, c));
+          if (cell == nullptr) continue;
+          const GridPoint* p = points.data() + cell->start;
+          for (int k = 0; k < cell->count; ++k) best = std::min(best, pack(dist2(q, p[k].x), p[k].index));
+        }
+      }
+    }
+    return best;
+  }
+};
 }  // namespace
 
 extern "C" {
 
-void* slk_kdtree_build(int n, const float* points, int leaf_size) {
-  auto* tree = new KDTree();
-  tree->leaf_size = std::max(1, leaf_size);
-  tree->points.assign(points, points + 3 * size_t(n));
-  tree->order.resize(n);
-  for (int i = 0; i < n; ++i) tree->order[i] = i;
-  if (n > 0) tree->build(0, n);
-  tree->sorted.resize(3 * size_t(n));
-  for (int k = 0; k < n; ++k)
-    for (int d = 0; d < 3; ++d) tree->sorted[3 * size_t(k) + d] = tree->points[3 * size_t(tree->order[k]) + d];
-  return tree;
+// A grid over n means (float32 (n,3), metres) with cells of cell_size metres (or coarser for a
+// box too big for 2^21 cells an axis); free it with slk_grid_free.
+void* slk_grid_build(int n, const float* points, double cell_size) {
+  auto* grid = new CellGrid();
+  grid->build(n, points, cell_size);
+  return grid;
 }
 
-void slk_kdtree_free(void* tree) { delete static_cast<KDTree*>(tree); }
+void slk_grid_free(void* grid) { delete static_cast<CellGrid*>(grid); }
 
-// For each query (float32 (m,3)), the nearest point within squared distance max_d2 (inclusive
-// bound as `<=`): index in out_idx (n = tree size where none) and squared distance in out_d2
+// For each query (float32 (m,3)), the nearest mean within squared distance max_d2 (inclusive
+// bound as `<=`): index in out_idx (n = grid size where none) and squared distance in out_d2
 // (float32). hint: (m) a candidate index per query (>= n: none), e.g. the last match.
-void slk_kdtree_nearest(const void* handle, int m, const float* queries, float max_d2, const uint32_t* hint,
-                        uint32_t* out_idx, float* out_d2, int nthreads) {
-  const KDTree& tree = *static_cast<const KDTree*>(handle);
-  const int n = int(tree.order.size());
+void slk_grid_nearest(const void* handle, int m, const float* queries, float max_d2, const uint32_t* hint,
+                      uint32_t* out_idx, float* out_d2, int nthreads) {
+  const CellGrid& grid = *static_cast<const CellGrid*>(handle);
+  const int n = grid.n;
   parallel_for(m, nthreads, [&](int, int lo, int hi) {
     for (int j = lo; j < hi; ++j) {
       const float* q = queries + 3 * size_t(j);
-      // best_d starts just above the bound so that a point exactly at it is accepted
-      float best_d = std::nextafter(max_d2, 3.4e38f);
-      int32_t best_i = n;
-      if (hint != nullptr && hint[j] < uint32_t(n)) {
-        const float d = dist2(q, &tree.points[3 * size_t(hint[j])]);
-        if (d < best_d) best_d = d, best_i = int32_t(hint[j]);
-      }
-      if (n > 0) nearest(tree, q, best_d, best_i);
-      out_idx[j] = uint32_t(best_i);
-      out_d2[j] = best_i < n ? best_d : std::numeric_limits<float>::infinity();
+      // at the bound with an index above any: a mean exactly at the bound is accepted
+      uint64_t best = pack(max_d2, ~uint32_t(0));
+      if (hint != nullptr && hint[j] < uint32_t(n))
+        best = std::min(best, pack(dist2(q, &grid.means[3 * size_t(hint[j])]), hint[j]));
+      best = grid.nearest(q, best);
+      const bool found = index_of(best) < uint32_t(n);
+      out_idx[j] = found ? index_of(best) : uint32_t(n);
+      out_d2[j] = found ? distance_of(best) : std::numeric_limits<float>::infinity();
     }
   });
 }
 
-
-int slk_abi_version() { return 2; }
+int slk_abi_version() { return 3; }
 
 // points: (n,3) float32, camera frame, metres. cell: (n) the grid cell (row * gw + col) of each
 // point; grid: (gh*gw) the point in each cell or -1. fx, fy: focal lengths in pixels; stride:
