@@ -74,6 +74,39 @@ def test_grid_search_proves_most_points(library, tum_frames):
     assert exact.mean() > 0.9
 
 
+def test_compiled_regularization_equals_the_reference(library, tum_frames):
+    """The ellipse rule on real frame covariances and on the awkward cases (nearly repeated and
+    zero eigenvalues, rank 1, negative rounding, non-finite, min_median): the reference's result
+    to rounding (libm's acos / cos may differ from numpy's by an ulp); other rules are the
+    reference's own. Most real covariances come out bit-identical."""
+    rng = np.random.default_rng(8)
+    frame = tum_frames[1]
+    points, pix = backproject(np.asarray(frame.depth), frame.camera, 5)
+    compiled, reference = CompiledKernels(library), NumpyKernels()
+    real = reference.frame_covariances(points, pix, frame.camera, 5, 10)
+    odd = covariance_from_scales(rng.normal(size=(12, 4)), np.exp(rng.uniform(-8, -2, size=(12, 3))))
+    odd[0] = np.eye(3) * 2e-4  # repeated eigenvalues: the reference's accurate path
+    odd[1] = np.diag([1e-4, 1e-4 * (1 + 1e-6), 3e-4])  # a nearly repeated pair
+    odd[2] = 0.0  # coincident neighbours
+    v = rng.normal(size=3)
+    odd[3] = np.outer(v, v)  # collinear neighbours: rank 1
+    odd[4] = np.diag([-1e-19, 1e-5, 2e-5])  # rounding below zero
+    odd[5, 0, 0] = np.nan
+    odd[6] = np.diag([1e-6, 2e-6, 1e-3])  # median below min_median
+    for cov, tolerance in ((real, 1e-13), (odd, 1e-10)):
+        for method, min_median in (("ellipse", None), ("ellipse", 1e-5), ("plane", None), ("none", None)):
+            ref = reference.regularize(cov, method, 1e-3, min_median)
+            got = compiled.regularize(cov, method, 1e-3, min_median)
+            np.testing.assert_array_equal(np.isnan(got), np.isnan(ref))
+            # an ulp of acos moves the eigenvalues by an ulp of the largest one: relative to
+            # each matrix's largest entry (more where the spectrum spans decades, as odd[6])
+            scale = np.maximum(np.nanmax(np.abs(ref), axis=(1, 2)), 1e-300)[:, None, None]
+            assert np.nanmax(np.abs(got - ref) / scale) <= tolerance
+    assert np.array_equal(compiled.regularize(odd, "ellipse", 1e-3)[2], np.eye(3))
+    same = np.all(compiled.regularize(real, "ellipse", 1e-3) == reference.regularize(real, "ellipse", 1e-3), axis=(1, 2))
+    assert same.mean() > 0.5
+
+
 def _problem(rng, n=3000, n_target=2000, degenerate=50):
     """Source rows (p, C_s) near target rows (mu, C_t), some targets degenerate (rank 1 or 0)."""
     mu = rng.uniform(-1, 1, size=(n_target, 3)) + [0, 0, 3]

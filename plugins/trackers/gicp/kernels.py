@@ -9,6 +9,9 @@
   uniform grid of cells (edge: the correspondence distance) that starts each search from the
   last iteration's match and scans only the cells within reach (same results: float32 distances
   as pykdtree's, ties to the lower index).
+- `regularize`: slamkit.geometry.gaussians's `regularize` (the reference); the compiled version
+  does the ellipse rule (the default) in one pass and leaves the rare covariances with a nearly
+  repeated eigenvalue pair, which the reference decomposes otherwise, to it.
 - `linearize`: one Levenberg-Marquardt step's normal equations H, g and cost at a pose, plus the
   cost of trial poses with the same correspondences and weights.
 
@@ -28,11 +31,11 @@ from typing import Callable
 import numpy as np
 from pykdtree.kdtree import KDTree
 
-from slamkit.geometry.gaussians import knn_covariances, whitening_sym3
+from slamkit.geometry.gaussians import Regularization, knn_covariances, regularize, whitening_sym3
 from slamkit.native import NativeLibrary, available_threads
 
 SOURCE = Path(__file__).resolve().parent / "csrc" / "gicp_kernels.cpp"
-ABI_VERSION = 3
+ABI_VERSION = 4
 #: Window half-width (grid cells) of the compiled k-NN search: 9x9 cells around each point.
 GRID_HALF_WINDOW = 4
 #: Points per pykdtree leaf (the numpy kernels' nearest-neighbour index).
@@ -70,6 +73,8 @@ def _declare(lib) -> None:
     P, I, D = ctypes.c_void_p, ctypes.c_int, ctypes.c_double
     lib.slk_grid_knn_covariances.restype = None
     lib.slk_grid_knn_covariances.argtypes = [I, P, P, P, I, I, I, I, D, D, D, P, P, I]
+    lib.slk_regularize_ellipse.restype = None
+    lib.slk_regularize_ellipse.argtypes = [I, P, D, P, P, I]
     lib.slk_gicp_linearize.restype = I
     lib.slk_gicp_linearize.argtypes = [I, P, I, P, P, P, P, D, P, P, P, P, P, P, I]
     lib.slk_gicp_cost.restype = D
@@ -107,6 +112,11 @@ class NumpyKernels:
         """(N,3,3) k-NN covariances (m^2) of camera-frame points (N,3) back-projected at flat
         pixel indices `pix` of every `stride`-th pixel."""
         return knn_covariances(points, k)
+
+    def regularize(self, cov: np.ndarray, method: Regularization, eps: float,
+                   min_median: float | None = None) -> np.ndarray:
+        """(N,3,3) covariances (m^2) regularised for G-ICP (slamkit.geometry.gaussians.regularize)."""
+        return regularize(cov, method, eps, min_median=min_median)
 
     def nearest_index(self, means: np.ndarray, max_distance: float) -> "NearestIndex":
         """A nearest-neighbour index over (N,3) float32 target means (metres) for searches
@@ -179,6 +189,20 @@ class CompiledKernels(NumpyKernels):
             tree = KDTree(pts, leafsize=16)
             cov[rest] = knn_covariances(pts, k, tree=tree, query=rest)
         return cov
+
+    def regularize(self, cov: np.ndarray, method: Regularization, eps: float,
+                   min_median: float | None = None) -> np.ndarray:
+        cov = np.ascontiguousarray(cov, dtype=np.float64)
+        n = len(cov)
+        if Regularization(method) is not Regularization.ellipse or n == 0:
+            return super().regularize(cov, method, eps, min_median)
+        out, redo = np.empty_like(cov), np.empty(n, dtype=np.uint8)
+        self.lib.slk_regularize_ellipse(n, _ptr(cov), np.nan if min_median is None else float(min_median),
+                                        _ptr(out), _ptr(redo), self.num_threads)
+        rest = np.flatnonzero(redo)
+        if len(rest):
+            out[rest] = super().regularize(cov[rest], method, eps, min_median)
+        return out
 
     def nearest_index(self, means: np.ndarray, max_distance: float) -> "NearestIndex":
         return CompiledGrid(self.lib, means, GRID_CELL_FACTOR * max_distance, self.num_threads)

@@ -36,7 +36,7 @@ import time
 
 import numpy as np
 
-from slamkit.geometry.gaussians import Regularization, regularize, rotate_covariances
+from slamkit.geometry.gaussians import Regularization, rotate_covariances
 from slamkit.map.gaussian_map import GaussianMap
 from slamkit.geometry.transforms import backproject, invert_pose
 from slamkit.roles import Tracker, require
@@ -127,7 +127,7 @@ class GICPTracker(Tracker):
     # ---------------------------------------------------------------- internals
     def _regularize(self, cov: np.ndarray, target: bool) -> np.ndarray:
         min_median = self.cfg.target_min_median if target else None
-        return regularize(cov, self.regularization, self.cfg.plane_eps, min_median=min_median)
+        return self.kernels.regularize(cov, self.regularization, self.cfg.plane_eps, min_median=min_median)
 
     def _track(self, frame: Frame, predicted: np.ndarray) -> TrackingResult:
         cfg = self.cfg

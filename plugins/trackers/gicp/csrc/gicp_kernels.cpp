@@ -9,6 +9,8 @@
 // slk_grid_build / slk_grid_nearest: the nearest target mean within the correspondence distance,
 //   by a uniform grid of cells over the means (exactly the nearest by float32 distance, ties to
 //   the lower index, as pykdtree).
+// slk_regularize_ellipse: the ellipse regularisation of covariances (eigenvalues by the
+//   trigonometric formula; the rare rows the reference treats otherwise are left to it).
 // slk_gicp_linearize / slk_gicp_cost: the normal equations of one Levenberg-Marquardt step and
 //   the cost of a trial pose with the same correspondences and weights.
 //
@@ -362,7 +364,7 @@ void slk_grid_nearest(const void* handle, int m, const float* queries, float max
   });
 }
 
-int slk_abi_version() { return 3; }
+int slk_abi_version() { return 4; }
 
 // points: (n,3) float32, camera frame, metres. cell: (n) the grid cell (row * gw + col) of each
 // point; grid: (gh*gw) the point in each cell or -1. fx, fy: focal lengths in pixels; stride:
@@ -436,6 +438,60 @@ void slk_grid_knn_covariances(int n, const float* points, const int32_t* cell, c
       out[0] = c00, out[1] = c01, out[2] = c02;
       out[3] = c01, out[4] = c11, out[5] = c12;
       out[6] = c02, out[7] = c12, out[8] = c22;
+    }
+  });
+}
+
+// Ellipse regularisation of n covariances (cov: (n,9) float64, m^2), as
+// slamkit.geometry.gaussians.regularize (the reference, with the same operations in the same
+// order; libm's acos / cos / pow may round differently from numpy's by an ulp): each C becomes
+// C / l2 + max(-l3, 0) / l2 I with l3 <= l2 <= l1 its eigenvalues (trigonometric formula on C
+// scaled by its largest entry), I where l2 <= 1e-12 l1, and min_median I where l2 < min_median
+// (NaN: never). Rows whose eigenvalues the reference takes from its accurate path (a nearly
+// repeated pair) or that are not finite are flagged in redo (1) and left for the caller.
+void slk_regularize_ellipse(int n, const double* cov, double min_median, double* out, uint8_t* redo, int nthreads) {
+  const double third_turn = 2.0 * 3.141592653589793 / 3.0;
+  parallel_for(n, nthreads, [&](int, int lo, int hi) {
+    for (int i = lo; i < hi; ++i) {
+      const double* A = cov + 9 * size_t(i);
+      double* C = out + 9 * size_t(i);
+      double scale = 0.0;
+      bool finite = true;
+      for (int e = 0; e < 9; ++e) scale = std::max(scale, std::fabs(A[e])), finite = finite && std::isfinite(A[e]);
+      if (!finite) {
+        redo[i] = 1;
+        continue;
+      }
+      if (!(scale > 0)) scale = 1.0;
+      const double a00 = A[0] / scale, a11 = A[4] / scale, a22 = A[8] / scale;
+      const double a01 = A[1] / scale, a02 = A[2] / scale, a12 = A[5] / scale;
+      const double q = (a00 + a11 + a22) / 3.0;
+      const double b00 = a00 - q, b11 = a11 - q, b22 = a22 - q;
+      const double p2 = (b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * (a01 * a01 + a02 * a02 + a12 * a12)) / 6.0;
+      const double p = std::sqrt(p2);
+      const double safe_p = p > 0 ? p : 1.0;
+      const double det = b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02) + a02 * (a01 * a12 - b11 * a02);
+      const double r = std::min(1.0, std::max(-1.0, det / (2.0 * std::pow(safe_p, 3.0))));
+      const double phi = std::acos(r) / 3.0;
+      const double l_max = q + 2.0 * p * std::cos(phi);
+      const double l_min = q + 2.0 * p * std::cos(phi + third_turn);
+      const double l_mid = 3.0 * q - l_max - l_min;
+      const double gap = std::min(l_mid - l_min, l_max - l_mid);
+      const double top = std::max(std::fabs(l_min), std::max(std::fabs(l_mid), std::fabs(l_max)));
+      const double v0 = l_min * scale, v1 = l_mid * scale, v2 = l_max * scale;
+      if (!(gap >= 1e-4 * top) || !std::isfinite(v0) || !std::isfinite(v1) || !std::isfinite(v2)) {
+        redo[i] = 1;
+        continue;
+      }
+      redo[i] = 0;
+      const bool degenerate = !(v1 > 1e-12 * std::max(v2, 1e-300));
+      const double median = degenerate ? 1.0 : v1;
+      const double negative = std::max(-v0, 0.0) / median;
+      for (int e = 0; e < 9; ++e) C[e] = A[e] / median + (e % 4 == 0 ? negative : 0.0);
+      if (degenerate)
+        for (int e = 0; e < 9; ++e) C[e] = e % 4 == 0 ? 1.0 : 0.0;
+      if (v1 < min_median)
+        for (int e = 0; e < 9; ++e) C[e] = e % 4 == 0 ? min_median : 0.0;
     }
   });
 }
