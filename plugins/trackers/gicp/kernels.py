@@ -35,7 +35,7 @@ from slamkit.geometry.gaussians import Regularization, knn_covariances, regulari
 from slamkit.native import NativeLibrary, available_threads
 
 SOURCE = Path(__file__).resolve().parent / "csrc" / "gicp_kernels.cpp"
-ABI_VERSION = 4
+ABI_VERSION = 5
 #: Window half-width (grid cells) of the compiled k-NN search: 9x9 cells around each point.
 GRID_HALF_WINDOW = 4
 #: Points per pykdtree leaf (the numpy kernels' nearest-neighbour index).

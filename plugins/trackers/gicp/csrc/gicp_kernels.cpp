@@ -169,7 +169,8 @@ void add_correspondence(const double* s, const double* u, const double* R, const
 
 // ---------------------------------------------------------------------------------------------
 // A uniform grid over the target means for the per-iteration nearest-neighbour search: the means
-// sorted by cell, and a hash table (open addressing) from each occupied cell to its run of means.
+// sorted by cell, and each cell's first mean in that order (cells x-major, z fastest, over the
+// means' bounding box).
 // A query scans the cells of the box [q - r, q + r] (r: the search radius, or the hint's distance
 // when smaller), skipping those farther from q than the best mean found so far. Squared distances are
 // summed in float32 dimension by dimension, as pykdtree does for float32 data, and an equal
@@ -206,83 +207,64 @@ struct GridPoint {
   int32_t index;
 };
 
-struct GridCell {
-  uint64_t key;  // kEmpty: a free slot
-  int32_t start, count;
-};
-
-constexpr uint64_t kEmpty = ~uint64_t(0);
-constexpr int kAxisBits = 21;  // cell coordinates per axis: [0, 2^21)
+// At most this many cells (8 MB of offsets): a bigger box gets coarser cells.
+constexpr int64_t kMaxCells = int64_t(1) << 21;
 
 struct CellGrid {
-  double origin[3];  // the corner of cell (0, 0, 0), metres
+  double origin[3] = {0, 0, 0};  // the corner of cell (0, 0, 0), metres
   double inv_h = 1.0, h = 1.0;
-  int64_t extent[3] = {0, 0, 0};  // cells per axis (occupied bounding box)
+  int64_t extent[3] = {1, 1, 1};  // cells per axis (the finite means' bounding box)
   std::vector<float> means;       // (n,3) as given
-  std::vector<GridPoint> points;  // by cell, then index
-  std::vector<GridCell> table;
-  uint64_t mask = 0;
+  std::vector<GridPoint> points;  // by cell (x-major, z fastest), then index
+  std::vector<int32_t> first;     // per cell: its first point; one more entry: the end
   int n = 0;
 
-  static uint64_t key_of(int64_t a, int64_t b, int64_t c) {
-    return (uint64_t(a) << (2 * kAxisBits)) | (uint64_t(b) << kAxisBits) | uint64_t(c);
-  }
-  int shift = 60;  // 64 - log2(table size): Fibonacci hashing takes the product's top bits
-  uint64_t slot_of(uint64_t key) const { return (key * 0x9E3779B97F4A7C15ull) >> shift; }
   // The cell coordinate along axis a of coordinate v (as a double, before clamping).
   double cell_coord(double v, int a) const { return std::floor((v - origin[a]) * inv_h); }
-
-  const GridCell* find(uint64_t key) const {
-    for (uint64_t s = slot_of(key);; s = (s + 1) & mask) {
-      const GridCell& cell = table[s];
-      if (cell.key == key) return &cell;
-      if (cell.key == kEmpty) return nullptr;
-    }
-  }
+  int64_t cell_id(int64_t a, int64_t b, int64_t c) const { return (a * extent[1] + b) * extent[2] + c; }
 
   void build(int count, const float* xyz, double cell_size) {
     n = count;
     means.assign(xyz, xyz + 3 * size_t(n));
+    auto finite = [&](int i) {
+      const float* p = xyz + 3 * size_t(i);
+      return std::isfinite(p[0]) && std::isfinite(p[1]) && std::isfinite(p[2]);
+    };
     double lo[3] = {0, 0, 0}, hi[3] = {0, 0, 0};
-    for (int i = 0; i < n; ++i)
+    bool any = false;
+    for (int i = 0; i < n; ++i) {
+      if (!finite(i)) continue;  // never within a finite distance: left out
       for (int a = 0; a < 3; ++a) {
         const double v = xyz[3 * size_t(i) + a];
-        lo[a] = i ? std::min(lo[a], v) : v;
-        hi[a] = i ? std::max(hi[a], v) : v;
+        lo[a] = any ? std::min(lo[a], v) : v;
+        hi[a] = any ? std::max(hi[a], v) : v;
       }
-    h = cell_size;
-    for (int a = 0; a < 3; ++a)  // coarser cells where the box would not fit in 2^21 cells
-      h = std::max(h, (hi[a] - lo[a]) / double((1 << kAxisBits) - 2));
-    inv_h = 1.0 / h;
+      any = true;
+    }
     for (int a = 0; a < 3; ++a) origin[a] = lo[a];
+    for (h = cell_size;; h *= 1.25) {  // coarser cells while the box holds too many
+      inv_h = 1.0 / h;
+      double cells = 1.0;
+      for (int a = 0; a < 3; ++a) cells *= cell_coord(hi[a], a) + 1.0;
+      if (cells <= double(kMaxCells)) break;
+    }
     for (int a = 0; a < 3; ++a) extent[a] = int64_t(cell_coord(hi[a], a)) + 1;
-    std::vector<uint64_t> keys(n);
+    std::vector<int32_t> cell(n, -1);
+    first.assign(size_t(extent[0] * extent[1] * extent[2]) + 1, 0);
     for (int i = 0; i < n; ++i) {
+      if (!finite(i)) continue;
       int64_t c[3];
       for (int a = 0; a < 3; ++a)
         c[a] = std::min<int64_t>(extent[a] - 1, std::max<int64_t>(0, int64_t(cell_coord(xyz[3 * size_t(i) + a], a))));
-      keys[i] = key_of(c[0], c[1], c[2]);
+      cell[i] = int32_t(cell_id(c[0], c[1], c[2]));
+      first[cell[i] + 1]++;
     }
-    uint64_t capacity = 16;
-    shift = 60;
-    while (capacity < 2 * uint64_t(n)) capacity *= 2, --shift;
-    mask = capacity - 1;
-    table.assign(capacity, GridCell{kEmpty, 0, 0});
-    std::vector<uint32_t> slot(n);
-    std::vector<uint64_t> used;
-    for (int i = 0; i < n; ++i) {  // count the means of each cell
-      uint64_t s = slot_of(keys[i]);
-      while (table[s].key != kEmpty && table[s].key != keys[i]) s = (s + 1) & mask;
-      if (table[s].key == kEmpty) table[s].key = keys[i], used.push_back(s);
-      table[s].count++;
-      slot[i] = uint32_t(s);
-    }
-    int32_t start = 0;
-    for (uint64_t s : used) table[s].start = start, start += table[s].count, table[s].count = 0;
-    points.resize(n);
+    for (size_t c = 1; c < first.size(); ++c) first[c] += first[c - 1];
+    points.resize(first.back());
+    std::vector<int32_t> fill(first.begin(), first.end() - 1);
     for (int i = 0; i < n; ++i) {  // in index order: each cell's run ascending by index
-      GridCell& cell = table[slot[i]];
-      GridPoint& p = points[size_t(cell.start) + cell.count++];
+      if (cell[i] < 0) continue;
+      GridPoint& p = points[fill[cell[i]]++];
       for (int a = 0; a < 3; ++a) p.x[a] = xyz[3 * size_t(i) + a];
       p.index = i;
     }
@@ -316,13 +298,14 @@ struct CellGrid {
       for (int64_t b = lo[1]; b <= hi[1]; ++b) {
         const double dab = da + gap2(1, b);
         if (dab > distance_of(best)) continue;
-        for (int64_t c = lo[2]; c <= hi[2]; ++c) {
-          if (dab + gap2(2, c) > distance_of(best)) continue;
-          const GridCell* cell = find(key_of(a, b, c));
-          if (cell == nullptr) continue;
-          const GridPoint* p = points.data() + cell->start;
-          for (int k = 0; k < cell->count; ++k) best = std::min(best, pack(dist2(q, p[k].x), p[k].index));
-        }
+        // the cells (a, b, c) within reach are one run of points
+        int64_t c0 = lo[2], c1 = hi[2];
+        while (c0 <= c1 && dab + gap2(2, c0) > distance_of(best)) ++c0;
+        while (c1 >= c0 && dab + gap2(2, c1) > distance_of(best)) --c1;
+        if (c0 > c1) continue;
+        const GridPoint* p = points.data() + first[cell_id(a, b, c0)];
+        const GridPoint* end = points.data() + first[cell_id(a, b, c1) + 1];
+        for (; p < end; ++p) best = std::min(best, pack(dist2(q, p->x), p->index));
       }
     }
     return best;
@@ -364,7 +347,7 @@ void slk_grid_nearest(const void* handle, int m, const float* queries, float max
   });
 }
 
-int slk_abi_version() { return 4; }
+int slk_abi_version() { return 5; }
 
 // points: (n,3) float32, camera frame, metres. cell: (n) the grid cell (row * gw + col) of each
 // point; grid: (gh*gw) the point in each cell or -1. fx, fy: focal lengths in pixels; stride:
