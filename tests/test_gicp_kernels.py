@@ -227,6 +227,21 @@ def test_compiled_grid_answers_far_and_non_finite_queries_with_none(library):
     assert np.isinf(d2[1:4]).all() and d2[0] == pytest.approx(1e-6, rel=1e-3)
     d2, idx = CompiledGrid(library, np.zeros((0, 3), np.float32), 0.06).nearest(queries, 0.03)
     assert idx.tolist() == [0] * 5 and np.isinf(d2).all()
+    with_nan = np.array([[0, 0, 1], [np.nan, 0, 1], [0.01, 0, 1]], dtype=np.float32)
+    assert CompiledGrid(library, with_nan, 0.06).nearest(queries, 0.03)[1].tolist() == [0, 3, 3, 3, 2]
+
+
+def test_compiled_grid_over_a_huge_box_uses_coarser_cells_and_stays_exact(library):
+    """Means spread over kilometres (more cells than the grid holds at the asked size)."""
+    from slamkit_plugins.trackers.gicp.kernels import CompiledGrid
+
+    rng = np.random.default_rng(13)
+    means = rng.uniform(-2000, 2000, size=(3000, 3)).astype(np.float32)
+    queries = (means[rng.choice(3000, 1000)] + rng.normal(scale=0.02, size=(1000, 3))).astype(np.float32)
+    ref_d2, ref_idx = _brute_force_nearest(means, queries, 0.03)
+    d2, idx = CompiledGrid(library, means, 0.06).nearest(queries, 0.03)
+    np.testing.assert_array_equal(idx, ref_idx)
+    np.testing.assert_array_equal(d2, ref_d2)
 
 
 def test_compiled_nearest_neighbours_equal_pykdtree(library, tum_frames):
