@@ -48,7 +48,10 @@ def test_knn_ties_go_to_the_lower_index():
     np.testing.assert_allclose(cov, ref, atol=1e-12)
 
 
-def test_frame_covariances_equal_the_reference_on_real_frames(library, tum_frames):
+@pytest.mark.parametrize("half_window", [1, kernels_module.GRID_HALF_WINDOW])
+def test_frame_covariances_equal_the_reference_on_real_frames(library, tum_frames, monkeypatch, half_window):
+    """With the default window and a 3x3 one (most points then unproven: every point searched)."""
+    monkeypatch.setattr(kernels_module, "GRID_HALF_WINDOW", half_window)
     compiled = CompiledKernels(library, num_threads=2)
     for frame in tum_frames:
         points, pix = backproject(np.asarray(frame.depth), frame.camera, 5)

@@ -2,8 +2,8 @@
 
 - `frame_covariances`: each back-projected point's k-NN covariance (slamkit.geometry.gaussians's
   `knn_covariances`). The compiled version searches a window of the pixel grid first and proves
-  the result exact by a projection bound; the few points it cannot prove (depth edges, holes) go
-  to the KD-tree. Same neighbours, so the same covariances.
+  the result exact by a projection bound; the few points it cannot prove (depth edges, holes)
+  search all points. Same neighbours, so the same covariances.
 - `nearest_index`: the target means' search structure (built once per tracking keyframe) for the
   per-iteration nearest neighbour within the correspondence distance: pykdtree, or a compiled
   uniform grid of cells (edge: the correspondence distance) that starts each search from the
@@ -35,9 +35,10 @@ from slamkit.geometry.gaussians import Regularization, knn_covariances, regulari
 from slamkit.native import NativeLibrary, available_threads
 
 SOURCE = Path(__file__).resolve().parent / "csrc" / "gicp_kernels.cpp"
-ABI_VERSION = 5
-#: Window half-width (grid cells) of the compiled k-NN search: 9x9 cells around each point.
-GRID_HALF_WINDOW = 4
+ABI_VERSION = 6
+#: Window half-width (grid cells) of the compiled k-NN search: up to 25x25 cells around each point
+#: (most stop within 5x5; the ~0.05% it cannot prove on TUM search every point).
+GRID_HALF_WINDOW = 12
 #: Points per pykdtree leaf (the numpy kernels' nearest-neighbour index).
 KDTREE_LEAF_SIZE = 16
 #: The compiled nearest-neighbour grid's cell edge, in units of the correspondence distance.
@@ -184,10 +185,6 @@ class CompiledKernels(NumpyKernels):
         self.lib.slk_grid_knn_covariances(n, _ptr(pts), _ptr(cell), _ptr(grid), gh, gw, k, GRID_HALF_WINDOW,
                                           float(camera.fx), float(camera.fy), float(stride), _ptr(cov), _ptr(exact),
                                           self.num_threads)
-        rest = np.flatnonzero(exact == 0)
-        if len(rest):
-            tree = KDTree(pts, leafsize=16)
-            cov[rest] = knn_covariances(pts, k, tree=tree, query=rest)
         return cov
 
     def regularize(self, cov: np.ndarray, method: Regularization, eps: float,

@@ -4,8 +4,8 @@
 //   Each point's k nearest neighbours are searched ring by ring in a (2h+1)^2 window of the grid
 //   around it, stopping as soon as no point outside the rings searched can be closer than the
 //   k-th found (a bound on how far in the image a 3D ball of that radius projects). Points it
-//   cannot prove are flagged, and the caller redoes them with a KD-tree: the whole is exact k-NN,
-//   ties at the k-th distance going to the lower index as in the numpy reference.
+//   cannot prove (flagged) take every point as a candidate: the whole is exact k-NN, ties at the
+//   k-th distance going to the lower index as in the numpy reference.
 // slk_grid_build / slk_grid_nearest: the nearest target mean within the correspondence distance,
 //   by a uniform grid of cells over the means (exactly the nearest by float32 distance, ties to
 //   the lower index, as pykdtree).
@@ -347,12 +347,12 @@ void slk_grid_nearest(const void* handle, int m, const float* queries, float max
   });
 }
 
-int slk_abi_version() { return 5; }
+int slk_abi_version() { return 6; }
 
 // points: (n,3) float32, camera frame, metres. cell: (n) the grid cell (row * gw + col) of each
 // point; grid: (gh*gw) the point in each cell or -1. fx, fy: focal lengths in pixels; stride:
 // pixels between grid cells; half: the window's half-width in cells. Writes cov (n,9) float64
-// and exact (n) 0/1.
+// and exact (n): 1 where the window proved the neighbours, 0 where all n points were searched.
 void slk_grid_knn_covariances(int n, const float* points, const int32_t* cell, const int32_t* grid, int gh, int gw,
                               int k, int half, double fx, double fy, double stride, double* cov, uint8_t* exact,
                               int nthreads) {
@@ -364,10 +364,7 @@ void slk_grid_knn_covariances(int n, const float* points, const int32_t* cell, c
       const double x = p[0], y = p[1], z = p[2];
       const int row = cell[i] / gw, col = cell[i] % gw;
       int found = 0;
-      auto visit = [&](int r, int c) {
-        if (r < 0 || r >= gh || c < 0 || c >= gw) return;
-        const int j = grid[r * gw + c];
-        if (j < 0) return;
+      auto consider = [&](int j) {
         const float* q = points + 3 * j;
         const double dx = double(q[0]) - x, dy = double(q[1]) - y, dz = double(q[2]) - z;
         const double d = dx * dx + dy * dy + dz * dz;
@@ -381,6 +378,11 @@ void slk_grid_knn_covariances(int n, const float* points, const int32_t* cell, c
         }
         best_d[pos] = d;
         best_i[pos] = j;
+      };
+      auto visit = [&](int r, int c) {
+        if (r < 0 || r >= gh || c < 0 || c >= gw) return;
+        const int j = grid[r * gw + c];
+        if (j >= 0) consider(j);
       };
       // A point within distance rad of p projects at most fx rad (z + |x|) / ((z - rad) z) pixels
       // from p in u (|x_q/z_q - x_p/z_p| bounded for |q - p| <= rad), likewise in v; once that
@@ -403,11 +405,11 @@ void slk_grid_knn_covariances(int n, const float* points, const int32_t* cell, c
         ok = proven(ring);
       }
       exact[i] = ok ? 1 : 0;
-      double* out = cov + 9 * i;
-      if (!ok) {
-        std::fill(out, out + 9, 0.0);
-        continue;
+      if (!ok) {  // every point, then (a depth edge or a hole: rare)
+        found = 0;
+        for (int j = 0; j < n; ++j) consider(j);
       }
+      double* out = cov + 9 * i;
       double m[3] = {0, 0, 0}, s[6] = {0, 0, 0, 0, 0, 0};
       for (int a = 0; a < k; ++a) {
         const float* q = points + 3 * best_i[a];
