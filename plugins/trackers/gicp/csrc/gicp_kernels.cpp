@@ -327,7 +327,8 @@ void slk_grid_free(void* grid) { delete static_cast<CellGrid*>(grid); }
 
 // For each query (float32 (m,3)), the nearest mean within squared distance max_d2 (inclusive
 // bound as `<=`): index in out_idx (n = grid size where none) and squared distance in out_d2
-// (float32). hint: (m) a candidate index per query (>= n: none), e.g. the last match.
+// (float32). hint: (m) a candidate index per query (>= n: none), e.g. the last match; where
+// none, the previous query's match is tried first (a neighbour's, for queries in image order).
 void slk_grid_nearest(const void* handle, int m, const float* queries, float max_d2, const uint32_t* hint,
                       uint32_t* out_idx, float* out_d2, int nthreads) {
   const CellGrid& grid = *static_cast<const CellGrid*>(handle);
@@ -337,8 +338,10 @@ void slk_grid_nearest(const void* handle, int m, const float* queries, float max
       const float* q = queries + 3 * size_t(j);
       // at the bound with an index above any: a mean exactly at the bound is accepted
       uint64_t best = pack(max_d2, ~uint32_t(0));
-      if (hint != nullptr && hint[j] < uint32_t(n))
-        best = std::min(best, pack(dist2(q, &grid.means[3 * size_t(hint[j])]), hint[j]));
+      // the hint, else the previous query's match (queries in image order: a neighbour's)
+      uint32_t start = hint != nullptr ? hint[j] : uint32_t(n);
+      if (start >= uint32_t(n) && j > lo) start = out_idx[j - 1];
+      if (start < uint32_t(n)) best = std::min(best, pack(dist2(q, &grid.means[3 * size_t(start)]), start));
       best = grid.nearest(q, best);
       const bool found = index_of(best) < uint32_t(n);
       out_idx[j] = found ? index_of(best) : uint32_t(n);
