@@ -147,22 +147,27 @@ void add_correspondence(const double* s, const double* u, const double* R, const
     // J = [S, -I], S = [p]x; J^T W J = [[S^T W S, -S^T W], [-W S, W]], J^T W r = [S^T W r, -W r].
     const double S[9] = {0, -pz, py, pz, 0, -px, -py, px, 0};
     const double Wm[9] = {w00, w01, w02, w01, w11, w12, w02, w12, w22};
+    // Products with S's zero diagonal are left out (exactly: they only add zeros).
     double WS[9];
     for (int a = 0; a < 3; ++a)
-      for (int b = 0; b < 3; ++b) WS[3 * a + b] = Wm[3 * a] * S[b] + Wm[3 * a + 1] * S[3 + b] + Wm[3 * a + 2] * S[6 + b];
+      for (int b = 0; b < 3; ++b) {
+        const int k0 = b == 0 ? 1 : 0, k1 = b == 2 ? 1 : 2;  // the two k != b
+        WS[3 * a + b] = Wm[3 * a + k0] * S[3 * k0 + b] + Wm[3 * a + k1] * S[3 * k1 + b];
+      }
     double J[6][6];
     for (int a = 0; a < 3; ++a)
       for (int b = 0; b < 3; ++b) {
-        J[a][b] = S[a] * WS[b] + S[3 + a] * WS[3 + b] + S[6 + a] * WS[6 + b];  // S^T W S
-        J[a][3 + b] = -WS[3 * b + a];                                            // -(W S)^T = -S^T W
+        const int k0 = a == 0 ? 1 : 0, k1 = a == 2 ? 1 : 2;  // the two k != a
+        J[a][b] = S[3 * k0 + a] * WS[3 * k0 + b] + S[3 * k1 + a] * WS[3 * k1 + b];  // S^T W S
+        J[a][3 + b] = -WS[3 * b + a];                                                // -(W S)^T = -S^T W
         J[3 + a][3 + b] = Wm[3 * a + b];
       }
     int e = 0;
     for (int a = 0; a < 6; ++a)
       for (int b = a; b < 6; ++b) A[e++] += J[a][b];
-    A[21] += S[0] * Wr0 + S[3] * Wr1 + S[6] * Wr2;
-    A[22] += S[1] * Wr0 + S[4] * Wr1 + S[7] * Wr2;
-    A[23] += S[2] * Wr0 + S[5] * Wr1 + S[8] * Wr2;
+    A[21] += S[3] * Wr1 + S[6] * Wr2;
+    A[22] += S[1] * Wr0 + S[7] * Wr2;
+    A[23] += S[2] * Wr0 + S[5] * Wr1;
     A[24] -= Wr0, A[25] -= Wr1, A[26] -= Wr2;
     A[27] += r0 * Wr0 + r1 * Wr1 + r2 * Wr2;}
 
