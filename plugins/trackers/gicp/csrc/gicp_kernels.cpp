@@ -207,10 +207,6 @@ inline float distance_of(uint64_t key) {
 }
 inline uint32_t index_of(uint64_t key) { return uint32_t(key); }
 
-struct GridPoint {
-  float x[3];
-  int32_t index;
-};
 
 // At most this many cells (8 MB of offsets): a bigger box gets coarser cells.
 constexpr int64_t kMaxCells = int64_t(1) << 21;
@@ -220,7 +216,10 @@ struct CellGrid {
   double inv_h = 1.0, h = 1.0;
   int64_t extent[3] = {1, 1, 1};  // cells per axis (the finite means' bounding box)
   std::vector<float> means;       // (n,3) as given
-  std::vector<GridPoint> points;  // by cell (x-major, z fastest), then index
+  // The means by cell (x-major, z fastest), then index: coordinates and index, one array each
+  // (the scan over a run of means vectorises).
+  std::vector<float> xs, ys, zs;
+  std::vector<uint32_t> order;
   std::vector<int32_t> first;     // per cell: its first point; one more entry: the end
   int n = 0;
 
@@ -265,14 +264,28 @@ struct CellGrid {
       first[cell[i] + 1]++;
     }
     for (size_t c = 1; c < first.size(); ++c) first[c] += first[c - 1];
-    points.resize(first.back());
+    const size_t kept = size_t(first.back());
+    xs.resize(kept), ys.resize(kept), zs.resize(kept), order.resize(kept);
     std::vector<int32_t> fill(first.begin(), first.end() - 1);
     for (int i = 0; i < n; ++i) {  // in index order: each cell's run ascending by index
       if (cell[i] < 0) continue;
-      GridPoint& p = points[fill[cell[i]]++];
-      for (int a = 0; a < 3; ++a) p.x[a] = xyz[3 * size_t(i) + a];
-      p.index = i;
+      const int32_t at = fill[cell[i]]++;
+      xs[at] = xyz[3 * size_t(i)], ys[at] = xyz[3 * size_t(i) + 1], zs[at] = xyz[3 * size_t(i) + 2];
+      order[at] = uint32_t(i);
     }
+  }
+
+  // The best of `best` and the means at [lo, hi) in cell order (as dist2 and pack).
+  uint64_t scan(const float* q, int32_t lo, int32_t hi, uint64_t best) const {
+    const float qx = q[0], qy = q[1], qz = q[2];
+    for (int32_t k = lo; k < hi; ++k) {
+      const float dx = qx - xs[k], dy = qy - ys[k], dz = qz - zs[k];
+      float d = dx * dx;
+      d += dy * dy;
+      d += dz * dz;
+      best = std::min(best, pack(d, order[k]));
+    }
+    return best;
   }
 
   // The nearest mean to q by (float32 squared distance, index) better than `best`, a
@@ -308,9 +321,7 @@ struct CellGrid {
         while (c0 <= c1 && dab + gap2(2, c0) > distance_of(best)) ++c0;
         while (c1 >= c0 && dab + gap2(2, c1) > distance_of(best)) --c1;
         if (c0 > c1) continue;
-        const GridPoint* p = points.data() + first[cell_id(a, b, c0)];
-        const GridPoint* end = points.data() + first[cell_id(a, b, c1) + 1];
-        for (; p < end; ++p) best = std::min(best, pack(dist2(q, p->x), p->index));
+        best = scan(q, first[cell_id(a, b, c0)], first[cell_id(a, b, c1) + 1], best);
       }
     }
     return best;
