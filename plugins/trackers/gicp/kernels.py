@@ -6,9 +6,9 @@
   search all points. Same neighbours, so the same covariances.
 - `nearest_index`: the target means' search structure (built once per tracking keyframe) for the
   per-iteration nearest neighbour within the correspondence distance: pykdtree, or a compiled
-  uniform grid of cells (edge: the correspondence distance) that starts each search from the
-  last iteration's match and scans only the cells within reach (same results: float32 distances
-  as pykdtree's, ties to the lower index).
+  uniform grid of cells (edge: twice the correspondence distance) that starts each search from
+  the last iteration's match (else the previous query's) and scans only the cells within reach
+  (same results: float32 distances as pykdtree's, ties to the lower index).
 - `regularize`: slamkit.geometry.gaussians's `regularize` (the reference); the compiled version
   does the ellipse rule (the default) in one pass and leaves the rare covariances with a nearly
   repeated eigenvalue pair, which the reference decomposes otherwise, to it.
