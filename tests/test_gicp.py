@@ -337,9 +337,9 @@ def test_kdtree_built_only_in_update_target(kernels):
     built = []
     real = tracker.kernels.nearest_index
 
-    def counting(means):
+    def counting(means, max_distance):
         built.append(1)
-        return real(means)
+        return real(means, max_distance)
 
     tracker.kernels.nearest_index = counting
     tracker.initialize(POSE)

@@ -48,7 +48,10 @@ def test_knn_ties_go_to_the_lower_index():
     np.testing.assert_allclose(cov, ref, atol=1e-12)
 
 
-def test_frame_covariances_equal_the_reference_on_real_frames(library, tum_frames):
+@pytest.mark.parametrize("half_window", [1, kernels_module.GRID_HALF_WINDOW])
+def test_frame_covariances_equal_the_reference_on_real_frames(library, tum_frames, monkeypatch, half_window):
+    """With the default window and a 3x3 one (most points then unproven: every point searched)."""
+    monkeypatch.setattr(kernels_module, "GRID_HALF_WINDOW", half_window)
     compiled = CompiledKernels(library, num_threads=2)
     for frame in tum_frames:
         points, pix = backproject(np.asarray(frame.depth), frame.camera, 5)
@@ -72,6 +75,39 @@ def test_grid_search_proves_most_points(library, tum_frames):
                                      kernels_module.GRID_HALF_WINDOW, frame.camera.fx, frame.camera.fy, 5.0,
                                      cov.ctypes.data, exact.ctypes.data, 1)
     assert exact.mean() > 0.9
+
+
+def test_compiled_regularization_equals_the_reference(library, tum_frames):
+    """The ellipse rule on real frame covariances and on the awkward cases (nearly repeated and
+    zero eigenvalues, rank 1, negative rounding, non-finite, min_median): the reference's result
+    to rounding (libm's acos / cos may differ from numpy's by an ulp); other rules are the
+    reference's own. Most real covariances come out bit-identical."""
+    rng = np.random.default_rng(8)
+    frame = tum_frames[1]
+    points, pix = backproject(np.asarray(frame.depth), frame.camera, 5)
+    compiled, reference = CompiledKernels(library), NumpyKernels()
+    real = reference.frame_covariances(points, pix, frame.camera, 5, 10)
+    odd = covariance_from_scales(rng.normal(size=(12, 4)), np.exp(rng.uniform(-8, -2, size=(12, 3))))
+    odd[0] = np.eye(3) * 2e-4  # repeated eigenvalues: the reference's accurate path
+    odd[1] = np.diag([1e-4, 1e-4 * (1 + 1e-6), 3e-4])  # a nearly repeated pair
+    odd[2] = 0.0  # coincident neighbours
+    v = rng.normal(size=3)
+    odd[3] = np.outer(v, v)  # collinear neighbours: rank 1
+    odd[4] = np.diag([-1e-19, 1e-5, 2e-5])  # rounding below zero
+    odd[5, 0, 0] = np.nan
+    odd[6] = np.diag([1e-6, 2e-6, 1e-3])  # median below min_median
+    for cov, tolerance in ((real, 1e-13), (odd, 1e-10)):
+        for method, min_median in (("ellipse", None), ("ellipse", 1e-5), ("plane", None), ("none", None)):
+            ref = reference.regularize(cov, method, 1e-3, min_median)
+            got = compiled.regularize(cov, method, 1e-3, min_median)
+            np.testing.assert_array_equal(np.isnan(got), np.isnan(ref))
+            # an ulp of acos moves the eigenvalues by an ulp of the largest one: relative to
+            # each matrix's largest entry (more where the spectrum spans decades, as odd[6])
+            scale = np.maximum(np.nanmax(np.abs(ref), axis=(1, 2)), 1e-300)[:, None, None]
+            assert np.nanmax(np.abs(got - ref) / scale) <= tolerance
+    assert np.array_equal(compiled.regularize(odd, "ellipse", 1e-3)[2], np.eye(3))
+    same = np.all(compiled.regularize(real, "ellipse", 1e-3) == reference.regularize(real, "ellipse", 1e-3), axis=(1, 2))
+    assert same.mean() > 0.5
 
 
 def _problem(rng, n=3000, n_target=2000, degenerate=50):
@@ -129,19 +165,101 @@ def test_without_a_compiler_auto_falls_back_and_compiled_says_why(monkeypatch, t
     assert create_kernels(Kernels.numpy).name == "numpy"
 
 
+def _brute_force_nearest(means, queries, max_distance):
+    """The nearest mean by (float32 squared distance summed x, y, z in turn, index) within
+    max_distance: (squared distances, inf where none; indices, len(means) where none)."""
+    diff = queries[:, None, :] - means[None, :, :]  # float32
+    d2 = (diff[..., 0] * diff[..., 0] + diff[..., 1] * diff[..., 1]) + diff[..., 2] * diff[..., 2]
+    best = np.argmin(d2, axis=1)  # the first (lowest index) of equal minima
+    best_d2 = d2[np.arange(len(queries)), best]
+    inside = best_d2 <= np.float32(max_distance) ** 2
+    return np.where(inside, best_d2, np.float32(np.inf)), np.where(inside, best, len(means)).astype(np.uint32)
+
+
+def _hints(rng, reference_idx, n):
+    """No hint, the right answer, and random hints (some out of range: none)."""
+    return (None, reference_idx, rng.integers(0, n + 5, size=len(reference_idx)).astype(np.uint32))
+
+
+@pytest.mark.parametrize("cell_factor", [0.3, 1.0, 2.0, 7.0])
+def test_compiled_grid_equals_brute_force_with_ties(library, cell_factor):
+    """Means and queries on a 1 cm lattice (many equal distances, duplicate means): the grid
+    returns the lowest-index mean among the nearest, for any cell size, distance and hint."""
+    from slamkit_plugins.trackers.gicp.kernels import CompiledGrid
+
+    rng = np.random.default_rng(11)
+    means = (rng.integers(0, 20, size=(1500, 3)) * 0.01).astype(np.float32)
+    means[1000:1100] = means[:100]  # duplicates: the lower index wins
+    queries = (rng.integers(-3, 23, size=(2000, 3)) * 0.01).astype(np.float32)
+    queries[:50] = means[1000:1050]  # exactly on a duplicated mean
+    for max_distance in (0.005, 0.01, 0.03, 0.1):
+        ref_d2, ref_idx = _brute_force_nearest(means, queries, max_distance)
+        grid = CompiledGrid(library, means, cell_factor * max_distance, num_threads=2)
+        for hint in _hints(rng, ref_idx, len(means)):
+            d2, idx = grid.nearest(queries, max_distance, hint=hint)
+            np.testing.assert_array_equal(idx, ref_idx)
+            np.testing.assert_array_equal(d2, ref_d2)
+    assert np.all(_brute_force_nearest(means, queries[:50], 0.01)[1] < 100)
+
+
+def test_compiled_grid_equals_pykdtree_on_random_clouds(library):
+    """Continuous random means (a wide box, a thin slab) and queries: the same matches as pykdtree,
+    at the grid's own distance and at three times it (the coarse-to-fine fallback's)."""
+    from slamkit_plugins.trackers.gicp.kernels import CompiledGrid, PyKDTreeIndex
+
+    rng = np.random.default_rng(12)
+    for scale in ([2.0, 2.0, 2.0], [3.0, 3.0, 0.02]):
+        means = (rng.uniform(-1, 1, size=(20000, 3)) * scale + [0, 0, 2]).astype(np.float32)
+        queries = (means[rng.choice(len(means), 5000)] + rng.normal(scale=0.03, size=(5000, 3))).astype(np.float32)
+        grid = CompiledGrid(library, means, 0.06, num_threads=1)
+        for max_distance in (0.03, 0.09):
+            ref_d2, ref_idx = PyKDTreeIndex(means).nearest(queries, max_distance)
+            for hint in _hints(rng, ref_idx, len(means)):
+                d2, idx = grid.nearest(queries, max_distance, hint=hint)
+                np.testing.assert_array_equal(idx, ref_idx)
+                np.testing.assert_array_equal(d2, ref_d2)
+
+
+def test_compiled_grid_answers_far_and_non_finite_queries_with_none(library):
+    from slamkit_plugins.trackers.gicp.kernels import CompiledGrid
+
+    means = np.array([[0, 0, 1], [0.01, 0, 1]], dtype=np.float32)
+    queries = np.array([[0, 0, 1.001], [50, 0, 1], [np.nan, 0, 1], [np.inf, 0, 0], [0.02, 0, 1]], dtype=np.float32)
+    d2, idx = CompiledGrid(library, means, 0.06).nearest(queries, 0.03)
+    assert idx.tolist() == [0, 2, 2, 2, 1]
+    assert np.isinf(d2[1:4]).all() and d2[0] == pytest.approx(1e-6, rel=1e-3)
+    d2, idx = CompiledGrid(library, np.zeros((0, 3), np.float32), 0.06).nearest(queries, 0.03)
+    assert idx.tolist() == [0] * 5 and np.isinf(d2).all()
+    with_nan = np.array([[0, 0, 1], [np.nan, 0, 1], [0.01, 0, 1]], dtype=np.float32)
+    assert CompiledGrid(library, with_nan, 0.06).nearest(queries, 0.03)[1].tolist() == [0, 3, 3, 3, 2]
+
+
+def test_compiled_grid_over_a_huge_box_uses_coarser_cells_and_stays_exact(library):
+    """Means spread over kilometres (more cells than the grid holds at the asked size)."""
+    from slamkit_plugins.trackers.gicp.kernels import CompiledGrid
+
+    rng = np.random.default_rng(13)
+    means = rng.uniform(-2000, 2000, size=(3000, 3)).astype(np.float32)
+    queries = (means[rng.choice(3000, 1000)] + rng.normal(scale=0.02, size=(1000, 3))).astype(np.float32)
+    ref_d2, ref_idx = _brute_force_nearest(means, queries, 0.03)
+    d2, idx = CompiledGrid(library, means, 0.06).nearest(queries, 0.03)
+    np.testing.assert_array_equal(idx, ref_idx)
+    np.testing.assert_array_equal(d2, ref_d2)
+
+
 def test_compiled_nearest_neighbours_equal_pykdtree(library, tum_frames):
     """Real map-like points (a frame's back-projection) and queries offset by up to ~4 cm: the
     same matches within 3 cm as pykdtree, with or without a hint (a wrong hint included)."""
-    from slamkit_plugins.trackers.gicp.kernels import CompiledKDTree, PyKDTreeIndex
+    from slamkit_plugins.trackers.gicp.kernels import PyKDTreeIndex
 
     rng = np.random.default_rng(5)
     frame = tum_frames[0]
     means, _ = backproject(np.asarray(frame.depth), frame.camera, 3)
     queries = (means[rng.choice(len(means), 4000)] + rng.normal(scale=0.02, size=(4000, 3))).astype(np.float32)
     ref_d2, ref_idx = PyKDTreeIndex(means).nearest(queries, 0.03)
-    tree = CompiledKDTree(library, means, num_threads=2)
-    for hint in (None, ref_idx, rng.integers(0, len(means) + 5, size=4000).astype(np.uint32)):
-        d2, idx = tree.nearest(queries, 0.03, hint=hint)
+    index = CompiledKernels(library, num_threads=2).nearest_index(means, 0.03)
+    for hint in _hints(rng, ref_idx, len(means)):
+        d2, idx = index.nearest(queries, 0.03, hint=hint)
         assert np.array_equal(idx, ref_idx)
         np.testing.assert_array_equal(d2, ref_d2)
     assert 0.2 < np.mean(ref_idx < len(means)) < 1.0  # both matched and unmatched queries

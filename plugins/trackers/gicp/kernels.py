@@ -2,12 +2,16 @@
 
 - `frame_covariances`: each back-projected point's k-NN covariance (slamkit.geometry.gaussians's
   `knn_covariances`). The compiled version searches a window of the pixel grid first and proves
-  the result exact by a projection bound; the few points it cannot prove (depth edges, holes) go
-  to the KD-tree. Same neighbours, so the same covariances.
+  the result exact by a projection bound; the few points it cannot prove (depth edges, holes)
+  search all points. Same neighbours, so the same covariances.
 - `nearest_index`: the target means' search structure (built once per tracking keyframe) for the
   per-iteration nearest neighbour within the correspondence distance: pykdtree, or a compiled
-  KD-tree that starts each search from the last iteration's match (same results: float32
-  distances as pykdtree's, ties to the lower index).
+  uniform grid of cells (edge: twice the correspondence distance) that starts each search from
+  the last iteration's match (else the previous query's) and scans only the cells within reach
+  (same results: float32 distances as pykdtree's, ties to the lower index).
+- `regularize`: slamkit.geometry.gaussians's `regularize` (the reference); the compiled version
+  does the ellipse rule (the default) in one pass and leaves the rare covariances with a nearly
+  repeated eigenvalue pair, which the reference decomposes otherwise, to it.
 - `linearize`: one Levenberg-Marquardt step's normal equations H, g and cost at a pose, plus the
   cost of trial poses with the same correspondences and weights.
 
@@ -27,15 +31,18 @@ from typing import Callable
 import numpy as np
 from pykdtree.kdtree import KDTree
 
-from slamkit.geometry.gaussians import knn_covariances, whitening_sym3
+from slamkit.geometry.gaussians import Regularization, knn_covariances, regularize, whitening_sym3
 from slamkit.native import NativeLibrary, available_threads
 
 SOURCE = Path(__file__).resolve().parent / "csrc" / "gicp_kernels.cpp"
-ABI_VERSION = 2
-#: Window half-width (grid cells) of the compiled k-NN search: 9x9 cells around each point.
-GRID_HALF_WINDOW = 4
-#: Points per KD-tree leaf (4..32 measured alike on TUM: ~2 ms for 10k queries into 31k means).
+ABI_VERSION = 6
+#: Window half-width (grid cells) of the compiled k-NN search: up to 25x25 cells around each point
+#: (most stop within 5x5; the ~0.05% it cannot prove on TUM search every point).
+GRID_HALF_WINDOW = 12
+#: Points per pykdtree leaf (the numpy kernels' nearest-neighbour index).
 KDTREE_LEAF_SIZE = 16
+#: The compiled nearest-neighbour grid's cell edge, in units of the correspondence distance.
+GRID_CELL_FACTOR = 2.0
 #: Condition number beyond which a combined covariance is inverted as a pseudo-inverse.
 MAX_CONDITION = 1e10
 
@@ -67,16 +74,18 @@ def _declare(lib) -> None:
     P, I, D = ctypes.c_void_p, ctypes.c_int, ctypes.c_double
     lib.slk_grid_knn_covariances.restype = None
     lib.slk_grid_knn_covariances.argtypes = [I, P, P, P, I, I, I, I, D, D, D, P, P, I]
+    lib.slk_regularize_ellipse.restype = None
+    lib.slk_regularize_ellipse.argtypes = [I, P, D, P, P, I]
     lib.slk_gicp_linearize.restype = I
     lib.slk_gicp_linearize.argtypes = [I, P, I, P, P, P, P, D, P, P, P, P, P, P, I]
     lib.slk_gicp_cost.restype = D
     lib.slk_gicp_cost.argtypes = [I, P, P, P, P, P, P, I]
-    lib.slk_kdtree_build.restype = P
-    lib.slk_kdtree_build.argtypes = [I, P, I]
-    lib.slk_kdtree_free.restype = None
-    lib.slk_kdtree_free.argtypes = [P]
-    lib.slk_kdtree_nearest.restype = None
-    lib.slk_kdtree_nearest.argtypes = [P, I, P, ctypes.c_float, P, P, P, I]
+    lib.slk_grid_build.restype = P
+    lib.slk_grid_build.argtypes = [I, P, D]
+    lib.slk_grid_free.restype = None
+    lib.slk_grid_free.argtypes = [P]
+    lib.slk_grid_nearest.restype = None
+    lib.slk_grid_nearest.argtypes = [P, I, P, ctypes.c_float, P, P, P, I]
 
 
 def new_library() -> NativeLibrary:
@@ -105,8 +114,14 @@ class NumpyKernels:
         pixel indices `pix` of every `stride`-th pixel."""
         return knn_covariances(points, k)
 
-    def nearest_index(self, means: np.ndarray) -> "NearestIndex":
-        """A nearest-neighbour index over (N,3) float32 target means (metres)."""
+    def regularize(self, cov: np.ndarray, method: Regularization, eps: float,
+                   min_median: float | None = None) -> np.ndarray:
+        """(N,3,3) covariances (m^2) regularised for G-ICP (slamkit.geometry.gaussians.regularize)."""
+        return regularize(cov, method, eps, min_median=min_median)
+
+    def nearest_index(self, means: np.ndarray, max_distance: float) -> "NearestIndex":
+        """A nearest-neighbour index over (N,3) float32 target means (metres) for searches
+        within about `max_distance` metres (any distance is answered; this one fastest)."""
         return PyKDTreeIndex(means)
 
     def linearize(self, src: np.ndarray, target: np.ndarray, nn: np.ndarray, T: np.ndarray) -> Linearization:
@@ -170,14 +185,24 @@ class CompiledKernels(NumpyKernels):
         self.lib.slk_grid_knn_covariances(n, _ptr(pts), _ptr(cell), _ptr(grid), gh, gw, k, GRID_HALF_WINDOW,
                                           float(camera.fx), float(camera.fy), float(stride), _ptr(cov), _ptr(exact),
                                           self.num_threads)
-        rest = np.flatnonzero(exact == 0)
-        if len(rest):
-            tree = KDTree(pts, leafsize=16)
-            cov[rest] = knn_covariances(pts, k, tree=tree, query=rest)
         return cov
 
-    def nearest_index(self, means: np.ndarray) -> "NearestIndex":
-        return CompiledKDTree(self.lib, means, self.num_threads)
+    def regularize(self, cov: np.ndarray, method: Regularization, eps: float,
+                   min_median: float | None = None) -> np.ndarray:
+        cov = np.ascontiguousarray(cov, dtype=np.float64)
+        n = len(cov)
+        if Regularization(method) is not Regularization.ellipse or n == 0:
+            return super().regularize(cov, method, eps, min_median)
+        out, redo = np.empty_like(cov), np.empty(n, dtype=np.uint8)
+        self.lib.slk_regularize_ellipse(n, _ptr(cov), np.nan if min_median is None else float(min_median),
+                                        _ptr(out), _ptr(redo), self.num_threads)
+        rest = np.flatnonzero(redo)
+        if len(rest):
+            out[rest] = super().regularize(cov[rest], method, eps, min_median)
+        return out
+
+    def nearest_index(self, means: np.ndarray, max_distance: float) -> "NearestIndex":
+        return CompiledGrid(self.lib, means, GRID_CELL_FACTOR * max_distance, self.num_threads)
 
     def linearize(self, src: np.ndarray, target: np.ndarray, nn: np.ndarray, T: np.ndarray) -> Linearization:
         n = len(src)
@@ -220,28 +245,31 @@ class PyKDTreeIndex(NearestIndex):
         return np.where(idx < self.size, d2, np.inf).astype(np.float32), idx
 
 
-class CompiledKDTree(NearestIndex):
-    """csrc/gicp_kernels.cpp's KD-tree (freed with this object)."""
+class CompiledGrid(NearestIndex):
+    """csrc/gicp_kernels.cpp's grid of `cell_size`-metre cells over the means (freed with this
+    object). Any search distance is answered exactly; one close to the cell size is fastest."""
 
-    def __init__(self, lib, means: np.ndarray, num_threads: int = 1):
+    def __init__(self, lib, means: np.ndarray, cell_size: float, num_threads: int = 1):
+        if not cell_size > 0:
+            raise ValueError(f"grid cell size: expected > 0 metres, got {cell_size}")
         self.lib, self.num_threads = lib, num_threads
         self.means = np.ascontiguousarray(means, dtype=np.float32)
         self.size = len(self.means)
-        self.handle = lib.slk_kdtree_build(self.size, _ptr(self.means), 32)
+        self.handle = lib.slk_grid_build(self.size, _ptr(self.means), float(cell_size))
 
     def nearest(self, queries, max_distance, hint=None):
         q = np.ascontiguousarray(queries, dtype=np.float32)
         m = len(q)
         idx, d2 = np.empty(m, dtype=np.uint32), np.empty(m, dtype=np.float32)
         h = None if hint is None else np.ascontiguousarray(hint, dtype=np.uint32)
-        self.lib.slk_kdtree_nearest(self.handle, m, _ptr(q), np.float32(max_distance) ** 2,
-                                    None if h is None else _ptr(h), _ptr(idx), _ptr(d2), self.num_threads)
+        self.lib.slk_grid_nearest(self.handle, m, _ptr(q), np.float32(max_distance) ** 2,
+                                  None if h is None else _ptr(h), _ptr(idx), _ptr(d2), self.num_threads)
         return d2, idx
 
     def __del__(self):
         handle, self.handle = getattr(self, "handle", None), None
         if handle:
-            self.lib.slk_kdtree_free(handle)
+            self.lib.slk_grid_free(handle)
 
 
 def _rotate_rows(R: np.ndarray, cov_rows: np.ndarray, m: int) -> np.ndarray:

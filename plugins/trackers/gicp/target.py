@@ -8,14 +8,15 @@ import numpy as np
 class Target:
     """The aligned-to map Gaussians in the world frame: means (metres; float32 for the search and
     float64 for residuals), regularised covariances (m^2, float64), the map `version` they were
-    taken at and the nearest-neighbour index over the means (built here, once per target)."""
+    taken at and the nearest-neighbour index over the means (built here, once per target, for
+    searches within `max_distance` metres)."""
 
-    def __init__(self, means: np.ndarray, covariances: np.ndarray, version: int, kernels):
+    def __init__(self, means: np.ndarray, covariances: np.ndarray, version: int, kernels, max_distance: float):
         self.means32 = np.ascontiguousarray(means, dtype=np.float32)
         # Means and covariances side by side: one gather per iteration.
         self.packed = np.concatenate([self.means32.astype(np.float64), covariances.reshape(-1, 9)], axis=1)
         self.version = version
-        self.index = kernels.nearest_index(self.means32)
+        self.index = kernels.nearest_index(self.means32, max_distance)
 
     @property
     def means(self) -> np.ndarray:

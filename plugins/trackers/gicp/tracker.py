@@ -12,7 +12,8 @@ becomes 1e-3 I is `target_min_median`, off by default: see GICPConfig). The pose
 
 by Levenberg-Marquardt on SE(3) (right perturbation T <- T exp(xi)), re-finding each source
 point's nearest target mean within `max_correspondence_distance` at every iteration. The
-target's KD-tree is built once per tracking keyframe, in `update_target`, never per frame.
+target's nearest-neighbour index is built once per tracking keyframe, in `update_target`, never
+per frame.
 Only trackable points (depth <= the frame's depth_trunc) are aligned; all get covariances.
 
 The optimisation starts from a constant-velocity prediction (measured better than the
@@ -35,7 +36,7 @@ import time
 
 import numpy as np
 
-from slamkit.geometry.gaussians import Regularization, regularize, rotate_covariances
+from slamkit.geometry.gaussians import Regularization, rotate_covariances
 from slamkit.map.gaussian_map import GaussianMap
 from slamkit.geometry.transforms import backproject, invert_pose
 from slamkit.roles import Tracker, require
@@ -50,8 +51,8 @@ from slamkit_plugins.trackers.gicp.target import Target
 class GICPTracker(Tracker):
     """Frame-to-map G-ICP on the shared Gaussian map (see the module docstring).
 
-    `tree_builds` counts target KD-tree builds (one per `update_target` with a non-empty
-    target)."""
+    `tree_builds` counts target nearest-neighbour index builds (one per `update_target` with a
+    non-empty target)."""
 
     def __init__(self, cfg: GICPConfig):
         self.cfg = cfg
@@ -81,13 +82,13 @@ class GICPTracker(Tracker):
 
     def update_target(self, gaussian_map: GaussianMap) -> None:
         """Take the map's trackable Gaussians as the new target; regularise their covariances
-        and build the KD-tree (the only place it is built)."""
+        and build their nearest-neighbour index (the only place it is built)."""
         snap = gaussian_map.tracking_target(self.min_opacity, TargetGeometry(self.cfg.target_geometry).value)
         if len(snap.means) == 0:
             self.target = None
             return
         cov = self._regularize(snap.covariances, target=True)
-        self.target = Target(snap.means, cov, snap.version, self.kernels)
+        self.target = Target(snap.means, cov, snap.version, self.kernels, self.max_corr)
         self.tree_builds += 1
 
     def state_dict(self) -> dict:
@@ -106,7 +107,7 @@ class GICPTracker(Tracker):
         self.tree_builds = int(state.get("tree_builds", 0))
         target = state.get("target")
         self.target = None if target is None else Target(np.asarray(target["means"]), np.asarray(
-            target["covariances"], dtype=np.float64), int(target["version"]), self.kernels)
+            target["covariances"], dtype=np.float64), int(target["version"]), self.kernels, self.max_corr)
 
     def predict(self) -> np.ndarray:
         """The pose the optimisation starts from (camera-to-world)."""
@@ -126,7 +127,7 @@ class GICPTracker(Tracker):
     # ---------------------------------------------------------------- internals
     def _regularize(self, cov: np.ndarray, target: bool) -> np.ndarray:
         min_median = self.cfg.target_min_median if target else None
-        return regularize(cov, self.regularization, self.cfg.plane_eps, min_median=min_median)
+        return self.kernels.regularize(cov, self.regularization, self.cfg.plane_eps, min_median=min_median)
 
     def _track(self, frame: Frame, predicted: np.ndarray) -> TrackingResult:
         cfg = self.cfg

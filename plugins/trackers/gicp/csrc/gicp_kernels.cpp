@@ -4,8 +4,13 @@
 //   Each point's k nearest neighbours are searched ring by ring in a (2h+1)^2 window of the grid
 //   around it, stopping as soon as no point outside the rings searched can be closer than the
 //   k-th found (a bound on how far in the image a 3D ball of that radius projects). Points it
-//   cannot prove are flagged, and the caller redoes them with a KD-tree: the whole is exact k-NN,
-//   ties at the k-th distance going to the lower index as in the numpy reference.
+//   cannot prove (flagged) take every point as a candidate: the whole is exact k-NN, ties at the
+//   k-th distance going to the lower index as in the numpy reference.
+// slk_grid_build / slk_grid_nearest: the nearest target mean within the correspondence distance,
+//   by a uniform grid of cells over the means (exactly the nearest by float32 distance, ties to
+//   the lower index, as pykdtree).
+// slk_regularize_ellipse: the ellipse regularisation of covariances (eigenvalues by the
+//   trigonometric formula; the rare rows the reference treats otherwise are left to it).
 // slk_gicp_linearize / slk_gicp_cost: the normal equations of one Levenberg-Marquardt step and
 //   the cost of a trial pose with the same correspondences and weights.
 //
@@ -15,6 +20,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <limits>
 #include <thread>
 #include <vector>
@@ -141,74 +147,41 @@ void add_correspondence(const double* s, const double* u, const double* R, const
     // J = [S, -I], S = [p]x; J^T W J = [[S^T W S, -S^T W], [-W S, W]], J^T W r = [S^T W r, -W r].
     const double S[9] = {0, -pz, py, pz, 0, -px, -py, px, 0};
     const double Wm[9] = {w00, w01, w02, w01, w11, w12, w02, w12, w22};
+    // Products with S's zero diagonal are left out (exactly: they only add zeros).
     double WS[9];
     for (int a = 0; a < 3; ++a)
-      for (int b = 0; b < 3; ++b) WS[3 * a + b] = Wm[3 * a] * S[b] + Wm[3 * a + 1] * S[3 + b] + Wm[3 * a + 2] * S[6 + b];
+      for (int b = 0; b < 3; ++b) {
+        const int k0 = b == 0 ? 1 : 0, k1 = b == 2 ? 1 : 2;  // the two k != b
+        WS[3 * a + b] = Wm[3 * a + k0] * S[3 * k0 + b] + Wm[3 * a + k1] * S[3 * k1 + b];
+      }
     double J[6][6];
     for (int a = 0; a < 3; ++a)
       for (int b = 0; b < 3; ++b) {
-        J[a][b] = S[a] * WS[b] + S[3 + a] * WS[3 + b] + S[6 + a] * WS[6 + b];  // S^T W S
-        J[a][3 + b] = -WS[3 * b + a];                                            // -(W S)^T = -S^T W
+        const int k0 = a == 0 ? 1 : 0, k1 = a == 2 ? 1 : 2;  // the two k != a
+        J[a][b] = S[3 * k0 + a] * WS[3 * k0 + b] + S[3 * k1 + a] * WS[3 * k1 + b];  // S^T W S
+        J[a][3 + b] = -WS[3 * b + a];                                                // -(W S)^T = -S^T W
         J[3 + a][3 + b] = Wm[3 * a + b];
       }
     int e = 0;
     for (int a = 0; a < 6; ++a)
       for (int b = a; b < 6; ++b) A[e++] += J[a][b];
-    A[21] += S[0] * Wr0 + S[3] * Wr1 + S[6] * Wr2;
-    A[22] += S[1] * Wr0 + S[4] * Wr1 + S[7] * Wr2;
-    A[23] += S[2] * Wr0 + S[5] * Wr1 + S[8] * Wr2;
+    A[21] += S[3] * Wr1 + S[6] * Wr2;
+    A[22] += S[1] * Wr0 + S[7] * Wr2;
+    A[23] += S[2] * Wr0 + S[5] * Wr1;
     A[24] -= Wr0, A[25] -= Wr1, A[26] -= Wr2;
     A[27] += r0 * Wr0 + r1 * Wr1 + r2 * Wr2;}
 
 
 // ---------------------------------------------------------------------------------------------
-// A KD-tree over the target means for the per-iteration nearest-neighbour search.
-// Squared distances are summed in float32 dimension by dimension, as pykdtree does for float32
-// data, and an equal distance goes to the lower index, so the result does not depend on the
-// tree's shape. A hint (the previous iteration's match) starts the search with a small radius.
-struct KDNode {
-  float split;
-  int32_t dim;       // -1: leaf
-  int32_t lo, hi;    // leaf: range in `order`
-  int32_t child[2];  // inner: below / above split
-};
-
-struct KDTree {
-  std::vector<float> points;   // (N,3) as given
-  std::vector<float> sorted;   // (N,3) in leaf order
-  std::vector<int32_t> order;  // leaf order -> index
-  std::vector<KDNode> nodes;
-  int leaf_size = 16;
-
-  int build(int lo, int hi) {
-    const int id = int(nodes.size());
-    nodes.push_back(KDNode{0.f, -1, lo, hi, {-1, -1}});
-    if (hi - lo <= leaf_size) return id;
-    float mn[3] = {1e30f, 1e30f, 1e30f}, mx[3] = {-1e30f, -1e30f, -1e30f};
-    for (int i = lo; i < hi; ++i)
-      for (int d = 0; d < 3; ++d) {
-        const float v = points[3 * size_t(order[i]) + d];
-        mn[d] = std::min(mn[d], v);
-        mx[d] = std::max(mx[d], v);
-      }
-    int dim = 0;
-    for (int d = 1; d < 3; ++d)
-      if (mx[d] - mn[d] > mx[dim] - mn[dim]) dim = d;
-    if (!(mx[dim] > mn[dim])) return id;  // all points equal: one leaf
-    const int mid = lo + (hi - lo) / 2;
-    std::nth_element(order.begin() + lo, order.begin() + mid, order.begin() + hi, [&](int32_t a, int32_t b) {
-      return points[3 * size_t(a) + dim] < points[3 * size_t(b) + dim];
-    });
-    const float split = points[3 * size_t(order[mid]) + dim];
-    const int left = build(lo, mid);
-    const int right = build(mid, hi);
-    nodes[id].dim = dim;
-    nodes[id].split = split;
-    nodes[id].child[0] = left;
-    nodes[id].child[1] = right;
-    return id;
-  }
-};
+// A uniform grid over the target means for the per-iteration nearest-neighbour search: the means
+// sorted by cell, and each cell's first mean in that order (cells x-major, z fastest, over the
+// means' bounding box).
+// A query scans the cells of the box [q - r, q + r] (r: the search radius, or the hint's distance
+// when smaller), skipping those farther from q than the best mean found so far. Squared distances are
+// summed in float32 dimension by dimension, as pykdtree does for float32 data, and an equal
+// distance goes to the lower index: the result is the nearest mean by (float32 distance, index)
+// whatever the cell size. A hint (the previous iteration's match) starts the search with a small
+// radius.
 
 inline float dist2(const float* a, const float* b) {
   const float dx = a[0] - b[0], dy = a[1] - b[1], dz = a[2] - b[2];
@@ -218,85 +191,187 @@ inline float dist2(const float* a, const float* b) {
   return d;
 }
 
-void nearest(const KDTree& tree, const float* q, float& best_d, int32_t& best_i) {
-  int32_t stack[128];
-  float stack_gap[128];
-  int top = 0;
-  stack[top] = 0;
-  stack_gap[top++] = 0.f;
-  while (top > 0) {
-    --top;
-    const KDNode& node = tree.nodes[stack[top]];
-    const float gap = stack_gap[top];  // a lower bound on the squared distance to the node's cell
-    if (gap > best_d) continue;
-    if (node.dim < 0) {
-      for (int k = node.lo; k < node.hi; ++k) {
-        const float d = dist2(q, &tree.sorted[3 * size_t(k)]);
-        const int32_t i = tree.order[k];
-        if (d < best_d || (d == best_d && i < best_i)) best_d = d, best_i = i;
-      }
-      continue;
-    }
-    const float diff = q[node.dim] - node.split;
-    const int near = diff < 0 ? 0 : 1;
-    if (top + 2 > 128) continue;  // cannot happen for trees of < 2^60 points
-    stack[top] = node.child[1 - near];  // the far side, visited later if still within reach
-    stack_gap[top++] = std::max(gap, diff * diff);
-    stack[top] = node.child[near];
-    stack_gap[top++] = gap;
-  }
+// A (float32 squared distance, index) pair as one integer ordered as the pairs are (the bits of
+// a float >= 0 are ordered as its value): the nearest by distance, ties to the lower index, is
+// the minimum.
+inline uint64_t pack(float d, uint32_t index) {
+  uint32_t bits;
+  std::memcpy(&bits, &d, 4);
+  return (uint64_t(bits) << 32) | index;
 }
+inline float distance_of(uint64_t key) {
+  const uint32_t bits = uint32_t(key >> 32);
+  float d;
+  std::memcpy(&d, &bits, 4);
+  return d;
+}
+inline uint32_t index_of(uint64_t key) { return uint32_t(key); }
 
+
+// At most this many cells (8 MB of offsets): a bigger box gets coarser cells.
+constexpr int64_t kMaxCells = int64_t(1) << 21;
+
+struct CellGrid {
+  double origin[3] = {0, 0, 0};  // the corner of cell (0, 0, 0), metres
+  double inv_h = 1.0, h = 1.0;
+  int64_t extent[3] = {1, 1, 1};  // cells per axis (the finite means' bounding box)
+  std::vector<float> means;       // (n,3) as given
+  // The means by cell (x-major, z fastest), then index: coordinates and index, one array each
+  // (the scan over a run of means vectorises).
+  std::vector<float> xs, ys, zs;
+  std::vector<uint32_t> order;
+  std::vector<int32_t> first;     // per cell: its first point; one more entry: the end
+  int n = 0;
+
+  // The cell coordinate along axis a of coordinate v (as a double, before clamping).
+  double cell_coord(double v, int a) const { return std::floor((v - origin[a]) * inv_h); }
+  int64_t cell_id(int64_t a, int64_t b, int64_t c) const { return (a * extent[1] + b) * extent[2] + c; }
+
+  void build(int count, const float* xyz, double cell_size) {
+    n = count;
+    means.assign(xyz, xyz + 3 * size_t(n));
+    auto finite = [&](int i) {
+      const float* p = xyz + 3 * size_t(i);
+      return std::isfinite(p[0]) && std::isfinite(p[1]) && std::isfinite(p[2]);
+    };
+    double lo[3] = {0, 0, 0}, hi[3] = {0, 0, 0};
+    bool any = false;
+    for (int i = 0; i < n; ++i) {
+      if (!finite(i)) continue;  // never within a finite distance: left out
+      for (int a = 0; a < 3; ++a) {
+        const double v = xyz[3 * size_t(i) + a];
+        lo[a] = any ? std::min(lo[a], v) : v;
+        hi[a] = any ? std::max(hi[a], v) : v;
+      }
+      any = true;
+    }
+    for (int a = 0; a < 3; ++a) origin[a] = lo[a];
+    for (h = cell_size;; h *= 1.25) {  // coarser cells while the box holds too many
+      inv_h = 1.0 / h;
+      double cells = 1.0;
+      for (int a = 0; a < 3; ++a) cells *= cell_coord(hi[a], a) + 1.0;
+      if (cells <= double(kMaxCells)) break;
+    }
+    for (int a = 0; a < 3; ++a) extent[a] = int64_t(cell_coord(hi[a], a)) + 1;
+    std::vector<int32_t> cell(n, -1);
+    first.assign(size_t(extent[0] * extent[1] * extent[2]) + 1, 0);
+    for (int i = 0; i < n; ++i) {
+      if (!finite(i)) continue;
+      int64_t c[3];
+      for (int a = 0; a < 3; ++a)
+        c[a] = std::min<int64_t>(extent[a] - 1, std::max<int64_t>(0, int64_t(cell_coord(xyz[3 * size_t(i) + a], a))));
+      cell[i] = int32_t(cell_id(c[0], c[1], c[2]));
+      first[cell[i] + 1]++;
+    }
+    for (size_t c = 1; c < first.size(); ++c) first[c] += first[c - 1];
+    const size_t kept = size_t(first.back());
+    xs.resize(kept), ys.resize(kept), zs.resize(kept), order.resize(kept);
+    std::vector<int32_t> fill(first.begin(), first.end() - 1);
+    for (int i = 0; i < n; ++i) {  // in index order: each cell's run ascending by index
+      if (cell[i] < 0) continue;
+      const int32_t at = fill[cell[i]]++;
+      xs[at] = xyz[3 * size_t(i)], ys[at] = xyz[3 * size_t(i) + 1], zs[at] = xyz[3 * size_t(i) + 2];
+      order[at] = uint32_t(i);
+    }
+  }
+
+  // The best of `best` and the means at [lo, hi) in cell order (as dist2 and pack).
+  uint64_t scan(const float* q, int32_t lo, int32_t hi, uint64_t best) const {
+    const float qx = q[0], qy = q[1], qz = q[2];
+    for (int32_t k = lo; k < hi; ++k) {
+      const float dx = qx - xs[k], dy = qy - ys[k], dz = qz - zs[k];
+      float d = dx * dx;
+      d += dy * dy;
+      d += dz * dz;
+      best = std::min(best, pack(d, order[k]));
+    }
+    return best;
+  }
+
+  // The nearest mean to q by (float32 squared distance, index) better than `best`, a
+  // (distance, index) key (see pack); returns the better key.
+  uint64_t nearest(const float* q, uint64_t best) const {
+    if (n == 0 || !(std::isfinite(q[0]) && std::isfinite(q[1]) && std::isfinite(q[2]))) return best;
+    // A mean whose float32 squared distance is <= d is within this of q along each axis
+    // (rounding makes the float32 distance at most a few ulps smaller than the true one).
+    const double reach = std::sqrt(double(distance_of(best))) * (1.0 + 1e-6);
+    int64_t lo[3], hi[3];
+    double u[3];  // q in cell units
+    for (int a = 0; a < 3; ++a) {
+      u[a] = (double(q[a]) - origin[a]) * inv_h;
+      const double l = cell_coord(double(q[a]) - reach, a), r = cell_coord(double(q[a]) + reach, a);
+      if (r < 0 || l >= double(extent[a])) return best;
+      lo[a] = l < 0 ? 0 : int64_t(l);
+      hi[a] = r >= double(extent[a]) ? extent[a] - 1 : int64_t(r);
+    }
+    // Squared distance (m^2) from q to cell c along axis a, less a margin for rounding, and
+    // times a factor below 1: a float32 distance exceeds the true one by far less.
+    auto gap2 = [&](int a, int64_t c) {
+      const double g = std::max(double(c) - u[a], u[a] - double(c + 1)) - 1e-6;
+      return g > 0 ? g * g * (h * h * (1.0 - 1e-5)) : 0.0;
+    };
+    for (int64_t a = lo[0]; a <= hi[0]; ++a) {
+      const double da = gap2(0, a);
+      if (da > distance_of(best)) continue;
+      for (int64_t b = lo[1]; b <= hi[1]; ++b) {
+        const double dab = da + gap2(1, b);
+        if (dab > distance_of(best)) continue;
+        // the cells (a, b, c) within reach are one run of points
+        int64_t c0 = lo[2], c1 = hi[2];
+        while (c0 <= c1 && dab + gap2(2, c0) > distance_of(best)) ++c0;
+        while (c1 >= c0 && dab + gap2(2, c1) > distance_of(best)) --c1;
+        if (c0 > c1) continue;
+        best = scan(q, first[cell_id(a, b, c0)], first[cell_id(a, b, c1) + 1], best);
+      }
+    }
+    return best;
+  }
+};
 }  // namespace
 
 extern "C" {
 
-void* slk_kdtree_build(int n, const float* points, int leaf_size) {
-  auto* tree = new KDTree();
-  tree->leaf_size = std::max(1, leaf_size);
-  tree->points.assign(points, points + 3 * size_t(n));
-  tree->order.resize(n);
-  for (int i = 0; i < n; ++i) tree->order[i] = i;
-  if (n > 0) tree->build(0, n);
-  tree->sorted.resize(3 * size_t(n));
-  for (int k = 0; k < n; ++k)
-    for (int d = 0; d < 3; ++d) tree->sorted[3 * size_t(k) + d] = tree->points[3 * size_t(tree->order[k]) + d];
-  return tree;
+// A grid over n means (float32 (n,3), metres) with cells of cell_size metres (or coarser for a
+// box too big for 2^21 cells an axis); free it with slk_grid_free.
+void* slk_grid_build(int n, const float* points, double cell_size) {
+  auto* grid = new CellGrid();
+  grid->build(n, points, cell_size);
+  return grid;
 }
 
-void slk_kdtree_free(void* tree) { delete static_cast<KDTree*>(tree); }
+void slk_grid_free(void* grid) { delete static_cast<CellGrid*>(grid); }
 
-// For each query (float32 (m,3)), the nearest point within squared distance max_d2 (inclusive
-// bound as `<=`): index in out_idx (n = tree size where none) and squared distance in out_d2
-// (float32). hint: (m) a candidate index per query (>= n: none), e.g. the last match.
-void slk_kdtree_nearest(const void* handle, int m, const float* queries, float max_d2, const uint32_t* hint,
-                        uint32_t* out_idx, float* out_d2, int nthreads) {
-  const KDTree& tree = *static_cast<const KDTree*>(handle);
-  const int n = int(tree.order.size());
+// For each query (float32 (m,3)), the nearest mean within squared distance max_d2 (inclusive
+// bound as `<=`): index in out_idx (n = grid size where none) and squared distance in out_d2
+// (float32). hint: (m) a candidate index per query (>= n: none), e.g. the last match; where
+// none, the previous query's match is tried first (a neighbour's, for queries in image order).
+void slk_grid_nearest(const void* handle, int m, const float* queries, float max_d2, const uint32_t* hint,
+                      uint32_t* out_idx, float* out_d2, int nthreads) {
+  const CellGrid& grid = *static_cast<const CellGrid*>(handle);
+  const int n = grid.n;
   parallel_for(m, nthreads, [&](int, int lo, int hi) {
     for (int j = lo; j < hi; ++j) {
       const float* q = queries + 3 * size_t(j);
-      // best_d starts just above the bound so that a point exactly at it is accepted
-      float best_d = std::nextafter(max_d2, 3.4e38f);
-      int32_t best_i = n;
-      if (hint != nullptr && hint[j] < uint32_t(n)) {
-        const float d = dist2(q, &tree.points[3 * size_t(hint[j])]);
-        if (d < best_d) best_d = d, best_i = int32_t(hint[j]);
-      }
-      if (n > 0) nearest(tree, q, best_d, best_i);
-      out_idx[j] = uint32_t(best_i);
-      out_d2[j] = best_i < n ? best_d : std::numeric_limits<float>::infinity();
+      // at the bound with an index above any: a mean exactly at the bound is accepted
+      uint64_t best = pack(max_d2, ~uint32_t(0));
+      // the hint, else the previous query's match (queries in image order: a neighbour's)
+      uint32_t start = hint != nullptr ? hint[j] : uint32_t(n);
+      if (start >= uint32_t(n) && j > lo) start = out_idx[j - 1];
+      if (start < uint32_t(n)) best = std::min(best, pack(dist2(q, &grid.means[3 * size_t(start)]), start));
+      best = grid.nearest(q, best);
+      const bool found = index_of(best) < uint32_t(n);
+      out_idx[j] = found ? index_of(best) : uint32_t(n);
+      out_d2[j] = found ? distance_of(best) : std::numeric_limits<float>::infinity();
     }
   });
 }
 
-
-int slk_abi_version() { return 2; }
+int slk_abi_version() { return 6; }
 
 // points: (n,3) float32, camera frame, metres. cell: (n) the grid cell (row * gw + col) of each
 // point; grid: (gh*gw) the point in each cell or -1. fx, fy: focal lengths in pixels; stride:
 // pixels between grid cells; half: the window's half-width in cells. Writes cov (n,9) float64
-// and exact (n) 0/1.
+// and exact (n): 1 where the window proved the neighbours, 0 where all n points were searched.
 void slk_grid_knn_covariances(int n, const float* points, const int32_t* cell, const int32_t* grid, int gh, int gw,
                               int k, int half, double fx, double fy, double stride, double* cov, uint8_t* exact,
                               int nthreads) {
@@ -308,10 +383,7 @@ void slk_grid_knn_covariances(int n, const float* points, const int32_t* cell, c
       const double x = p[0], y = p[1], z = p[2];
       const int row = cell[i] / gw, col = cell[i] % gw;
       int found = 0;
-      auto visit = [&](int r, int c) {
-        if (r < 0 || r >= gh || c < 0 || c >= gw) return;
-        const int j = grid[r * gw + c];
-        if (j < 0) return;
+      auto consider = [&](int j) {
         const float* q = points + 3 * j;
         const double dx = double(q[0]) - x, dy = double(q[1]) - y, dz = double(q[2]) - z;
         const double d = dx * dx + dy * dy + dz * dz;
@@ -325,6 +397,11 @@ void slk_grid_knn_covariances(int n, const float* points, const int32_t* cell, c
         }
         best_d[pos] = d;
         best_i[pos] = j;
+      };
+      auto visit = [&](int r, int c) {
+        if (r < 0 || r >= gh || c < 0 || c >= gw) return;
+        const int j = grid[r * gw + c];
+        if (j >= 0) consider(j);
       };
       // A point within distance rad of p projects at most fx rad (z + |x|) / ((z - rad) z) pixels
       // from p in u (|x_q/z_q - x_p/z_p| bounded for |q - p| <= rad), likewise in v; once that
@@ -347,11 +424,11 @@ void slk_grid_knn_covariances(int n, const float* points, const int32_t* cell, c
         ok = proven(ring);
       }
       exact[i] = ok ? 1 : 0;
-      double* out = cov + 9 * i;
-      if (!ok) {
-        std::fill(out, out + 9, 0.0);
-        continue;
+      if (!ok) {  // every point, then (a depth edge or a hole: rare)
+        found = 0;
+        for (int j = 0; j < n; ++j) consider(j);
       }
+      double* out = cov + 9 * i;
       double m[3] = {0, 0, 0}, s[6] = {0, 0, 0, 0, 0, 0};
       for (int a = 0; a < k; ++a) {
         const float* q = points + 3 * best_i[a];
@@ -365,6 +442,60 @@ void slk_grid_knn_covariances(int n, const float* points, const int32_t* cell, c
       out[0] = c00, out[1] = c01, out[2] = c02;
       out[3] = c01, out[4] = c11, out[5] = c12;
       out[6] = c02, out[7] = c12, out[8] = c22;
+    }
+  });
+}
+
+// Ellipse regularisation of n covariances (cov: (n,9) float64, m^2), as
+// slamkit.geometry.gaussians.regularize (the reference, with the same operations in the same
+// order; libm's acos / cos / pow may round differently from numpy's by an ulp): each C becomes
+// C / l2 + max(-l3, 0) / l2 I with l3 <= l2 <= l1 its eigenvalues (trigonometric formula on C
+// scaled by its largest entry), I where l2 <= 1e-12 l1, and min_median I where l2 < min_median
+// (NaN: never). Rows whose eigenvalues the reference takes from its accurate path (a nearly
+// repeated pair) or that are not finite are flagged in redo (1) and left for the caller.
+void slk_regularize_ellipse(int n, const double* cov, double min_median, double* out, uint8_t* redo, int nthreads) {
+  const double third_turn = 2.0 * 3.141592653589793 / 3.0;
+  parallel_for(n, nthreads, [&](int, int lo, int hi) {
+    for (int i = lo; i < hi; ++i) {
+      const double* A = cov + 9 * size_t(i);
+      double* C = out + 9 * size_t(i);
+      double scale = 0.0;
+      bool finite = true;
+      for (int e = 0; e < 9; ++e) scale = std::max(scale, std::fabs(A[e])), finite = finite && std::isfinite(A[e]);
+      if (!finite) {
+        redo[i] = 1;
+        continue;
+      }
+      if (!(scale > 0)) scale = 1.0;
+      const double a00 = A[0] / scale, a11 = A[4] / scale, a22 = A[8] / scale;
+      const double a01 = A[1] / scale, a02 = A[2] / scale, a12 = A[5] / scale;
+      const double q = (a00 + a11 + a22) / 3.0;
+      const double b00 = a00 - q, b11 = a11 - q, b22 = a22 - q;
+      const double p2 = (b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * (a01 * a01 + a02 * a02 + a12 * a12)) / 6.0;
+      const double p = std::sqrt(p2);
+      const double safe_p = p > 0 ? p : 1.0;
+      const double det = b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02) + a02 * (a01 * a12 - b11 * a02);
+      const double r = std::min(1.0, std::max(-1.0, det / (2.0 * std::pow(safe_p, 3.0))));
+      const double phi = std::acos(r) / 3.0;
+      const double l_max = q + 2.0 * p * std::cos(phi);
+      const double l_min = q + 2.0 * p * std::cos(phi + third_turn);
+      const double l_mid = 3.0 * q - l_max - l_min;
+      const double gap = std::min(l_mid - l_min, l_max - l_mid);
+      const double top = std::max(std::fabs(l_min), std::max(std::fabs(l_mid), std::fabs(l_max)));
+      const double v0 = l_min * scale, v1 = l_mid * scale, v2 = l_max * scale;
+      if (!(gap >= 1e-4 * top) || !std::isfinite(v0) || !std::isfinite(v1) || !std::isfinite(v2)) {
+        redo[i] = 1;
+        continue;
+      }
+      redo[i] = 0;
+      const bool degenerate = !(v1 > 1e-12 * std::max(v2, 1e-300));
+      const double median = degenerate ? 1.0 : v1;
+      const double negative = std::max(-v0, 0.0) / median;
+      for (int e = 0; e < 9; ++e) C[e] = A[e] / median + (e % 4 == 0 ? negative : 0.0);
+      if (degenerate)
+        for (int e = 0; e < 9; ++e) C[e] = e % 4 == 0 ? 1.0 : 0.0;
+      if (v1 < min_median)
+        for (int e = 0; e < 9; ++e) C[e] = e % 4 == 0 ? min_median : 0.0;
     }
   });
 }
