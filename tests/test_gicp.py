@@ -180,6 +180,18 @@ def test_scale_alignment_factors(kind, expected):
     np.testing.assert_allclose(got, np.maximum(expected, 1.0))
 
 
+def test_scale_alignment_left_null_depends_on_the_mode():
+    """Null: z_pow (the paper's) in sequential mode, none in real time; a value set wins."""
+    depths = np.array([0.2, 0.7, 1.0, 3.0])
+    default = MapGrowthConfig()
+    np.testing.assert_allclose(scale_alignment_factors(depths, default.for_mode(realtime=True)), 1.0)
+    np.testing.assert_allclose(scale_alignment_factors(depths, default.for_mode(realtime=False)),
+                               np.maximum(2 * depths**1.5, 1.0))
+    chosen = MapGrowthConfig(scale_alignment=ScaleAlignment.z)
+    np.testing.assert_allclose(scale_alignment_factors(depths, chosen.for_mode(realtime=True)),
+                               np.maximum(2 * depths, 1.0))
+
+
 # ----------------------------------------------------------------------------- synthetic scene
 def render_depth(pose: np.ndarray, camera: Camera = CAMERA) -> np.ndarray:
     """Depth (metres) of a box room [-2,2]x[-1.5,1.5]x[-1,4] with a sphere and a slanted

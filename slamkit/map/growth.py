@@ -4,15 +4,15 @@ A frame's Gaussians carry their raw k-NN covariance (`shape_covariances`; the re
 G-ICP aligns with has a median axis of 1 m and would make 10 cm - 1 m Gaussians). Entering the
 map, each scale (square root of a raw eigenvalue) is divided by an alignment factor that grows with the point's
 camera depth z (metres): none -> 1, constant -> c, z -> max(c z, 1), z_pow -> max(c z^p, 1)
-(the paper's choice, p = 1.5, c = 2). The default here is none: on a CPU a Gaussian gets
-tens to hundreds of steps, not the thousands of the paper's GPU runs, and aligned scales (1-3 mm
-on TUM, spaced ~1 cm) leave the views full of holes that those steps close only slowly. Measured
-(docs/results.md): TUM fr1/rpy sequential 18.60 dB against 18.23 dB aligned, in real time 17.7
-against 15.6 dB; Replica room0 20 frames 28.88 dB against 27.63 dB (unaligned Gaussians are larger, so
-a step costs up to ~2x, yet aligned ones need 2.9x the time to reach the same PSNR), looped
-Replica in real time 21.6 against 9.2 dB. Tracking does not change: the ellipse regularisation
-divides each target covariance by its median eigenvalue (with tracker.target_min_median off,
-the default). Gaussians close to an existing trackable map Gaussian
+(the paper's choice, p = 1.5, c = 2; the default in sequential mode). In real-time mode the
+default is none: a Gaussian there gets a few dozen steps at most, and aligned scales (1-3 mm on
+TUM, spaced ~1 cm) leave the views full of holes that the steps have no time to close (TUM
+fr1/rpy real time 17.7 dB unaligned against 15.6 dB aligned; looped Replica 21.6 against 9.2
+dB; docs/results.md). Sequential runs also score higher unaligned (TUM 18.60 against 18.23 dB,
+Replica 20 frames 28.88 against 27.63 dB) but their rendered depth is blurrier after few steps
+(a mesh of 5 Replica frames: median vertex error 3.7 cm against under 2 cm), so they keep the
+paper's alignment. Tracking does not change either way: the ellipse regularisation divides each
+target covariance by its median eigenvalue. Gaussians close to an existing trackable map Gaussian
 (squared distance <= new_gaussian_overlap, m^2) are added for rendering but not marked
 trackable, so the tracking target is not duplicated.
 
@@ -52,13 +52,13 @@ class ScaleAlignment(enum.Enum):
 @dataclass
 class MapGrowthConfig(PluginConfig):
     """initial_shape: gicp | knn (see InitialShape). scale_alignment: none | constant | z |
-    z_pow (paper Table 6; the paper's choice, not the default here: see the module docstring),
-    applied to gicp shapes. scale_c, scale_p: the c
+    z_pow (paper Table 6), applied to gicp shapes; null: z_pow in sequential mode (the paper's),
+    none in real-time mode (see the module docstring). scale_c, scale_p: the c
     and p of max(c z^p, 1). initial_opacity: opacity of new Gaussians in (0, 1).
     new_gaussian_overlap: m^2, null = the dataset's (`SensorProfile.new_gaussian_overlap`)."""
 
     initial_shape: InitialShape = InitialShape.gicp
-    scale_alignment: ScaleAlignment = ScaleAlignment.none
+    scale_alignment: ScaleAlignment | None = None
     scale_c: float = 2.0
     scale_p: float = 1.5
     initial_opacity: float = 0.1
@@ -76,10 +76,15 @@ class MapGrowthConfig(PluginConfig):
     def with_sensor(self, sensor: SensorProfile) -> MapGrowthConfig:
         return self.fill_nulls(new_gaussian_overlap=sensor.new_gaussian_overlap)
 
+    def for_mode(self, realtime: bool) -> MapGrowthConfig:
+        """scale_alignment left null: none in real-time mode, z_pow otherwise."""
+        return self.fill_nulls(scale_alignment=ScaleAlignment.none if realtime else ScaleAlignment.z_pow)
+
 
 def scale_alignment_factors(depths: np.ndarray, cfg: MapGrowthConfig) -> np.ndarray:
-    """Per-Gaussian divisors of the scales, from camera depths in metres."""
-    kind = cfg.scale_alignment
+    """Per-Gaussian divisors of the scales, from camera depths in metres (scale_alignment null:
+    z_pow, as `for_mode` outside real time)."""
+    kind = cfg.for_mode(realtime=False).scale_alignment
     if kind is ScaleAlignment.none:
         return np.ones_like(depths)
     if kind is ScaleAlignment.constant:
