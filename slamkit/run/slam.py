@@ -110,8 +110,9 @@ MAPPING_NICE = 5
 #: Seconds a thread may hold the GIL while another waits for it, during real-time mapping.
 #: Python's default, 5 ms, made each of the mapping step's ~100 torch calls (each one releases
 #: the GIL and takes it back) wait up to 5 ms for the tracking thread's Python code, and the
-#: tracker's kernel calls wait for the mapper's: TUM fr1/rpy real time, 49 steps at 228 ms
-#: against 97 steps at 84 ms with 0.5 ms (docs/results.md).
+#: tracker's kernel calls wait for the mapper's: TUM fr1/rpy real time with another process
+#: loading the machine, 49 steps at 228 ms against 97 steps at 84 ms with 0.5 ms; on a quiet
+#: machine one run each showed no gain (92 steps with 5 ms, 74 with 0.5 ms; docs/results.md).
 SWITCH_INTERVAL_S = 5e-4
 
 
