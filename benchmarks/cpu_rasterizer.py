@@ -33,6 +33,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from rasterizer import SCENES, make_scene  # noqa: E402  (the same scenes)
 
+from slamkit.errors import ConfigError  # noqa: E402
 from slamkit_plugins.rasterizers.cpu_rasterizer import TIME_KEYS, CPURasterizer, CPURasterizerConfig  # noqa: E402
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "cpu_rasterizer.json"
@@ -92,8 +93,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.torch_threads)
-    if not CPURasterizer().available:
-        print("the cpu rasteriser could not be built here")
+    try:
+        CPURasterizer()
+    except ConfigError as exc:
+        print(exc)
         return 1
     ghz = cpu_ghz()
     results = {"machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(), "ghz": ghz,

@@ -54,11 +54,8 @@
 
 #include <unistd.h>
 
-#if defined(__AVX512F__)
-#include <immintrin.h>
-#endif
-
 #include "slk_thread_pool.h"  // (slamkit/csrc) Pool, parallel_for
+#include "slk_vec16.h"        // (slamkit/csrc) 16-lane vectors
 
 namespace {
 
@@ -295,57 +292,9 @@ struct RowSpans {
 };
 
 // ------------------------------------------------------------------------------------------
-// One tile row = 16 pixels = one vector (GCC/Clang vector extensions: AVX-512 with
-// -march=native where available, split into 8- or 4-wide registers elsewhere).
+// One tile row = 16 pixels = one vector (slk_vec16.h: vf, vi and their helpers)
 
-typedef float vf __attribute__((vector_size(64)));
-typedef int32_t vi __attribute__((vector_size(64)));
 static_assert(TILE * sizeof(float) == sizeof(vf), "a tile row is one vector");
-
-const vi LANE = {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15};
-
-inline vf vf1(float x) { return vf{x, x, x, x, x, x, x, x, x, x, x, x, x, x, x, x}; }  // (0 + x is not x for x = -0)
-inline vi vi1(int32_t x) { return vi{} + x; }
-inline vf select(vi m, vf a, vf b) { return (vf)(((vi)a & m) | ((vi)b & ~m)); }
-inline vi select(vi m, vi a, vi b) { return (a & m) | (b & ~m); }
-#if defined(__AVX512F__)
-inline bool any(vi m) { return _mm512_test_epi32_mask((__m512i)m, (__m512i)m) != 0; }
-inline bool all(vi m) { return _mm512_test_epi32_mask((__m512i)m, (__m512i)m) == 0xFFFF; }
-inline float hsum(vf v) { return _mm512_reduce_add_ps((__m512)v); }
-#else
-inline bool any(vi m) {
-  uint64_t w[8];
-  std::memcpy(w, &m, sizeof(w));
-  return (w[0] | w[1] | w[2] | w[3] | w[4] | w[5] | w[6] | w[7]) != 0;
-}
-inline bool all(vi m) {
-  uint64_t w[8];
-  std::memcpy(w, &m, sizeof(w));
-  return (w[0] & w[1] & w[2] & w[3] & w[4] & w[5] & w[6] & w[7]) == ~uint64_t(0);
-}
-inline float hsum(vf v) {
-  float h[TILE];
-  std::memcpy(h, &v, sizeof(h));
-  float a = 0, b = 0, c = 0, d = 0;
-  for (int i = 0; i < TILE; i += 4) {
-    a += h[i];
-    b += h[i + 1];
-    c += h[i + 2];
-    d += h[i + 3];
-  }
-  return (a + b) + (c + d);
-}
-#endif
-
-// a * b + c, fused where the target has FMA (used only where rounding need not match torch)
-inline vf vfma(vf a, vf b, vf c) {
-#if defined(__AVX512F__)
-  return (vf)_mm512_fmadd_ps((__m512)a, (__m512)b, (__m512)c);
-#else
-  return a * b + c;
-#endif
-}
-inline vf vfma(vf a, float b, vf c) { return vfma(a, vf1(b), c); }
 
 // exp for float lanes (Cephes' expf: range reduction by ln 2, degree-6 polynomial; within
 // ~1 ulp of the correctly rounded value on [-87, 0], which is all that alpha needs).
@@ -353,7 +302,7 @@ inline vf vexp(vf x) {
   x = select(x < -87.0f, vf1(-87.0f), x);
   const vf t = x * 1.44269504088896341f + 12582912.0f;  // 1.5 * 2^23: rounds x log2(e) to an integer
   const vf n = t - 12582912.0f;
-  const vi e = ((vi)t - 0x4B400000 + 127) << 23;  // the bits of 2^n
+  const vi e = (as_vi(t) - 0x4B400000 + 127) << 23;  // the bits of 2^n
   vf r = vfma(n, -0.693359375f, x);
   r = vfma(n, 2.12194440e-4f, r);
   vf p = vfma(vf1(1.9875691500E-4f), r, vf1(1.3981999507E-3f));
@@ -362,16 +311,7 @@ inline vf vexp(vf x) {
   p = vfma(p, r, vf1(1.6666665459E-1f));
   p = vfma(p, r, vf1(5.0000001201E-1f));
   const vf y = vfma(p * r, r, r) + 1.0f;
-  return y * (vf)e;
-}
-
-inline vf vsqrt(vf x) {
-#if defined(__AVX512F__)
-  return (vf)_mm512_sqrt_ps((__m512)x);
-#else
-  for (int i = 0; i < TILE; ++i) x[i] = std::sqrt(x[i]);
-  return x;
-#endif
+  return y * as_vf(e);
 }
 
 inline vf vclamp(vf x, float lo, float hi) {
@@ -381,18 +321,18 @@ inline vf vclamp(vf x, float lo, float hi) {
 
 // exact ceil / floor for |x| < 2^31 (truncation toward zero, then corrected)
 inline vf vceil(vf x) {
-  const vf t = __builtin_convertvector(__builtin_convertvector(x, vi), vf);
+  const vf t = to_vf(to_vi(x));
   return t + select(t < x, vf1(1.0f), vf{});
 }
 inline vf vfloor(vf x) {
-  const vf t = __builtin_convertvector(__builtin_convertvector(x, vi), vf);
+  const vf t = to_vf(to_vi(x));
   return t - select(t > x, vf1(1.0f), vf{});
 }
 
 // the rows' spans (see RowSpans): the torch backend's float32 operations, 16 rows at once
 inline void row_spans(const Splat& s, int y0, int W, RowSpans& o) {
   const float a_level = s.a * s.level, wmax = (float)(W - 1);
-  const vf dy = __builtin_convertvector(LANE + y0, vf) - s.v;
+  const vf dy = to_vf(LANE + y0) - s.v;
   const vf disc = a_level - s.det * dy * dy;
   const vf half = vsqrt(select(disc > 0.0f, disc, vf{})) / s.a;
   const vf mid = s.u - s.boa * dy;
@@ -407,8 +347,8 @@ inline void row_spans(const Splat& s, int y0, int W, RowSpans& o) {
   *(vf*)o.row_dx = xl - s.u;
   *(vf*)o.row_k = s.logo - 0.5f * s.c * dy * dy;
   *(vf*)o.row_b = 2.0f * s.b * dy;
-  *(vi*)o.xl = select(ok, __builtin_convertvector(xl, vi), vi1(1));
-  *(vi*)o.xr = select(ok, __builtin_convertvector(xr, vi), vi{});
+  *(vi*)o.xl = select(ok, to_vi(xl), vi1(1));
+  *(vi*)o.xr = select(ok, to_vi(xr), vi{});
 }
 
 // Compositing a tile goes chunk by chunk (CHUNK entries): the entries' row spans are computed
@@ -425,7 +365,7 @@ struct ChunkEntry {
 // alpha of the 16 lanes of row lr of an entry, and dx (lane - (xl - x0) + row_dx); log alpha is
 // the torch backend's expression (fused here: it does not decide which pixels are covered)
 inline vf entry_alpha(const ChunkEntry& E, int lr, int x0, vf& dx) {
-  dx = __builtin_convertvector(LANE - (E.sp.xl[lr] - x0), vf) + E.sp.row_dx[lr];
+  dx = to_vf(LANE - (E.sp.xl[lr] - x0)) + E.sp.row_dx[lr];
   const vf la = vfma(dx * -0.5f, vfma(dx, E.a, vf1(E.sp.row_b[lr])), vf1(E.sp.row_k[lr]));
   const vf al = vexp(la);
   return select(al < ALPHA_MAX, al, vf1(ALPHA_MAX));
