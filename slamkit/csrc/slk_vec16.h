@@ -1,6 +1,7 @@
-// 16-lane float32 / int32 vectors for slamkit's compiled kernels (a 16-pixel tile row is one
-// vector): one AVX-512 register where the target has it, else a pair of 8-lane vectors (AVX2
-// registers with -march=native on most laptops and AMD CPUs before Zen 4).
+// 64-byte vectors for slamkit's compiled kernels: 16 float32 / int32 lanes (vf, vi: a 16-pixel
+// tile row is one vector) and 8 float64 lanes (vd): one AVX-512 register where the target has
+// it, else a pair of 32-byte vectors (AVX2 registers with -march=native on most laptops and on
+// AMD CPUs before Zen 4).
 //
 // Why not one 64-byte GCC vector everywhere: without AVX-512, GCC lowers 64-byte vector code
 // through memory, lane by lane, with a branch per lane for every compare. Measured on a 2-core
@@ -8,10 +9,13 @@
 // AVX-512 machine; with the pair of 8-lane vectors, see docs/cpu_rasterizer.md.
 //
 // Both variants offer the same interface: arithmetic and comparisons with vectors and scalars,
-// lane access v[i], vf1 / vi1 (broadcast), as_vi / as_vf (bit casts), to_vi / to_vf (value
-// conversions, truncating toward zero), select, any, all, hsum, vfma, vsqrt, and LANE (0..15).
-// Arithmetic is IEEE float32 lane by lane in both: without -ffp-contract, results are the same
-// bits, except hsum's order of additions and vfma (fused where the target has FMA).
+// lane access v[i], vf1 / vi1 / vd1 (broadcast), as_vi / as_vf (bit casts), to_vi / to_vf (value
+// conversions, truncating toward zero), select, any, all, hsum, vfma, vsqrt, LANE (0..15), and
+// for vd: ld8 / st8 (8 floats widened / rounded), widen / narrow (one vf <-> two vd). Arithmetic
+// is IEEE lane by lane in both: without -ffp-contract, results are the same bits, except the
+// float hsum's order of additions and vfma (fused where the target has FMA). loadu / storeu:
+// unaligned loads and stores (a memcpy of the pair would go through 16-byte pieces and stall
+// the 32-byte loads that read them back).
 #pragma once
 
 #include <cmath>
@@ -42,10 +46,39 @@ inline float hsum(vf v) { return _mm512_reduce_add_ps((__m512)v); }
 inline vf vfma(vf a, vf b, vf c) { return (vf)_mm512_fmadd_ps((__m512)a, (__m512)b, (__m512)c); }
 inline vf vsqrt(vf x) { return (vf)_mm512_sqrt_ps((__m512)x); }
 
+typedef double vd __attribute__((vector_size(64)));
+inline vd vd1(double x) { return (vd)_mm512_set1_pd(x); }
+typedef float vf_u __attribute__((vector_size(64), aligned(4)));
+typedef double vd_u __attribute__((vector_size(64), aligned(8)));
+inline vf loadu(const float* p) { return *(const vf_u*)p; }
+inline vd loadu(const double* p) { return *(const vd_u*)p; }
+inline void storeu(float* p, vf v) { *(vf_u*)p = v; }
+inline void storeu(double* p, vd v) { *(vd_u*)p = v; }
+inline vd vfma(vd a, vd b, vd c) { return (vd)_mm512_fmadd_pd((__m512d)a, (__m512d)b, (__m512d)c); }
+// 8 floats widened to double, 8 doubles rounded to float
+inline vd ld8(const float* p) { return (vd)_mm512_cvtps_pd(_mm256_loadu_ps(p)); }
+inline void st8(float* p, vd v) { _mm256_storeu_ps(p, _mm512_cvtpd_ps((__m512d)v)); }
+// 16 floats <-> two vectors of 8 doubles, in registers
+inline void widen(vf v, vd& lo, vd& hi) {
+  lo = (vd)_mm512_cvtps_pd(_mm512_castps512_ps256((__m512)v));
+  hi = (vd)_mm512_cvtps_pd(_mm256_castpd_ps(_mm512_extractf64x4_pd(_mm512_castps_pd((__m512)v), 1)));
+}
+inline vf narrow(vd lo, vd hi) {
+  const __m256 l = _mm512_cvtpd_ps((__m512d)lo), h = _mm512_cvtpd_ps((__m512d)hi);
+  return (vf)_mm512_castpd_ps(_mm512_insertf64x4(_mm512_castpd256_pd512(_mm256_castps_pd(l)), _mm256_castps_pd(h), 1));
+}
+// ((h0 + h4) + (h1 + h5)) + ((h2 + h6) + (h3 + h7))
+inline double hsum(vd a) {
+  double h[8];
+  std::memcpy(h, &a, sizeof h);
+  return ((h[0] + h[4]) + (h[1] + h[5])) + ((h[2] + h[6]) + (h[3] + h[7]));
+}
+
 #else
 
 typedef float f8 __attribute__((vector_size(32)));
 typedef int32_t i8 __attribute__((vector_size(32)));
+typedef double d4 __attribute__((vector_size(32)));
 
 struct alignas(64) vf {
   f8 lo, hi;
@@ -57,7 +90,25 @@ struct alignas(64) vi {
   int32_t& operator[](int i) { return reinterpret_cast<int32_t*>(this)[i]; }
   int32_t operator[](int i) const { return reinterpret_cast<const int32_t*>(this)[i]; }
 };
-static_assert(sizeof(vf) == 64 && sizeof(vi) == 64, "16 lanes, no padding");
+struct alignas(64) vd {
+  d4 lo, hi;
+  double& operator[](int i) { return reinterpret_cast<double*>(this)[i]; }
+  double operator[](int i) const { return reinterpret_cast<const double*>(this)[i]; }
+};
+static_assert(sizeof(vf) == 64 && sizeof(vi) == 64 && sizeof(vd) == 64, "no padding");
+
+typedef float f8_u __attribute__((vector_size(32), aligned(4)));
+typedef double d4_u __attribute__((vector_size(32), aligned(8)));
+inline vf loadu(const float* p) { return vf{*(const f8_u*)p, *(const f8_u*)(p + 8)}; }
+inline vd loadu(const double* p) { return vd{*(const d4_u*)p, *(const d4_u*)(p + 4)}; }
+inline void storeu(float* p, vf v) {
+  *(f8_u*)p = v.lo;
+  *(f8_u*)(p + 8) = v.hi;
+}
+inline void storeu(double* p, vd v) {
+  *(d4_u*)p = v.lo;
+  *(d4_u*)(p + 4) = v.hi;
+}
 
 // element-wise operators on both halves; S: the scalar type a vector operand may be
 #define SLK_V16_BINARY(V, S, R, OP)                                                        \
@@ -78,6 +129,12 @@ SLK_V16_BINARY(vf, float, vi, >=)
 SLK_V16_ASSIGN(vf, float, +)
 SLK_V16_ASSIGN(vf, float, -)
 SLK_V16_ASSIGN(vf, float, *)
+SLK_V16_BINARY(vd, double, vd, +)
+SLK_V16_BINARY(vd, double, vd, -)
+SLK_V16_BINARY(vd, double, vd, *)
+SLK_V16_BINARY(vd, double, vd, /)
+SLK_V16_ASSIGN(vd, double, +)
+SLK_V16_ASSIGN(vd, double, -)
 SLK_V16_BINARY(vi, int32_t, vi, +)
 SLK_V16_BINARY(vi, int32_t, vi, -)
 SLK_V16_BINARY(vi, int32_t, vi, &)
@@ -95,6 +152,7 @@ SLK_V16_ASSIGN(vi, int32_t, |)
 #undef SLK_V16_BINARY
 #undef SLK_V16_ASSIGN
 inline vf operator-(vf a) { return vf{-a.lo, -a.hi}; }
+inline vd operator-(vd a) { return vd{-a.lo, -a.hi}; }
 inline vi operator~(vi a) { return vi{~a.lo, ~a.hi}; }
 inline vi operator<<(vi a, int n) { return vi{a.lo << n, a.hi << n}; }
 
@@ -103,6 +161,10 @@ const vi LANE = {i8{0, 1, 2, 3, 4, 5, 6, 7}, i8{8, 9, 10, 11, 12, 13, 14, 15}};
 inline vf vf1(float x) {
   const f8 h = {x, x, x, x, x, x, x, x};
   return vf{h, h};
+}
+inline vd vd1(double x) {
+  const d4 h = {x, x, x, x};
+  return vd{h, h};
 }
 inline vi as_vi(vf x) { return vi{(i8)x.lo, (i8)x.hi}; }
 inline vf as_vf(vi x) { return vf{(f8)x.lo, (f8)x.hi}; }
@@ -119,6 +181,22 @@ inline float hsum(vf v) {
   return _mm_cvtss_f32(_mm_add_ss(s2, _mm_movehdup_ps(s2)));
 }
 inline vf vsqrt(vf x) { return vf{(f8)_mm256_sqrt_ps((__m256)x.lo), (f8)_mm256_sqrt_ps((__m256)x.hi)}; }
+inline vd ld8(const float* p) {
+  return vd{(d4)_mm256_cvtps_pd(_mm_loadu_ps(p)), (d4)_mm256_cvtps_pd(_mm_loadu_ps(p + 4))};
+}
+inline void st8(float* p, vd v) {
+  _mm_storeu_ps(p, _mm256_cvtpd_ps((__m256d)v.lo));
+  _mm_storeu_ps(p + 4, _mm256_cvtpd_ps((__m256d)v.hi));
+}
+inline void widen(vf v, vd& lo, vd& hi) {
+  const __m256 a = (__m256)v.lo, b = (__m256)v.hi;
+  lo = vd{(d4)_mm256_cvtps_pd(_mm256_castps256_ps128(a)), (d4)_mm256_cvtps_pd(_mm256_extractf128_ps(a, 1))};
+  hi = vd{(d4)_mm256_cvtps_pd(_mm256_castps256_ps128(b)), (d4)_mm256_cvtps_pd(_mm256_extractf128_ps(b, 1))};
+}
+inline vf narrow(vd lo, vd hi) {
+  return vf{(f8)_mm256_set_m128(_mm256_cvtpd_ps((__m256d)lo.hi), _mm256_cvtpd_ps((__m256d)lo.lo)),
+            (f8)_mm256_set_m128(_mm256_cvtpd_ps((__m256d)hi.hi), _mm256_cvtpd_ps((__m256d)hi.lo))};
+}
 #else
 inline bool any(vi m) {
   for (int i = 0; i < 16; ++i)
@@ -138,6 +216,28 @@ inline vf vsqrt(vf x) {
   for (int i = 0; i < 16; ++i) x[i] = std::sqrt(x[i]);
   return x;
 }
+inline vd ld8(const float* p) {
+  vd v;
+  for (int i = 0; i < 8; ++i) v[i] = p[i];
+  return v;
+}
+inline void st8(float* p, vd v) {
+  for (int i = 0; i < 8; ++i) p[i] = (float)v[i];
+}
+inline void widen(vf v, vd& lo, vd& hi) {
+  for (int i = 0; i < 8; ++i) {
+    lo[i] = v[i];
+    hi[i] = v[8 + i];
+  }
+}
+inline vf narrow(vd lo, vd hi) {
+  vf v;
+  for (int i = 0; i < 8; ++i) {
+    v[i] = (float)lo[i];
+    v[8 + i] = (float)hi[i];
+  }
+  return v;
+}
 #endif
 
 #if defined(__FMA__)
@@ -145,9 +245,19 @@ inline vf vfma(vf a, vf b, vf c) {
   return vf{(f8)_mm256_fmadd_ps((__m256)a.lo, (__m256)b.lo, (__m256)c.lo),
             (f8)_mm256_fmadd_ps((__m256)a.hi, (__m256)b.hi, (__m256)c.hi)};
 }
+inline vd vfma(vd a, vd b, vd c) {
+  return vd{(d4)_mm256_fmadd_pd((__m256d)a.lo, (__m256d)b.lo, (__m256d)c.lo),
+            (d4)_mm256_fmadd_pd((__m256d)a.hi, (__m256d)b.hi, (__m256d)c.hi)};
+}
 #else
 inline vf vfma(vf a, vf b, vf c) { return a * b + c; }
+inline vd vfma(vd a, vd b, vd c) { return a * b + c; }
 #endif
+// ((h0 + h4) + (h1 + h5)) + ((h2 + h6) + (h3 + h7)), as the AVX-512 variant
+inline double hsum(vd a) {
+  const d4 s = a.lo + a.hi;
+  return (s[0] + s[1]) + (s[2] + s[3]);
+}
 
 #endif  // AVX-512
 

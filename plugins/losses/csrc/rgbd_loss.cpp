@@ -44,18 +44,15 @@
 // need). Every output and every sum has a fixed order of operations, so results do not depend
 // on the number of threads.
 //
-// Vectors: GCC/Clang vector extensions, 64 bytes (16 floats, 8 doubles): AVX-512 with
-// -march=native, split into narrower registers elsewhere. Fused multiply-adds where the CPU has
-// them (AVX-512), so the native and the portable build differ in the last bits.
+// Vectors: 64 bytes (16 floats, 8 doubles; slamkit/csrc/slk_vec16.h): AVX-512 with
+// -march=native, two AVX2 registers where AVX-512 is missing. Fused multiply-adds where the CPU
+// has them, so the native and the portable build differ in the last bits.
 
 #include <algorithm>
 #include <atomic>
 #include <condition_variable>
 #include <functional>
 #include <mutex>
-#if defined(__AVX512F__)
-#include <immintrin.h>
-#endif
 #include <cmath>
 #include <cstdint>
 #include <cstring>
@@ -70,6 +67,7 @@
 #include <unistd.h>
 
 #include "slk_thread_pool.h"  // (slamkit/csrc) Pool
+#include "slk_vec16.h"        // (slamkit/csrc) vf, vd, vi and their helpers
 
 namespace {
 
@@ -95,104 +93,27 @@ inline void with_rows(int n, F&& f) {
 constexpr double C1 = 0.01 * 0.01;  // (K1 data_range)^2, (K2 data_range)^2 as pytorch_msssim
 constexpr double C2 = 0.03 * 0.03;
 
-typedef float vf __attribute__((vector_size(64)));
-typedef float vf8 __attribute__((vector_size(32)));
-typedef double vd __attribute__((vector_size(64)));
-typedef int32_t vi __attribute__((vector_size(64)));
-
-inline vf vf1(float x) { return vf{x, x, x, x, x, x, x, x, x, x, x, x, x, x, x, x}; }
-inline vd vd1(double x) { return vd{x, x, x, x, x, x, x, x}; }
-inline vf ld(const float* p) {
-  vf v;
-  std::memcpy(&v, p, sizeof v);
-  return v;
-}
-inline vd ldd(const double* p) {
-  vd v;
-  std::memcpy(&v, p, sizeof v);
-  return v;
-}
-// 8 floats widened to double, 8 doubles rounded to float (GCC splits __builtin_convertvector
-// between 256- and 512-bit vectors into halves: 3 instructions instead of 1)
-inline vd ld8(const float* p) {
-#if defined(__AVX512F__)
-  return (vd)_mm512_cvtps_pd(_mm256_loadu_ps(p));
-#else
-  vf8 v;
-  std::memcpy(&v, p, sizeof v);
-  return __builtin_convertvector(v, vd);
-#endif
-}
-inline void st8(float* p, vd v) {
-#if defined(__AVX512F__)
-  _mm256_storeu_ps(p, _mm512_cvtpd_ps((__m512d)v));
-#else
-  const vf8 f = __builtin_convertvector(v, vf8);
-  std::memcpy(p, &f, sizeof f);
-#endif
-}
-// 16 floats <-> two vectors of 8 doubles (in registers: a round trip through memory would
-// stall on store-to-load forwarding between 256- and 512-bit accesses)
-#if defined(__AVX512F__)
-inline void widen(vf v, vd& lo, vd& hi) {
-  lo = (vd)_mm512_cvtps_pd(_mm512_castps512_ps256((__m512)v));
-  hi = (vd)_mm512_cvtps_pd(_mm256_castpd_ps(_mm512_extractf64x4_pd(_mm512_castps_pd((__m512)v), 1)));
-}
-inline vf narrow(vd lo, vd hi) {
-  const __m256 l = _mm512_cvtpd_ps((__m512d)lo), h = _mm512_cvtpd_ps((__m512d)hi);
-  return (vf)_mm512_castpd_ps(_mm512_insertf64x4(_mm512_castpd256_pd512(_mm256_castps_pd(l)), _mm256_castps_pd(h), 1));
-}
-#else
-inline vf narrow(vd lo, vd hi) {
-  float h[VL];
-  st8(h, lo);
-  st8(h + VD, hi);
-  vf v;
-  std::memcpy(&v, h, sizeof v);
-  return v;
-}
-inline void widen(vf v, vd& lo, vd& hi) {
-  float h[VL];
-  std::memcpy(h, &v, sizeof h);
-  lo = ld8(h);
-  hi = ld8(h + VD);
-}
-#endif
-inline void st(float* p, vf v) { std::memcpy(p, &v, sizeof v); }
-inline void st(double* p, vd v) { std::memcpy(p, &v, sizeof v); }
-inline vf select(vi m, vf a, vf b) { return (vf)(((vi)a & m) | ((vi)b & ~m)); }
+inline vf ld(const float* p) { return loadu(p); }
+inline vd ldd(const double* p) { return loadu(p); }
+inline void st(float* p, vf v) { storeu(p, v); }
+inline void st(double* p, vd v) { storeu(p, v); }
 // sign(v) as torch's abs backward: 0 at 0, NaN for NaN
 inline vf sign(vf v) { return select(v > 0, vf1(1.f), select(v < 0, vf1(-1.f), v)); }
-inline vf vabs(vf v) { return (vf)((vi)v & (vi{} + 0x7fffffff)); }
+inline vf vabs(vf v) { return as_vf(as_vi(v) & vi1(0x7fffffff)); }
 // a += v, the 16 floats widened to double (low and high halves added first: a fixed order)
 inline void add_wide(vd& a, vf v) {
   vd lo, hi;
   widen(v, lo, hi);
   a += lo + hi;
 }
-inline double hsum(vd a) {
-  double h[8];
-  std::memcpy(h, &a, sizeof h);
-  return ((h[0] + h[4]) + (h[1] + h[5])) + ((h[2] + h[6]) + (h[3] + h[7]));
-}
 inline int round_up(int x, int m) { return (x + m - 1) / m * m; }
-
-// a b + c: one fused multiply-add where the CPU has them (the loss does not depend on
-// rounding as torch does; results differ from the portable build's in the last bits only)
-#if defined(__AVX512F__)
-inline vd madd(vd a, vd b, vd c) { return (vd)_mm512_fmadd_pd((__m512d)a, (__m512d)b, (__m512d)c); }
-inline vf madd(vf a, vf b, vf c) { return (vf)_mm512_fmadd_ps((__m512)a, (__m512)b, (__m512)c); }
-#else
-inline vd madd(vd a, vd b, vd c) { return a * b + c; }
-inline vf madd(vf a, vf b, vf c) { return a * b + c; }
-#endif
 
 // The symmetric window (g[t] = g[10 - t]) applied to the 11 values at(0..10):
 // g5 p5 + sum_{t<5} g_t (p_t + p_{10-t}), the centre first.
 template <class V, class At>
 inline V sym_filter(const V* g, At at) {
   V acc = g[5] * at(5);
-  for (int t = 4; t >= 0; --t) acc = madd(g[t], at(t) + at(K - 1 - t), acc);
+  for (int t = 4; t >= 0; --t) acc = vfma(g[t], at(t) + at(K - 1 - t), acc);
   return acc;
 }
 
@@ -200,7 +121,7 @@ inline V sym_filter(const V* g, At at) {
 template <class V>
 inline V sym_filter_squares(const V* g, const V* p) {
   V acc = g[5] * (p[5] * p[5]);
-  for (int t = 4; t >= 0; --t) acc = madd(g[t], madd(p[t], p[t], p[K - 1 - t] * p[K - 1 - t]), acc);
+  for (int t = 4; t >= 0; --t) acc = vfma(g[t], vfma(p[t], p[t], p[K - 1 - t] * p[K - 1 - t]), acc);
   return acc;
 }
 
@@ -443,7 +364,7 @@ vd Band::horizontal_and_seeds(int q, int count) {
     const vf Mt = row_filter(P.gf, ft + j);                           // mean of t = mu1 - mu2
     const vf var_t = row_filter(P.gf, ftt + j) - Mt * Mt;            // variance of t: B2 - A2
     const vf mu1 = 0.5f * (Ms + Mt), mu2 = 0.5f * (Ms - Mt);
-    const vf B1 = 0.5f * madd(Ms, Ms, Mt * Mt) + c1, A1 = 0.5f * (Ms * Ms - Mt * Mt) + c1;
+    const vf B1 = 0.5f * vfma(Ms, Ms, Mt * Mt) + c1, A1 = 0.5f * (Ms * Ms - Mt * Mt) + c1;
     const vf B2 = 0.5f * (var_s + var_t) + c2;
     const vf rB1 = 1.f / B1, rB2 = 1.f / B2;
     const vf l = A1 * rB1, cs = (B2 - var_t) * rB2;
@@ -451,13 +372,13 @@ vd Band::horizontal_and_seeds(int q, int count) {
     vf a[3] = {};
     if (P.grads) {
       // mu2 - mu1 l = -t (mu2 s + C1) / B1,  mu2 - mu1 cs = -t + mu1 var_t / B2: no cancellation
-      const vf d_l = -(Mt * madd(mu2, Ms, c1)) * rB1, d_cs = madd(mu1 * var_t, rB2, -Mt);
+      const vf d_l = -(Mt * vfma(mu2, Ms, c1)) * rB1, d_cs = vfma(mu1 * var_t, rB2, -Mt);
       a[0] = ks * (2.f * (cs * d_l * rB1 - l * d_cs * rB2));
       a[1] = ks * (l * var_t * (rB2 * rB2));
       a[2] = ks * -(l * rB2);
     }
     if (j + VL > P.Wv) {  // the last vector: lanes past the map count for nothing
-      const vi keep = (vi{0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15} + j) < P.Wv;
+      const vi keep = (LANE + j) < P.Wv;
       S = select(keep, S, vf{});
       for (vf& ak : a) ak = select(keep, ak, vf{});
     }
@@ -542,7 +463,7 @@ void Band::emit_colour(int i, double* l1_sums) {
         add_wide(l1[q], vabs(diff));
         if (!P.grads) continue;
         vf gr = kl1 * sign(diff);
-        if (P.do_ssim) gr += madd(2.f * diff, T[q][2], madd(2.f * xv, T[q][1], T[q][0]));
+        if (P.do_ssim) gr += vfma(2.f * diff, T[q][2], vfma(2.f * xv, T[q][1], T[q][0]));
         st(grow(q, ch) + j, gr * ld(m[q] + j));
       }
     }
