@@ -191,7 +191,7 @@ class CPURasterizer(Rasterizer):
         self.last_num_pairs = 0  # (pixel, Gaussian) pairs composited by the last render
         self.last_num_visible = 0  # Gaussians that cover at least one pixel row span
         self.last_num_entries = 0  # (tile, Gaussian) entries
-        self.last_num_rows = 0  # (entry, tile row) spans composited: 16-pixel vector steps
+        self.last_num_rows = 0  # (entry, tile row) spans composited, in 16-pixel vector steps (8-lane halves count 1/2)
         self.last_num_threads = 0  # threads that composited tiles in the last forward pass
         self.last_times: dict[str, float] = {}  # seconds per phase of the last forward (+ backward)
 

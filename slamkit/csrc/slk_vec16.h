@@ -13,7 +13,9 @@
 // conversions, truncating toward zero), select, any, all, hsum, vfma, vsqrt, LANE (0..15), and
 // for vd: ld8 / st8 (8 floats widened / rounded), widen / narrow (one vf <-> two vd). Arithmetic
 // is IEEE lane by lane in both: without -ffp-contract, results are the same bits, except the
-// float hsum's order of additions and vfma (fused where the target has FMA). loadu / storeu:
+// float hsum's order of additions and vfma (fused where the target has FMA). vblock / iblock:
+// what a kernel processes at once, HALVES per vector (one with AVX-512, else the two halves),
+// with block(v, h), block_of (broadcast) and block_lanes (0..7 or 0..15). loadu / storeu:
 // unaligned loads and stores (a memcpy of the pair would go through 16-byte pieces and stall
 // the 32-byte loads that read them back).
 #pragma once
@@ -45,6 +47,14 @@ inline bool all(vi m) { return _mm512_test_epi32_mask((__m512i)m, (__m512i)m) ==
 inline float hsum(vf v) { return _mm512_reduce_add_ps((__m512)v); }
 inline vf vfma(vf a, vf b, vf c) { return (vf)_mm512_fmadd_ps((__m512)a, (__m512)b, (__m512)c); }
 inline vf vsqrt(vf x) { return (vf)_mm512_sqrt_ps((__m512)x); }
+// the whole vector is one block (see the pair variant)
+constexpr int HALVES = 1;
+typedef vf vblock;
+typedef vi iblock;
+inline vf& block(vf& v, int) { return v; }
+inline vi& block(vi& v, int) { return v; }
+inline vf block_of(float x) { return vf1(x); }
+inline vi block_lanes() { return LANE; }
 
 typedef double vd __attribute__((vector_size(64)));
 inline vd vd1(double x) { return (vd)_mm512_set1_pd(x); }
@@ -174,12 +184,12 @@ inline vf to_vf(vi x) { return vf{__builtin_convertvector(x.lo, f8), __builtin_c
 #if defined(__AVX__)
 inline bool any(vi m) { return _mm256_movemask_ps((__m256)(m.lo | m.hi)) != 0; }
 inline bool all(vi m) { return _mm256_movemask_ps((__m256)(m.lo & m.hi)) == 0xFF; }
-inline float hsum(vf v) {
-  const __m256 s8 = (__m256)(v.lo + v.hi);
-  const __m128 s4 = _mm_add_ps(_mm256_castps256_ps128(s8), _mm256_extractf128_ps(s8, 1));
+inline float hsum(f8 v) {
+  const __m128 s4 = _mm_add_ps(_mm256_castps256_ps128((__m256)v), _mm256_extractf128_ps((__m256)v, 1));
   const __m128 s2 = _mm_add_ps(s4, _mm_movehl_ps(s4, s4));
   return _mm_cvtss_f32(_mm_add_ss(s2, _mm_movehdup_ps(s2)));
 }
+inline float hsum(vf v) { return hsum(v.lo + v.hi); }
 inline vf vsqrt(vf x) { return vf{(f8)_mm256_sqrt_ps((__m256)x.lo), (f8)_mm256_sqrt_ps((__m256)x.hi)}; }
 inline vd ld8(const float* p) {
   return vd{(d4)_mm256_cvtps_pd(_mm_loadu_ps(p)), (d4)_mm256_cvtps_pd(_mm_loadu_ps(p + 4))};
@@ -208,10 +218,8 @@ inline bool all(vi m) {
     if (!m[i]) return false;
   return true;
 }
-inline float hsum(vf v) {
-  const f8 s8 = v.lo + v.hi;
-  return ((s8[0] + s8[4]) + (s8[1] + s8[5])) + ((s8[2] + s8[6]) + (s8[3] + s8[7]));
-}
+inline float hsum(f8 s8) { return ((s8[0] + s8[4]) + (s8[1] + s8[5])) + ((s8[2] + s8[6]) + (s8[3] + s8[7])); }
+inline float hsum(vf v) { return hsum(v.lo + v.hi); }
 inline vf vsqrt(vf x) {
   for (int i = 0; i < 16; ++i) x[i] = std::sqrt(x[i]);
   return x;
@@ -258,6 +266,41 @@ inline double hsum(vd a) {
   const d4 s = a.lo + a.hi;
   return (s[0] + s[1]) + (s[2] + s[3]);
 }
+
+// One half (f8 / i8, an AVX2 register) on its own, for kernels that skip a half no work touches
+// (`block`: half h of a vector, by reference): the same lane-by-lane arithmetic as the pair's.
+constexpr int HALVES = 2;
+typedef f8 vblock;
+typedef i8 iblock;
+inline f8& block(vf& v, int h) { return h ? v.hi : v.lo; }
+inline i8& block(vi& v, int h) { return h ? v.hi : v.lo; }
+inline f8 block_of(float x) { return f8{x, x, x, x, x, x, x, x}; }
+inline i8 block_lanes() { return i8{0, 1, 2, 3, 4, 5, 6, 7}; }
+inline i8 as_vi(f8 x) { return (i8)x; }
+inline f8 as_vf(i8 x) { return (f8)x; }
+inline f8 to_vf(i8 x) { return __builtin_convertvector(x, f8); }
+inline f8 select(i8 m, f8 a, f8 b) { return (f8)(((i8)a & m) | ((i8)b & ~m)); }
+inline i8 select(i8 m, i8 a, i8 b) { return (a & m) | (b & ~m); }
+#if defined(__AVX__)
+inline bool any(i8 m) { return _mm256_movemask_ps((__m256)m) != 0; }
+inline bool all(i8 m) { return _mm256_movemask_ps((__m256)m) == 0xFF; }
+#else
+inline bool any(i8 m) {
+  for (int i = 0; i < 8; ++i)
+    if (m[i]) return true;
+  return false;
+}
+inline bool all(i8 m) {
+  for (int i = 0; i < 8; ++i)
+    if (!m[i]) return false;
+  return true;
+}
+#endif
+#if defined(__FMA__)
+inline f8 vfma(f8 a, f8 b, f8 c) { return (f8)_mm256_fmadd_ps((__m256)a, (__m256)b, (__m256)c); }
+#else
+inline f8 vfma(f8 a, f8 b, f8 c) { return a * b + c; }
+#endif
 
 #endif  // AVX-512
 

@@ -20,14 +20,15 @@
 //   - colour = sum w c + (1 - sum w) bg, depth = sum w z, alpha = sum w, w = alpha T (the
 //     background's weight is computed as the final transmittance, equal to 1 - sum w).
 // The projection (means, quats, scales -> 2D mean, conic) and its backward are computed in
-// double precision; the pixel work in float32 (16 pixels per vector), the per-Gaussian
-// gradient sums in double.
+// double precision; the pixel work in float32 (16 pixels per vector, slamkit/csrc/slk_vec16.h),
+// the per-Gaussian gradient sums in double.
 //
 // Forward: project + cull (parallel over Gaussians) -> radix sort by depth -> binning into
 // 16x16 tiles (each Gaussian is listed, in depth order, in the tiles its exact row intervals
 // touch) -> per tile, 32 entries at a time: their row spans (16 rows at once), per tile row the
-// entries covering it, then each row (16 pixels = one vector) composited with its state in
-// registers; per-pixel early termination, per-row and per-tile early exit. Kept for the
+// entries covering it, then each row (16 pixels = one vector; without AVX-512, each 8-pixel
+// half that a span meets) composited with its state in registers; per-pixel early termination,
+// per-row and per-tile early exit. Kept for the
 // backward pass: the final transmittance and the last composited list position of every pixel.
 // Backward: per tile, the list walked back to front (transmittance recovered by division, the
 // suffix sum sum_{j>i} w_j v_j carried per pixel), per (tile, Gaussian) entry ten moments
@@ -296,21 +297,21 @@ struct RowSpans {
 
 static_assert(TILE * sizeof(float) == sizeof(vf), "a tile row is one vector");
 
-// exp for float lanes (Cephes' expf: range reduction by ln 2, degree-6 polynomial; within
+// exp for a block of float lanes (Cephes' expf: range reduction by ln 2, degree-6 polynomial; within
 // ~1 ulp of the correctly rounded value on [-87, 0], which is all that alpha needs).
-inline vf vexp(vf x) {
-  x = select(x < -87.0f, vf1(-87.0f), x);
-  const vf t = x * 1.44269504088896341f + 12582912.0f;  // 1.5 * 2^23: rounds x log2(e) to an integer
-  const vf n = t - 12582912.0f;
-  const vi e = (as_vi(t) - 0x4B400000 + 127) << 23;  // the bits of 2^n
-  vf r = vfma(n, -0.693359375f, x);
-  r = vfma(n, 2.12194440e-4f, r);
-  vf p = vfma(vf1(1.9875691500E-4f), r, vf1(1.3981999507E-3f));
-  p = vfma(p, r, vf1(8.3334519073E-3f));
-  p = vfma(p, r, vf1(4.1665795894E-2f));
-  p = vfma(p, r, vf1(1.6666665459E-1f));
-  p = vfma(p, r, vf1(5.0000001201E-1f));
-  const vf y = vfma(p * r, r, r) + 1.0f;
+inline vblock vexp(vblock x) {
+  x = select(x < -87.0f, block_of(-87.0f), x);
+  const vblock t = x * 1.44269504088896341f + 12582912.0f;  // 1.5 * 2^23: rounds x log2(e) to an integer
+  const vblock n = t - 12582912.0f;
+  const iblock e = (as_vi(t) - 0x4B400000 + 127) << 23;  // the bits of 2^n
+  vblock r = vfma(n, block_of(-0.693359375f), x);
+  r = vfma(n, block_of(2.12194440e-4f), r);
+  vblock p = vfma(block_of(1.9875691500E-4f), r, block_of(1.3981999507E-3f));
+  p = vfma(p, r, block_of(8.3334519073E-3f));
+  p = vfma(p, r, block_of(4.1665795894E-2f));
+  p = vfma(p, r, block_of(1.6666665459E-1f));
+  p = vfma(p, r, block_of(5.0000001201E-1f));
+  const vblock y = vfma(p * r, r, r) + 1.0f;
   return y * as_vf(e);
 }
 
@@ -362,13 +363,19 @@ struct ChunkEntry {
   int32_t pos;  // position in the tile list
 };
 
-// alpha of the 16 lanes of row lr of an entry, and dx (lane - (xl - x0) + row_dx); log alpha is
-// the torch backend's expression (fused here: it does not decide which pixels are covered)
-inline vf entry_alpha(const ChunkEntry& E, int lr, int x0, vf& dx) {
-  dx = to_vf(LANE - (E.sp.xl[lr] - x0)) + E.sp.row_dx[lr];
-  const vf la = vfma(dx * -0.5f, vfma(dx, E.a, vf1(E.sp.row_b[lr])), vf1(E.sp.row_k[lr]));
-  const vf al = vexp(la);
-  return select(al < ALPHA_MAX, al, vf1(ALPHA_MAX));
+// The lanes of a tile row are processed a block at a time (slk_vec16.h: the whole row with
+// AVX-512, else each 8-lane half that the entry's span meets; a span covers ~5-7 of the 16
+// pixels on average, so most need one half).
+constexpr int BLOCK = TILE / HALVES;
+
+// alpha of the block of row lr of an entry whose first lane is lane0, and dx (lane - span
+// start a + row_dx, a = xl - x0); log alpha is the torch backend's expression (fused here: it
+// does not decide which pixels are covered)
+inline vblock entry_alpha(const ChunkEntry& E, int lr, int a, int lane0, vblock& dx) {
+  dx = to_vf(block_lanes() + (lane0 - a)) + E.sp.row_dx[lr];
+  const vblock la = vfma(dx * -0.5f, vfma(dx, block_of(E.a), block_of(E.sp.row_b[lr])), block_of(E.sp.row_k[lr]));
+  const vblock al = vexp(la);
+  return select(al < ALPHA_MAX, al, block_of(ALPHA_MAX));
 }
 
 struct State {
@@ -574,25 +581,25 @@ void forward(State& S, const float* means, const float* quats, const float* scal
       // per tile row: transmittance, colour, depth and alpha sums, last position, done lanes
       vf T[TILE], c0[TILE], c1[TILE], c2[TILE], dep[TILE], acc[TILE];
       vi last[TILE], done[TILE];
-      bool alive[TILE];
+      bool alive[TILE][HALVES];  // blocks with lanes not done
+      int blocks_alive = 0;
       const vi outside = LANE >= tw;
       for (int r = 0; r < TILE; ++r) {
         T[r] = vf1(1.0f);
         c0[r] = c1[r] = c2[r] = dep[r] = acc[r] = vf{};
         last[r] = vi1(-1);
         done[r] = r < th ? outside : vi1(-1);
-        alive[r] = r < th && tw > 0;
+        for (int h = 0; h < HALVES; ++h) blocks_alive += alive[r][h] = !all(block(done[r], h));
       }
-      int rows_alive = th;
-      int64_t rows = 0;
-      vi count = vi{};
+      int64_t lanes = 0;
+      iblock count = iblock{};
       const int end = S.tile_start[tile + 1];
-      for (int cs = S.tile_start[tile]; cs < end && rows_alive > 0; cs += CHUNK) {
-        // the chunk's entries: their row spans, and per tile row the ones covering it in depth
-        // order (rows already done are skipped)
+      for (int cs = S.tile_start[tile]; cs < end && blocks_alive > 0; cs += CHUNK) {
+        // the chunk's entries: their row spans, and per tile row and block the ones covering it
+        // in depth order (blocks already done are skipped)
         const int ce = std::min(end, cs + CHUNK);
-        int nrow[TILE] = {0};
-        uint8_t list[TILE][CHUNK];
+        int nrow[TILE][HALVES] = {};
+        uint8_t list[TILE][HALVES][CHUNK];
         for (int pos = cs; pos < ce; ++pos) {
           if (pos + PREFETCH < end) __builtin_prefetch(&S.splats[S.tile_ids[pos + PREFETCH]]);
           const Splat& s = S.splats[S.tile_ids[pos]];
@@ -606,50 +613,58 @@ void forward(State& S, const float* means, const float* quats, const float* scal
           E.col[2] = s.col[2];
           E.z = s.z;
           E.pos = pos;
-          for (int lr = r0; lr <= r1; ++lr)  // rows whose span meets the tile's columns
-            if (alive[lr] && E.sp.xr[lr] >= E.sp.xl[lr] && E.sp.xl[lr] <= x1 && E.sp.xr[lr] >= x0)
-              list[lr][nrow[lr]++] = (uint8_t)k;
-        }
-        // composite row by row, the row's state in registers
-        for (int lr = 0; lr < th; ++lr) {
-          const int n = nrow[lr];
-          if (n == 0) continue;
-          rows += n;
-          vf rT = T[lr], r0c = c0[lr], r1c = c1[lr], r2c = c2[lr], rdep = dep[lr], racc = acc[lr];
-          vi rlast = last[lr], rdone = done[lr];
-          for (int j = 0; j < n; ++j) {
-            const ChunkEntry& E = ents[list[lr][j]];
-            const vi in = (LANE >= E.sp.xl[lr] - x0) & (LANE <= E.sp.xr[lr] - x0) & ~rdone;
-            vf dx;
-            const vf al = entry_alpha(E, lr, x0, dx);
-            const vf Tn = rT * (1.0f - al);
-            const vi stop = in & (Tn < (float)T_MIN);
-            const vi m = in & ~stop;
-            const vf w = select(m, al * rT, vf{});
-            r0c = vfma(w, E.col[0], r0c);
-            r1c = vfma(w, E.col[1], r1c);
-            r2c = vfma(w, E.col[2], r2c);
-            rdep = vfma(w, E.z, rdep);
-            racc += w;
-            rT = select(m, Tn, rT);
-            rlast = select(m, vi1(E.pos), rlast);
-            count -= m;
-            rdone |= stop;  // (branch-free: stops are too frequent and irregular to predict)
-            if (all(rdone)) {
-              alive[lr] = false;
-              --rows_alive;
-              break;
-            }
+          for (int lr = r0; lr <= r1; ++lr) {
+            const int a = E.sp.xl[lr] - x0, z = E.sp.xr[lr] - x0;  // the span in tile columns
+            if (z < a || a > tw - 1 || z < 0) continue;            // empty, or misses the tile
+            for (int h = 0; h < HALVES; ++h)
+              if (alive[lr][h] && a < (h + 1) * BLOCK && z >= h * BLOCK) list[lr][h][nrow[lr][h]++] = (uint8_t)k;
           }
-          T[lr] = rT;
-          c0[lr] = r0c;
-          c1[lr] = r1c;
-          c2[lr] = r2c;
-          dep[lr] = rdep;
-          acc[lr] = racc;
-          last[lr] = rlast;
-          done[lr] = rdone;
         }
+        // composite block by block, the block's state in registers
+        for (int lr = 0; lr < th; ++lr)
+          for (int h = 0; h < HALVES; ++h) {
+            const int n = nrow[lr][h];
+            if (n == 0) continue;
+            lanes += n * BLOCK;
+            const int lane0 = h * BLOCK;
+            const iblock lane = block_lanes() + lane0;
+            vblock rT = block(T[lr], h), r0c = block(c0[lr], h), r1c = block(c1[lr], h), r2c = block(c2[lr], h),
+                   rdep = block(dep[lr], h), racc = block(acc[lr], h);
+            iblock rlast = block(last[lr], h), rdone = block(done[lr], h);
+            for (int j = 0; j < n; ++j) {
+              const ChunkEntry& E = ents[list[lr][h][j]];
+              const int a = E.sp.xl[lr] - x0;
+              const iblock in = (lane >= a) & (lane <= E.sp.xr[lr] - x0) & ~rdone;
+              vblock dx;
+              const vblock al = entry_alpha(E, lr, a, lane0, dx);
+              const vblock Tn = rT * (1.0f - al);
+              const iblock stop = in & (Tn < (float)T_MIN);
+              const iblock m = in & ~stop;
+              const vblock w = select(m, al * rT, vblock{});
+              r0c = vfma(w, block_of(E.col[0]), r0c);
+              r1c = vfma(w, block_of(E.col[1]), r1c);
+              r2c = vfma(w, block_of(E.col[2]), r2c);
+              rdep = vfma(w, block_of(E.z), rdep);
+              racc += w;
+              rT = select(m, Tn, rT);
+              rlast = select(m, iblock{} + E.pos, rlast);
+              count -= m;
+              rdone |= stop;  // (branch-free: stops are too frequent and irregular to predict)
+              if (all(rdone)) {
+                alive[lr][h] = false;
+                --blocks_alive;
+                break;
+              }
+            }
+            block(T[lr], h) = rT;
+            block(c0[lr], h) = r0c;
+            block(c1[lr], h) = r1c;
+            block(c2[lr], h) = r2c;
+            block(dep[lr], h) = rdep;
+            block(acc[lr], h) = racc;
+            block(last[lr], h) = rlast;
+            block(done[lr], h) = rdone;
+          }
       }
       for (int lr = 0; lr < th; ++lr)
         for (int lc = 0; lc < tw; ++lc) {
@@ -665,9 +680,9 @@ void forward(State& S, const float* means, const float* quats, const float* scal
           S.last[q] = last[lr][lc];
         }
       int64_t pairs = 0;
-      for (int i = 0; i < TILE; ++i) pairs += count[i];
+      for (int i = 0; i < BLOCK; ++i) pairs += count[i];
       pairs_per_thread[tid] += pairs;
-      rows_per_thread[tid] += rows;
+      rows_per_thread[tid] += lanes / TILE;
       tiles_per_thread[tid] += 1;
     }
   });
@@ -753,41 +768,51 @@ void backward(State& S, const float* means, const float* quats, const float* sca
         }
         if (pos - PREFETCH >= start) __builtin_prefetch(&S.splats[S.tile_ids[pos - PREFETCH]]);
         const Splat& s = S.splats[S.tile_ids[pos]];
-        vf m0 = vf{}, mx = vf{}, my = vf{}, mxx = vf{}, mxy = vf{}, myy = vf{};
-        vf w0 = vf{}, w1 = vf{}, w2 = vf{}, wd = vf{};
-        const vi posv = vi1(pos);
+        // the entry's moments, summed over its rows and blocks (lane by lane, then across)
+        vblock m0{}, mx{}, my{}, mxx{}, mxy{}, myy{}, w0{}, w1{}, w2{}, wd{};
+        const iblock posv = iblock{} + pos;
         const int r0 = std::max(s.y0 - y0, 0), r1 = std::min(s.y1 - y0, th - 1);
         row_spans(s, y0, W, E.sp);
         E.a = s.a;
         for (int lr = r0; lr <= r1; ++lr) {
-          if (E.sp.xr[lr] < E.sp.xl[lr] || E.sp.xl[lr] > x0 + tw - 1 || E.sp.xr[lr] < x0) continue;
-          const vi m = (LANE >= E.sp.xl[lr] - x0) & (LANE <= E.sp.xr[lr] - x0) & (posv <= last[lr]);
-          if (!any(m)) continue;
-          vf dx;
-          const vf al = entry_alpha(E, lr, x0, dx);
-          const vf dy = vf1(E.sp.dy[lr]);
-          const vf inv = 1.0f / (1.0f - al);
-          const vf Tb = T[lr] * inv;  // transmittance before this Gaussian
-          const vf w = select(m, al * Tb, vf{});
-          const vf val = vfma(vf1(s.col[0]), g0[lr], vfma(vf1(s.col[1]), g1[lr], vfma(vf1(s.col[2]), g2[lr], vfma(vf1(s.z), gd[lr], ga[lr]))));
-          // dL/dlog(alpha) = alpha dL/dalpha = alpha (T v - sum_{j>i} w_j v_j / (1 - alpha)), zero
-          // where alpha is clamped
-          const vf sg = select(m & (al < ALPHA_MAX), al * vfma(Tb, val, -(Ssum[lr] * inv)), vf{});
-          const vf dxm = select(m, dx, vf{});
-          const vf sdx = sg * dxm;
-          const vf sdy = sg * dy;
-          m0 += sg;
-          mx += sdx;
-          my += sdy;
-          mxx = vfma(sdx, dxm, mxx);
-          mxy = vfma(sdx, dy, mxy);
-          myy = vfma(sdy, dy, myy);
-          w0 = vfma(w, g0[lr], w0);
-          w1 = vfma(w, g1[lr], w1);
-          w2 = vfma(w, g2[lr], w2);
-          wd = vfma(w, gd[lr], wd);
-          Ssum[lr] = vfma(w, val, Ssum[lr]);  // w = 0 outside m
-          T[lr] = select(m, Tb, T[lr]);
+          const int a = E.sp.xl[lr] - x0, z = E.sp.xr[lr] - x0;  // the span in tile columns
+          if (z < a || a > tw - 1 || z < 0) continue;
+          for (int h = 0; h < HALVES; ++h) {
+            const int lane0 = h * BLOCK;
+            if (a >= lane0 + BLOCK || z < lane0) continue;
+            const iblock lane = block_lanes() + lane0;
+            const iblock m = (lane >= a) & (lane <= z) & (posv <= block(last[lr], h));
+            if (!any(m)) continue;
+            vblock dx;
+            const vblock al = entry_alpha(E, lr, a, lane0, dx);
+            const vblock dy = block_of(E.sp.dy[lr]);
+            const vblock inv = 1.0f / (1.0f - al);
+            vblock& Tr = block(T[lr], h);
+            vblock& Sr = block(Ssum[lr], h);
+            const vblock G0 = block(g0[lr], h), G1 = block(g1[lr], h), G2 = block(g2[lr], h);
+            const vblock Tb = Tr * inv;  // transmittance before this Gaussian
+            const vblock w = select(m, al * Tb, vblock{});
+            const vblock val = vfma(block_of(s.col[0]), G0, vfma(block_of(s.col[1]), G1,
+                                    vfma(block_of(s.col[2]), G2, vfma(block_of(s.z), block(gd[lr], h), block(ga[lr], h)))));
+            // dL/dlog(alpha) = alpha dL/dalpha = alpha (T v - sum_{j>i} w_j v_j / (1 - alpha)), zero
+            // where alpha is clamped
+            const vblock sg = select(m & (al < ALPHA_MAX), al * vfma(Tb, val, -(Sr * inv)), vblock{});
+            const vblock dxm = select(m, dx, vblock{});
+            const vblock sdx = sg * dxm;
+            const vblock sdy = sg * dy;
+            m0 += sg;
+            mx += sdx;
+            my += sdy;
+            mxx = vfma(sdx, dxm, mxx);
+            mxy = vfma(sdx, dy, mxy);
+            myy = vfma(sdy, dy, myy);
+            w0 = vfma(w, G0, w0);
+            w1 = vfma(w, G1, w1);
+            w2 = vfma(w, G2, w2);
+            wd = vfma(w, block(gd[lr], h), wd);
+            Sr = vfma(w, val, Sr);  // w = 0 outside m
+            Tr = select(m, Tb, Tr);
+          }
         }
         mom[0] = hsum(m0);
         mom[1] = hsum(mx);
