@@ -68,6 +68,18 @@ def test_the_mapper_is_composed_of_the_parts_the_config_names(replica_path):
         GaussianSplattingConfig(resolution_scale=0)
 
 
+
+@pytest.mark.parametrize("overrides, size", [([], (240, 320)), (["mode=realtime"], (120, 160)),
+                                             (["mode=realtime", "mapper.resolution_scale=0.5"], (240, 320))])
+def test_training_resolution_left_null_depends_on_the_mode(tum_path, overrides, size):
+    """Null: half the frame's size in sequential mode, a quarter in real time; a value set wins
+    (the keyframes a checkpoint keeps are at the training resolution)."""
+    dataset, slam, _ = build_run(["dataset=tum", f"dataset.path={tum_path}", "dataset.max_frames=1",
+                                  "mapper=gaussian_splatting", *overrides])
+    slam.initialize(dataset[0].gt_pose)
+    slam.step(dataset[0])
+    assert slam.mapper.state_dict()["keyframes"]["rgb"].shape[1:3] == size
+
 @pytest.mark.parametrize("optimizer", ["adam", "visible_adam"])
 @pytest.mark.parametrize("backend", ["torch", "auto"])
 def test_training_one_view_lowers_loss_and_raises_psnr(truth_frames, backend, optimizer):

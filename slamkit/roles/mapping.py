@@ -29,6 +29,11 @@ class Mapper(ABC):
         """Called once with the shared map before the first frame."""
         self.gaussian_map = gaussian_map
 
+    def use_mode(self, realtime: bool) -> None:
+        """Whether the run is in real-time mode (mapping beside tracking while the input
+        streams), given before the first frame: a mapper may choose the defaults of its null
+        options by it. The default ignores it."""
+
     def admit(self, frame: Frame, pose: np.ndarray, new: GaussianRows) -> torch.Tensor | np.ndarray | None:
         """Which of a keyframe's new Gaussians (scale-aligned, not yet in the map) enter it: a
         bool mask over `new`, or None for all (the default). `pose` is the keyframe's

@@ -80,6 +80,7 @@ def build(cfg: RunConfig, registry: Registry, names: dict[str, str]):
     tracker, policy = create("tracker"), create("keyframe")
     tracker.use_threads(tracking_threads(cfg))
     mapper = create("mapper", **parts)
+    mapper.use_mode(realtime=cfg.mode is Mode.realtime)
     growth = cfg.map.with_sensor(sensor).for_mode(cfg.mode is Mode.realtime)
     slam = SLAM(Blamed(tracker, "tracker", names["tracker"]), Blamed(policy, "keyframe", names["keyframe"]),
                 Blamed(mapper, "mapper", names["mapper"]), GaussianMap(cfg.device()), growth, cfg.iterations_per_frame)

@@ -9,16 +9,23 @@ from slamkit.roles import PluginConfig, require
 from slamkit_plugins.mappers.gaussian_splatting.keyframes import KeyframeStorage
 
 
+#: `resolution_scale` when null, by mode (see GaussianSplattingConfig).
+SEQUENTIAL_RESOLUTION_SCALE = 0.5
+REALTIME_RESOLUTION_SCALE = 0.25
+
+
 @dataclass
 class GaussianSplattingConfig(PluginConfig):
     """3DGS mapping options.
 
     resolution_scale: training images are the keyframes resized by this factor (area
-      averaging; depth averaged over valid pixels). 0.5 by default (Replica's 1200x680 trains
-      at 600x340, TUM's 640x480 at 320x240): a step costs about the number of (pixel,
-      Gaussian) pairs, so 0.5 is 4x cheaper than full resolution, while 0.25 would cap the
-      full-resolution PSNR near 30 dB on Replica (an ideal 0.25 image upsampled back scores
-      30.2 dB on room0's frame 0; 0.5 scores 34.9 dB).
+      averaging; depth averaged over valid pixels). null: 0.5 (Replica's 1200x680 trains at
+      600x340, TUM's 640x480 at 320x240), and 0.25 in real-time mode. A step costs about the
+      number of (pixel, Gaussian) pairs, so 0.5 is 4x cheaper than full resolution, while 0.25
+      caps the full-resolution PSNR near 30 dB on Replica (an ideal 0.25 image upsampled back
+      scores 30.2 dB on room0's frame 0; 0.5 scores 34.9 dB): a sequential run, which trains
+      long, keeps 0.5; a real-time run, whose map gets a few steps a keyframe, is better off with
+      twice the steps at 0.25 (docs/results.md, "Real time on an AVX2 CPU").
     coarse_steps: a keyframe's first training steps (this many) see it at half the training
       resolution: a step then costs about a quarter, spent while the keyframe's Gaussians are
       far from fitting it (coarse to fine; 0 = off, the paper's).
@@ -33,7 +40,7 @@ class GaussianSplattingConfig(PluginConfig):
     seed: the training-view sampler's random generator.
     """
 
-    resolution_scale: float = 0.5
+    resolution_scale: float | None = None
     coarse_steps: int = 0
     keyframe_storage: KeyframeStorage = KeyframeStorage.memory
     keyframe_dir: str | None = None
@@ -43,10 +50,17 @@ class GaussianSplattingConfig(PluginConfig):
     seed: int = 0
 
     def validate(self) -> None:
-        require(0 < self.resolution_scale <= 1, "mapper.resolution_scale", "in (0, 1]", self.resolution_scale)
+        require(self.resolution_scale is None or 0 < self.resolution_scale <= 1, "mapper.resolution_scale",
+                "null or in (0, 1]", self.resolution_scale)
         require(0 < self.eval_resolution_scale <= 1, "mapper.eval_resolution_scale", "in (0, 1]",
                 self.eval_resolution_scale)
         require(self.coarse_steps >= 0, "mapper.coarse_steps", "an integer >= 0 (0 = off)", self.coarse_steps)
         require(self.eval_every >= 1, "mapper.eval_every", "an integer >= 1", self.eval_every)
         require(self.save_images >= 0, "mapper.save_images", "an integer >= 0", self.save_images)
         require(self.seed >= 0, "mapper.seed", "an integer >= 0 (numpy's generator seed)", self.seed)
+
+    def training_scale(self, realtime: bool) -> float:
+        """`resolution_scale`, or its default for the run's mode when null."""
+        if self.resolution_scale is not None:
+            return self.resolution_scale
+        return REALTIME_RESOLUTION_SCALE if realtime else SEQUENTIAL_RESOLUTION_SCALE

@@ -57,7 +57,7 @@ class GaussianSplattingMapper(Mapper):
         self.cfg = cfg
         self.rasterizer, self.sampler, self.strategy, self.optimizer, self.loss = (
             rasterizer, sampler, strategy, optimizer, loss)
-        self.keyframes = KeyframeStore(cfg.resolution_scale, cfg.keyframe_storage, cfg.keyframe_dir)
+        self.keyframes = KeyframeStore(cfg.training_scale(realtime=False), cfg.keyframe_storage, cfg.keyframe_dir)
         self.pending: deque[int] = deque()  # keyframes not trained on yet
         self.trained: dict[int, int] = {}  # steps taken on each keyframe
         self.rng = np.random.default_rng(cfg.seed)
@@ -71,6 +71,9 @@ class GaussianSplattingMapper(Mapper):
         self.last_loss: float | None = None
         self.timer = PhaseTimer()  # where the steps' time goes (metrics.json: mapping_step_ms)
         self.bind(GaussianMap())
+
+    def use_mode(self, realtime: bool) -> None:
+        self.keyframes.resolution_scale = self.cfg.training_scale(realtime)
 
     def bind(self, gaussian_map: GaussianMap) -> None:
         self.gaussian_map = gaussian_map
