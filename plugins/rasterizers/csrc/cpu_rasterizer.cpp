@@ -577,7 +577,7 @@ void forward(State& S, const float* means, const float* quats, const float* scal
       const int tile = S.tile_order[ti];
       const int tx = tile % S.tiles_x, ty = tile / S.tiles_x;
       const int x0 = tx * TILE, y0 = ty * TILE;
-      const int tw = std::min(TILE, W - x0), th = std::min(TILE, H - y0), x1 = x0 + tw - 1;
+      const int tw = std::min(TILE, W - x0), th = std::min(TILE, H - y0);
       // per tile row: transmittance, colour, depth and alpha sums, last position, done lanes
       vf T[TILE], c0[TILE], c1[TILE], c2[TILE], dep[TILE], acc[TILE];
       vi last[TILE], done[TILE];
