@@ -182,8 +182,6 @@ inline vi to_vi(vf x) { return vi{__builtin_convertvector(x.lo, i8), __builtin_c
 inline vf to_vf(vi x) { return vf{__builtin_convertvector(x.lo, f8), __builtin_convertvector(x.hi, f8)}; }
 
 #if defined(__AVX__)
-inline bool any(vi m) { return _mm256_movemask_ps((__m256)(m.lo | m.hi)) != 0; }
-inline bool all(vi m) { return _mm256_movemask_ps((__m256)(m.lo & m.hi)) == 0xFF; }
 inline float hsum(f8 v) {
   const __m128 s4 = _mm_add_ps(_mm256_castps256_ps128((__m256)v), _mm256_extractf128_ps((__m256)v, 1));
   const __m128 s2 = _mm_add_ps(s4, _mm_movehl_ps(s4, s4));
@@ -208,16 +206,6 @@ inline vf narrow(vd lo, vd hi) {
             (f8)_mm256_set_m128(_mm256_cvtpd_ps((__m256d)hi.hi), _mm256_cvtpd_ps((__m256d)hi.lo))};
 }
 #else
-inline bool any(vi m) {
-  for (int i = 0; i < 16; ++i)
-    if (m[i]) return true;
-  return false;
-}
-inline bool all(vi m) {
-  for (int i = 0; i < 16; ++i)
-    if (!m[i]) return false;
-  return true;
-}
 inline float hsum(f8 s8) { return ((s8[0] + s8[4]) + (s8[1] + s8[5])) + ((s8[2] + s8[6]) + (s8[3] + s8[7])); }
 inline float hsum(vf v) { return hsum(v.lo + v.hi); }
 inline vf vsqrt(vf x) {
@@ -249,18 +237,16 @@ inline vf narrow(vd lo, vd hi) {
 #endif
 
 #if defined(__FMA__)
-inline vf vfma(vf a, vf b, vf c) {
-  return vf{(f8)_mm256_fmadd_ps((__m256)a.lo, (__m256)b.lo, (__m256)c.lo),
-            (f8)_mm256_fmadd_ps((__m256)a.hi, (__m256)b.hi, (__m256)c.hi)};
-}
+inline f8 vfma(f8 a, f8 b, f8 c) { return (f8)_mm256_fmadd_ps((__m256)a, (__m256)b, (__m256)c); }
 inline vd vfma(vd a, vd b, vd c) {
   return vd{(d4)_mm256_fmadd_pd((__m256d)a.lo, (__m256d)b.lo, (__m256d)c.lo),
             (d4)_mm256_fmadd_pd((__m256d)a.hi, (__m256d)b.hi, (__m256d)c.hi)};
 }
 #else
-inline vf vfma(vf a, vf b, vf c) { return a * b + c; }
+inline f8 vfma(f8 a, f8 b, f8 c) { return a * b + c; }
 inline vd vfma(vd a, vd b, vd c) { return a * b + c; }
 #endif
+inline vf vfma(vf a, vf b, vf c) { return vf{vfma(a.lo, b.lo, c.lo), vfma(a.hi, b.hi, c.hi)}; }
 // ((h0 + h4) + (h1 + h5)) + ((h2 + h6) + (h3 + h7)), as the AVX-512 variant
 inline double hsum(vd a) {
   const d4 s = a.lo + a.hi;
@@ -296,11 +282,8 @@ inline bool all(i8 m) {
   return true;
 }
 #endif
-#if defined(__FMA__)
-inline f8 vfma(f8 a, f8 b, f8 c) { return (f8)_mm256_fmadd_ps((__m256)a, (__m256)b, (__m256)c); }
-#else
-inline f8 vfma(f8 a, f8 b, f8 c) { return a * b + c; }
-#endif
+inline bool any(vi m) { return any(m.lo | m.hi); }
+inline bool all(vi m) { return all(m.lo & m.hi); }
 
 #endif  // AVX-512
 
