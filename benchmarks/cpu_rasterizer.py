@@ -70,8 +70,7 @@ def map_views(checkpoint: Path, scale: float) -> list:
     state = read_checkpoint(checkpoint)["state"]
     g = state["map"]
     camera = json.loads((checkpoint.parent / "camera.json").read_text())
-    cam = Camera(width=int(camera["width"] * scale), height=int(camera["height"] * scale), fx=camera["fx"] * scale,
-                 fy=camera["fy"] * scale, cx=camera["cx"] * scale, cy=camera["cy"] * scale)
+    cam = Camera(*(camera[k] for k in ("width", "height", "fx", "fy", "cx", "cy"))).scaled(scale)
     params = (g["means"], g["quats"], g["log_scales"].exp(), torch.sigmoid(g["opacity_logits"]), g["colors"])
     return [(*params, torch.from_numpy(np.linalg.inv(pose)), cam) for pose in state["mapper"]["keyframes"]["pose"]]
 

@@ -68,7 +68,6 @@ def test_the_mapper_is_composed_of_the_parts_the_config_names(replica_path):
         GaussianSplattingConfig(resolution_scale=0)
 
 
-
 @pytest.mark.parametrize("overrides, size", [([], (240, 320)), (["mode=realtime"], (120, 160)),
                                              (["mode=realtime", "mapper.resolution_scale=0.5"], (240, 320))])
 def test_training_resolution_left_null_depends_on_the_mode(tum_path, overrides, size):
@@ -79,6 +78,23 @@ def test_training_resolution_left_null_depends_on_the_mode(tum_path, overrides, 
     slam.initialize(dataset[0].gt_pose)
     slam.step(dataset[0])
     assert slam.mapper.state_dict()["keyframes"]["rgb"].shape[1:3] == size
+
+
+def test_a_resumed_mapper_trains_new_keyframes_at_its_checkpoints_resolution(tum_path):
+    """A real-time run's keyframes (a quarter of the frame size) resumed in sequential mode (whose
+    default is half): the next keyframe is stored at a quarter too, not mixed."""
+    common = ["dataset=tum", f"dataset.path={tum_path}", "dataset.max_frames=2", "mapper=gaussian_splatting",
+              "keyframe=every_n", "keyframe.tracking_every=1"]
+    dataset, slam, _ = build_run([*common, "mode=realtime"])
+    slam.initialize(dataset[0].gt_pose)
+    slam.step(dataset[0])
+    state = slam.mapper.state_dict()
+    dataset, resumed, _ = build_run(common)
+    resumed.initialize(dataset[0].gt_pose)
+    resumed.mapper.load_state_dict(state)
+    resumed.step(dataset[1])
+    rgb = resumed.mapper.state_dict()["keyframes"]["rgb"]
+    assert rgb.shape[0] == 2 and rgb.shape[1:3] == (120, 160)
 
 @pytest.mark.parametrize("optimizer", ["adam", "visible_adam"])
 @pytest.mark.parametrize("backend", ["torch", "auto"])

@@ -10,10 +10,12 @@
 //
 // Both variants offer the same interface: arithmetic and comparisons with vectors and scalars,
 // lane access v[i], vf1 / vi1 / vd1 (broadcast), as_vi / as_vf (bit casts), to_vi / to_vf (value
-// conversions, truncating toward zero), select, any, all, hsum, vfma, vsqrt, LANE (0..15), and
+// conversions, truncating toward zero), select, any, all (of masks: lanes 0 or -1, as comparisons
+// give; other values test differently per variant), hsum, vfma, vsqrt, LANE (0..15), and
 // for vd: ld8 / st8 (8 floats widened / rounded), widen / narrow (one vf <-> two vd). Arithmetic
 // is IEEE lane by lane in both: without -ffp-contract, results are the same bits, except the
-// float hsum's order of additions and vfma (fused where the target has FMA). vblock / iblock:
+// float hsum's order of additions and vfma (fused where the target has FMA: AVX-512, and AVX2
+// CPUs with FMA, which all have it; a portable build rounds the product and the sum apart). vblock / iblock:
 // what a kernel processes at once, HALVES per vector (one with AVX-512, else the two halves),
 // with block(v, h), block_of (broadcast) and block_lanes (0..7 or 0..15). loadu / storeu:
 // unaligned loads and stores (a memcpy of the pair would go through 16-byte pieces and stall

@@ -19,8 +19,8 @@ class GaussianSplattingConfig(PluginConfig):
     """3DGS mapping options.
 
     resolution_scale: training images are the keyframes resized by this factor (area
-      averaging; depth averaged over valid pixels). null: 0.5 (Replica's 1200x680 trains at
-      600x340, TUM's 640x480 at 320x240), and 0.25 in real-time mode. A step costs about the
+      averaging; depth averaged over valid pixels). When null, 0.5 (Replica's 1200x680 trains
+      at 600x340, TUM's 640x480 at 320x240), and 0.25 in real-time mode. A step costs about the
       number of (pixel, Gaussian) pairs, so 0.5 is 4x cheaper than full resolution, while 0.25
       caps the full-resolution PSNR near 30 dB on Replica (an ideal 0.25 image upsampled back
       scores 30.2 dB on room0's frame 0; 0.5 scores 34.9 dB): a sequential run, which trains

@@ -144,7 +144,8 @@ class KeyframeStore:
         stacked arrays (K,h,w,3) uint8 and (K,h,w) uint16 (KEYFRAME_DEPTH_STEP units)."""
         kfs = self.values()
         images = [kf.arrays() for kf in kfs]
-        return {"frame_index": [kf.frame_index for kf in kfs], "kind": [kf.kind.value for kf in kfs],
+        return {"resolution_scale": self.resolution_scale,
+                "frame_index": [kf.frame_index for kf in kfs], "kind": [kf.kind.value for kf in kfs],
                 "pose": np.array([kf.pose for kf in kfs]).reshape(-1, 4, 4),
                 "camera": [[kf.camera.width, kf.camera.height, kf.camera.fx, kf.camera.fy, kf.camera.cx,
                             kf.camera.cy] for kf in kfs],
@@ -152,7 +153,9 @@ class KeyframeStore:
                 "depth": np.stack([d for _, d in images]) if images else np.zeros((0, 1, 1), np.uint16)}
 
     def load_state_dict(self, state: dict) -> None:
-        """Add the keyframes of a `state_dict()` (to an empty store)."""
+        """Add the keyframes of a `state_dict()` (to an empty store), and train new ones at their
+        resolution (checkpoints before it was saved keep the configured one)."""
+        self.resolution_scale = float(state.get("resolution_scale", self.resolution_scale))
         for i, index in enumerate(state["frame_index"]):
             camera = Camera(int(state["camera"][i][0]), int(state["camera"][i][1]), *map(float, state["camera"][i][2:]))
             self.put(int(index), KeyframeKind(state["kind"][i]), state["pose"][i], camera,

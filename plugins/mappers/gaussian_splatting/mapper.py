@@ -136,7 +136,11 @@ class GaussianSplattingMapper(Mapper):
                     "optimizer": self.optimizer.state_dict(), "strategy": self.strategy.state_dict()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        configured = self.keyframes.resolution_scale
         self.keyframes.load_state_dict(state["keyframes"])
+        if self.keyframes.resolution_scale != configured:
+            log.warning("resumed keyframes train at %g of the frame size, so new ones do too (not %g)",
+                        self.keyframes.resolution_scale, configured)
         self.pending = deque(int(k) for k in state["pending"])
         self.trained = {int(k): int(v) for k, v in state["trained"]}
         self.rng.bit_generator.state = state["rng"]

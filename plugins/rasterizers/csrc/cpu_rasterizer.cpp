@@ -391,7 +391,7 @@ struct State {
   std::vector<float> T_final;           // H*W
   std::vector<int32_t> last;            // H*W: last composited position in the tile list, -1 none
   int64_t num_pairs = 0;
-  int64_t num_rows = 0;  // (entry, tile row) iterations of the forward pass
+  int64_t num_rows = 0;  // vector steps of the forward pass, in 16-lane units (an 8-lane half counts 1/2)
   int threads_used = 0;  // threads that composited at least one tile in the forward pass
   // per phase (forward: project, sort, bin, lists, composite; backward: tiles, reduce): wall, CPU
   int64_t wall_us[8] = {0}, cpu_us[8] = {0};
@@ -569,7 +569,7 @@ void forward(State& S, const float* means, const float* quats, const float* scal
   // 5. composite each tile
   S.T_final.resize((size_t)W * H);
   S.last.resize((size_t)W * H);
-  std::vector<int64_t> pairs_per_thread(std::max(nthreads, 1), 0), rows_per_thread(std::max(nthreads, 1), 0),
+  std::vector<int64_t> pairs_per_thread(std::max(nthreads, 1), 0), lanes_per_thread(std::max(nthreads, 1), 0),
       tiles_per_thread(std::max(nthreads, 1), 0);
   parallel_for(nthreads, tiles, 1, [&](int64_t b, int64_t e, int tid) {
     std::unique_ptr<ChunkEntry[]> ents(new ChunkEntry[CHUNK]);
@@ -682,14 +682,15 @@ void forward(State& S, const float* means, const float* quats, const float* scal
       int64_t pairs = 0;
       for (int i = 0; i < BLOCK; ++i) pairs += count[i];
       pairs_per_thread[tid] += pairs;
-      rows_per_thread[tid] += lanes / TILE;
+      lanes_per_thread[tid] += lanes;
       tiles_per_thread[tid] += 1;
     }
   });
   S.num_pairs = 0;
   for (int64_t p : pairs_per_thread) S.num_pairs += p;
   S.num_rows = 0;
-  for (int64_t r : rows_per_thread) S.num_rows += r;
+  for (int64_t r : lanes_per_thread) S.num_rows += r;
+  S.num_rows /= TILE;  // in 16-lane steps
   S.threads_used = 0;
   for (int64_t t : tiles_per_thread) S.threads_used += t > 0;
   Stamp t5 = now_us();
