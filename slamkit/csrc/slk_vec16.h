@@ -292,6 +292,5 @@ inline bool all(vi m) { return all(m.lo & m.hi); }
 inline vi vi1(int32_t x) { return vi{} + x; }
 inline vf select(vi m, vf a, vf b) { return as_vf((as_vi(a) & m) | (as_vi(b) & ~m)); }
 inline vi select(vi m, vi a, vi b) { return (a & m) | (b & ~m); }
-inline vf vfma(vf a, float b, vf c) { return vfma(a, vf1(b), c); }
 
 }  // namespace

@@ -93,10 +93,6 @@ inline void with_rows(int n, F&& f) {
 constexpr double C1 = 0.01 * 0.01;  // (K1 data_range)^2, (K2 data_range)^2 as pytorch_msssim
 constexpr double C2 = 0.03 * 0.03;
 
-inline vf ld(const float* p) { return loadu(p); }
-inline vd ldd(const double* p) { return loadu(p); }
-inline void st(float* p, vf v) { storeu(p, v); }
-inline void st(double* p, vd v) { storeu(p, v); }
 // sign(v) as torch's abs backward: 0 at 0, NaN for NaN
 inline vf sign(vf v) { return select(v > 0, vf1(1.f), select(v < 0, vf1(-1.f), v)); }
 inline vf vabs(vf v) { return as_vf(as_vi(v) & vi1(0x7fffffff)); }
@@ -138,32 +134,32 @@ inline vf shift(vf a, vf b) {  // lanes S..S+15 of (a, b)
   return (vf)_mm512_castsi512_ps(_mm512_alignr_epi32(_mm512_castps_si512((__m512)b), _mm512_castps_si512((__m512)a), S));
 }
 inline vd row_filter(const vd* g, const double* p) {  // p: 64-byte aligned
-  const vd a = ldd(p), b = ldd(p + VD), c = ldd(p + 2 * VD);
+  const vd a = loadu(p), b = loadu(p + VD), c = loadu(p + 2 * VD);
   const vd w[K] = {a, shift<1>(a, b), shift<2>(a, b), shift<3>(a, b), shift<4>(a, b), shift<5>(a, b),
                    shift<6>(a, b), shift<7>(a, b), b, shift<1>(b, c), shift<2>(b, c)};
   return sym_filter(g, [&](int t) { return w[t]; });
 }
 inline vf row_filter(const vf* g, const float* p) {  // p: 64-byte aligned
-  const vf a = ld(p), b = ld(p + VL);
+  const vf a = loadu(p), b = loadu(p + VL);
   const vf w[K] = {a, shift<1>(a, b), shift<2>(a, b), shift<3>(a, b), shift<4>(a, b), shift<5>(a, b),
                    shift<6>(a, b), shift<7>(a, b), shift<8>(a, b), shift<9>(a, b), shift<10>(a, b)};
   return sym_filter(g, [&](int t) { return w[t]; });
 }
 inline vf row_filter6(const vf* g, const float* p) {  // sum_t g[t] p[j + 6 + t]; p: 64-byte aligned
-  const vf a = ld(p), b = ld(p + VL);
+  const vf a = loadu(p), b = loadu(p + VL);
   const vf w[K] = {shift<6>(a, b), shift<7>(a, b), shift<8>(a, b), shift<9>(a, b), shift<10>(a, b), shift<11>(a, b),
                    shift<12>(a, b), shift<13>(a, b), shift<14>(a, b), shift<15>(a, b), b};
   return sym_filter(g, [&](int t) { return w[t]; });
 }
 #else
 inline vd row_filter(const vd* g, const double* p) {
-  return sym_filter(g, [&](int t) { return ldd(p + t); });
+  return sym_filter(g, [&](int t) { return loadu(p + t); });
 }
 inline vf row_filter(const vf* g, const float* p) {
-  return sym_filter(g, [&](int t) { return ld(p + t); });
+  return sym_filter(g, [&](int t) { return loadu(p + t); });
 }
 inline vf row_filter6(const vf* g, const float* p) {
-  return sym_filter(g, [&](int t) { return ld(p + 6 + t); });
+  return sym_filter(g, [&](int t) { return loadu(p + 6 + t); });
 }
 #endif
 
@@ -188,7 +184,7 @@ inline void deinterleave3(const float* p, vf out[3]) {
   static const vi second[3] = {lanes([](int k) { return 3 * k < 32 ? k : 3 * k - 16; }),
                                lanes([](int k) { return 3 * k + 1 < 32 ? k : 3 * k + 1 - 16; }),
                                lanes([](int k) { return 3 * k + 2 < 32 ? k : 3 * k + 2 - 16; })};
-  const vf v0 = ld(p), v1 = ld(p + VL), v2 = ld(p + 2 * VL);
+  const vf v0 = loadu(p), v1 = loadu(p + VL), v2 = loadu(p + 2 * VL);
   for (int ch = 0; ch < 3; ++ch) out[ch] = permute2(permute2(v0, first[ch], v1), second[ch], v2);
 }
 inline void interleave3(const vf in[3], float* p) {
@@ -200,18 +196,18 @@ inline void interleave3(const vf in[3], float* p) {
   static const vi second[3] = {lanes([](int e) { return e % 3 == 2 ? 16 + e / 3 : e; }),
                                lanes([](int e) { return (16 + e) % 3 == 2 ? 16 + (16 + e) / 3 : e; }),
                                lanes([](int e) { return (32 + e) % 3 == 2 ? 16 + (32 + e) / 3 : e; })};
-  for (int o = 0; o < 3; ++o) st(p + o * VL, permute2(permute2(in[0], first[o], in[1]), second[o], in[2]));
+  for (int o = 0; o < 3; ++o) storeu(p + o * VL, permute2(permute2(in[0], first[o], in[1]), second[o], in[2]));
 }
 #else
 inline void deinterleave3(const float* p, vf out[3]) {
   float h[3][VL];
   for (int k = 0; k < VL; ++k)
     for (int ch = 0; ch < 3; ++ch) h[ch][k] = p[3 * k + ch];
-  for (int ch = 0; ch < 3; ++ch) out[ch] = ld(h[ch]);
+  for (int ch = 0; ch < 3; ++ch) out[ch] = loadu(h[ch]);
 }
 inline void interleave3(const vf in[3], float* p) {
   float h[3][VL];
-  for (int ch = 0; ch < 3; ++ch) st(h[ch], in[ch]);
+  for (int ch = 0; ch < 3; ++ch) storeu(h[ch], in[ch]);
   for (int k = 0; k < VL; ++k)
     for (int ch = 0; ch < 3; ++ch) p[3 * k + ch] = h[ch][k];
 }
@@ -298,10 +294,10 @@ void Band::load_row(int q) {
     vf cv[3], iv[3];
     deinterleave3(c + 3 * j, cv);
     deinterleave3(I + 3 * j, iv);
-    const vf mv = ld(m + j);
+    const vf mv = loadu(m + j);
     for (int ch = 0; ch < 3; ++ch) {
-      st(x[ch] + j, cv[ch] * mv);
-      st(y[ch] + j, iv[ch] * mv);
+      storeu(x[ch] + j, cv[ch] * mv);
+      storeu(y[ch] + j, iv[ch] * mv);
     }
   }
   for (int j = full; j < W; ++j) {
@@ -327,17 +323,17 @@ void Band::vertical(int ch, int r, int count) {
   for (int b = 0; b < count; ++b) {
     const int j = b * VL;
     vf t16[NR];
-    for (int t = 0; t < NR; ++t) t16[t] = ld(xs[t] + j) - ld(ys[t] + j);
+    for (int t = 0; t < NR; ++t) t16[t] = loadu(xs[t] + j) - loadu(ys[t] + j);
     for (int q = 0; q < N; ++q) {
-      st(vrow_f(q, 0) + j, sym_filter(P.gf, [&](int t) { return t16[q + t]; }));
-      st(vrow_f(q, 1) + j, sym_filter_squares(P.gf, t16 + q));
+      storeu(vrow_f(q, 0) + j, sym_filter(P.gf, [&](int t) { return t16[q + t]; }));
+      storeu(vrow_f(q, 1) + j, sym_filter_squares(P.gf, t16 + q));
     }
     for (int h = 0; h < VL; h += VD) {
       vd s8[NR];
       for (int t = 0; t < NR; ++t) s8[t] = ld8(xs[t] + j + h) + ld8(ys[t] + j + h);
       for (int q = 0; q < N; ++q) {
-        st(vrow_d(q, 0) + j + h, sym_filter(P.gd, [&](int t) { return s8[q + t]; }));
-        st(vrow_d(q, 1) + j + h, sym_filter_squares(P.gd, s8 + q));
+        storeu(vrow_d(q, 0) + j + h, sym_filter(P.gd, [&](int t) { return s8[q + t]; }));
+        storeu(vrow_d(q, 1) + j + h, sym_filter_squares(P.gd, s8 + q));
       }
     }
   }
@@ -384,7 +380,7 @@ vd Band::horizontal_and_seeds(int q, int count) {
     }
     add_wide(total, S);
     if (P.grads)
-      for (int k = 0; k < 3; ++k) st(sd[k] + j, a[k]);
+      for (int k = 0; k < 3; ++k) storeu(sd[k] + j, a[k]);
   }
   return total;
 }
@@ -399,7 +395,7 @@ void Band::adjoint_horizontal(int ch, int r) {
     const float* a = seed.p + (size_t)k * SL;  // a + 6 + t = the seed row at offset t - 10
     for (int b = 0; b < count; ++b) {
       const int j = b * VL;
-      st(out + j, row_filter6(P.gf, a + j));
+      storeu(out + j, row_filter6(P.gf, a + j));
     }
   }
 }
@@ -453,18 +449,18 @@ void Band::emit_colour(int i, double* l1_sums) {
       if (P.do_ssim && P.grads) {
         for (int k = 0; k < 3; ++k) {
           vf uv[NR];
-          for (int p = 0; p < NR; ++p) uv[p] = ld(us[k][p] + j);
+          for (int p = 0; p < NR; ++p) uv[p] = loadu(us[k][p] + j);
           for (int q = 0; q < N; ++q) T[q][k] = sym_filter(P.gf, [&](int t) { return uv[R + q - t]; });
         }
       }
       for (int q = 0; q < N; ++q) {
         // |c - I| m = |x - y| for m in {0, 1} (padding: 0 - 0)
-        const vf xv = ld(x[q] + j), diff = xv - ld(y[q] + j);
+        const vf xv = loadu(x[q] + j), diff = xv - loadu(y[q] + j);
         add_wide(l1[q], vabs(diff));
         if (!P.grads) continue;
         vf gr = kl1 * sign(diff);
         if (P.do_ssim) gr += vfma(2.f * diff, T[q][2], vfma(2.f * xv, T[q][1], T[q][0]));
-        st(grow(q, ch) + j, gr * ld(m[q] + j));
+        storeu(grow(q, ch) + j, gr * loadu(m[q] + j));
       }
     }
   }
@@ -480,7 +476,7 @@ double Band::emit_depth(int i, int q) {
     const float* gp[3] = {grow(q, 0), grow(q, 1), grow(q, 2)};
     const int full = W / VL * VL;
     for (int j = 0; j < full; j += VL) {
-      const vf g3[3] = {ld(gp[0] + j), ld(gp[1] + j), ld(gp[2] + j)};
+      const vf g3[3] = {loadu(gp[0] + j), loadu(gp[1] + j), loadu(gp[2] + j)};
       interleave3(g3, gc + 3 * j);
     }
     for (int j = full; j < W; ++j)
@@ -501,23 +497,23 @@ double Band::emit_depth(int i, int q) {
     const int n = std::min(VL, W - j);
     vf dv, Dv;
     if (n == VL) {
-      dv = ld(d + j);
-      Dv = ld(D + j);
+      dv = loadu(d + j);
+      Dv = loadu(D + j);
     } else {  // the last partial vector, zero-padded (adds 0 to the sum)
       std::fill_n(tl, 2 * VL, 0.f);
       std::copy_n(d + j, n, tl);
       std::copy_n(D + j, n, tl + VL);
-      dv = ld(tl);
-      Dv = ld(tl + VL);
+      dv = loadu(tl);
+      Dv = loadu(tl + VL);
     }
-    const vf mv = ld(m + j), diff = dv - Dv;
+    const vf mv = loadu(m + j), diff = dv - Dv;
     add_wide(dep, vabs(diff) * mv);
     if (gd) {
       const vf gv = kd * sign(diff) * mv;
       if (n == VL) {
-        st(gd + j, gv);
+        storeu(gd + j, gv);
       } else {
-        st(tl + 2 * VL, gv);
+        storeu(tl + 2 * VL, gv);
         std::copy_n(tl + 2 * VL, n, gd + j);
       }
     }

@@ -28,8 +28,8 @@
 // touch) -> per tile, 32 entries at a time: their row spans (16 rows at once), per tile row the
 // entries covering it, then each row (16 pixels = one vector; without AVX-512, each 8-pixel
 // half that a span meets) composited with its state in registers; per-pixel early termination,
-// per-row and per-tile early exit. Kept for the
-// backward pass: the final transmittance and the last composited list position of every pixel.
+// per-row and per-tile early exit. Kept for the backward pass: the final transmittance and the
+// last composited list position of every pixel.
 // Backward: per tile, the list walked back to front (transmittance recovered by division, the
 // suffix sum sum_{j>i} w_j v_j carried per pixel), per (tile, Gaussian) entry ten moments
 // accumulated in registers and stored in that entry's own slot (no atomics); then per Gaussian
@@ -368,6 +368,12 @@ struct ChunkEntry {
 // pixels on average, so most need one half).
 constexpr int BLOCK = TILE / HALVES;
 
+// Whether a row span [a, z] in tile columns (empty where z < a) meets block h within the tile's
+// tw columns.
+inline bool span_meets(int a, int z, int tw, int h) {
+  return z >= a && a < std::min(tw, (h + 1) * BLOCK) && z >= h * BLOCK;
+}
+
 // alpha of the block of row lr of an entry whose first lane is lane0, and dx (lane - span
 // start a + row_dx, a = xl - x0); log alpha is the torch backend's expression (fused here: it
 // does not decide which pixels are covered)
@@ -613,12 +619,10 @@ void forward(State& S, const float* means, const float* quats, const float* scal
           E.col[2] = s.col[2];
           E.z = s.z;
           E.pos = pos;
-          for (int lr = r0; lr <= r1; ++lr) {
-            const int a = E.sp.xl[lr] - x0, z = E.sp.xr[lr] - x0;  // the span in tile columns
-            if (z < a || a > tw - 1 || z < 0) continue;            // empty, or misses the tile
+          for (int lr = r0; lr <= r1; ++lr)
             for (int h = 0; h < HALVES; ++h)
-              if (alive[lr][h] && a < (h + 1) * BLOCK && z >= h * BLOCK) list[lr][h][nrow[lr][h]++] = (uint8_t)k;
-          }
+              if (alive[lr][h] && span_meets(E.sp.xl[lr] - x0, E.sp.xr[lr] - x0, tw, h))
+                list[lr][h][nrow[lr][h]++] = (uint8_t)k;
         }
         // composite block by block, the block's state in registers
         for (int lr = 0; lr < th; ++lr)
@@ -777,10 +781,9 @@ void backward(State& S, const float* means, const float* quats, const float* sca
         E.a = s.a;
         for (int lr = r0; lr <= r1; ++lr) {
           const int a = E.sp.xl[lr] - x0, z = E.sp.xr[lr] - x0;  // the span in tile columns
-          if (z < a || a > tw - 1 || z < 0) continue;
           for (int h = 0; h < HALVES; ++h) {
+            if (!span_meets(a, z, tw, h)) continue;
             const int lane0 = h * BLOCK;
-            if (a >= lane0 + BLOCK || z < lane0) continue;
             const iblock lane = block_lanes() + lane0;
             const iblock m = (lane >= a) & (lane <= z) & (posv <= block(last[lr], h));
             if (!any(m)) continue;
