@@ -143,7 +143,8 @@ def main(argv: list[str] | None = None) -> int:
             f"{'cyc/pair f':>10} {'cyc/pair f+b':>12}  "
             + " ".join(f"{k[:9]:>9}" for k in TIME_KEYS))
     print(head)
-    scenes = {name: [make_scene(*SCENES[name], args.seed)] for name in [s.strip() for s in args.scenes.split(",") if s.strip()]}
+    names = [s.strip() for s in args.scenes.split(",") if s.strip()]
+    scenes = {name: [make_scene(*SCENES[name], args.seed)] for name in names}
     if args.map is not None:
         scenes.update({f"map@{scale}": map_views(args.map, float(scale)) for scale in args.map_scales.split(",")})
     for scene_name, views in scenes.items():
@@ -155,8 +156,8 @@ def main(argv: list[str] | None = None) -> int:
             results["runs"].append(res)
             cyc = (f"{res['cycles_per_pair_forward']:>10.1f} {res['cycles_per_pair']:>12.1f}" if ghz
                    else f"{'?':>10} {'?':>12}")
-            print(f"{scene_name:9} {threads:>3} {res['pairs']:>9.0f} {res['lane_use']:>6.2f} {res['wall_s'] * 1e3:>7.1f}ms "
-                  f"{res['forward_cpu_s'] * 1e3:>6.1f}ms {res['cpu_s'] * 1e3:>6.1f}ms {cyc}  "
+            print(f"{scene_name:9} {threads:>3} {res['pairs']:>9.0f} {res['lane_use']:>6.2f} "
+                  f"{res['wall_s'] * 1e3:>7.1f}ms {res['forward_cpu_s'] * 1e3:>6.1f}ms {res['cpu_s'] * 1e3:>6.1f}ms {cyc}  "
                   + " ".join(f"{res['phase_cpu_s'][k] * 1e3:>7.2f}ms" for k in TIME_KEYS), flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(results, indent=2))
