@@ -31,10 +31,10 @@ def at_pixel(u: float, v: float, z: float, pose: np.ndarray = np.eye(4)) -> np.n
     return (pose @ camera_point)[:3]
 
 
-def occupied(points, centres, pose=np.eye(4), cell=5.0, tolerance=0.05) -> list[bool]:
+def occupied(points, centres, pose=np.eye(4), cell=5.0, tolerance=0.05, min_centres=1) -> list[bool]:
     w2c = torch.as_tensor(invert_pose(pose), dtype=torch.float32)
     t = lambda a: torch.as_tensor(np.asarray(a, dtype=np.float32).reshape(-1, 3))  # noqa: E731
-    return occupied_by_centres(t(points), t(centres), w2c, CAM, cell, tolerance).tolist()
+    return occupied_by_centres(t(points), t(centres), w2c, CAM, cell, tolerance, min_centres).tolist()
 
 
 @pytest.mark.parametrize("pose", [np.eye(4), np.array([[0.0, 0, 1, 0.3], [0, 1, 0, -0.2], [-1, 0, 0, 1.5], [0, 0, 0, 1]])])
@@ -58,6 +58,11 @@ def test_a_point_is_occupied_by_a_centre_in_its_cell_at_its_depth(pose):
     # a larger cell takes in the neighbour; a larger tolerance the surface 20 cm behind
     assert occupied(points[3], centres, pose, cell=10.0) == [True]
     assert occupied(points[2], centres, pose, tolerance=0.25) == [True]
+    # two centres needed: only where two lie in the cell within the tolerance
+    two = centres + [at_pixel(8.0, 6.0, 1.99, pose)]  # a second centre in the first cell
+    assert occupied(points[:2] + points[4:6], two, pose, min_centres=2) == [True, True, False, False]
+    assert occupied(points[4:6], two, pose, tolerance=0.6, min_centres=2) == [False, True]  # 2.5 m: both in reach
+    assert occupied(points[:2], two, pose, min_centres=3) == [False, False]
 
 
 def test_image_cells_number_the_image_row_by_row():
@@ -73,6 +78,8 @@ def test_image_cells_number_the_image_row_by_row():
 def test_coverage_settings_are_validated_and_the_cell_comes_from_the_sensor():
     with pytest.raises(ConfigError, match="strategy.covered_cell: expected null or > 0 pixels"):
         PruneConfig(covered_cell=0)
+    with pytest.raises(ConfigError, match="strategy.covered_centres: expected an integer >= 1"):
+        PruneConfig(covered_centres=0)
     with pytest.raises(ConfigError, match="strategy.coverage"):
         from slamkit.registry.compose import build_run
 

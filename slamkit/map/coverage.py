@@ -60,11 +60,11 @@ def image_cells(points: torch.Tensor, world_to_camera: torch.Tensor, camera: Cam
 
 
 def occupied_by_centres(points: torch.Tensor, centres: torch.Tensor, world_to_camera: torch.Tensor, camera: Camera,
-                        cell: float, depth_tolerance: float) -> torch.Tensor:
+                        cell: float, depth_tolerance: float, min_centres: int = 1) -> torch.Tensor:
     """(N,) bool: the world points (N,3, metres) whose image cell (`cell` x `cell` pixels of
-    `camera`, seen through `world_to_camera`) holds the centre of one of `centres` (M,3, the map's
-    means) at a camera depth within depth_tolerance metres of the point's own. Points behind the
-    camera or outside the image are not occupied."""
+    `camera`, seen through `world_to_camera`) holds the centres of at least `min_centres` of
+    `centres` (M,3, the map's means) at camera depths within depth_tolerance metres of the
+    point's own. Points behind the camera or outside the image are not occupied."""
     occupied = torch.zeros(len(points), dtype=torch.bool, device=points.device)
     if len(points) == 0 or len(centres) == 0:
         return occupied
@@ -73,17 +73,13 @@ def occupied_by_centres(points: torch.Tensor, centres: torch.Tensor, world_to_ca
     map_cell, map_z = map_cell[map_inside], map_z[map_inside]
     if len(map_cell) == 0:
         return occupied
-    # one sorted key per centre, cell first and depth second: a point's nearest centres in depth
-    # within its cell are the two beside its own key
-    span = float(torch.cat([map_z, new_z[new_inside]]).max()) + 1.0
-    keys, order = torch.sort(map_cell.double() * span + map_z)
-    map_cell, map_z = map_cell[order], map_z[order]
-    cells, z = new_cell[new_inside], new_z[new_inside]
-    at = torch.searchsorted(keys, cells.double() * span + z)
-    found = torch.zeros(len(cells), dtype=torch.bool, device=points.device)
-    for neighbour in (at - 1, at):
-        valid = (neighbour >= 0) & (neighbour < len(keys))
-        i = neighbour.clamp(0, len(keys) - 1)
-        found |= valid & (map_cell[i] == cells) & ((map_z[i] - z).abs() < depth_tolerance)
-    occupied[new_inside] = found
+    # one sorted key per centre, cell first and depth second, cells `span` apart (more than the
+    # depths plus twice the tolerance): the centres of a point's cell within its depth tolerance
+    # are the keys strictly between its own key -/+ the tolerance
+    span = float(torch.cat([map_z, new_z[new_inside]]).max()) + 2.0 * depth_tolerance + 1.0
+    keys = torch.sort(map_cell.double() * span + map_z).values
+    key = new_cell[new_inside].double() * span + new_z[new_inside]
+    first = torch.searchsorted(keys, key - depth_tolerance, side="right")
+    past = torch.searchsorted(keys, key + depth_tolerance, side="left")
+    occupied[new_inside] = past - first >= min_centres
     return occupied

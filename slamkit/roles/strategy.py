@@ -67,6 +67,8 @@ class StrategyConfig(PluginConfig):
       Replica, so a view holds about one Gaussian per cell and surface, as one keyframe gives
       it). Smaller cells allow a denser map (half the stride: up to ~4x) that a looped sequence
       fills only slowly, pass after pass (docs/results.md).
+    covered_centres: how many map centres the centres test needs in a cell (at the point's
+      depth) to count it explained: a view holds up to this many Gaussians per cell and surface.
     covered_alpha: the render test's alpha threshold.
     covered_depth_tolerance: metres; how far a point's camera depth may be from the map's (the
       render's expected depth, or a centre's) to count as explained, in both tests.
@@ -82,6 +84,7 @@ class StrategyConfig(PluginConfig):
     skip_covered: bool = True
     coverage: CoverageTest = CoverageTest.centres
     covered_cell: float | None = None
+    covered_centres: int = 1
     covered_alpha: float = 0.9
     covered_depth_tolerance: float = 0.05
     max_gaussians: int | None = None
@@ -90,6 +93,7 @@ class StrategyConfig(PluginConfig):
     def validate(self) -> None:
         require(self.covered_cell is None or self.covered_cell > 0, "strategy.covered_cell",
                 "null or > 0 pixels", self.covered_cell)
+        require(self.covered_centres >= 1, "strategy.covered_centres", "an integer >= 1", self.covered_centres)
         require(0 < self.covered_alpha < 1, "strategy.covered_alpha", "in (0, 1)", self.covered_alpha)
         require(self.covered_depth_tolerance > 0, "strategy.covered_depth_tolerance", "> 0 metres",
                 self.covered_depth_tolerance)
@@ -164,7 +168,7 @@ class DensifyStrategy(ABC):
         if test is not CoverageTest.render and view.centres is not None:
             cell = cfg.covered_cell if cfg.covered_cell is not None else default_covered_cell(SensorProfile())
             covered |= occupied_by_centres(points, view.centres, view.world_to_camera, view.input_camera or view.camera,
-                                           cell, cfg.covered_depth_tolerance)
+                                           cell, cfg.covered_depth_tolerance, cfg.covered_centres)
         if test is not CoverageTest.centres:
             covered |= covered_by_render(points, view.render(), view.world_to_camera, view.camera,
                                          cfg.covered_alpha, cfg.covered_depth_tolerance)
