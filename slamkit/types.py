@@ -76,17 +76,46 @@ class Camera:
         return replace(self, **{k: v for k, v in values.items() if v is not None})
 
 
+class Deferred:
+    """A dataclass field that may be given a zero-argument function instead of its value: the
+    first read calls it and keeps what it returns, so work that only some frames need (decoding
+    a colour image, rotating covariances to the world) is done only for those (keyframes in real
+    time). Declared as `name: type = Deferred()` (no default) or `Deferred(default=value)`."""
+
+    _NO_DEFAULT = object()
+
+    def __init__(self, default=_NO_DEFAULT):
+        self.default = default
+
+    def __set_name__(self, owner, name: str) -> None:
+        self.slot = "_deferred_" + name
+
+    def __get__(self, obj, owner=None):
+        if obj is None:  # the dataclass asks for the field's default
+            if self.default is Deferred._NO_DEFAULT:
+                raise AttributeError(self.slot)
+            return self.default
+        value = obj.__dict__[self.slot]
+        if callable(value):
+            value = obj.__dict__[self.slot] = value()
+        return value
+
+    def __set__(self, obj, value) -> None:
+        obj.__dict__[self.slot] = value
+
+
 @dataclass
 class Frame:
     """One RGB-D frame.
 
-    rgb: HxWx3 uint8. depth: HxW float32 metres, 0 = invalid. gt_pose: camera-to-world 4x4
-    float64 or None. depth_trunc: metres; farther points are not used for tracking.
+    rgb: HxWx3 uint8 (a dataset may give a function that decodes it: see Deferred). depth: HxW
+    float32 metres, 0 = invalid. gt_pose: camera-to-world 4x4 float64 or None. depth_trunc:
+    metres; farther points are not used for tracking.
     """
 
     index: int
     timestamp: float
-    rgb: np.ndarray
+    rgb: np.ndarray = Deferred()
     depth: np.ndarray
     camera: Camera
     gt_pose: np.ndarray | None = None
@@ -115,16 +144,17 @@ class FrameGaussians:
     is 1 m^2). colors: Nx3 in [0, 1]. depths: N camera depths in metres (for scale
     alignment). trackable: N bool (inside depth_trunc). sq_dist_to_map: N squared distance in
     m^2 to the nearest map Gaussian found by the tracker's last correspondence search
-    (inf where none was found).
+    (inf where none was found). covariances, colors and shape_covariances may be given as
+    functions computing them (Deferred): only a keyframe's Gaussians enter the map.
     """
 
     means: np.ndarray
-    covariances: np.ndarray
-    colors: np.ndarray
+    covariances: np.ndarray = Deferred()
+    colors: np.ndarray = Deferred()
     depths: np.ndarray
     trackable: np.ndarray
     sq_dist_to_map: np.ndarray | None = None
-    shape_covariances: np.ndarray | None = None
+    shape_covariances: np.ndarray | None = Deferred(default=None)
 
     def __len__(self) -> int:
         return len(self.means)

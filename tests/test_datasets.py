@@ -15,6 +15,7 @@ from slamkit.errors import ConfigError, DataError
 from slamkit.geometry.transforms import make_pose, quat_to_rotmat, so3_exp
 from slamkit.formats.images import read_depth, read_rgb
 from slamkit.formats.tum import interpolate_poses, read_tum_list, read_tum_trajectory
+from slamkit.types import Frame
 from slamkit_plugins.datasets import replica, sevenscenes, tum
 from slamkit_plugins.datasets.replica import ReplicaConfig, ReplicaDataset
 from slamkit_plugins.datasets.sevenscenes import SevenScenesConfig, SevenScenesDataset
@@ -235,8 +236,9 @@ def test_missing_and_empty_folders(tmp_path):
         (lambda r: save_depth(r / "depth/0.png", np.ones((240, 320))), "0.png", "320x240"),
         (lambda r: Image.fromarray(np.ones((H, W), np.uint8)).save(r / "depth/0.png"), "0.png", "mode L"),
         (lambda r: save_rgb(r / "rgb/0.png", (100, 100)), "0.png", "640x480"),
+        (lambda r: flip_byte(r / "rgb/0.png"), "0.png", "colour"),
     ],
-    ids=["garbage-depth", "truncated-rgb", "missing-depth", "depth-size", "8bit-depth", "rgb-size"],
+    ids=["garbage-depth", "truncated-rgb", "missing-depth", "depth-size", "8bit-depth", "rgb-size", "corrupt-rgb"],
 )
 def test_bad_images(tmp_path, damage, name, needle):
     root = make_tum(tmp_path / "fr1_bad", [0.0], [0.0])
@@ -245,6 +247,27 @@ def test_bad_images(tmp_path, damage, name, needle):
     with pytest.raises(DataError) as e:
         ds[0]
     assert needle in one_line_error(e, name)
+
+
+def flip_byte(path: Path) -> None:
+    """One byte in the middle of the file (a PNG's pixel data) inverted, the length kept."""
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    path.write_bytes(bytes(data))
+
+
+def test_a_colour_png_is_checked_when_loaded_and_decoded_when_read(tmp_path):
+    """A frame's colour PNG is decoded only when `frame.rgb` is read (once), to the same pixels
+    as `read_rgb`; the checks that fail a damaged file still run when the frame loads (above)."""
+    root = make_tum(tmp_path / "fr1_lazy", [0.0], [0.0])
+    frame = TUMDataset(TUMConfig(path=str(root)))[0]
+    np.testing.assert_array_equal(frame.rgb, read_rgb(root / "rgb/0.png"))
+    assert frame.rgb is frame.rgb
+    calls = []
+    lazy = Frame(0, 0.0, lambda: calls.append(1) or np.zeros((2, 2, 3), np.uint8), np.zeros((2, 2), np.float32),
+                 frame.camera)
+    assert calls == []
+    assert lazy.rgb.shape == (2, 2, 3) and lazy.rgb.shape == (2, 2, 3) and calls == [1]
 
 
 def test_image_io_direct(tmp_path):

@@ -171,19 +171,22 @@ class GICPTracker(Tracker):
                          cov_cam: np.ndarray, raw_cam: np.ndarray, sq_track: np.ndarray) -> FrameGaussians:
         """The frame's Gaussians at `pose` (camera-to-world): world means (m), regularised and raw
         covariances rotated to the world (m^2), colours in [0, 1], camera depths (m), and the
-        trackable points' squared distance (m^2) to their nearest target mean (inf elsewhere)."""
+        trackable points' squared distance (m^2) to their nearest target mean (inf elsewhere).
+        Covariances and colours are computed when first read (Deferred): for keyframes only."""
         sq_dist = np.full(len(points), np.inf)
         sq_dist[trackable] = sq_track
-        R, t = pose[:3, :3], pose[:3, 3]
-        rgb = np.asarray(frame.rgb).reshape(-1, 3)[pix]
-        if np.issubdtype(rgb.dtype, np.integer):
-            colors = rgb.astype(np.float32) / 255.0
-        else:
-            colors = np.clip(rgb, 0.0, 1.0).astype(np.float32)
+        R, t = pose[:3, :3].copy(), pose[:3, 3].copy()  # kept by the deferred fields
+
+        def colors() -> np.ndarray:
+            rgb = np.asarray(frame.rgb).reshape(-1, 3)[pix]
+            if np.issubdtype(rgb.dtype, np.integer):
+                return rgb.astype(np.float32) / 255.0
+            return np.clip(rgb, 0.0, 1.0).astype(np.float32)
+
         return FrameGaussians(
             means=(points.astype(np.float64) @ R.T + t).astype(np.float32),
-            covariances=rotate_covariances(R, cov_cam),
-            shape_covariances=rotate_covariances(R, raw_cam),
+            covariances=lambda: rotate_covariances(R, cov_cam),
+            shape_covariances=lambda: rotate_covariances(R, raw_cam),
             colors=colors,
             depths=points[:, 2].copy(),
             trackable=trackable,
