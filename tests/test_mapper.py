@@ -140,6 +140,40 @@ def test_coarse_steps_train_a_new_keyframe_at_half_resolution_first(truth_frames
     assert widths == [20, 20, 20, 40, 40] and np.isfinite(mapper.last_loss)
 
 
+def test_a_window_step_trains_on_the_same_pixels_of_its_view(truth_frames):
+    """mapper.window=0.5: each step takes a random 20x15 window of the 40x30 view, whose camera
+    renders that part of the view's render; the map still learns the view."""
+    mapper = make_mapper(mapper={"window": 0.5})
+    windows = []
+    step = mapper.train_step
+    mapper.train_step = lambda view: windows.append(view) or step(view)
+    add(mapper, truth_frames[0])
+    mapper.optimize(1)
+    first = mapper.last_loss
+    mapper.optimize(60)
+    assert mapper.last_loss < 0.6 * first
+    full = mapper.keyframes[0].view()
+    with torch.no_grad():
+        whole = mapper.render(full.world_to_camera, full.camera)
+        corners = set()
+        for w in windows[-5:]:
+            x0, y0 = round(full.camera.cx - w.camera.cx), round(full.camera.cy - w.camera.cy)
+            corners.add((x0, y0))
+            rows, columns = slice(y0, y0 + 15), slice(x0, x0 + 20)
+            assert (w.camera.width, w.camera.height, w.camera.fx) == (20, 15, full.camera.fx)
+            assert torch.equal(w.image, full.image[rows, columns]) and torch.equal(w.depth, full.depth[rows, columns])
+            part = mapper.render(w.world_to_camera, w.camera)
+            # the same pixels, but near the window's border: 3DGS clamps the projection's Jacobian
+            # at 15 % outside the image, so Gaussians beyond the window's edge spread differently
+            inner = (slice(4, -4), slice(4, -4))
+            assert torch.allclose(part.color[inner], whole.color[rows, columns][inner], atol=1e-5)
+            assert torch.allclose(part.depth[inner], whole.depth[rows, columns][inner], atol=1e-5)
+            assert torch.allclose(part.color, whole.color[rows, columns], atol=5e-3)
+    assert len(corners) > 1
+    with pytest.raises(ValueError, match="not inside the 40x30 view"):
+        full.window(30, 0, 20, 15)
+
+
 def test_rows_appended_between_steps_get_trained(truth_frames):
     gm = start_map()
     mapper = make_mapper(gm, strategy=("gsicp", {"prune_every": 0}))

@@ -5,6 +5,7 @@ strategy `slamkit.roles.strategy.DensifyStrategy`)."""
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+import dataclasses
 from dataclasses import dataclass
 from typing import Any, Callable, ClassVar
 
@@ -97,6 +98,17 @@ class TrainingView:
     camera: Camera
     image: torch.Tensor
     depth: torch.Tensor
+
+    def window(self, x0: int, y0: int, width: int, height: int) -> TrainingView:
+        """The view's pixels [x0, x0 + width) x [y0, y0 + height) as a view of its own: the same
+        pose, the camera's principal point moved by (-x0, -y0) pixels."""
+        if not (0 <= x0 and 0 <= y0 and 0 < width <= self.camera.width - x0 and 0 < height <= self.camera.height - y0):
+            raise ValueError(f"window {width}x{height} at ({x0}, {y0}) is not inside the "
+                             f"{self.camera.width}x{self.camera.height} view")
+        camera = Camera(width, height, self.camera.fx, self.camera.fy, self.camera.cx - x0, self.camera.cy - y0)
+        rows, columns = slice(y0, y0 + height), slice(x0, x0 + width)
+        return dataclasses.replace(self, camera=camera, image=self.image[rows, columns].contiguous(),
+                                   depth=self.depth[rows, columns].contiguous())
 
 
 class KeyframeSampler(ABC):

@@ -29,6 +29,9 @@ class GaussianSplattingConfig(PluginConfig):
     coarse_steps: a keyframe's first training steps (this many) see it at half the training
       resolution: a step then costs about a quarter, spent while the keyframe's Gaussians are
       far from fitting it (coarse to fine; 0 = off, the paper's).
+    window: a step trains on a random window of its view, this fraction of its width and of its
+      height (render, loss and gradients only there: a step costs about the window's area;
+      1 = the whole view, 3DGS's step).
     keyframe_storage: memory | disk: where keyframe training images live (uint8 colour and
       uint16 millimetre depth at the training resolution either way; disk = .npy files read
       back when the keyframe is trained on, for long runs).
@@ -42,6 +45,7 @@ class GaussianSplattingConfig(PluginConfig):
 
     resolution_scale: float | None = None
     coarse_steps: int = 0
+    window: float = 1.0
     keyframe_storage: KeyframeStorage = KeyframeStorage.memory
     keyframe_dir: str | None = None
     eval_every: int = 1
@@ -54,6 +58,7 @@ class GaussianSplattingConfig(PluginConfig):
                 "null or in (0, 1]", self.resolution_scale)
         require(0 < self.eval_resolution_scale <= 1, "mapper.eval_resolution_scale", "in (0, 1]",
                 self.eval_resolution_scale)
+        require(0 < self.window <= 1, "mapper.window", "in (0, 1]", self.window)
         require(self.coarse_steps >= 0, "mapper.coarse_steps", "an integer >= 0 (0 = off)", self.coarse_steps)
         require(self.eval_every >= 1, "mapper.eval_every", "an integer >= 1", self.eval_every)
         require(self.save_images >= 0, "mapper.save_images", "an integer >= 0", self.save_images)

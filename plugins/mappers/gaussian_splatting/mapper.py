@@ -106,7 +106,7 @@ class GaussianSplattingMapper(Mapper):
                 kf_id = self.pending.popleft() if self.pending else self._sample()
                 coarse = self.trained.get(kf_id, 0) < self.cfg.coarse_steps
                 self.trained[kf_id] = self.trained.get(kf_id, 0) + 1
-                view = self.keyframes[kf_id].view(self.gaussian_map.device, 0.5 if coarse else 1.0)
+                view = self._window(self.keyframes[kf_id].view(self.gaussian_map.device, 0.5 if coarse else 1.0))
             self.train_step(view)
             self.timer.steps += 1
             done += 1
@@ -181,6 +181,15 @@ class GaussianSplattingMapper(Mapper):
     def _count_time(self, start: float, cpu_start: float) -> None:
         self.train_time_s += time.perf_counter() - start
         self.train_cpu_s += time.thread_time() - cpu_start
+
+    def _window(self, view: TrainingView) -> TrainingView:
+        """A random window of `view` of the configured size (`window`), or the view itself."""
+        if self.cfg.window >= 1.0:
+            return view
+        cam = view.camera
+        width, height = max(1, round(cam.width * self.cfg.window)), max(1, round(cam.height * self.cfg.window))
+        x0, y0 = (int(self.rng.integers(0, size - part + 1)) for size, part in ((cam.width, width), (cam.height, height)))
+        return view.window(x0, y0, width, height)
 
     def _sample(self) -> int:
         ids = list(self.keyframes.ids)
