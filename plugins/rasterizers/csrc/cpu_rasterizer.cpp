@@ -145,10 +145,11 @@ inline double camera_z(const Camera& cam, const float* m) {
 // True when the Gaussian surely covers no pixel, from a bound on its extent that is cheap to
 // compute (most Gaussians of a map are outside a given view; `project` costs ~10x this). The
 // ellipse's half-extents are sqrt(level sxx) and sqrt(level syy), and sxx, syy <= the trace of
-// J R S^2 R^T J^T + 0.3 <= smax^2 |J|_F^2 + 0.3 (J with the clamped tx, ty as in `project`); the
-// bound is widened by 1 % and 2 px, far beyond rounding, so it never culls a Gaussian `project`
-// would keep.
-inline bool surely_off_screen(const Camera& cam, const float* m, const float* s, float o) {
+// J R S^2 R^T J^T + 0.3 <= smax^2 |J|_F^2 + 0.3 (J with the clamped tx, ty as in `project`), and
+// level = 2 ln(255 o) <= 2 ln 255 (o <= 1: no logarithm per Gaussian); the bound is widened by
+// 1 % and 2 px, far beyond rounding, so it never culls a Gaussian `project` would keep.
+inline bool surely_off_screen(const Camera& cam, const float* m, const float* s) {
+  static const double level_max = 2.0 * std::log(255.0);
   const double* R = cam.R;
   double p[3];
   for (int i = 0; i < 3; ++i) p[i] = R[3 * i] * m[0] + R[3 * i + 1] * m[1] + R[3 * i + 2] * m[2] + cam.t[i];
@@ -157,8 +158,7 @@ inline bool surely_off_screen(const Camera& cam, const float* m, const float* s,
   const double ty = std::min(std::max(p[1] * iz, -cam.lim_y0), cam.lim_y1);
   const double smax = std::max(std::fabs((double)s[0]), std::max(std::fabs((double)s[1]), std::fabs((double)s[2])));
   const double j2 = (cam.fx * cam.fx * (1 + tx * tx) + cam.fy * cam.fy * (1 + ty * ty)) * iz * iz;
-  const double level = std::max(2.0 * std::log(255.0 * (double)o), 0.0);
-  const double r = 1.01 * std::sqrt(level * (j2 * smax * smax + EPS_2D)) + 2.0;
+  const double r = 1.01 * std::sqrt(level_max * (j2 * smax * smax + EPS_2D)) + 2.0;
   const double u = cam.fx * p[0] * iz + cam.cx, v = cam.fy * p[1] * iz + cam.cy;
   return u + r < 0.0 || u - r > cam.W - 1 || v + r < 0.0 || v - r > cam.H - 1;
 }
@@ -446,7 +446,7 @@ void forward(State& S, const float* means, const float* quats, const float* scal
     for (int64_t i = b; i < e; ++i) {
       float o = opac[i];
       if (!(camera_z(cam, means + 3 * i) > NEAR_PLANE) || !(o > alpha_min)) continue;
-      if (surely_off_screen(cam, means + 3 * i, scales + 3 * i, o)) continue;
+      if (surely_off_screen(cam, means + 3 * i, scales + 3 * i)) continue;
       project(cam, means + 3 * i, quats + 4 * i, scales + 3 * i, P);
       Splat& s = tmp[i];
       s.u = (float)P.u;
