@@ -71,6 +71,11 @@ class Camera:
             cy=(self.cy + 0.5) * factor - 0.5,
         )
 
+    def cropped(self, x0: int, y0: int, width: int, height: int) -> "Camera":
+        """The camera of the image's pixels [x0, x0 + width) x [y0, y0 + height): the principal
+        point moved by (-x0, -y0) pixels, the focal lengths kept."""
+        return Camera(width, height, self.fx, self.fy, self.cx - x0, self.cy - y0)
+
     def with_overrides(self, **values: float | None) -> "Camera":
         """A copy with the given non-None intrinsics replaced."""
         return replace(self, **{k: v for k, v in values.items() if v is not None})
@@ -80,28 +85,39 @@ class Deferred:
     """A dataclass field that may be given a zero-argument function instead of its value: the
     first read calls it and keeps what it returns, so work that only some frames need (decoding
     a colour image, rotating covariances to the world) is done only for those (keyframes in real
-    time). Declared as `name: type = Deferred()` (no default) or `Deferred(default=value)`."""
+    time). Declared as `name: type = Deferred()` (no default) or `Deferred(default=value)`. Not
+    locked: two threads reading a pending field at once may both compute it (one result is kept).
+    """
 
     _NO_DEFAULT = object()
+
+    class _Pending:
+        __slots__ = ("compute",)
+
+        def __init__(self, compute):
+            self.compute = compute
 
     def __init__(self, default=_NO_DEFAULT):
         self.default = default
 
     def __set_name__(self, owner, name: str) -> None:
-        self.slot = "_deferred_" + name
+        self.name, self.slot = name, "_deferred_" + name
 
     def __get__(self, obj, owner=None):
         if obj is None:  # the dataclass asks for the field's default
             if self.default is Deferred._NO_DEFAULT:
-                raise AttributeError(self.slot)
+                raise AttributeError(self.name)
             return self.default
-        value = obj.__dict__[self.slot]
-        if callable(value):
-            value = obj.__dict__[self.slot] = value()
+        try:
+            value = obj.__dict__[self.slot]
+        except KeyError:
+            raise AttributeError(self.name) from None
+        if isinstance(value, Deferred._Pending):
+            value = obj.__dict__[self.slot] = value.compute()
         return value
 
     def __set__(self, obj, value) -> None:
-        obj.__dict__[self.slot] = value
+        obj.__dict__[self.slot] = Deferred._Pending(value) if callable(value) else value
 
 
 @dataclass

@@ -4,6 +4,7 @@ folders built in tmp_path."""
 from __future__ import annotations
 
 import logging
+import zlib
 from importlib.metadata import entry_points
 from pathlib import Path
 
@@ -256,13 +257,34 @@ def flip_byte(path: Path) -> None:
     path.write_bytes(bytes(data))
 
 
+def corrupt_pixels_keep_checksums(path: Path) -> None:
+    """The PNG's compressed pixel data (its first IDAT chunk) damaged in the middle, with the
+    chunk's CRC recomputed: only decoding can tell."""
+    data = bytearray(path.read_bytes())
+    pos = 8  # after the signature: chunks of length, type, data, CRC
+    while data[pos + 4:pos + 8] != b"IDAT":
+        pos += 12 + int.from_bytes(data[pos:pos + 4], "big")
+    length = int.from_bytes(data[pos:pos + 4], "big")
+    for i in range(pos + 8 + length // 2, pos + 8 + length // 2 + 16):
+        data[i] ^= 0x5A
+    data[pos + 8 + length:pos + 12 + length] = zlib.crc32(bytes(data[pos + 4:pos + 8 + length])).to_bytes(4, "big")
+    path.write_bytes(bytes(data))
+
+
 def test_a_colour_png_is_checked_when_loaded_and_decoded_when_read(tmp_path):
-    """A frame's colour PNG is decoded only when `frame.rgb` is read (once), to the same pixels
-    as `read_rgb`; the checks that fail a damaged file still run when the frame loads (above)."""
-    root = make_tum(tmp_path / "fr1_lazy", [0.0], [0.0])
-    frame = TUMDataset(TUMConfig(path=str(root)))[0]
+    """A frame's colour PNG is checked when the frame loads and decoded when `frame.rgb` is
+    first read, to the pixels `read_rgb` gives: damage that only decoding finds, done after the
+    load, is a one-line DataError naming the file at the read."""
+    root = make_tum(tmp_path / "fr1_lazy", [0.0, 1.0], [0.0, 1.0])
+    ds = TUMDataset(TUMConfig(path=str(root)))
+    frame, later = ds[0], ds[1]
     np.testing.assert_array_equal(frame.rgb, read_rgb(root / "rgb/0.png"))
-    assert frame.rgb is frame.rgb
+    corrupt_pixels_keep_checksums(root / "rgb/1.png")
+    with pytest.raises(DataError) as e:
+        later.rgb
+    assert "colour" in one_line_error(e, "1.png")
+    with pytest.raises(DataError):
+        ds[1].rgb  # the checks at load pass: the checksums are right
     calls = []
     lazy = Frame(0, 0.0, lambda: calls.append(1) or np.zeros((2, 2, 3), np.uint8), np.zeros((2, 2), np.float32),
                  frame.camera)

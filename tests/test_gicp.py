@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from slamkit.errors import ConfigError
+from slamkit.errors import ConfigError, DataError
 from slamkit.geometry.gaussians import (
     Regularization,
     inverse_sym3,
@@ -291,6 +291,23 @@ def test_gicp_frame_covariances_are_regularised_and_in_world():
     np.testing.assert_allclose(g.means, transform_points(POSE, pts.astype(np.float64)), atol=1e-5)
     np.testing.assert_allclose(g.depths, pts[:, 2])
     assert np.isinf(g.sq_dist_to_map).all()
+
+
+def test_gicp_frame_gaussians_read_the_colour_only_when_asked():
+    """Tracking needs depth only: a frame whose colour cannot be read tracks as well, and only
+    its Gaussians' colours (computed when read, for a keyframe) give the colour's error."""
+    def unreadable():
+        raise DataError("cannot read colour image x.png: broken data stream (expected an 8-bit colour image)")
+
+    frame = make_frame(POSE)
+    frame.rgb = unreadable
+    tracker = GICPTracker(tight_config())
+    tracker.initialize(POSE)
+    result = tracker.track(frame, GaussianMap())
+    assert not result.lost and len(result.gaussians) == result.stats["num_points"]
+    assert result.gaussians.covariances.shape == (len(result.gaussians), 3, 3)
+    with pytest.raises(DataError, match="x.png"):
+        result.gaussians.colors
 
 
 def test_gicp_tracks_a_moving_camera_with_map_growth():

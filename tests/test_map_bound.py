@@ -121,6 +121,14 @@ def grow_once(gm, **strategy) -> tuple[int, object]:
     return len(gm) - before, mapper
 
 
+def test_more_centres_a_cell_admit_more_of_a_keyframe():
+    """strategy.covered_centres=2 (the map's 300 centres hold one or two per 5x5 cell): cells
+    with a single centre no longer count as explained, so more of the keyframe enters."""
+    one, _ = grow_once(make_map(*plane_scene()))
+    two, _ = grow_once(make_map(*plane_scene()), covered_centres=2)
+    assert two > one
+
+
 @pytest.mark.parametrize("coverage", ["centres", "render", "either"])
 def test_skip_covered_admits_the_uncovered_and_the_trackable(coverage):
     """An opaque wall at z = 2 m: every test finds the wall explained and the floating points

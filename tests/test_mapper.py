@@ -141,8 +141,9 @@ def test_coarse_steps_train_a_new_keyframe_at_half_resolution_first(truth_frames
 
 
 def test_a_window_step_trains_on_the_same_pixels_of_its_view(truth_frames):
-    """mapper.window=0.5: each step takes a random 20x15 window of the 40x30 view, whose camera
-    renders that part of the view's render; the map still learns the view."""
+    """mapper.window=0.5: each step takes a random window of the 40x30 view (20x16 pixels: at
+    least 16 a side, clipped where it reaches out of the view), whose camera renders that part of
+    the view's render; the map still learns the view."""
     mapper = make_mapper(mapper={"window": 0.5})
     windows = []
     step = mapper.train_step
@@ -153,14 +154,15 @@ def test_a_window_step_trains_on_the_same_pixels_of_its_view(truth_frames):
     mapper.optimize(60)
     assert mapper.last_loss < 0.6 * first
     full = mapper.keyframes[0].view()
+    assert {(w.camera.height, w.camera.fx) for w in windows} == {(16, full.camera.fx)}
+    assert {w.camera.width for w in windows} <= set(range(16, 21)) and len({w.camera.width for w in windows}) > 1
     with torch.no_grad():
         whole = mapper.render(full.world_to_camera, full.camera)
         corners = set()
-        for w in windows[-5:]:
+        for w in windows[-8:]:
             x0, y0 = round(full.camera.cx - w.camera.cx), round(full.camera.cy - w.camera.cy)
             corners.add((x0, y0))
-            rows, columns = slice(y0, y0 + 15), slice(x0, x0 + 20)
-            assert (w.camera.width, w.camera.height, w.camera.fx) == (20, 15, full.camera.fx)
+            rows, columns = slice(y0, y0 + w.camera.height), slice(x0, x0 + w.camera.width)
             assert torch.equal(w.image, full.image[rows, columns]) and torch.equal(w.depth, full.depth[rows, columns])
             part = mapper.render(w.world_to_camera, w.camera)
             # the same pixels, but near the window's border: 3DGS clamps the projection's Jacobian
@@ -172,6 +174,21 @@ def test_a_window_step_trains_on_the_same_pixels_of_its_view(truth_frames):
     assert len(corners) > 1
     with pytest.raises(ValueError, match="not inside the 40x30 view"):
         full.window(30, 0, 20, 15)
+
+
+def test_a_small_window_keeps_the_loss_s_minimum_size():
+    """A window of a quarter of a 20x15 coarse view would be 5x4 pixels, below SSIM's 11x11:
+    it takes 16 pixels (or the whole side) instead, and training runs."""
+    mapper = make_mapper(mapper={"window": 0.25, "coarse_steps": 2})
+    sizes = []
+    step = mapper.train_step
+    mapper.train_step = lambda view: sizes.append((view.camera.width, view.camera.height)) or step(view)
+    frame = render_frame(create_rasterizer("torch"), start_map(), pose_x(0.0))
+    add(mapper, frame)
+    assert mapper.optimize(4) == 4 and np.isfinite(mapper.last_loss)
+    assert all(w >= 16 and h == 15 for w, h in sizes[:2]) and all(w >= 16 and h >= 16 for w, h in sizes[2:])
+    with pytest.raises(ConfigError, match="mapper.window: expected in \\(0, 1\\]"):
+        GaussianSplattingConfig(window=0.0)
 
 
 def test_rows_appended_between_steps_get_trained(truth_frames):

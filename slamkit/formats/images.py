@@ -6,6 +6,7 @@ Every failure (missing file, truncated or corrupt data, wrong pixel format) rais
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 from typing import Callable, Iterable
 
@@ -37,24 +38,27 @@ def _open(path: Path, what: str, expected: str, decode: bool = True) -> Image.Im
         raise DataError(f"cannot read {what} image {path}: {_reason(exc)} (expected {expected})") from None
 
 
-def checked_rgb(path: str | Path) -> tuple[tuple[int, int], Callable[[], np.ndarray]]:
-    """((width, height), a function returning the HxWx3 uint8 image) of the colour image at
-    `path`. A PNG is checked here without decoding its pixels (header, pixel mode and every
-    chunk's checksum: a missing, truncated or corrupt file fails here, ~0.5 ms against ~8 ms to
-    decode 640x480) and decoded by the function, so a frame whose colour nothing reads (a
-    non-keyframe in real time) costs no decoding; other formats are decoded here."""
+def checked_rgb(path: str | Path) -> tuple[tuple[int, int], np.ndarray | Callable[[], np.ndarray]]:
+    """((width, height), the HxWx3 uint8 image or a function that decodes it) of the colour
+    image at `path`. A PNG is checked here without decoding its pixels (header, pixel mode and
+    every chunk's checksum, up to IEND: a missing, truncated or corrupted file fails here, in
+    ~0.5-1 ms against ~8-10 ms to decode 640x480) and decoded by the function (`read_rgb`), so
+    a frame whose colour nothing reads (a non-keyframe in real time) costs no decoding; other
+    formats are decoded here."""
     path = Path(path)
     if path.suffix.lower() != ".png":
         rgb = read_rgb(path)
-        return (rgb.shape[1], rgb.shape[0]), lambda: rgb
-    im = _open(path, "colour", "an 8-bit colour image", decode=False)
-    if im.mode in _DEPTH_MODES:
-        raise DataError(f"cannot read colour image {path}: pixel mode {im.mode} (expected an 8-bit colour image)")
-    try:
-        im.verify()
-    except (OSError, ValueError, SyntaxError) as exc:
-        raise DataError(f"cannot read colour image {path}: {_reason(exc)} (expected an 8-bit colour image)") from None
-    return im.size, lambda: read_rgb(path)
+        return (rgb.shape[1], rgb.shape[0]), rgb
+    with _open(path, "colour", "an 8-bit colour image", decode=False) as im:
+        if im.mode in _DEPTH_MODES:
+            raise DataError(f"cannot read colour image {path}: pixel mode {im.mode} (expected an 8-bit colour image)")
+        size = im.size
+        try:
+            im.verify()
+        except (OSError, ValueError, SyntaxError) as exc:
+            raise DataError(f"cannot read colour image {path}: {_reason(exc)} "
+                            "(expected an 8-bit colour image)") from None
+    return size, functools.partial(read_rgb, path)
 
 
 def image_size(path: str | Path) -> tuple[int, int]:
@@ -97,17 +101,25 @@ def read_depth(path: str | Path, scale: float, invalid_values: Iterable[float] =
     return depth
 
 
-def check_same_size(rgb_size: tuple[int, int], depth: np.ndarray, path: str | Path) -> None:
-    """Raise DataError naming the depth file `path` if `depth` is not the colour image's
-    (width, height)."""
-    (w, h), (dh, dw) = rgb_size, depth.shape[:2]
+def _size(image_or_size: np.ndarray | tuple[int, int]) -> tuple[int, int]:
+    """(width, height) of an HxW(xC) image array, or the (width, height) given."""
+    if isinstance(image_or_size, np.ndarray):
+        return image_or_size.shape[1], image_or_size.shape[0]
+    return tuple(image_or_size)
+
+
+def check_same_size(rgb: np.ndarray | tuple[int, int], depth: np.ndarray, path: str | Path) -> None:
+    """Raise DataError naming the depth file `path` if `depth` is not the size of the colour
+    image (`rgb`: the image, or its (width, height))."""
+    (w, h), (dh, dw) = _size(rgb), depth.shape[:2]
     if (w, h) != (dw, dh):
         raise DataError(f"depth image {path} is {dw}x{dh} but its colour image is {w}x{h} (expected the same size)")
 
 
-def check_camera_size(rgb_size: tuple[int, int], camera, path: str | Path) -> None:
-    """Raise DataError naming the colour file `path` if its (width, height) is not `camera`'s."""
-    w, h = rgb_size
+def check_camera_size(rgb: np.ndarray | tuple[int, int], camera, path: str | Path) -> None:
+    """Raise DataError naming the colour file `path` if the image (`rgb`: the image, or its
+    (width, height)) is not `camera`'s size."""
+    w, h = _size(rgb)
     if (w, h) != (camera.width, camera.height):
         raise DataError(
             f"colour image {path} is {w}x{h} but the camera is {camera.width}x{camera.height} "
@@ -116,9 +128,9 @@ def check_camera_size(rgb_size: tuple[int, int], camera, path: str | Path) -> No
 
 
 def read_rgbd(rgb_path, depth_path, depth_scale: float, camera, invalid_values: Iterable[float] = ()):
-    """One frame's colour, as a function returning HxWx3 uint8 (`checked_rgb`: a PNG is decoded
-    when it is called; `Frame.rgb` takes it as it is), and depth (HxW float32 metres), both
-    checked against the camera's size; every problem is a one-line DataError naming the file."""
+    """One frame's colour, HxWx3 uint8 or, for a PNG, a function that decodes it (`checked_rgb`;
+    `Frame.rgb` takes either), and depth (HxW float32 metres), both checked against the
+    camera's size; every problem is a one-line DataError naming the file."""
     size, rgb = checked_rgb(rgb_path)
     check_camera_size(size, camera, rgb_path)
     depth = read_depth(depth_path, depth_scale, invalid_values)

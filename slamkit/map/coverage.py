@@ -11,8 +11,8 @@ surface in front of or behind the map is not taken for the map:
   (`cell` x `cell` pixels around a pixel of the keyframe's sampling grid) at a camera depth
   within the tolerance of the point's. It reads only
   the map's means (no render, no training needed), so a map that admits no point whose cell is
-  occupied holds at most one Gaussian per cell and depth of any view of the scene: its size is
-  bounded by the scene's surface, not by how often the camera sees it.
+  occupied holds at most `min_centres` Gaussians (1 by default) per cell and depth of any view of
+  the scene: its size is bounded by the scene's surface, not by how often the camera sees it.
 """
 
 from __future__ import annotations
@@ -71,12 +71,16 @@ def occupied_by_centres(points: torch.Tensor, centres: torch.Tensor, world_to_ca
     map_cell, map_z, map_inside = image_cells(centres.detach().to(points.device), world_to_camera, camera, cell)
     new_cell, new_z, new_inside = image_cells(points, world_to_camera, camera, cell)
     map_cell, map_z = map_cell[map_inside], map_z[map_inside]
-    if len(map_cell) == 0:
+    if len(map_cell) == 0 or not bool(new_inside.any()):
         return occupied
     # one sorted key per centre, cell first and depth second, cells `span` apart (more than the
-    # depths plus twice the tolerance): the centres of a point's cell within its depth tolerance
-    # are the keys strictly between its own key -/+ the tolerance
-    span = float(torch.cat([map_z, new_z[new_inside]]).max()) + 2.0 * depth_tolerance + 1.0
+    # points' depths plus twice the tolerance; centres farther than that can never count, so
+    # they are brought to that depth and a far-off centre cannot eat the keys' precision): the
+    # centres of a point's cell within its depth tolerance are the keys strictly between its own
+    # key -/+ the tolerance
+    reach = float(new_z[new_inside].max()) + 2.0 * depth_tolerance
+    map_z = map_z.clamp_max(reach)
+    span = reach + 1.0
     keys = torch.sort(map_cell.double() * span + map_z).values
     key = new_cell[new_inside].double() * span + new_z[new_inside]
     first = torch.searchsorted(keys, key - depth_tolerance, side="right")

@@ -105,7 +105,7 @@ class TrainingView:
         if not (0 <= x0 and 0 <= y0 and 0 < width <= self.camera.width - x0 and 0 < height <= self.camera.height - y0):
             raise ValueError(f"window {width}x{height} at ({x0}, {y0}) is not inside the "
                              f"{self.camera.width}x{self.camera.height} view")
-        camera = Camera(width, height, self.camera.fx, self.camera.fy, self.camera.cx - x0, self.camera.cy - y0)
+        camera = self.camera.cropped(x0, y0, width, height)
         rows, columns = slice(y0, y0 + height), slice(x0, x0 + width)
         return dataclasses.replace(self, camera=camera, image=self.image[rows, columns].contiguous(),
                                    depth=self.depth[rows, columns].contiguous())

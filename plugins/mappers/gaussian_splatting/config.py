@@ -30,8 +30,10 @@ class GaussianSplattingConfig(PluginConfig):
       resolution: a step then costs about a quarter, spent while the keyframe's Gaussians are
       far from fitting it (coarse to fine; 0 = off, the paper's).
     window: a step trains on a random window of its view, this fraction of its width and of its
-      height (render, loss and gradients only there: a step costs about the window's area;
-      1 = the whole view, 3DGS's step).
+      height (at least 16 pixels a side; render, loss and gradients only there: a step costs
+      about the window's area; 1 = the whole view, 3DGS's step). The loss is a mean over the
+      window's pixels, so `strategy=3dgs`'s gradient statistic grows by about 1 / window (its
+      grad_threshold is per window).
     keyframe_storage: memory | disk: where keyframe training images live (uint8 colour and
       uint16 millimetre depth at the training resolution either way; disk = .npy files read
       back when the keyframe is trained on, for long runs).

@@ -46,6 +46,9 @@ from slamkit_plugins.mappers.gaussian_splatting.timing import PhaseTimer
 
 log = logging.getLogger(__name__)
 
+#: Pixels: a training window's smallest side (the loss's SSIM takes 11x11 windows; a tile is 16).
+MIN_WINDOW_SIDE = 16
+
 
 class GaussianSplattingMapper(Mapper):
     """3DGS mapping of the shared GaussianMap from keyframe images (see the module docstring)."""
@@ -183,12 +186,20 @@ class GaussianSplattingMapper(Mapper):
         self.train_cpu_s += time.thread_time() - cpu_start
 
     def _window(self, view: TrainingView) -> TrainingView:
-        """A random window of `view` of the configured size (`window`), or the view itself."""
+        """A random window of `view` of the configured size (`window`, at least MIN_WINDOW_SIDE
+        pixels a side), or the view itself. A window may start up to its size (less
+        MIN_WINDOW_SIDE) before the view's edge and is clipped to the view, so border pixels are
+        trained about as often as the others (a window drawn inside the view would rarely hold
+        them)."""
         if self.cfg.window >= 1.0:
             return view
-        cam = view.camera
-        width, height = max(1, round(cam.width * self.cfg.window)), max(1, round(cam.height * self.cfg.window))
-        x0, y0 = (int(self.rng.integers(0, size - part + 1)) for size, part in ((cam.width, width), (cam.height, height)))
+        spans = []
+        for size in (view.camera.width, view.camera.height):
+            part = min(size, max(MIN_WINDOW_SIDE, round(size * self.cfg.window)))
+            reach = part - MIN_WINDOW_SIDE if part < size else 0
+            start = int(self.rng.integers(-reach, size - part + reach + 1))
+            spans.append((max(start, 0), min(start + part, size) - max(start, 0)))
+        (x0, width), (y0, height) = spans
         return view.window(x0, y0, width, height)
 
     def _sample(self) -> int:
