@@ -66,7 +66,7 @@ def test_the_compiled_backend_is_the_same_loss(seed, invalid):
         loss = L1SSIMDepthLoss(L1SSIMDepthConfig(backend=backend))(RenderOutput(color, depth, render.alpha), view)
         loss.backward()
         no_grad = torch.zeros_like(depth)  # no depth term (no valid depth): torch leaves depth out of the graph
-        results[backend] = (float(loss), color.grad, no_grad if depth.grad is None else depth.grad)
+        results[backend] = (float(loss.detach()), color.grad, no_grad if depth.grad is None else depth.grad)
     (a, ca, da), (b, cb, db) = results.values()
     assert b == pytest.approx(a, rel=1e-6)
     torch.testing.assert_close(cb, ca, rtol=1e-4, atol=1e-7)
