@@ -27,7 +27,7 @@ from slamkit.registry.schema import Mode, RunConfig
 from slamkit.run import checkpoint
 from slamkit.run.lifecycle import Phase, StopSignals, pause_point
 from slamkit.run.outputs import COMPLETED, FAILED, INTERRUPTED, FrameLog, RunOutputs, RunState, summary
-from slamkit.run.prefetch import UnreadableFrame, prefetched
+from slamkit.run.prefetch import LoadCost, UnreadableFrame, prefetched
 from slamkit.run.slam import SLAM, MappingThread
 from slamkit.run.viewing import ViewerFeed
 from slamkit.types import Frame
@@ -250,12 +250,12 @@ def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, frames_log: Fram
     mapping = MappingThread(slam.mapper, cfg.switch_interval) if realtime else None
     bar = tqdm(total=len(dataset), initial=first, unit="frame", disable=None if cfg.progress else True,
                dynamic_ncols=True)
-    start = time.perf_counter()
+    start, cpu_start, loading = time.perf_counter(), time.thread_time(), LoadCost()
     try:
         if mapping:
             mapping.start()
         skip_errors = cfg.dataset.on_error.value == "skip"
-        for frame in prefetched(dataset, cfg.dataset.prefetch, skip_errors, first):
+        for frame in prefetched(dataset, cfg.dataset.prefetch, skip_errors, first, loading):
             stop.check()
             if isinstance(frame, UnreadableFrame):
                 log.warning("frame %d skipped: %s", frame.index, frame.error)
@@ -275,9 +275,11 @@ def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, frames_log: Fram
             pause_point(f"stream@{len(state.poses)}", stop)
     finally:
         state.stream_time_s += time.perf_counter() - start
+        state.tracking_cpu_s += time.thread_time() - cpu_start
         bar.close()
         if mapping:
             _stop_mapping(mapping, state)
+        state.loading_cpu_s += loading.cpu_s
 
 
 def _track(frame: Frame, slam: SLAM, state: RunState, frames_log: FrameLog, viewer: ViewerFeed,
@@ -300,6 +302,7 @@ def _stop_mapping(mapping: MappingThread, state: RunState) -> None:
     finally:
         state.mapping_iterations += mapping.iterations
         state.mapping_time_s += mapping.busy_time_s
+        state.mapping_cpu_s = (state.mapping_cpu_s or 0.0) + mapping.cpu_time_s
 
 
 def _running_ate(state: RunState) -> str:

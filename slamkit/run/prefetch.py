@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -21,21 +22,38 @@ class UnreadableFrame:
     error: DataError
 
 
+@dataclass
+class LoadCost:
+    """CPU seconds the frame loading thread spent in `dataset[i]` (decoding, checks)."""
+
+    cpu_s: float = 0.0
+
+
 def prefetched(dataset: Dataset, ahead: int = 8, skip_errors: bool = False,
-               first: int = 0) -> Iterator[Frame | UnreadableFrame]:
+               first: int = 0, cost: LoadCost | None = None) -> Iterator[Frame | UnreadableFrame]:
     """Yield dataset[first], dataset[first + 1], ... while up to `ahead` later frames load in the
     background (image decoding releases the GIL). A DataError is raised at that frame's turn,
-    after the frames before it, or yielded as an UnreadableFrame when `skip_errors`."""
+    after the frames before it, or yielded as an UnreadableFrame when `skip_errors`. The loading
+    thread's CPU time is added to `cost`."""
+    cost = cost if cost is not None else LoadCost()
+
+    def load(i: int) -> Frame:
+        start = time.thread_time()
+        try:
+            return dataset[i]
+        finally:
+            cost.cpu_s += time.thread_time() - start  # one loading thread: no race
+
     n = len(dataset)
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="slamkit-prefetch") as pool:
-        pending = deque(pool.submit(dataset.__getitem__, i) for i in range(first, min(first + max(ahead, 1), n)))
+        pending = deque(pool.submit(load, i) for i in range(first, min(first + max(ahead, 1), n)))
         next_index = first + len(pending)
         index = first
         try:
             while pending:
                 future = pending.popleft()
                 if next_index < n:
-                    pending.append(pool.submit(dataset.__getitem__, next_index))
+                    pending.append(pool.submit(load, next_index))
                     next_index += 1
                 try:
                     frame = future.result()

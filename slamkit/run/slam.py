@@ -143,6 +143,7 @@ class MappingThread(threading.Thread):
         self._saved_switch_interval: float | None = None
         self.iterations = 0
         self.busy_time_s = 0.0
+        self.cpu_time_s = 0.0  # the thread's CPU seconds (steps, waits' overhead), when it ends
         self.error: BaseException | None = None
         self._stop_event = threading.Event()
 
@@ -153,6 +154,7 @@ class MappingThread(threading.Thread):
 
     def run(self) -> None:
         _lower_priority(MAPPING_NICE)
+        cpu_start = time.thread_time()
         try:
             while not self._stop_event.is_set():
                 start = time.perf_counter()
@@ -163,6 +165,8 @@ class MappingThread(threading.Thread):
                     self._stop_event.wait(0.005)
         except BaseException as exc:  # handed to the tracking thread
             self.error = exc
+        finally:
+            self.cpu_time_s = time.thread_time() - cpu_start
 
     def check(self) -> None:
         """Re-raise a mapper failure in the calling (tracking) thread."""
