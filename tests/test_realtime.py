@@ -33,9 +33,7 @@ def test_realtime_trains_after_the_stream_only_when_asked(tmp_path, final, steps
     assert metrics["refine_iterations"] == steps and (metrics["refine_time_s"] > 0) == (steps > 0)
     # the stream's CPU by thread: the frame loop, the mapping thread (which took the steps), the loader
     assert metrics["tracking_cpu_s"] > 0 and metrics["loading_cpu_s"] > 0
-    assert metrics["mapping_cpu_s"] > 0
-    if steps == 0:  # every training step ran in the mapping thread
-        assert metrics["mapping_cpu_s"] >= metrics["mapping_train_cpu_s"] > 0
+    assert metrics["mapping_cpu_s"] > 0 and metrics["mapping_iterations"] > 0
     line = proc.stdout.splitlines()[0]
     assert f"{metrics['stream_fps']:.1f} frames/s in real time" in line
     assert ("refinement steps" in line) == (steps > 0)
