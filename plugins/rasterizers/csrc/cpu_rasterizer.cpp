@@ -20,7 +20,8 @@
 //   - colour = sum w c + (1 - sum w) bg, depth = sum w z, alpha = sum w, w = alpha T (the
 //     background's weight is computed as the final transmittance, equal to 1 - sum w).
 // The projection (means, quats, scales -> 2D mean, conic) and its backward are computed in
-// double precision; the pixel work in float32 (16 pixels per vector, slamkit/csrc/slk_vec16.h),
+// double precision, four Gaussians at a time (the same operations in the same order as for one,
+// so the same bits); the pixel work in float32 (16 pixels per vector, slamkit/csrc/slk_vec16.h),
 // the per-Gaussian gradient sums in double.
 //
 // Forward: project + cull (parallel over Gaussians) -> radix sort by depth -> binning into
@@ -51,6 +52,7 @@
 #include <mutex>
 #include <new>
 #include <thread>
+#include <type_traits>
 #include <vector>
 
 #include <unistd.h>
@@ -116,16 +118,74 @@ Camera make_camera(const double* viewmat, const double* intr, int W, int H) {
   return c;
 }
 
-struct Projection {  // everything the forward computes, kept to differentiate it
-  double p[3], iz, txr, tyr, tx, ty;
-  double qn[4], qnorm, Rq[9], s2[3];
-  double M[6];  // J R (2x3)
-  double A[6];  // M Rq (2x3): cov2d = A diag(s^2) A^T
-  double sxx, sxy, syy, a, b, c, u, v;
+// The projection and its backward are written once, for a scalar (double) or for four Gaussians
+// at once (d4: the same IEEE operations lane by lane, so the same bits; GCC vector extensions,
+// two SSE2 or one AVX register). Scalar and vector helpers share names so the code reads alike.
+typedef double d4 __attribute__((vector_size(32)));
+constexpr int PROJECT_LANES = 4;
+
+template <class T>
+inline T bcast(double x) {
+  if constexpr (std::is_same_v<T, double>) {
+    return x;
+  } else {
+    return T{x, x, x, x};
+  }
+}
+inline double vmin(double a, double b) { return std::min(a, b); }
+inline double vmax(double a, double b) { return std::max(a, b); }
+inline d4 vmin(d4 a, d4 b) { return b < a ? b : a; }  // std::min's and std::max's choices, NaNs included
+inline d4 vmax(d4 a, d4 b) { return a < b ? b : a; }
+inline double dsqrt(double x) { return std::sqrt(x); }
+inline d4 dsqrt(d4 x) {
+  for (int k = 0; k < PROJECT_LANES; ++k) x[k] = std::sqrt(x[k]);
+  return x;
+}
+
+// Which of the four Gaussians idx[0..4) may cover a pixel (bit k for idx[k]): in front of the
+// near plane and not surely off screen. The off-screen test is a bound on the extent that is cheap
+// to compute (most Gaussians of a map are outside a given view; `project` costs ~10x this): the
+// ellipse's half-extents are sqrt(level sxx) and sqrt(level syy), and sxx, syy <= the trace of
+// J R S^2 R^T J^T + 0.3 <= smax^2 |J|_F^2 + 0.3 (J with the clamped tx, ty as in `project`), and
+// level = 2 ln(255 o) <= 2 ln 255 (o <= 1: no logarithm per Gaussian); the bound is widened by
+// 1 % and 2 px, far beyond rounding, so it never culls a Gaussian `project` would keep.
+inline int maybe_visible(const Camera& cam, const int64_t* idx, const float* means, const float* scales) {
+  static const double level_max = 2.0 * std::log(255.0);
+  d4 m[3], smax;
+  for (int k = 0; k < PROJECT_LANES; ++k) {
+    const float* mk = means + 3 * idx[k];
+    const float* sk = scales + 3 * idx[k];
+    for (int j = 0; j < 3; ++j) m[j][k] = mk[j];
+    smax[k] = std::max(std::fabs((double)sk[0]), std::max(std::fabs((double)sk[1]), std::fabs((double)sk[2])));
+  }
+  const double* R = cam.R;
+  d4 p[3];
+  for (int i = 0; i < 3; ++i) p[i] = R[3 * i] * m[0] + R[3 * i + 1] * m[1] + R[3 * i + 2] * m[2] + cam.t[i];
+  const d4 iz = 1.0 / p[2];
+  const d4 tx = vmin(vmax(p[0] * iz, bcast<d4>(-cam.lim_x0)), bcast<d4>(cam.lim_x1));
+  const d4 ty = vmin(vmax(p[1] * iz, bcast<d4>(-cam.lim_y0)), bcast<d4>(cam.lim_y1));
+  const d4 j2 = (cam.fx * cam.fx * (1 + tx * tx) + cam.fy * cam.fy * (1 + ty * ty)) * iz * iz;
+  const d4 r = 1.01 * dsqrt(level_max * (j2 * smax * smax + EPS_2D)) + 2.0;
+  const d4 u = cam.fx * p[0] * iz + cam.cx, v = cam.fy * p[1] * iz + cam.cy;
+  const auto off = (u + r < 0.0) | (u - r > cam.W - 1) | (v + r < 0.0) | (v - r > cam.H - 1);
+  const auto keep = (p[2] > NEAR_PLANE) & ~off;
+  int bits = 0;
+  for (int k = 0; k < PROJECT_LANES; ++k) bits |= (keep[k] != 0) << k;
+  return bits;
+}
+
+template <class T>
+struct ProjectionOf {  // everything the forward computes, kept to differentiate it
+  T p[3], iz, txr, tyr, tx, ty;
+  T qn[4], qnorm, Rq[9], s2[3];
+  T M[6];  // J R (2x3)
+  T A[6];  // M Rq (2x3): cov2d = A diag(s^2) A^T
+  T sxx, sxy, syy, a, b, c, u, v;
 };
 
-inline void quat_to_rotmat(const double* q, double* R) {
-  double w = q[0], x = q[1], y = q[2], z = q[3];
+template <class T>
+inline void quat_to_rotmat(const T* q, T* R) {
+  T w = q[0], x = q[1], y = q[2], z = q[3];
   R[0] = 1 - 2 * (y * y + z * z);
   R[1] = 2 * (x * y - w * z);
   R[2] = 2 * (x * z + w * y);
@@ -137,59 +197,33 @@ inline void quat_to_rotmat(const double* q, double* R) {
   R[8] = 1 - 2 * (x * x + y * y);
 }
 
-// camera-frame mean only (for culling)
-inline double camera_z(const Camera& cam, const float* m) {
-  return cam.R[6] * m[0] + cam.R[7] * m[1] + cam.R[8] * m[2] + cam.t[2];
-}
-
-// True when the Gaussian surely covers no pixel, from a bound on its extent that is cheap to
-// compute (most Gaussians of a map are outside a given view; `project` costs ~10x this). The
-// ellipse's half-extents are sqrt(level sxx) and sqrt(level syy), and sxx, syy <= the trace of
-// J R S^2 R^T J^T + 0.3 <= smax^2 |J|_F^2 + 0.3 (J with the clamped tx, ty as in `project`), and
-// level = 2 ln(255 o) <= 2 ln 255 (o <= 1: no logarithm per Gaussian); the bound is widened by
-// 1 % and 2 px, far beyond rounding, so it never culls a Gaussian `project` would keep.
-inline bool surely_off_screen(const Camera& cam, const float* m, const float* s) {
-  static const double level_max = 2.0 * std::log(255.0);
+// m, q, s: a Gaussian's mean, quaternion (w, x, y, z) and scales, as doubles
+template <class T>
+void project(const Camera& cam, const T* m, const T* q, const T* s, ProjectionOf<T>& P) {
   const double* R = cam.R;
-  double p[3];
-  for (int i = 0; i < 3; ++i) p[i] = R[3 * i] * m[0] + R[3 * i + 1] * m[1] + R[3 * i + 2] * m[2] + cam.t[i];
-  const double iz = 1.0 / p[2];
-  const double tx = std::min(std::max(p[0] * iz, -cam.lim_x0), cam.lim_x1);
-  const double ty = std::min(std::max(p[1] * iz, -cam.lim_y0), cam.lim_y1);
-  const double smax = std::max(std::fabs((double)s[0]), std::max(std::fabs((double)s[1]), std::fabs((double)s[2])));
-  const double j2 = (cam.fx * cam.fx * (1 + tx * tx) + cam.fy * cam.fy * (1 + ty * ty)) * iz * iz;
-  const double r = 1.01 * std::sqrt(level_max * (j2 * smax * smax + EPS_2D)) + 2.0;
-  const double u = cam.fx * p[0] * iz + cam.cx, v = cam.fy * p[1] * iz + cam.cy;
-  return u + r < 0.0 || u - r > cam.W - 1 || v + r < 0.0 || v - r > cam.H - 1;
-}
-
-void project(const Camera& cam, const float* m, const float* q, const float* s, Projection& P) {
-  const double* R = cam.R;
-  for (int i = 0; i < 3; ++i)
-    P.p[i] = R[3 * i] * m[0] + R[3 * i + 1] * m[1] + R[3 * i + 2] * m[2] + cam.t[i];
-  double x = P.p[0], y = P.p[1], z = P.p[2];
+  for (int i = 0; i < 3; ++i) P.p[i] = R[3 * i] * m[0] + R[3 * i + 1] * m[1] + R[3 * i + 2] * m[2] + cam.t[i];
+  T x = P.p[0], y = P.p[1], z = P.p[2];
   P.iz = 1.0 / z;
   P.u = cam.fx * x * P.iz + cam.cx;
   P.v = cam.fy * y * P.iz + cam.cy;
   P.txr = x * P.iz;
   P.tyr = y * P.iz;
-  P.tx = std::min(std::max(P.txr, -cam.lim_x0), cam.lim_x1);
-  P.ty = std::min(std::max(P.tyr, -cam.lim_y0), cam.lim_y1);
-  double J00 = cam.fx * P.iz, J02 = -cam.fx * P.tx * P.iz;
-  double J11 = cam.fy * P.iz, J12 = -cam.fy * P.ty * P.iz;
+  P.tx = vmin(vmax(P.txr, bcast<T>(-cam.lim_x0)), bcast<T>(cam.lim_x1));
+  P.ty = vmin(vmax(P.tyr, bcast<T>(-cam.lim_y0)), bcast<T>(cam.lim_y1));
+  T J00 = cam.fx * P.iz, J02 = -cam.fx * P.tx * P.iz;
+  T J11 = cam.fy * P.iz, J12 = -cam.fy * P.ty * P.iz;
   for (int j = 0; j < 3; ++j) {
     P.M[j] = J00 * R[j] + J02 * R[6 + j];
     P.M[3 + j] = J11 * R[3 + j] + J12 * R[6 + j];
   }
-  double qd[4] = {q[0], q[1], q[2], q[3]};
-  P.qnorm = std::sqrt(qd[0] * qd[0] + qd[1] * qd[1] + qd[2] * qd[2] + qd[3] * qd[3]);
-  for (int i = 0; i < 4; ++i) P.qn[i] = qd[i] / P.qnorm;
+  P.qnorm = dsqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+  for (int i = 0; i < 4; ++i) P.qn[i] = q[i] / P.qnorm;
   quat_to_rotmat(P.qn, P.Rq);
-  for (int k = 0; k < 3; ++k) P.s2[k] = (double)s[k] * (double)s[k];
+  for (int k = 0; k < 3; ++k) P.s2[k] = s[k] * s[k];
   for (int r = 0; r < 2; ++r)
     for (int k = 0; k < 3; ++k)
       P.A[3 * r + k] = P.M[3 * r] * P.Rq[k] + P.M[3 * r + 1] * P.Rq[3 + k] + P.M[3 * r + 2] * P.Rq[6 + k];
-  double c00 = 0, c01 = 0, c11 = 0;
+  T c00 = bcast<T>(0), c01 = bcast<T>(0), c11 = bcast<T>(0);
   for (int k = 0; k < 3; ++k) {
     c00 += P.A[k] * P.A[k] * P.s2[k];
     c01 += P.A[k] * P.A[3 + k] * P.s2[k];
@@ -198,34 +232,35 @@ void project(const Camera& cam, const float* m, const float* q, const float* s, 
   P.sxx = c00 + EPS_2D;
   P.syy = c11 + EPS_2D;
   P.sxy = c01;
-  double inv_det = 1.0 / (P.sxx * P.syy - P.sxy * P.sxy);
+  T inv_det = 1.0 / (P.sxx * P.syy - P.sxy * P.sxy);
   P.a = P.syy * inv_det;
   P.b = -P.sxy * inv_det;
   P.c = P.sxx * inv_det;
 }
 
-// Gradients of (u, v, conic a b c, z) -> means, quats, scales (added to gm, gq, gs).
-void project_backward(const Camera& cam, const Projection& P, const float* s, double gu, double gv, double ga,
-                      double gb, double gc, double gz_direct, float* gm, float* gq, float* gs) {
-  const double a = P.a, b = P.b, c = P.c;
+// Gradients of (u, v, conic a b c, z) -> means, quats, scales (gm, gq, gs; s the scales).
+template <class T>
+void project_backward(const Camera& cam, const ProjectionOf<T>& P, const T* s, T gu, T gv, T ga, T gb, T gc,
+                      T gz_direct, T* gm, T* gq, T* gs) {
+  const T a = P.a, b = P.b, c = P.c;
   // conic = cov^-1: dL/dcov = -C G C (G the symmetric gradient w.r.t. the conic matrix)
-  double g_sxx = -(a * a * ga + a * b * gb + b * b * gc);
-  double g_syy = -(b * b * ga + b * c * gb + c * c * gc);
-  double g_sxy = -(2 * a * b * ga + (a * c + b * b) * gb + 2 * b * c * gc);
+  T g_sxx = -(a * a * ga + a * b * gb + b * b * gc);
+  T g_syy = -(b * b * ga + b * c * gb + c * c * gc);
+  T g_sxy = -(2 * a * b * ga + (a * c + b * b) * gb + 2 * b * c * gc);
   // cov2d = A S A^T, S = diag(s^2); Gcov = [[g_sxx, g_sxy/2], [g_sxy/2, g_syy]]
-  const double* A = P.A;
-  double gA[6];
+  const T* A = P.A;
+  T gA[6];
   for (int k = 0; k < 3; ++k) {
     // (Gcov A)_rk, then times 2 s_k^2
-    double r0 = g_sxx * A[k] + 0.5 * g_sxy * A[3 + k];
-    double r1 = 0.5 * g_sxy * A[k] + g_syy * A[3 + k];
+    T r0 = g_sxx * A[k] + 0.5 * g_sxy * A[3 + k];
+    T r1 = 0.5 * g_sxy * A[k] + g_syy * A[3 + k];
     gA[k] = 2 * r0 * P.s2[k];
     gA[3 + k] = 2 * r1 * P.s2[k];
-    double q = A[k] * A[k] * g_sxx + A[k] * A[3 + k] * g_sxy + A[3 + k] * A[3 + k] * g_syy;
-    gs[k] += (float)(2 * (double)s[k] * q);
+    T q = A[k] * A[k] * g_sxx + A[k] * A[3 + k] * g_sxy + A[3 + k] * A[3 + k] * g_syy;
+    gs[k] = 2 * s[k] * q;
   }
   // A = M Rq: dL/dM = gA Rq^T, dL/dRq = M^T gA
-  double gM[6], gR[9];
+  T gM[6], gR[9];
   for (int r = 0; r < 2; ++r)
     for (int j = 0; j < 3; ++j)
       gM[3 * r + j] = gA[3 * r] * P.Rq[3 * j] + gA[3 * r + 1] * P.Rq[3 * j + 1] + gA[3 * r + 2] * P.Rq[3 * j + 2];
@@ -233,39 +268,54 @@ void project_backward(const Camera& cam, const Projection& P, const float* s, do
     for (int k = 0; k < 3; ++k) gR[3 * i + k] = P.M[i] * gA[k] + P.M[3 + i] * gA[3 + k];
   // Rq(qn) -> qn -> q
   {
-    double w = P.qn[0], x = P.qn[1], y = P.qn[2], z = P.qn[3];
-    const double* G = gR;
-    double gw = 2 * (-z * G[1] + y * G[2] + z * G[3] - x * G[5] - y * G[6] + x * G[7]);
-    double gx = 2 * (y * G[1] + z * G[2] + y * G[3] - 2 * x * G[4] - w * G[5] + z * G[6] + w * G[7] - 2 * x * G[8]);
-    double gy = 2 * (-2 * y * G[0] + x * G[1] + w * G[2] + x * G[3] + z * G[5] - w * G[6] + z * G[7] - 2 * y * G[8]);
-    double gz = 2 * (-2 * z * G[0] - w * G[1] + x * G[2] + w * G[3] - 2 * z * G[4] + y * G[5] + x * G[6] + y * G[7]);
-    double dot = w * gw + x * gx + y * gy + z * gz;
-    gq[0] += (float)((gw - w * dot) / P.qnorm);
-    gq[1] += (float)((gx - x * dot) / P.qnorm);
-    gq[2] += (float)((gy - y * dot) / P.qnorm);
-    gq[3] += (float)((gz - z * dot) / P.qnorm);
+    T w = P.qn[0], x = P.qn[1], y = P.qn[2], z = P.qn[3];
+    const T* G = gR;
+    T gw = 2 * (-z * G[1] + y * G[2] + z * G[3] - x * G[5] - y * G[6] + x * G[7]);
+    T gx = 2 * (y * G[1] + z * G[2] + y * G[3] - 2 * x * G[4] - w * G[5] + z * G[6] + w * G[7] - 2 * x * G[8]);
+    T gy = 2 * (-2 * y * G[0] + x * G[1] + w * G[2] + x * G[3] + z * G[5] - w * G[6] + z * G[7] - 2 * y * G[8]);
+    T gz = 2 * (-2 * z * G[0] - w * G[1] + x * G[2] + w * G[3] - 2 * z * G[4] + y * G[5] + x * G[6] + y * G[7]);
+    T dot = w * gw + x * gx + y * gy + z * gz;
+    gq[0] = (gw - w * dot) / P.qnorm;
+    gq[1] = (gx - x * dot) / P.qnorm;
+    gq[2] = (gy - y * dot) / P.qnorm;
+    gq[3] = (gz - z * dot) / P.qnorm;
   }
   // M = J R: dL/dJ = gM R^T (only J00, J02, J11, J12 are not constant)
   const double* R = cam.R;
-  double gJ00 = gM[0] * R[0] + gM[1] * R[1] + gM[2] * R[2];
-  double gJ02 = gM[0] * R[6] + gM[1] * R[7] + gM[2] * R[8];
-  double gJ11 = gM[3] * R[3] + gM[4] * R[4] + gM[5] * R[5];
-  double gJ12 = gM[3] * R[6] + gM[4] * R[7] + gM[5] * R[8];
-  const double x = P.p[0], y = P.p[1], iz = P.iz;
-  double g_iz = cam.fx * (gJ00 - gJ02 * P.tx) + cam.fy * (gJ11 - gJ12 * P.ty) + gu * cam.fx * x + gv * cam.fy * y;
-  double gx = gu * cam.fx * iz, gy = gv * cam.fy * iz;
-  if (P.txr >= -cam.lim_x0 && P.txr <= cam.lim_x1) {
-    double g_tx = -gJ02 * cam.fx * iz;
-    gx += g_tx * iz;
-    g_iz += g_tx * x;
+  T gJ00 = gM[0] * R[0] + gM[1] * R[1] + gM[2] * R[2];
+  T gJ02 = gM[0] * R[6] + gM[1] * R[7] + gM[2] * R[8];
+  T gJ11 = gM[3] * R[3] + gM[4] * R[4] + gM[5] * R[5];
+  T gJ12 = gM[3] * R[6] + gM[4] * R[7] + gM[5] * R[8];
+  const T x = P.p[0], y = P.p[1], iz = P.iz;
+  T g_iz = cam.fx * (gJ00 - gJ02 * P.tx) + cam.fy * (gJ11 - gJ12 * P.ty) + gu * cam.fx * x + gv * cam.fy * y;
+  T gx = gu * cam.fx * iz, gy = gv * cam.fy * iz;
+  // where tx, ty were clamped, J does not depend on them
+  const auto in_x = (P.txr >= -cam.lim_x0) & (P.txr <= cam.lim_x1);
+  const T g_tx = -gJ02 * cam.fx * iz;
+  gx = in_x ? gx + g_tx * iz : gx;
+  g_iz = in_x ? g_iz + g_tx * x : g_iz;
+  const auto in_y = (P.tyr >= -cam.lim_y0) & (P.tyr <= cam.lim_y1);
+  const T g_ty = -gJ12 * cam.fy * iz;
+  gy = in_y ? gy + g_ty * iz : gy;
+  g_iz = in_y ? g_iz + g_ty * y : g_iz;
+  T gzp = gz_direct - g_iz * iz * iz;
+  for (int j = 0; j < 3; ++j) gm[j] = R[j] * gx + R[3 + j] * gy + R[6 + j] * gzp;
+}
+
+// Projects the Gaussians idx[0..n) (n <= 4; lanes past n repeat the last one) from the float
+// inputs.
+inline void project(const Camera& cam, ProjectionOf<d4>& P, const int32_t* idx, int n, const float* means,
+                    const float* quats, const float* scales, d4* s = nullptr) {
+  d4 m[3], q[4], sc[3];
+  for (int k = 0; k < PROJECT_LANES; ++k) {
+    const int64_t i = idx[std::min(k, n - 1)];
+    for (int j = 0; j < 3; ++j) m[j][k] = means[3 * i + j];
+    for (int j = 0; j < 4; ++j) q[j][k] = quats[4 * i + j];
+    for (int j = 0; j < 3; ++j) sc[j][k] = scales[3 * i + j];
   }
-  if (P.tyr >= -cam.lim_y0 && P.tyr <= cam.lim_y1) {
-    double g_ty = -gJ12 * cam.fy * iz;
-    gy += g_ty * iz;
-    g_iz += g_ty * y;
-  }
-  double gzp = gz_direct - g_iz * iz * iz;
-  for (int j = 0; j < 3; ++j) gm[j] += (float)(R[j] * gx + R[3 + j] * gy + R[6 + j] * gzp);
+  project(cam, m, q, sc, P);
+  if (s)
+    for (int j = 0; j < 3; ++j) s[j] = sc[j];
 }
 
 // ------------------------------------------------------------------------------------------
@@ -278,6 +328,37 @@ struct alignas(64) Splat {
   int32_t index;  // input index
 };
 static_assert(sizeof(Splat) == 64, "Splat is one cache line");
+
+// A projected Gaussian's splat (2D mean u, v and conic a, b, c in pixels, camera depth z in
+// metres); false when it covers no pixel of the W x H image.
+inline bool make_splat(double u, double v, double a, double b, double c, double z, float o, const float* col,
+                       int32_t index, int W, int H, Splat& s) {
+  s.u = (float)u;
+  s.v = (float)v;
+  s.a = (float)a;
+  s.b = (float)b;
+  s.c = (float)c;
+  s.z = (float)z;
+  s.level = 2.0f * std::log(255.0f * o);
+  s.logo = std::log(o);
+  s.det = s.a * s.c - s.b * s.b;
+  s.boa = s.b / s.a;
+  for (int k = 0; k < 3; ++k) s.col[k] = col[k];
+  s.index = index;
+  float lv = s.level > 0.0f ? s.level : 0.0f;
+  float ry = std::sqrt(lv * s.a / s.det);
+  float rx = std::sqrt(lv * s.c / s.det);
+  float y0 = std::ceil(s.v - ry), y1 = std::floor(s.v + ry);
+  y0 = y0 > 0.0f ? y0 : 0.0f;
+  y1 = y1 < (float)(H - 1) ? y1 : (float)(H - 1);
+  const bool finite = std::isfinite(s.u) && std::isfinite(s.v) && std::isfinite(s.a) && std::isfinite(s.b) &&
+                      std::isfinite(s.c) && std::isfinite(s.det) && std::isfinite(s.boa) && std::isfinite(s.z);
+  if (!(finite && s.level > 0.0f && y1 >= y0 && std::floor(s.u + rx) >= 0.0f && std::ceil(s.u - rx) <= (float)(W - 1)))
+    return false;
+  s.y0 = (int32_t)y0;
+  s.y1 = (int32_t)y1;
+  return true;
+}
 
 // For the 16 image rows y0 + i: the covered columns [xl[i], xr[i]] (empty where xr < xl) and
 // the rows' constants of log alpha = row_k - dx (a dx + row_b) / 2 with dx = x - xl + row_dx.
@@ -442,38 +523,25 @@ void forward(State& S, const float* means, const float* quats, const float* scal
   std::vector<Splat> tmp(N);
   std::vector<uint8_t> valid(N, 0);
   parallel_for(nthreads, N, 4096, [&](int64_t b, int64_t e, int) {
-    Projection P;
-    for (int64_t i = b; i < e; ++i) {
-      float o = opac[i];
-      if (!(camera_z(cam, means + 3 * i) > NEAR_PLANE) || !(o > alpha_min)) continue;
-      if (surely_off_screen(cam, means + 3 * i, scales + 3 * i)) continue;
-      project(cam, means + 3 * i, quats + 4 * i, scales + 3 * i, P);
-      Splat& s = tmp[i];
-      s.u = (float)P.u;
-      s.v = (float)P.v;
-      s.a = (float)P.a;
-      s.b = (float)P.b;
-      s.c = (float)P.c;
-      s.z = (float)P.p[2];
-      s.level = 2.0f * std::log(255.0f * o);
-      s.logo = std::log(o);
-      s.det = s.a * s.c - s.b * s.b;
-      s.boa = s.b / s.a;
-      for (int k = 0; k < 3; ++k) s.col[k] = colors[3 * i + k];
-      s.index = (int32_t)i;
-      float lv = s.level > 0.0f ? s.level : 0.0f;
-      float ry = std::sqrt(lv * s.a / s.det);
-      float rx = std::sqrt(lv * s.c / s.det);
-      float y0 = std::ceil(s.v - ry), y1 = std::floor(s.v + ry);
-      y0 = y0 > 0.0f ? y0 : 0.0f;
-      y1 = y1 < (float)(H - 1) ? y1 : (float)(H - 1);
-      const bool finite = std::isfinite(s.u) && std::isfinite(s.v) && std::isfinite(s.a) && std::isfinite(s.b) &&
-                          std::isfinite(s.c) && std::isfinite(s.det) && std::isfinite(s.boa) && std::isfinite(s.z);
-      bool on = finite && s.level > 0.0f && y1 >= y0 && std::floor(s.u + rx) >= 0.0f && std::ceil(s.u - rx) <= (float)(W - 1);
-      if (!on) continue;
-      s.y0 = (int32_t)y0;
-      s.y1 = (int32_t)y1;
-      valid[i] = 1;
+    // the cheap culls first, then the survivors projected four at a time
+    std::vector<int32_t> kept;
+    kept.reserve(e - b);
+    for (int64_t i = b; i < e; i += PROJECT_LANES) {
+      int64_t idx[PROJECT_LANES];
+      for (int k = 0; k < PROJECT_LANES; ++k) idx[k] = std::min<int64_t>(i + k, e - 1);
+      const int bits = maybe_visible(cam, idx, means, scales);
+      for (int k = 0; k < PROJECT_LANES && i + k < e; ++k)
+        if ((bits >> k & 1) && opac[i + k] > alpha_min) kept.push_back((int32_t)(i + k));
+    }
+    ProjectionOf<d4> P;
+    for (size_t g = 0; g < kept.size(); g += PROJECT_LANES) {
+      const int n = (int)std::min<size_t>(PROJECT_LANES, kept.size() - g);
+      project(cam, P, kept.data() + g, n, means, quats, scales);
+      for (int k = 0; k < n; ++k) {
+        const int32_t i = kept[g + k];
+        valid[i] = make_splat(P.u[k], P.v[k], P.a[k], P.b[k], P.c[k], P.p[2][k], opac[i], colors + 3 * i, i, W, H,
+                              tmp[i]);
+      }
     }
   });
 
@@ -843,7 +911,11 @@ void backward(State& S, const float* means, const float* quats, const float* sca
   const Camera& cam = S.cam;
   const int N = S.N;
   parallel_for(nthreads, N, 2048, [&](int64_t b, int64_t e, int) {
-    Projection P;
+    // the slots reduced Gaussian by Gaussian, then the projection's backward four at a time
+    std::vector<int32_t> kept;
+    std::vector<double> g2d;  // per kept Gaussian: dL/d(u, v, a, b, c, z)
+    kept.reserve(e - b);
+    g2d.reserve(6 * (e - b));
     for (int64_t i = b; i < e; ++i) {
       if (i + 2 * PREFETCH < e) {
         const int32_t j2 = S.sorted_of[i + 2 * PREFETCH];
@@ -856,11 +928,8 @@ void backward(State& S, const float* means, const float* quats, const float* sca
         const int32_t j1 = S.sorted_of[i + PREFETCH];
         if (j1 >= 0) __builtin_prefetch(&moments[(size_t)S.slot_start[j1] * NUM_MOMENTS]);
       }
-      float* gm = g_means + 3 * i;
-      float* gq = g_quats + 4 * i;
-      float* gs = g_scales + 3 * i;
-      for (int k = 0; k < 3; ++k) gm[k] = gs[k] = g_colors[3 * i + k] = 0.0f;
-      for (int k = 0; k < 4; ++k) gq[k] = 0.0f;
+      for (int k = 0; k < 3; ++k) g_means[3 * i + k] = g_scales[3 * i + k] = g_colors[3 * i + k] = 0.0f;
+      for (int k = 0; k < 4; ++k) g_quats[4 * i + k] = 0.0f;
       g_opac[i] = 0.0f;
       const int32_t j = S.sorted_of[i];
       if (j < 0) continue;  // culled: no gradient
@@ -869,15 +938,27 @@ void backward(State& S, const float* means, const float* quats, const float* sca
         for (int q = 0; q < NUM_MOMENTS; ++q) m[q] += moments[(size_t)k * NUM_MOMENTS + q];
       const Splat& s = S.splats[j];
       const double a = s.a, bb = s.b, c = s.c;
-      const double gu = a * m[1] + bb * m[2];
-      const double gv = bb * m[1] + c * m[2];
-      const double ga = -0.5 * m[3], gb = -m[4], gc = -0.5 * m[5];
+      kept.push_back((int32_t)i);
+      g2d.insert(g2d.end(), {a * m[1] + bb * m[2], bb * m[1] + c * m[2], -0.5 * m[3], -m[4], -0.5 * m[5], m[9]});
       g_opac[i] = (float)(m[0] / (double)opac[i]);
       g_colors[3 * i] = (float)m[6];
       g_colors[3 * i + 1] = (float)m[7];
       g_colors[3 * i + 2] = (float)m[8];
-      project(cam, means + 3 * i, quats + 4 * i, scales + 3 * i, P);
-      project_backward(cam, P, scales + 3 * i, gu, gv, ga, gb, gc, m[9], gm, gq, gs);
+    }
+    ProjectionOf<d4> P;
+    for (size_t g = 0; g < kept.size(); g += PROJECT_LANES) {
+      const int n = (int)std::min<size_t>(PROJECT_LANES, kept.size() - g);
+      d4 s[3], grad[6], gm[3], gq[4], gs[3];
+      project(cam, P, kept.data() + g, n, means, quats, scales, s);
+      for (int k = 0; k < PROJECT_LANES; ++k)
+        for (int q = 0; q < 6; ++q) grad[q][k] = g2d[6 * (g + std::min(k, n - 1)) + q];
+      project_backward(cam, P, s, grad[0], grad[1], grad[2], grad[3], grad[4], grad[5], gm, gq, gs);
+      for (int k = 0; k < n; ++k) {
+        const int64_t i = kept[g + k];
+        for (int j = 0; j < 3; ++j) g_means[3 * i + j] += (float)gm[j][k];
+        for (int j = 0; j < 4; ++j) g_quats[4 * i + j] += (float)gq[j][k];
+        for (int j = 0; j < 3; ++j) g_scales[3 * i + j] += (float)gs[j][k];
+      }
     }
   });
   Stamp t2 = now_us();
