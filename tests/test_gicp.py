@@ -174,20 +174,21 @@ def test_rotate_covariances():
     ],
 )
 def test_scale_alignment_factors(kind, expected):
-    """max(c z^p, 1) with c = 2 and p = 1.5 (paper Table 6)."""
+    """max(c z^p, 1) with the reference code's c = 2 and p = 1.5 (paper Table 6)."""
     depths = np.array([0.2, 0.7, 1.0, 3.0])
-    got = scale_alignment_factors(depths, MapGrowthConfig(scale_alignment=kind))
+    got = scale_alignment_factors(depths, MapGrowthConfig(scale_alignment=kind, scale_c=2.0))
     np.testing.assert_allclose(got, np.maximum(expected, 1.0))
 
 
 def test_scale_alignment_left_null_depends_on_the_mode():
-    """Null: z_pow (the paper's) in sequential mode, none in real time; a value set wins."""
+    """Null: z_pow (the paper's, with c = 1) in sequential mode, none in real time; a value set
+    wins."""
     depths = np.array([0.2, 0.7, 1.0, 3.0])
     default = MapGrowthConfig()
     np.testing.assert_allclose(scale_alignment_factors(depths, default.for_mode(realtime=True)), 1.0)
     np.testing.assert_allclose(scale_alignment_factors(depths, default.for_mode(realtime=False)),
-                               np.maximum(2 * depths**1.5, 1.0))
-    chosen = MapGrowthConfig(scale_alignment=ScaleAlignment.z)
+                               np.maximum(depths**1.5, 1.0))
+    chosen = MapGrowthConfig(scale_alignment=ScaleAlignment.z, scale_c=2.0)
     np.testing.assert_allclose(scale_alignment_factors(depths, chosen.for_mode(realtime=True)),
                                np.maximum(2 * depths, 1.0))
 

@@ -4,15 +4,20 @@ A frame's Gaussians carry their raw k-NN covariance (`shape_covariances`; the re
 G-ICP aligns with has a median axis of 1 m and would make 10 cm - 1 m Gaussians). Entering the
 map, each scale (square root of a raw eigenvalue) is divided by an alignment factor that grows with the point's
 camera depth z (metres): none -> 1, constant -> c, z -> max(c z, 1), z_pow -> max(c z^p, 1)
-(the paper's choice, p = 1.5, c = 2; the default in sequential mode). In real-time mode the
+(the paper's choice, p = 1.5; the default in sequential mode, with c = 1 where the reference
+code has c = 2). In real-time mode the
 default is none: a Gaussian there gets a few dozen steps at most, and aligned scales (1-3 mm on
 TUM, spaced ~1 cm) leave the views full of holes that the steps have no time to close (TUM
 fr1/rpy real time 17.7 dB unaligned against 15.6 dB aligned; looped Replica 21.6 against 9.2
-dB; docs/results.md). Sequential runs also score higher unaligned (TUM 18.60 against 18.23 dB,
-Replica 20 frames 28.88 against 27.63 dB) but their rendered depth is blurrier after few steps
-(a mesh of 5 Replica frames: median vertex error 3.7 cm against under 2 cm), so they keep the
-paper's alignment. Tracking does not change either way: the ellipse regularisation divides each
-target covariance by its median eigenvalue. Gaussians close to an existing trackable map Gaussian
+dB; docs/results.md). Sequential runs score higher the less they align (TUM fr1/rpy 18.23 /
+18.38 / 18.53 / 18.60 dB for c = 2 / 1 / 0.5 / none; Replica room0 20 frames 27.63 / 28.30 /
+28.83 / 28.90 dB), because the map bounded by the scene (`Strategy.admit`) keeps about one
+Gaussian per sampling cell where the reference code piles every keyframe's on top of each other;
+but their surfaces get blurrier (a mesh of the rendered depth of 20 Replica frames: median vertex
+error 1.25 / 1.38 / 1.78 / 4.05 cm, 96 / 94 / 84 / 34 % of the true surface within 3 cm), so
+c = 1 is the default: most of the PSNR, nearly the paper's surfaces (docs/results.md, "Scale
+alignment with a bounded map"). Tracking does not change either way (to 0.01 mm ATE): the
+ellipse regularisation divides each target covariance by its median eigenvalue. Gaussians close to an existing trackable map Gaussian
 (squared distance <= new_gaussian_overlap, m^2) are added for rendering but not marked
 trackable, so the tracking target is not duplicated.
 
@@ -54,12 +59,13 @@ class MapGrowthConfig(PluginConfig):
     """initial_shape: gicp | knn (see InitialShape). scale_alignment: none | constant | z |
     z_pow (paper Table 6), applied to gicp shapes; null: z_pow in sequential mode (the paper's),
     none in real-time mode (see the module docstring). scale_c, scale_p: the c
-    and p of max(c z^p, 1). initial_opacity: opacity of new Gaussians in (0, 1).
+    and p of max(c z^p, 1) (the reference code: c = 2, p = 1.5; c = 1 by default, see the
+    module docstring). initial_opacity: opacity of new Gaussians in (0, 1).
     new_gaussian_overlap: m^2, null = the dataset's (`SensorProfile.new_gaussian_overlap`)."""
 
     initial_shape: InitialShape = InitialShape.gicp
     scale_alignment: ScaleAlignment | None = None
-    scale_c: float = 2.0
+    scale_c: float = 1.0
     scale_p: float = 1.5
     initial_opacity: float = 0.1
     new_gaussian_overlap: float | None = None
