@@ -42,12 +42,12 @@ def row(r: dict) -> list[str]:
     return [r["system"], f("ate_rmse_m", 100), f("psnr"), f("stream_fps", digits=1), f("fps", digits=1),
             str(r.get("mapping_iterations", "-")), "-" if steps_per_s is None else f"{steps_per_s:.1f}",
             str(r.get("refine_iterations", "-")), f"{r.get('num_gaussians', 0):,}", f("peak_memory_mb", digits=0),
-            " / ".join(f(k, digits=2) for k in ("tracking_cpu_s", "mapping_cpu_s", "loading_cpu_s"))]
+            " / ".join(f(k, digits=2) for k in ("tracking_cpu_s", "mapping_cpu_s", "loading_cpu_s", "stream_cpu_s"))]
 
 
 def print_table(sequence: str, records: list[dict]) -> None:
     head = ["system", "ATE cm", "PSNR dB", "stream fps", "run fps", "steps in stream", "steps/s", "refine steps",
-            "Gaussians", "peak MB", "stream CPU s: tracking / mapping / loading"]
+            "Gaussians", "peak MB", "stream CPU s: tracking / mapping / loading / all"]
     print(f"\n{sequence}\n| " + " | ".join(head) + " |\n|" + "---|" * len(head))
     for r in records:
         cells = row(r) if r.get("returncode") == 0 else [r["system"], f"failed: {r.get('error', '')[:60]}"]

@@ -26,7 +26,7 @@ from pytorch_msssim import ssim as _ms_ssim
 from pytorch_msssim.ssim import _fspecial_gauss_1d
 
 from slamkit.metrics.images import SSIM_SIGMA, SSIM_WINDOW
-from slamkit.native import NativeLibrary
+from slamkit.native import NativeLibrary, available_threads
 
 SOURCE = Path(__file__).resolve().parent / "csrc" / "rgbd_loss.cpp"
 ABI_VERSION = 1
@@ -150,7 +150,8 @@ def fused_rgbd_loss(color: torch.Tensor, depth: torch.Tensor, image: torch.Tenso
     """`torch_rgbd_loss` computed by the compiled kernel: a 0-d float32 tensor whose backward
     gives dloss/dcolor and dloss/ddepth. Inputs: float32 CPU tensors, color, image (H,W,3) in
     [0, 1], depth, observed_depth (H,W) in metres, H and W >= 11. num_threads: row bands
-    computed in parallel (0 = torch.get_num_threads()); the result does not depend on it.
+    computed in parallel (0 = every CPU this process may use, `slamkit.native.available_threads`);
+    the result does not depend on it.
     Falls back to `torch_rgbd_loss`, with one warning, where the kernel cannot be built."""
     global _warned
     check_inputs(color, depth, image, observed_depth)
@@ -170,4 +171,4 @@ def fused_rgbd_loss(color: torch.Tensor, depth: torch.Tensor, image: torch.Tenso
                           RuntimeWarning, stacklevel=2)
         return torch_rgbd_loss(color, depth, image, observed_depth, w_l1, w_ssim, w_depth, depth_unit)
     return _FusedRGBDLoss.apply(color.contiguous(), depth.contiguous(), image.contiguous(),
-                                observed_depth.contiguous(), weights, num_threads or torch.get_num_threads())
+                                observed_depth.contiguous(), weights, num_threads or available_threads())

@@ -37,7 +37,7 @@ class L1SSIMDepthConfig(PluginConfig):
     """weight_l1, weight_ssim, weight_depth: the loss's weights (reference: 0.8, 0.2, 0.1).
     depth_unit: metres; the depth term is L1(depth / depth_unit) (the reference's 10).
     backend: auto | compiled | torch (the same loss; see Backend). num_threads: the compiled
-    kernel's threads (0 = torch.get_num_threads(), the run's mapping threads)."""
+    kernel's threads (0 = every CPU this process may use, as `rasterizer.num_threads`)."""
 
     weight_l1: float = 0.8
     weight_ssim: float = 0.2
@@ -50,7 +50,7 @@ class L1SSIMDepthConfig(PluginConfig):
         for name in ("weight_l1", "weight_ssim", "weight_depth"):
             require(getattr(self, name) >= 0, f"loss.{name}", ">= 0", getattr(self, name))
         require(self.depth_unit > 0, "loss.depth_unit", "> 0 metres", self.depth_unit)
-        require(self.num_threads >= 0, "loss.num_threads", "an integer >= 0 (0: the mapping threads)",
+        require(self.num_threads >= 0, "loss.num_threads", "an integer >= 0 (0: every CPU)",
                 self.num_threads)
 
 

@@ -26,7 +26,7 @@ from pathlib import Path
 import torch
 
 from slamkit.errors import ConfigError
-from slamkit.native import NativeLibrary
+from slamkit.native import NativeLibrary, available_threads
 from slamkit.plugin import PluginSpec, hookimpl
 from slamkit.map.rendering import Rasterizer, RenderOutput
 from slamkit.roles import PluginConfig, require, thread_count
@@ -38,8 +38,10 @@ ABI_VERSION = 3
 
 @dataclass
 class CPURasterizerConfig(PluginConfig):
-    """num_threads: threads that render (0 = torch.get_num_threads(), the run's mapping
-    threads). native: compile for this machine's CPU (-march=native; the cached library is keyed
+    """num_threads: threads that render (0 = every CPU this process may use, $OMP_NUM_THREADS
+    when set: the kernel's pool never waits for a thread the OS has not scheduled, so in real-time
+    mode it takes up the CPU time the tracking thread leaves idle, between frames, without
+    delaying tracking; docs/results.md, "Issue 15, fifth pass"). native: compile for this machine's CPU (-march=native; the cached library is keyed
     by the CPU model, so a copied cache is rebuilt rather than crashing on another CPU)."""
 
     num_threads: int = thread_count(0)
@@ -227,7 +229,7 @@ class CPURasterizer(Rasterizer):
 
         w2c = torch.as_tensor(world_to_camera).detach().to(device="cpu", dtype=torch.float64).contiguous()
         intr = torch.tensor([camera.fx, camera.fy, camera.cx, camera.cy], dtype=torch.float64)
-        nthreads = self.cfg.num_threads or torch.get_num_threads()
+        nthreads = self.cfg.num_threads or available_threads()
         color, depth, alpha = _Render.apply(
             f32(means), f32(quats), f32(scales), f32(opacities), f32(colors), f32(background),
             w2c, intr, H, W, int(nthreads), lib, self, keep_state,

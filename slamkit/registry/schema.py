@@ -119,7 +119,8 @@ class RunConfig(PluginConfig):
     behaviour) instead of processing every frame late. seed: for every
     random choice. progress: show a progress bar. mapping_threads: torch threads for mapping
     (0: every CPU in sequential mode; every CPU but one in realtime mode, where the tracking
-    thread runs beside the mapping thread). switch_interval: seconds; in realtime mode, Python's
+    thread runs beside the mapping thread; the compiled kernels have their own
+    `rasterizer.num_threads` and `loss.num_threads`). switch_interval: seconds; in realtime mode, Python's
     thread switch interval while the mapping thread runs (how long a thread waiting for the GIL
     may wait; Python's default is 0.005, which stalls both threads: slamkit.run.slam's
     SWITCH_INTERVAL_S). final_iterations: mapping steps after the last

@@ -54,10 +54,12 @@ class RunState:
     mapping_time_s: float = 0.0
     stream_time_s: float = 0.0  # from the first frame to the last one tracked
     # CPU seconds of this process's stream by thread: tracking (the frame loop), mapping (the
-    # real-time mapping thread; None in sequential mode, where the loop maps), loading (frames)
+    # real-time mapping thread; None in sequential mode, where the loop maps), loading (frames);
+    # stream: every thread of the process (the compiled kernels' workers too)
     tracking_cpu_s: float = 0.0
     mapping_cpu_s: float | None = None
     loading_cpu_s: float = 0.0
+    stream_cpu_s: float = 0.0
     refine_iterations: int = 0  # mapping steps after the stream
     refine_time_s: float = 0.0
     slam_time_s: float | None = None  # from the first frame to the end of the refinement
@@ -284,6 +286,7 @@ def run_metrics(cfg: RunConfig, slam: SLAM, state: RunState, wall_s: float) -> d
         "tracking_cpu_s": state.tracking_cpu_s,
         "mapping_cpu_s": state.mapping_cpu_s,
         "loading_cpu_s": state.loading_cpu_s,
+        "stream_cpu_s": state.stream_cpu_s,
         "wall_time_s": slam_s,
         "mapping_iterations": state.mapping_iterations,
         "refine_iterations": state.refine_iterations,

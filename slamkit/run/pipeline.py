@@ -251,6 +251,7 @@ def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, frames_log: Fram
     bar = tqdm(total=len(dataset), initial=first, unit="frame", disable=None if cfg.progress else True,
                dynamic_ncols=True)
     start, cpu_start, loading = time.perf_counter(), time.thread_time(), LoadCost()
+    process_cpu_start = time.process_time()  # every thread: the kernels' workers too
     try:
         if mapping:
             mapping.start()
@@ -276,6 +277,7 @@ def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, frames_log: Fram
     finally:
         state.stream_time_s += time.perf_counter() - start
         state.tracking_cpu_s += time.thread_time() - cpu_start
+        state.stream_cpu_s += time.process_time() - process_cpu_start
         bar.close()
         if mapping:
             _stop_mapping(mapping, state)
