@@ -119,6 +119,13 @@ class Deferred:
     def __set__(self, obj, value) -> None:
         obj.__dict__[self.slot] = Deferred._Pending(value) if callable(value) else value
 
+    @staticmethod
+    def pending(obj, name: str):
+        """The function that will compute `obj`'s field `name` when first read, or None when
+        the field holds a value (or is not a Deferred field)."""
+        value = obj.__dict__.get("_deferred_" + name)
+        return value.compute if isinstance(value, Deferred._Pending) else None
+
 
 @dataclass
 class Frame:

@@ -193,6 +193,38 @@ def test_scale_alignment_left_null_depends_on_the_mode():
                                np.maximum(2 * depths, 1.0))
 
 
+def test_rows_from_covariances_decompose_only_what_is_read_and_selected():
+    """The decomposition waits for the first read of a shape and covers only the rows selected
+    by then (a keyframe's admitted ones), with the values of an eager decomposition of those
+    rows; the entry geometry is a copy."""
+    rng = np.random.default_rng(3)
+    n = 50
+    cov = random_covariances(rng, n)
+    means, factors = rng.normal(size=(n, 3)), rng.uniform(1.0, 4.0, n)
+    reads = []
+
+    def source():
+        reads.append(1)
+        return cov
+
+    rows = GaussianRows.from_covariances(means, source, np.full((n, 3), 0.5), 0.3, np.zeros(n, bool), 7,
+                                         scale_factors=factors)
+    first = rng.random(n) < 0.5
+    second = np.flatnonzero(first)[::3]
+    chosen = rows.select(first).select(np.arange(len(second)) * 3)  # a selection of a selection
+    assert len(chosen) == len(second) and not reads  # nothing decomposed yet
+    quats, scales = scales_from_covariance(cov[second])
+    np.testing.assert_allclose(chosen.quats.numpy(), quats.astype(np.float32))
+    np.testing.assert_allclose(chosen.log_scales.numpy(), np.log(scales / factors[second, None]).astype(np.float32),
+                               rtol=1e-6)
+    np.testing.assert_array_equal(chosen.means.numpy(), means[second].astype(np.float32))
+    assert len(reads) == 1
+    chosen.quats.add_(1.0)  # the optimiser's in-place update does not reach the entry geometry
+    np.testing.assert_allclose(chosen.entry_quats.numpy(), quats.astype(np.float32))
+    eager = GaussianRows.from_covariances(means, cov, np.full((n, 3), 0.5), 0.3, np.zeros(n, bool), 7)
+    np.testing.assert_allclose(eager.select(second).log_scales.numpy(), np.log(scales).astype(np.float32), rtol=1e-6)
+
+
 # ----------------------------------------------------------------------------- synthetic scene
 def render_depth(pose: np.ndarray, camera: Camera = CAMERA) -> np.ndarray:
     """Depth (metres) of a box room [-2,2]x[-1.5,1.5]x[-1,4] with a sphere and a slanted

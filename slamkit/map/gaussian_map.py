@@ -9,6 +9,7 @@ import numpy as np
 import torch
 
 from slamkit.geometry.transforms import covariance_from_scales, scales_from_covariance
+from slamkit.types import Deferred
 
 #: The optimisable parameters, in this order everywhere (GaussianMap, GaussianRows, optimisers).
 PARAMETERS = ("means", "quats", "log_scales", "opacity_logits", "colors")
@@ -20,6 +21,66 @@ def _logit(p: np.ndarray) -> np.ndarray:
     return np.log(p / (1 - p))
 
 
+def _log_scales(scales, device) -> torch.Tensor:
+    """float32 log of standard deviations (metres, clamped at 1e-8)."""
+    log = np.log(np.maximum(np.asarray(scales, dtype=np.float64), 1e-8))
+    return torch.as_tensor(log.astype(np.float32), device=device)
+
+
+class _Decomposition:
+    """Quaternions and log-scales of rows made from covariances, computed on first use and only
+    for the rows selected by then: a keyframe's coverage test leaves most of its candidate rows
+    out (71 % on TUM fr1/rpy), and the eigen-decomposition is most of what a row costs to make.
+    covariances: a zero-argument function giving the (N,3,3) m^2 world covariances; index: the
+    rows of it these are (None = all); scale_factors: (N,) divisors of the scales or None."""
+
+    def __init__(self, covariances, scale_factors, device, index=None):
+        self.covariances, self.scale_factors, self.device, self.index = covariances, scale_factors, device, index
+        self._tensors: dict[str, torch.Tensor] | None = None
+
+    def select(self, index: np.ndarray) -> _Decomposition:
+        index = np.flatnonzero(index) if index.dtype == bool else index
+        rows = index if self.index is None else self.index[index]
+        return _Decomposition(self.covariances, self.scale_factors, self.device, rows)
+
+    def tensor(self, name: str, copy: bool = False) -> torch.Tensor:
+        """The rows' "quats" or "log_scales"; copy: a second tensor of the same values, made
+        with the first (the entry geometry, which later in-place updates of the first must not
+        reach whichever is read first)."""
+        if self._tensors is None:
+            cov = np.asarray(self.covariances(), dtype=np.float64)
+            factors = self.scale_factors
+            if self.index is not None:
+                cov = cov[self.index]
+                factors = None if factors is None else factors[self.index]
+            quats, scales = scales_from_covariance(cov)
+            if factors is not None:
+                scales = scales / np.asarray(factors, dtype=np.float64)[:, None]
+            made = {"quats": torch.as_tensor(quats.astype(np.float32), device=self.device),
+                    "log_scales": _log_scales(scales, self.device)}
+            self._tensors = {**{(k, False): t for k, t in made.items()}, **{(k, True): t.clone() for k, t in made.items()}}
+        return self._tensors[name, copy]
+
+
+class _PendingShape:
+    """A GaussianRows field not computed yet: one tensor of a _Decomposition (a copy of it for
+    the entry geometry, which the optimiser's updates must not reach)."""
+
+    def __init__(self, decomposition: _Decomposition, name: str, copy: bool = False):
+        self.decomposition, self.name, self.copy = decomposition, name, copy
+
+    def __call__(self) -> torch.Tensor:
+        return self.decomposition.tensor(self.name, self.copy)
+
+    def select(self, index: np.ndarray, selected: dict) -> _PendingShape:
+        """The same field of the rows at `index`; `selected` shares one selected decomposition
+        between the fields of one `GaussianRows.select`."""
+        key = id(self.decomposition)
+        if key not in selected:
+            selected[key] = self.decomposition.select(index)
+        return _PendingShape(selected[key], self.name, self.copy)
+
+
 @dataclass
 class GaussianRows:
     """Gaussians that are not (or not yet) rows of a map, in the map's parameterisation: torch
@@ -27,18 +88,19 @@ class GaussianRows:
     (N,3) log of standard deviations in metres; opacity_logits (N,); colors (N,3) RGB in [0, 1];
     trackable (N,) bool; keyframe_id (N,) int64 (the keyframe that added it, -1 = none);
     entry_means, entry_quats, entry_log_scales: the geometry it entered the map with (what a
-    tracker aligns to, see GaussianMap)."""
+    tracker aligns to, see GaussianMap). Rows made `from_covariances` compute their quats and
+    log_scales (and entry copies) when first read (Deferred), for the rows selected by then."""
 
     means: torch.Tensor
-    quats: torch.Tensor
-    log_scales: torch.Tensor
+    quats: torch.Tensor = Deferred()
+    log_scales: torch.Tensor = Deferred()
     opacity_logits: torch.Tensor
     colors: torch.Tensor
     trackable: torch.Tensor
     keyframe_id: torch.Tensor
     entry_means: torch.Tensor
-    entry_quats: torch.Tensor
-    entry_log_scales: torch.Tensor
+    entry_quats: torch.Tensor = Deferred()
+    entry_log_scales: torch.Tensor = Deferred()
 
     @classmethod
     def from_parameters(cls, params: dict[str, torch.Tensor], trackable: torch.Tensor,
@@ -57,28 +119,42 @@ class GaussianRows:
         """From numpy arrays in natural units: scales (N,3) metres (clamped at 1e-8), opacity
         (N,) or a scalar in (0, 1), keyframe_id an int or (N,) ints."""
         n = len(means)
+        quats = torch.as_tensor(np.asarray(quats, dtype=np.float32), device=device).reshape(n, 4)
+        return cls._made(means, quats, _log_scales(scales, device).reshape(n, 3), colors, opacity, trackable,
+                         keyframe_id, device)
+
+    @classmethod
+    def from_covariances(cls, means, covariances, colors, opacity, trackable, keyframe_id, scale_factors=None,
+                         device=None) -> GaussianRows:
+        """From world covariances (N,3,3) m^2, or a zero-argument function giving them; each
+        standard deviation optionally divided by `scale_factors` (N,) (the scale alignment of
+        Gaussians entering the map). The decomposition into quats and scales is done when they
+        are first read, for the rows `select`ed by then."""
+        source = covariances if callable(covariances) else (lambda: covariances)
+        factors = None if scale_factors is None else np.asarray(scale_factors, dtype=np.float64)
+        shapes = _Decomposition(source, factors, device)
+        return cls._made(means, _PendingShape(shapes, "quats"), _PendingShape(shapes, "log_scales"), colors, opacity,
+                         trackable, keyframe_id, device)
+
+    @classmethod
+    def _made(cls, means, quats, log_scales, colors, opacity, trackable, keyframe_id, device) -> GaussianRows:
+        """Rows entering now from numpy values (quats, log_scales: tensors or _PendingShapes)."""
+        n = len(means)
         opacity = np.broadcast_to(np.asarray(opacity, dtype=np.float64), (n,))
 
         def f32(a, width):
             return torch.as_tensor(np.asarray(a, dtype=np.float32), device=device).reshape((n, width) if width else n)
 
-        params = {"means": f32(means, 3), "quats": f32(quats, 4),
-                  "log_scales": f32(np.log(np.maximum(np.asarray(scales, dtype=np.float64), 1e-8)), 3),
-                  "opacity_logits": f32(_logit(opacity), 0), "colors": f32(colors, 3)}
-        return cls.from_parameters(
-            params, trackable=torch.as_tensor(np.asarray(trackable, dtype=bool), device=device).reshape(n),
-            keyframe_id=torch.as_tensor(np.broadcast_to(np.asarray(keyframe_id, dtype=np.int64), (n,)).copy(),
-                                        device=device))
+        def entry(value):
+            return _PendingShape(value.decomposition, value.name, copy=True) if callable(value) else value.clone()
 
-    @classmethod
-    def from_covariances(cls, means, covariances, colors, opacity, trackable, keyframe_id, scale_factors=None,
-                         device=None) -> GaussianRows:
-        """From world covariances (N,3,3) m^2; each standard deviation optionally divided by
-        `scale_factors` (N,) (the scale alignment of Gaussians entering the map)."""
-        quats, scales = scales_from_covariance(np.asarray(covariances, dtype=np.float64))
-        if scale_factors is not None:
-            scales = scales / np.asarray(scale_factors, dtype=np.float64)[:, None]
-        return cls.from_shapes(means, quats, scales, colors, opacity, trackable, keyframe_id, device)
+        means_t = f32(means, 3)
+        return cls(means=means_t, quats=quats, log_scales=log_scales, opacity_logits=f32(_logit(opacity), 0),
+                   colors=f32(colors, 3), trackable=torch.as_tensor(np.asarray(trackable, dtype=bool),
+                                                                    device=device).reshape(n),
+                   keyframe_id=torch.as_tensor(np.broadcast_to(np.asarray(keyframe_id, dtype=np.int64), (n,)).copy(),
+                                               device=device),
+                   entry_means=means_t.clone(), entry_quats=entry(quats), entry_log_scales=entry(log_scales))
 
     def __len__(self) -> int:
         return int(self.means.shape[0])
@@ -87,7 +163,14 @@ class GaussianRows:
         """The rows at `index` (a bool mask or integer indices, numpy or torch)."""
         index = torch.as_tensor(np.asarray(index) if not isinstance(index, torch.Tensor) else index,
                                 device=self.means.device)
-        return GaussianRows(**{f.name: getattr(self, f.name)[index] for f in fields(self)})
+        values, selected = {}, {}
+        for f in fields(self):
+            pending = Deferred.pending(self, f.name)
+            if isinstance(pending, _PendingShape):
+                values[f.name] = pending.select(index.cpu().numpy(), selected)
+            else:
+                values[f.name] = getattr(self, f.name)[index]
+        return GaussianRows(**values)
 
     def parameters(self) -> dict[str, torch.Tensor]:
         return {name: getattr(self, name) for name in PARAMETERS}

@@ -121,7 +121,11 @@ def new_gaussians(gaussians: FrameGaussians, keyframe_id: int, cfg: MapGrowthCon
         quats = np.tile([1.0, 0.0, 0.0, 0.0], (len(gaussians), 1))
         return GaussianRows.from_shapes(gaussians.means, quats, knn_isotropic_scales(gaussians.means),
                                         gaussians.colors, cfg.initial_opacity, trackable, keyframe_id, device)
-    shapes = gaussians.shape_covariances if gaussians.shape_covariances is not None else gaussians.covariances
+
+    def shapes() -> np.ndarray:  # read only for the rows the mapper admits (GaussianRows.from_covariances)
+        raw = gaussians.shape_covariances
+        return raw if raw is not None else gaussians.covariances
+
     return GaussianRows.from_covariances(
         gaussians.means, shapes, gaussians.colors, cfg.initial_opacity, trackable, keyframe_id,
         scale_factors=scale_alignment_factors(gaussians.depths.astype(np.float64), cfg), device=device,
