@@ -90,6 +90,7 @@ class Deferred:
     """
 
     _NO_DEFAULT = object()
+    _SLOT = "_deferred_{}"  # where an instance keeps a field's value or pending function
 
     class _Pending:
         __slots__ = ("compute",)
@@ -101,7 +102,7 @@ class Deferred:
         self.default = default
 
     def __set_name__(self, owner, name: str) -> None:
-        self.name, self.slot = name, "_deferred_" + name
+        self.name, self.slot = name, Deferred._SLOT.format(name)
 
     def __get__(self, obj, owner=None):
         if obj is None:  # the dataclass asks for the field's default
@@ -123,7 +124,7 @@ class Deferred:
     def pending(obj, name: str):
         """The function that will compute `obj`'s field `name` when first read, or None when
         the field holds a value (or is not a Deferred field)."""
-        value = obj.__dict__.get("_deferred_" + name)
+        value = obj.__dict__.get(Deferred._SLOT.format(name))
         return value.compute if isinstance(value, Deferred._Pending) else None
 
 

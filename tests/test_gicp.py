@@ -195,34 +195,52 @@ def test_scale_alignment_left_null_depends_on_the_mode():
 
 def test_rows_from_covariances_decompose_only_what_is_read_and_selected():
     """The decomposition waits for the first read of a shape and covers only the rows selected
-    by then (a keyframe's admitted ones), with the values of an eager decomposition of those
-    rows; the entry geometry is a copy."""
+    by then (a keyframe's admitted ones), with the bits of rows made from the decomposed shapes
+    (`from_shapes`); the entry geometry is a copy; selections by numpy or torch masks or
+    indices, of selections, after a read, or of no row, and pickling all work."""
+    import pickle
+
+    import torch
+
     rng = np.random.default_rng(3)
     n = 50
     cov = random_covariances(rng, n)
-    means, factors = rng.normal(size=(n, 3)), rng.uniform(1.0, 4.0, n)
+    means, colors, factors = rng.normal(size=(n, 3)), rng.random((n, 3)), rng.uniform(1.0, 4.0, n)
     reads = []
 
     def source():
         reads.append(1)
         return cov
 
-    rows = GaussianRows.from_covariances(means, source, np.full((n, 3), 0.5), 0.3, np.zeros(n, bool), 7,
-                                         scale_factors=factors)
+    def made(covariances):
+        return GaussianRows.from_covariances(means, covariances, colors, 0.3, np.arange(n) % 2 == 0, 7,
+                                             scale_factors=factors)
+
+    quats, scales = scales_from_covariance(cov)
+    reference = GaussianRows.from_shapes(means, quats, scales / factors[:, None], colors, 0.3, np.arange(n) % 2 == 0, 7)
+
+    def same_rows(rows, index):
+        expected = reference.select(index)
+        for name in ("means", "quats", "log_scales", "opacity_logits", "colors", "trackable", "keyframe_id",
+                     "entry_means", "entry_quats", "entry_log_scales"):
+            assert torch.equal(getattr(rows, name), getattr(expected, name)), name
+
     first = rng.random(n) < 0.5
     second = np.flatnonzero(first)[::3]
-    chosen = rows.select(first).select(np.arange(len(second)) * 3)  # a selection of a selection
+    chosen = made(source).select(torch.as_tensor(first)).select(np.arange(len(second)) * 3)
     assert len(chosen) == len(second) and not reads  # nothing decomposed yet
-    quats, scales = scales_from_covariance(cov[second])
-    np.testing.assert_allclose(chosen.quats.numpy(), quats.astype(np.float32))
-    np.testing.assert_allclose(chosen.log_scales.numpy(), np.log(scales / factors[second, None]).astype(np.float32),
-                               rtol=1e-6)
-    np.testing.assert_array_equal(chosen.means.numpy(), means[second].astype(np.float32))
+    same_rows(chosen, second)
     assert len(reads) == 1
     chosen.quats.add_(1.0)  # the optimiser's in-place update does not reach the entry geometry
-    np.testing.assert_allclose(chosen.entry_quats.numpy(), quats.astype(np.float32))
-    eager = GaussianRows.from_covariances(means, cov, np.full((n, 3), 0.5), 0.3, np.zeros(n, bool), 7)
-    np.testing.assert_allclose(eager.select(second).log_scales.numpy(), np.log(scales).astype(np.float32), rtol=1e-6)
+    chosen.log_scales.add_(1.0)
+    assert torch.equal(chosen.entry_quats, reference.select(second).entry_quats)
+    assert torch.equal(chosen.entry_log_scales, reference.select(second).entry_log_scales)
+
+    read_first = made(cov)
+    assert read_first.quats.shape == (n, 4)  # decomposed for every row, then selected
+    same_rows(read_first.select(torch.as_tensor(second)), second)
+    assert len(made(source).select(np.zeros(n, bool)).computed().quats) == 0
+    same_rows(pickle.loads(pickle.dumps(made(source).select(second))), second)  # a closure inside
 
 
 # ----------------------------------------------------------------------------- synthetic scene

@@ -41,8 +41,9 @@ class CPURasterizerConfig(PluginConfig):
     """num_threads: threads that render (0 = every CPU this process may use, $OMP_NUM_THREADS
     when set: the kernel's pool never waits for a thread the OS has not scheduled, so in real-time
     mode it takes up the CPU time the tracking thread leaves idle, between frames, without
-    delaying tracking; docs/results.md, "Issue 15, fifth pass"). native: compile for this machine's CPU (-march=native; the cached library is keyed
-    by the CPU model, so a copied cache is rebuilt rather than crashing on another CPU)."""
+    delaying tracking; docs/results.md, "Issue 15, fifth pass"). native: compile for this
+    machine's CPU (-march=native; the cached library is keyed by the CPU model, so a copied cache
+    is rebuilt rather than crashing on another CPU)."""
 
     num_threads: int = thread_count(0)
     native: bool = True

@@ -35,7 +35,8 @@ class _Decomposition:
     rows of it these are (None = all); scale_factors: (N,) divisors of the scales or None."""
 
     def __init__(self, covariances, scale_factors, device, index=None):
-        self.covariances, self.scale_factors, self.device, self.index = covariances, scale_factors, device, index
+        self.covariances, self.scale_factors = covariances, scale_factors
+        self.device, self.index = device, index
         self._tensors: dict[str, torch.Tensor] | None = None
 
     def select(self, index: np.ndarray) -> _Decomposition:
@@ -58,7 +59,7 @@ class _Decomposition:
                 scales = scales / np.asarray(factors, dtype=np.float64)[:, None]
             made = {"quats": torch.as_tensor(quats.astype(np.float32), device=self.device),
                     "log_scales": _log_scales(scales, self.device)}
-            self._tensors = {**{(k, False): t for k, t in made.items()}, **{(k, True): t.clone() for k, t in made.items()}}
+            self._tensors = {(k, copy): t.clone() if copy else t for k, t in made.items() for copy in (False, True)}
         return self._tensors[name, copy]
 
 
@@ -71,6 +72,10 @@ class _PendingShape:
 
     def __call__(self) -> torch.Tensor:
         return self.decomposition.tensor(self.name, self.copy)
+
+    def entry(self) -> _PendingShape:
+        """The entry-geometry field of the same rows (a copy made with this one)."""
+        return _PendingShape(self.decomposition, self.name, copy=True)
 
     def select(self, index: np.ndarray, selected: dict) -> _PendingShape:
         """The same field of the rows at `index`; `selected` shares one selected decomposition
@@ -146,7 +151,7 @@ class GaussianRows:
             return torch.as_tensor(np.asarray(a, dtype=np.float32), device=device).reshape((n, width) if width else n)
 
         def entry(value):
-            return _PendingShape(value.decomposition, value.name, copy=True) if callable(value) else value.clone()
+            return value.entry() if isinstance(value, _PendingShape) else value.clone()
 
         means_t = f32(means, 3)
         return cls(means=means_t, quats=quats, log_scales=log_scales, opacity_logits=f32(_logit(opacity), 0),
@@ -163,14 +168,31 @@ class GaussianRows:
         """The rows at `index` (a bool mask or integer indices, numpy or torch)."""
         index = torch.as_tensor(np.asarray(index) if not isinstance(index, torch.Tensor) else index,
                                 device=self.means.device)
-        values, selected = {}, {}
+        if index.dtype == torch.uint8:  # torch's old mask type: a mask here too
+            index = index.bool()
+        values, selected, host_index = {}, {}, None
         for f in fields(self):
             pending = Deferred.pending(self, f.name)
             if isinstance(pending, _PendingShape):
-                values[f.name] = pending.select(index.cpu().numpy(), selected)
+                host_index = index.cpu().numpy() if host_index is None else host_index
+                values[f.name] = pending.select(host_index, selected)
             else:
                 values[f.name] = getattr(self, f.name)[index]
         return GaussianRows(**values)
+
+    def computed(self) -> GaussianRows:
+        """These rows with every field computed (the decomposition done now, e.g. before taking
+        the map's lock)."""
+        for f in fields(self):
+            getattr(self, f.name)
+        return self
+
+    def __getstate__(self) -> dict:  # pickled with every field computed (pending ones are closures)
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    def __setstate__(self, state: dict) -> None:
+        for name, value in state.items():
+            setattr(self, name, value)
 
     def parameters(self) -> dict[str, torch.Tensor]:
         return {name: getattr(self, name) for name in PARAMETERS}

@@ -17,8 +17,8 @@ but their surfaces get blurrier (a mesh of the rendered depth of 20 Replica fram
 error 1.25 / 1.38 / 1.78 / 4.05 cm, 96 / 94 / 84 / 34 % of the true surface within 3 cm), so
 c = 1 is the default: most of the PSNR, nearly the paper's surfaces (docs/results.md, "Scale
 alignment with a bounded map"). Tracking hardly changes either way (TUM fr1/rpy 4.90 cm; 4.70
-against 4.67 cm looped 4 times): the tracker aligns to the entry geometry, and the ellipse
-regularisation divides each target covariance by its median eigenvalue; only which trackable
+against 4.67 cm looped 4 times): the ellipse regularisation divides each target covariance
+by its median eigenvalue, which cancels a Gaussian's alignment factor; only which trackable
 Gaussians pruning removes (by opacity) depends on the training. Gaussians close to an existing trackable map Gaussian
 (squared distance <= new_gaussian_overlap, m^2) are added for rendering but not marked
 trackable, so the tracking target is not duplicated.

@@ -38,7 +38,9 @@ class Mapper(ABC):
     def admit(self, frame: Frame, pose: np.ndarray, new: GaussianRows) -> torch.Tensor | np.ndarray | None:
         """Which of a keyframe's new Gaussians (scale-aligned, not yet in the map) enter it: a
         bool mask over `new`, or None for all (the default). `pose` is the keyframe's
-        camera-to-world pose. Called under the map's lock, just before they are appended."""
+        camera-to-world pose. Called under the map's lock; the rows it admits are appended next
+        (their shapes, which `new` computes when first read, computed in between, outside the
+        lock)."""
         return None
 
     @abstractmethod

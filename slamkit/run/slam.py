@@ -101,7 +101,8 @@ class SLAM:
         new = new_gaussians(result.gaussians, self.num_keyframes, self.map_growth, gm.device)
         with gm.lock:
             admitted = self.mapper.admit(frame, result.pose, new)
-            return gm.append(new if admitted is None else new.select(admitted))
+        entering = (new if admitted is None else new.select(admitted)).computed()  # outside the lock
+        return gm.append(entering)
 
 
 #: How much lower the mapping thread's scheduling priority is than tracking's (Linux nice

@@ -52,7 +52,6 @@
 #include <mutex>
 #include <new>
 #include <thread>
-#include <type_traits>
 #include <vector>
 
 #include <unistd.h>
@@ -118,28 +117,27 @@ Camera make_camera(const double* viewmat, const double* intr, int W, int H) {
   return c;
 }
 
-// The projection and its backward are written once, for a scalar (double) or for four Gaussians
-// at once (d4: the same IEEE operations lane by lane, so the same bits; GCC vector extensions,
-// two SSE2 or one AVX register). Scalar and vector helpers share names so the code reads alike.
+// The projection and its backward run on four Gaussians at once: d4, four doubles (GCC / Clang
+// vector extensions: two SSE2 or one AVX register), with the same IEEE operations lane by lane
+// as the scalar code they replaced, so the same bits. Masks (comparisons) are m4, lanes 0 or -1.
 typedef double d4 __attribute__((vector_size(32)));
+typedef int64_t m4 __attribute__((vector_size(32)));
 constexpr int PROJECT_LANES = 4;
 
-template <class T>
-inline T bcast(double x) {
-  if constexpr (std::is_same_v<T, double>) {
-    return x;
-  } else {
-    return T{x, x, x, x};
-  }
-}
-inline double vmin(double a, double b) { return std::min(a, b); }
-inline double vmax(double a, double b) { return std::max(a, b); }
-inline d4 vmin(d4 a, d4 b) { return b < a ? b : a; }  // std::min's and std::max's choices, NaNs included
-inline d4 vmax(d4 a, d4 b) { return a < b ? b : a; }
-inline double dsqrt(double x) { return std::sqrt(x); }
+inline d4 d4_of(double x) { return d4{x, x, x, x}; }
+inline d4 dselect(m4 mask, d4 a, d4 b) { return (d4)(((m4)a & mask) | ((m4)b & ~mask)); }
+inline d4 vmin(d4 a, d4 b) { return dselect(b < a, b, a); }  // std::min's and std::max's choices, NaNs included
+inline d4 vmax(d4 a, d4 b) { return dselect(a < b, b, a); }
 inline d4 dsqrt(d4 x) {
   for (int k = 0; k < PROJECT_LANES; ++k) x[k] = std::sqrt(x[k]);
   return x;
+}
+
+// out[j] = column j of the rows idx[0..4) of a row-major float array `width` wide, as doubles
+inline void gather(const float* rows, int width, const int64_t* idx, d4* out) {
+  const float* r[PROJECT_LANES];
+  for (int k = 0; k < PROJECT_LANES; ++k) r[k] = rows + width * idx[k];
+  for (int j = 0; j < width; ++j) out[j] = d4{r[0][j], r[1][j], r[2][j], r[3][j]};
 }
 
 // Which of the four Gaussians idx[0..4) may cover a pixel (bit k for idx[k]): in front of the
@@ -152,40 +150,37 @@ inline d4 dsqrt(d4 x) {
 inline int maybe_visible(const Camera& cam, const int64_t* idx, const float* means, const float* scales) {
   static const double level_max = 2.0 * std::log(255.0);
   d4 m[3], smax;
+  gather(means, 3, idx, m);
   for (int k = 0; k < PROJECT_LANES; ++k) {
-    const float* mk = means + 3 * idx[k];
     const float* sk = scales + 3 * idx[k];
-    for (int j = 0; j < 3; ++j) m[j][k] = mk[j];
     smax[k] = std::max(std::fabs((double)sk[0]), std::max(std::fabs((double)sk[1]), std::fabs((double)sk[2])));
   }
   const double* R = cam.R;
   d4 p[3];
   for (int i = 0; i < 3; ++i) p[i] = R[3 * i] * m[0] + R[3 * i + 1] * m[1] + R[3 * i + 2] * m[2] + cam.t[i];
   const d4 iz = 1.0 / p[2];
-  const d4 tx = vmin(vmax(p[0] * iz, bcast<d4>(-cam.lim_x0)), bcast<d4>(cam.lim_x1));
-  const d4 ty = vmin(vmax(p[1] * iz, bcast<d4>(-cam.lim_y0)), bcast<d4>(cam.lim_y1));
+  const d4 tx = vmin(vmax(p[0] * iz, d4_of(-cam.lim_x0)), d4_of(cam.lim_x1));
+  const d4 ty = vmin(vmax(p[1] * iz, d4_of(-cam.lim_y0)), d4_of(cam.lim_y1));
   const d4 j2 = (cam.fx * cam.fx * (1 + tx * tx) + cam.fy * cam.fy * (1 + ty * ty)) * iz * iz;
   const d4 r = 1.01 * dsqrt(level_max * (j2 * smax * smax + EPS_2D)) + 2.0;
   const d4 u = cam.fx * p[0] * iz + cam.cx, v = cam.fy * p[1] * iz + cam.cy;
-  const auto off = (u + r < 0.0) | (u - r > cam.W - 1) | (v + r < 0.0) | (v - r > cam.H - 1);
-  const auto keep = (p[2] > NEAR_PLANE) & ~off;
+  const m4 off = (u + r < 0.0) | (u - r > (double)(cam.W - 1)) | (v + r < 0.0) | (v - r > (double)(cam.H - 1));
+  const m4 keep = (p[2] > NEAR_PLANE) & ~off;
   int bits = 0;
   for (int k = 0; k < PROJECT_LANES; ++k) bits |= (keep[k] != 0) << k;
   return bits;
 }
 
-template <class T>
-struct ProjectionOf {  // everything the forward computes, kept to differentiate it
-  T p[3], iz, txr, tyr, tx, ty;
-  T qn[4], qnorm, Rq[9], s2[3];
-  T M[6];  // J R (2x3)
-  T A[6];  // M Rq (2x3): cov2d = A diag(s^2) A^T
-  T sxx, sxy, syy, a, b, c, u, v;
+struct Projection {  // everything the forward computes, kept to differentiate it
+  d4 p[3], iz, txr, tyr, tx, ty;
+  d4 qn[4], qnorm, Rq[9], s2[3];
+  d4 M[6];  // J R (2x3)
+  d4 A[6];  // M Rq (2x3): cov2d = A diag(s^2) A^d4
+  d4 sxx, sxy, syy, a, b, c, u, v;
 };
 
-template <class T>
-inline void quat_to_rotmat(const T* q, T* R) {
-  T w = q[0], x = q[1], y = q[2], z = q[3];
+inline void quat_to_rotmat(const d4* q, d4* R) {
+  d4 w = q[0], x = q[1], y = q[2], z = q[3];
   R[0] = 1 - 2 * (y * y + z * z);
   R[1] = 2 * (x * y - w * z);
   R[2] = 2 * (x * z + w * y);
@@ -198,20 +193,19 @@ inline void quat_to_rotmat(const T* q, T* R) {
 }
 
 // m, q, s: a Gaussian's mean, quaternion (w, x, y, z) and scales, as doubles
-template <class T>
-void project(const Camera& cam, const T* m, const T* q, const T* s, ProjectionOf<T>& P) {
+void project(const Camera& cam, const d4* m, const d4* q, const d4* s, Projection& P) {
   const double* R = cam.R;
   for (int i = 0; i < 3; ++i) P.p[i] = R[3 * i] * m[0] + R[3 * i + 1] * m[1] + R[3 * i + 2] * m[2] + cam.t[i];
-  T x = P.p[0], y = P.p[1], z = P.p[2];
+  d4 x = P.p[0], y = P.p[1], z = P.p[2];
   P.iz = 1.0 / z;
   P.u = cam.fx * x * P.iz + cam.cx;
   P.v = cam.fy * y * P.iz + cam.cy;
   P.txr = x * P.iz;
   P.tyr = y * P.iz;
-  P.tx = vmin(vmax(P.txr, bcast<T>(-cam.lim_x0)), bcast<T>(cam.lim_x1));
-  P.ty = vmin(vmax(P.tyr, bcast<T>(-cam.lim_y0)), bcast<T>(cam.lim_y1));
-  T J00 = cam.fx * P.iz, J02 = -cam.fx * P.tx * P.iz;
-  T J11 = cam.fy * P.iz, J12 = -cam.fy * P.ty * P.iz;
+  P.tx = vmin(vmax(P.txr, d4_of(-cam.lim_x0)), d4_of(cam.lim_x1));
+  P.ty = vmin(vmax(P.tyr, d4_of(-cam.lim_y0)), d4_of(cam.lim_y1));
+  d4 J00 = cam.fx * P.iz, J02 = -cam.fx * P.tx * P.iz;
+  d4 J11 = cam.fy * P.iz, J12 = -cam.fy * P.ty * P.iz;
   for (int j = 0; j < 3; ++j) {
     P.M[j] = J00 * R[j] + J02 * R[6 + j];
     P.M[3 + j] = J11 * R[3 + j] + J12 * R[6 + j];
@@ -223,7 +217,7 @@ void project(const Camera& cam, const T* m, const T* q, const T* s, ProjectionOf
   for (int r = 0; r < 2; ++r)
     for (int k = 0; k < 3; ++k)
       P.A[3 * r + k] = P.M[3 * r] * P.Rq[k] + P.M[3 * r + 1] * P.Rq[3 + k] + P.M[3 * r + 2] * P.Rq[6 + k];
-  T c00 = bcast<T>(0), c01 = bcast<T>(0), c11 = bcast<T>(0);
+  d4 c00 = d4_of(0), c01 = d4_of(0), c11 = d4_of(0);
   for (int k = 0; k < 3; ++k) {
     c00 += P.A[k] * P.A[k] * P.s2[k];
     c01 += P.A[k] * P.A[3 + k] * P.s2[k];
@@ -232,35 +226,34 @@ void project(const Camera& cam, const T* m, const T* q, const T* s, ProjectionOf
   P.sxx = c00 + EPS_2D;
   P.syy = c11 + EPS_2D;
   P.sxy = c01;
-  T inv_det = 1.0 / (P.sxx * P.syy - P.sxy * P.sxy);
+  d4 inv_det = 1.0 / (P.sxx * P.syy - P.sxy * P.sxy);
   P.a = P.syy * inv_det;
   P.b = -P.sxy * inv_det;
   P.c = P.sxx * inv_det;
 }
 
 // Gradients of (u, v, conic a b c, z) -> means, quats, scales (gm, gq, gs; s the scales).
-template <class T>
-void project_backward(const Camera& cam, const ProjectionOf<T>& P, const T* s, T gu, T gv, T ga, T gb, T gc,
-                      T gz_direct, T* gm, T* gq, T* gs) {
-  const T a = P.a, b = P.b, c = P.c;
+void project_backward(const Camera& cam, const Projection& P, const d4* s, d4 gu, d4 gv, d4 ga, d4 gb, d4 gc,
+                      d4 gz_direct, d4* gm, d4* gq, d4* gs) {
+  const d4 a = P.a, b = P.b, c = P.c;
   // conic = cov^-1: dL/dcov = -C G C (G the symmetric gradient w.r.t. the conic matrix)
-  T g_sxx = -(a * a * ga + a * b * gb + b * b * gc);
-  T g_syy = -(b * b * ga + b * c * gb + c * c * gc);
-  T g_sxy = -(2 * a * b * ga + (a * c + b * b) * gb + 2 * b * c * gc);
-  // cov2d = A S A^T, S = diag(s^2); Gcov = [[g_sxx, g_sxy/2], [g_sxy/2, g_syy]]
-  const T* A = P.A;
-  T gA[6];
+  d4 g_sxx = -(a * a * ga + a * b * gb + b * b * gc);
+  d4 g_syy = -(b * b * ga + b * c * gb + c * c * gc);
+  d4 g_sxy = -(2 * a * b * ga + (a * c + b * b) * gb + 2 * b * c * gc);
+  // cov2d = A S A^d4, S = diag(s^2); Gcov = [[g_sxx, g_sxy/2], [g_sxy/2, g_syy]]
+  const d4* A = P.A;
+  d4 gA[6];
   for (int k = 0; k < 3; ++k) {
     // (Gcov A)_rk, then times 2 s_k^2
-    T r0 = g_sxx * A[k] + 0.5 * g_sxy * A[3 + k];
-    T r1 = 0.5 * g_sxy * A[k] + g_syy * A[3 + k];
+    d4 r0 = g_sxx * A[k] + 0.5 * g_sxy * A[3 + k];
+    d4 r1 = 0.5 * g_sxy * A[k] + g_syy * A[3 + k];
     gA[k] = 2 * r0 * P.s2[k];
     gA[3 + k] = 2 * r1 * P.s2[k];
-    T q = A[k] * A[k] * g_sxx + A[k] * A[3 + k] * g_sxy + A[3 + k] * A[3 + k] * g_syy;
+    d4 q = A[k] * A[k] * g_sxx + A[k] * A[3 + k] * g_sxy + A[3 + k] * A[3 + k] * g_syy;
     gs[k] = 2 * s[k] * q;
   }
-  // A = M Rq: dL/dM = gA Rq^T, dL/dRq = M^T gA
-  T gM[6], gR[9];
+  // A = M Rq: dL/dM = gA Rq^d4, dL/dRq = M^d4 gA
+  d4 gM[6], gR[9];
   for (int r = 0; r < 2; ++r)
     for (int j = 0; j < 3; ++j)
       gM[3 * r + j] = gA[3 * r] * P.Rq[3 * j] + gA[3 * r + 1] * P.Rq[3 * j + 1] + gA[3 * r + 2] * P.Rq[3 * j + 2];
@@ -268,51 +261,50 @@ void project_backward(const Camera& cam, const ProjectionOf<T>& P, const T* s, T
     for (int k = 0; k < 3; ++k) gR[3 * i + k] = P.M[i] * gA[k] + P.M[3 + i] * gA[3 + k];
   // Rq(qn) -> qn -> q
   {
-    T w = P.qn[0], x = P.qn[1], y = P.qn[2], z = P.qn[3];
-    const T* G = gR;
-    T gw = 2 * (-z * G[1] + y * G[2] + z * G[3] - x * G[5] - y * G[6] + x * G[7]);
-    T gx = 2 * (y * G[1] + z * G[2] + y * G[3] - 2 * x * G[4] - w * G[5] + z * G[6] + w * G[7] - 2 * x * G[8]);
-    T gy = 2 * (-2 * y * G[0] + x * G[1] + w * G[2] + x * G[3] + z * G[5] - w * G[6] + z * G[7] - 2 * y * G[8]);
-    T gz = 2 * (-2 * z * G[0] - w * G[1] + x * G[2] + w * G[3] - 2 * z * G[4] + y * G[5] + x * G[6] + y * G[7]);
-    T dot = w * gw + x * gx + y * gy + z * gz;
+    d4 w = P.qn[0], x = P.qn[1], y = P.qn[2], z = P.qn[3];
+    const d4* G = gR;
+    d4 gw = 2 * (-z * G[1] + y * G[2] + z * G[3] - x * G[5] - y * G[6] + x * G[7]);
+    d4 gx = 2 * (y * G[1] + z * G[2] + y * G[3] - 2 * x * G[4] - w * G[5] + z * G[6] + w * G[7] - 2 * x * G[8]);
+    d4 gy = 2 * (-2 * y * G[0] + x * G[1] + w * G[2] + x * G[3] + z * G[5] - w * G[6] + z * G[7] - 2 * y * G[8]);
+    d4 gz = 2 * (-2 * z * G[0] - w * G[1] + x * G[2] + w * G[3] - 2 * z * G[4] + y * G[5] + x * G[6] + y * G[7]);
+    d4 dot = w * gw + x * gx + y * gy + z * gz;
     gq[0] = (gw - w * dot) / P.qnorm;
     gq[1] = (gx - x * dot) / P.qnorm;
     gq[2] = (gy - y * dot) / P.qnorm;
     gq[3] = (gz - z * dot) / P.qnorm;
   }
-  // M = J R: dL/dJ = gM R^T (only J00, J02, J11, J12 are not constant)
+  // M = J R: dL/dJ = gM R^d4 (only J00, J02, J11, J12 are not constant)
   const double* R = cam.R;
-  T gJ00 = gM[0] * R[0] + gM[1] * R[1] + gM[2] * R[2];
-  T gJ02 = gM[0] * R[6] + gM[1] * R[7] + gM[2] * R[8];
-  T gJ11 = gM[3] * R[3] + gM[4] * R[4] + gM[5] * R[5];
-  T gJ12 = gM[3] * R[6] + gM[4] * R[7] + gM[5] * R[8];
-  const T x = P.p[0], y = P.p[1], iz = P.iz;
-  T g_iz = cam.fx * (gJ00 - gJ02 * P.tx) + cam.fy * (gJ11 - gJ12 * P.ty) + gu * cam.fx * x + gv * cam.fy * y;
-  T gx = gu * cam.fx * iz, gy = gv * cam.fy * iz;
+  d4 gJ00 = gM[0] * R[0] + gM[1] * R[1] + gM[2] * R[2];
+  d4 gJ02 = gM[0] * R[6] + gM[1] * R[7] + gM[2] * R[8];
+  d4 gJ11 = gM[3] * R[3] + gM[4] * R[4] + gM[5] * R[5];
+  d4 gJ12 = gM[3] * R[6] + gM[4] * R[7] + gM[5] * R[8];
+  const d4 x = P.p[0], y = P.p[1], iz = P.iz;
+  d4 g_iz = cam.fx * (gJ00 - gJ02 * P.tx) + cam.fy * (gJ11 - gJ12 * P.ty) + gu * cam.fx * x + gv * cam.fy * y;
+  d4 gx = gu * cam.fx * iz, gy = gv * cam.fy * iz;
   // where tx, ty were clamped, J does not depend on them
-  const auto in_x = (P.txr >= -cam.lim_x0) & (P.txr <= cam.lim_x1);
-  const T g_tx = -gJ02 * cam.fx * iz;
-  gx = in_x ? gx + g_tx * iz : gx;
-  g_iz = in_x ? g_iz + g_tx * x : g_iz;
-  const auto in_y = (P.tyr >= -cam.lim_y0) & (P.tyr <= cam.lim_y1);
-  const T g_ty = -gJ12 * cam.fy * iz;
-  gy = in_y ? gy + g_ty * iz : gy;
-  g_iz = in_y ? g_iz + g_ty * y : g_iz;
-  T gzp = gz_direct - g_iz * iz * iz;
+  const m4 in_x = (P.txr >= -cam.lim_x0) & (P.txr <= cam.lim_x1);
+  const d4 g_tx = -gJ02 * cam.fx * iz;
+  gx = dselect(in_x, gx + g_tx * iz, gx);
+  g_iz = dselect(in_x, g_iz + g_tx * x, g_iz);
+  const m4 in_y = (P.tyr >= -cam.lim_y0) & (P.tyr <= cam.lim_y1);
+  const d4 g_ty = -gJ12 * cam.fy * iz;
+  gy = dselect(in_y, gy + g_ty * iz, gy);
+  g_iz = dselect(in_y, g_iz + g_ty * y, g_iz);
+  d4 gzp = gz_direct - g_iz * iz * iz;
   for (int j = 0; j < 3; ++j) gm[j] = R[j] * gx + R[3 + j] * gy + R[6 + j] * gzp;
 }
 
 // Projects the Gaussians idx[0..n) (n <= 4; lanes past n repeat the last one) from the float
 // inputs.
-inline void project(const Camera& cam, ProjectionOf<d4>& P, const int32_t* idx, int n, const float* means,
+inline void project(const Camera& cam, Projection& P, const int32_t* idx, int n, const float* means,
                     const float* quats, const float* scales, d4* s = nullptr) {
+  int64_t lanes[PROJECT_LANES];
+  for (int k = 0; k < PROJECT_LANES; ++k) lanes[k] = idx[std::min(k, n - 1)];
   d4 m[3], q[4], sc[3];
-  for (int k = 0; k < PROJECT_LANES; ++k) {
-    const int64_t i = idx[std::min(k, n - 1)];
-    for (int j = 0; j < 3; ++j) m[j][k] = means[3 * i + j];
-    for (int j = 0; j < 4; ++j) q[j][k] = quats[4 * i + j];
-    for (int j = 0; j < 3; ++j) sc[j][k] = scales[3 * i + j];
-  }
+  gather(means, 3, lanes, m);
+  gather(quats, 4, lanes, q);
+  gather(scales, 3, lanes, sc);
   project(cam, m, q, sc, P);
   if (s)
     for (int j = 0; j < 3; ++j) s[j] = sc[j];
@@ -533,7 +525,7 @@ void forward(State& S, const float* means, const float* quats, const float* scal
       for (int k = 0; k < PROJECT_LANES && i + k < e; ++k)
         if ((bits >> k & 1) && opac[i + k] > alpha_min) kept.push_back((int32_t)(i + k));
     }
-    ProjectionOf<d4> P;
+    Projection P;
     for (size_t g = 0; g < kept.size(); g += PROJECT_LANES) {
       const int n = (int)std::min<size_t>(PROJECT_LANES, kept.size() - g);
       project(cam, P, kept.data() + g, n, means, quats, scales);
@@ -945,7 +937,7 @@ void backward(State& S, const float* means, const float* quats, const float* sca
       g_colors[3 * i + 1] = (float)m[7];
       g_colors[3 * i + 2] = (float)m[8];
     }
-    ProjectionOf<d4> P;
+    Projection P;
     for (size_t g = 0; g < kept.size(); g += PROJECT_LANES) {
       const int n = (int)std::min<size_t>(PROJECT_LANES, kept.size() - g);
       d4 s[3], grad[6], gm[3], gq[4], gs[3];

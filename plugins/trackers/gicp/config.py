@@ -38,8 +38,9 @@ class GICPConfig(PluginConfig):
     target_min_median: m^2; with ellipse, a map covariance whose median eigenvalue is below
       this becomes target_min_median * I (the reference code uses 1e-3). Off by default: map
       shapes come from raw k-NN covariances scale-aligned by 1/max(c z^1.5, 1) (c = 2 in the
-      reference code, 1 here), whose median eigenvalue is ~1e-6..1e-5 m^2, so the reference's 1e-3 makes every target isotropic
-      (TUM fr1/rpy: 6.57 cm ATE RMSE against 4.91 cm off; docs/results.md).
+      reference code, 1 here), whose median eigenvalue is ~1e-6..1e-5 m^2 (with c = 2; up to 4x
+      that with c = 1), so the reference's 1e-3 makes every target isotropic (TUM fr1/rpy, c =
+      2: 6.57 cm ATE RMSE against 4.91 cm off; docs/results.md).
     max_correspondence_distance: metres (reference: 0.03 TUM, 0.02 Replica).
     max_iterations: Levenberg-Marquardt iterations (each re-finds correspondences).
     rotation_tolerance, translation_tolerance: converged when every |dR - I| entry and every
