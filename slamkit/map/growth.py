@@ -19,9 +19,9 @@ c = 1 is the default: most of the PSNR, nearly the paper's surfaces (docs/result
 alignment with a bounded map"). Tracking hardly changes either way (TUM fr1/rpy 4.90 cm; 4.70
 against 4.67 cm looped 4 times): the ellipse regularisation divides each target covariance
 by its median eigenvalue, which cancels a Gaussian's alignment factor; only which trackable
-Gaussians pruning removes (by opacity) depends on the training. Gaussians close to an existing trackable map Gaussian
-(squared distance <= new_gaussian_overlap, m^2) are added for rendering but not marked
-trackable, so the tracking target is not duplicated.
+Gaussians pruning removes (by opacity) depends on the training. Gaussians close to an existing
+trackable map Gaussian (squared distance <= new_gaussian_overlap, m^2) are added for rendering
+but not marked trackable, so the tracking target is not duplicated.
 
 `new_gaussians` makes a keyframe's candidate rows; which of them enter the map is the mapper's
 decision (`Mapper.admit`, in `slamkit.run.slam.SLAM.grow_map`).
@@ -124,7 +124,7 @@ def new_gaussians(gaussians: FrameGaussians, keyframe_id: int, cfg: MapGrowthCon
         return GaussianRows.from_shapes(gaussians.means, quats, knn_isotropic_scales(gaussians.means),
                                         gaussians.colors, cfg.initial_opacity, trackable, keyframe_id, device)
 
-    def shapes() -> np.ndarray:  # read only for the rows the mapper admits (GaussianRows.from_covariances)
+    def shapes() -> np.ndarray:  # called once the admitted rows' shapes are read (GaussianRows.from_covariances)
         raw = gaussians.shape_covariances
         return raw if raw is not None else gaussians.covariances
 

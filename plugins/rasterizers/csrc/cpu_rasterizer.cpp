@@ -175,7 +175,7 @@ struct Projection {  // everything the forward computes, kept to differentiate i
   d4 p[3], iz, txr, tyr, tx, ty;
   d4 qn[4], qnorm, Rq[9], s2[3];
   d4 M[6];  // J R (2x3)
-  d4 A[6];  // M Rq (2x3): cov2d = A diag(s^2) A^d4
+  d4 A[6];  // M Rq (2x3): cov2d = A diag(s^2) A^T
   d4 sxx, sxy, syy, a, b, c, u, v;
 };
 
@@ -240,7 +240,7 @@ void project_backward(const Camera& cam, const Projection& P, const d4* s, d4 gu
   d4 g_sxx = -(a * a * ga + a * b * gb + b * b * gc);
   d4 g_syy = -(b * b * ga + b * c * gb + c * c * gc);
   d4 g_sxy = -(2 * a * b * ga + (a * c + b * b) * gb + 2 * b * c * gc);
-  // cov2d = A S A^d4, S = diag(s^2); Gcov = [[g_sxx, g_sxy/2], [g_sxy/2, g_syy]]
+  // cov2d = A S A^T, S = diag(s^2); Gcov = [[g_sxx, g_sxy/2], [g_sxy/2, g_syy]]
   const d4* A = P.A;
   d4 gA[6];
   for (int k = 0; k < 3; ++k) {
@@ -252,7 +252,7 @@ void project_backward(const Camera& cam, const Projection& P, const d4* s, d4 gu
     d4 q = A[k] * A[k] * g_sxx + A[k] * A[3 + k] * g_sxy + A[3 + k] * A[3 + k] * g_syy;
     gs[k] = 2 * s[k] * q;
   }
-  // A = M Rq: dL/dM = gA Rq^d4, dL/dRq = M^d4 gA
+  // A = M Rq: dL/dM = gA Rq^T, dL/dRq = M^T gA
   d4 gM[6], gR[9];
   for (int r = 0; r < 2; ++r)
     for (int j = 0; j < 3; ++j)
@@ -273,7 +273,7 @@ void project_backward(const Camera& cam, const Projection& P, const d4* s, d4 gu
     gq[2] = (gy - y * dot) / P.qnorm;
     gq[3] = (gz - z * dot) / P.qnorm;
   }
-  // M = J R: dL/dJ = gM R^d4 (only J00, J02, J11, J12 are not constant)
+  // M = J R: dL/dJ = gM R^T (only J00, J02, J11, J12 are not constant)
   const double* R = cam.R;
   d4 gJ00 = gM[0] * R[0] + gM[1] * R[1] + gM[2] * R[2];
   d4 gJ02 = gM[0] * R[6] + gM[1] * R[7] + gM[2] * R[8];
