@@ -33,7 +33,7 @@ from slamkit.roles import PluginConfig, require, thread_count
 from slamkit.types import Camera
 
 SOURCE = Path(__file__).resolve().parent / "csrc" / "cpu_rasterizer.cpp"
-ABI_VERSION = 3
+ABI_VERSION = 4
 
 
 @dataclass
@@ -55,7 +55,7 @@ class CPURasterizerConfig(PluginConfig):
 def _declare(lib) -> None:
     P, I = ctypes.c_void_p, ctypes.c_int
     lib.slk_forward.restype = P
-    lib.slk_forward.argtypes = [I, P, P, P, P, P, P, P, I, I, P, I, P, P, P, P, ctypes.c_char_p, I]
+    lib.slk_forward.argtypes = [I, P, P, P, P, P, P, P, I, I, P, I, I, P, P, P, P, ctypes.c_char_p, I]
     lib.slk_backward.restype = I
     lib.slk_backward.argtypes = [P, P, P, P, P, P, P, P, P, I, P, P, P, P, P, P, ctypes.c_char_p, I]
     lib.slk_times.restype = None
@@ -128,7 +128,7 @@ class _Render(torch.autograd.Function):
         err = ctypes.create_string_buffer(512)
         ptr = lib.slk_forward(
             means.shape[0], _ptr(means), _ptr(quats), _ptr(scales), _ptr(opacities), _ptr(colors), _ptr(viewmat),
-            _ptr(intr), W, H, _ptr(background), nthreads, _ptr(color), _ptr(depth), _ptr(alpha), _ptr(stats),
+            _ptr(intr), W, H, _ptr(background), nthreads, int(keep_state), _ptr(color), _ptr(depth), _ptr(alpha), _ptr(stats),
             err, len(err),
         )
         if not ptr:
