@@ -180,21 +180,38 @@ def test_deterministic_across_thread_counts(cpu):
             assert torch.equal(a, b), name
 
 
+@pytest.mark.parametrize("stored_alphas_mb", [0.0, 0.01])
+def test_backward_is_the_same_with_the_alphas_recomputed(cpu, stored_alphas_mb):
+    """The forward keeps its alphas for the backward up to `stored_alphas_mb` (the default holds
+    them all here); the backward recomputes the rest (0.01 MiB: some chunks stored, some not)."""
+    scene = hard_scene(700, 5)
+    background = torch.tensor([0.2, 0.5, 0.1], dtype=F64)
+    stored = render_and_grads(cpu, scene, CAM, background, F32)
+    other = render_and_grads(CPURasterizer(CPURasterizerConfig(stored_alphas_mb=stored_alphas_mb)), scene, CAM,
+                             background, F32)
+    for name, a, b in zip(NAMES, stored, other):
+        assert torch.equal(a, b), name
+
+
 def test_concurrent_renders_from_threads(cpu):
-    """The compiled code runs without the GIL and keeps no global state."""
-    scene = [x.to(F32) for x in hard_scene(500, 4)]
-    expected = cpu.render(*scene[:5], scene[5], CAM).color
+    """The compiled code runs without the GIL; each render owns its state (the buffers of stored
+    alphas it takes from a shared pool included)."""
+    scene = hard_scene(500, 4)
+    background = torch.tensor([0.3, 0.3, 0.3], dtype=F64)
+    expected = render_and_grads(cpu, scene, CAM, background, F32)
     results = [None] * 4
 
     def work(i):
-        results[i] = CPURasterizer(CPURasterizerConfig(num_threads=2)).render(*scene[:5], scene[5], CAM).color
+        results[i] = render_and_grads(CPURasterizer(CPURasterizerConfig(num_threads=2)), scene, CAM, background, F32)
 
     threads = [threading.Thread(target=work, args=(i,)) for i in range(4)]
     for t in threads:
         t.start()
     for t in threads:
         t.join()
-    assert all(torch.equal(r, expected) for r in results)
+    for result in results:
+        for name, a, b in zip(NAMES, expected, result):
+            assert torch.equal(a, b), name
 
 
 def test_empty_culled_and_offscreen_scenes_are_background(cpu):
@@ -239,6 +256,8 @@ def test_shapes_and_devices_are_checked(cpu):
 def test_config_is_validated():
     with pytest.raises(ConfigError, match="num_threads"):
         CPURasterizerConfig(num_threads=-1)
+    with pytest.raises(ConfigError, match="stored_alphas_mb"):
+        CPURasterizerConfig(stored_alphas_mb=-1.0)
 
 
 def test_registered_as_cpu_and_picked_by_auto_without_cuda(monkeypatch, cpu):

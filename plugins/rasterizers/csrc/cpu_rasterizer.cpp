@@ -49,11 +49,11 @@
 #include <cstdio>
 #include <cstring>
 #include <exception>
-#include <stdexcept>
 #include <memory>
 #include <mutex>
 #include <new>
 #include <thread>
+#include <type_traits>
 #include <vector>
 
 #include <unistd.h>
@@ -493,14 +493,15 @@ constexpr int GROUP = 4;
 // the forward composites them (so it writes sequentially): per tile chunk by chunk, per chunk
 // by (row, half), per (row, half) the chunk's entries listed for it in depth order; the backward
 // finds an entry's block from the chunk's list lengths (entry_rows). Each compositing thread
-// appends its tiles' blocks to its own store (grown by doubling, never initialised: only the
-// blocks composited are written, and the backward reads no other).
+// appends its tiles' blocks to its own store (grown by doubling up to its share of the budget,
+// never initialised: only the blocks composited are written, and the backward reads no other);
+// a chunk that would exceed it is not stored, and the backward recomputes its alphas.
 struct AlphaStore {
   std::unique_ptr<vblock[]> data;
   size_t size = 0, cap = 0;  // in blocks
-  void reserve(size_t n) {
+  void reserve(size_t n, size_t budget) {
     if (n <= cap) return;
-    const size_t c = std::max(n, 2 * cap);
+    const size_t c = std::max(n, std::min(2 * cap, budget));
     std::unique_ptr<vblock[]> d(new vblock[c]);
     std::atomic_thread_fence(std::memory_order_seq_cst);  // (the streaming stores so far, before they are read)
     if (cap) std::memcpy((void*)d.get(), (const void*)data.get(), cap * sizeof(vblock));  // the tile being written too
@@ -576,11 +577,11 @@ struct State {
   std::vector<int32_t> tile_order;      // tiles by decreasing list length (load balance)
   std::vector<float> T_final;           // H*W
   std::vector<int32_t> last;            // H*W: last composited position in the tile list, -1 none
-  bool keep_alphas = false;             // for a backward pass (AlphaStore)
+  size_t alpha_budget = 0;              // blocks each forward thread may store (AlphaStore)
   std::vector<AlphaStore> alpha_store;  // per forward thread
   std::vector<int32_t> tile_store;      // tiles: the thread whose store holds the tile's alphas
   std::vector<int64_t> tile_block;      // tiles: the tile's first block in that store
-  std::vector<int32_t> chunk_block;     // entries: at a chunk's first entry, its first block from the tile's
+  std::vector<int32_t> chunk_block;     // entries: at a chunk's first entry, its first block (-1: not stored)
   std::vector<uint32_t> entry_rows;     // entries: bit lr * HALVES + h set where the entry was listed
   int64_t num_pairs = 0;
   int64_t num_rows = 0;  // vector steps of the forward pass, in 16-lane units (an 8-lane half counts 1/2)
@@ -751,7 +752,7 @@ void forward(State& S, const float* means, const float* quats, const float* scal
   S.T_final.resize((size_t)W * H);
   AlphaStorePool::instance().give(S.alpha_store);  // (a State renders once; this keeps it safe)
   for (int t = 0; t < std::max(nthreads, 1); ++t)
-    S.alpha_store.push_back(S.keep_alphas ? AlphaStorePool::instance().take() : AlphaStore());
+    S.alpha_store.push_back(S.alpha_budget ? AlphaStorePool::instance().take() : AlphaStore());
   S.tile_store.assign(tiles, 0);
   S.tile_block.assign(tiles, 0);
   S.chunk_block.resize(num_entries);
@@ -822,13 +823,15 @@ void forward(State& S, const float* means, const float* quats, const float* scal
             row_block[lr][h] = chunk_blocks;
             chunk_blocks += nrow[lr][h];
           }
-        S.chunk_block[cs] = tile_blocks;
         vblock* alphas = nullptr;
-        if (S.keep_alphas) {
-          store.reserve(S.tile_block[tile] + tile_blocks + chunk_blocks);
+        const size_t stored = S.tile_block[tile] + tile_blocks + chunk_blocks;
+        S.chunk_block[cs] = -1;
+        if (stored <= S.alpha_budget) {
+          store.reserve(stored, S.alpha_budget);
           alphas = store.data.get() + S.tile_block[tile] + tile_blocks;
+          S.chunk_block[cs] = tile_blocks;
+          tile_blocks += chunk_blocks;
         }
-        tile_blocks += chunk_blocks;
         // composite block by block, the block's state in registers
         for (int lr = 0; lr < th; ++lr)
           for (int h = 0; h < HALVES; ++h) {
@@ -936,7 +939,7 @@ void forward(State& S, const float* means, const float* quats, const float* scal
 
 // A tile's alphas as the forward pass stored them (AlphaStore), for a walk of its list back to
 // front: visit(pos) for each position walked, then next(bit) for each bit of entry_rows[pos] in
-// increasing order gives that block's alphas.
+// increasing order gives that block's alphas, where stored().
 class StoredAlphas {
  public:
   StoredAlphas(const State& S, int tile)
@@ -959,10 +962,11 @@ class StoredAlphas {
       row_block_[b] = n;
       n += listed[b];
     }
-    chunk_ = tile_ + S_.chunk_block[cs];
-    stream_in(chunk_, chunk_ + n);
+    chunk_ = S_.chunk_block[cs] < 0 ? nullptr : tile_ + S_.chunk_block[cs];
+    if (chunk_) stream_in(chunk_, chunk_ + n);
   }
-  const vblock& next(int bit) { return chunk_[row_block_[bit] + --before_[bit]]; }
+  bool stored() const { return chunk_ != nullptr; }  // false: over the budget, to be recomputed
+  const vblock* next(int bit) { return chunk_ + row_block_[bit] + --before_[bit]; }  // where stored()
 
  private:
   const State& S_;
@@ -1024,7 +1028,8 @@ void backward(State& S, const float* means, const float* quats, const float* sca
         bg_tile[3 * tile + 1] = b1;
         bg_tile[3 * tile + 2] = b2;
       }
-      RowSpans sp;
+      ChunkEntry E;
+      const RowSpans& sp = E.sp;
       StoredAlphas alphas(S, tile);
       for (int pos = end - 1; pos >= start; --pos) {
         float* mom = &moments[(size_t)S.tile_slot[pos] * NUM_MOMENTS];
@@ -1037,47 +1042,63 @@ void backward(State& S, const float* means, const float* quats, const float* sca
         // the entry's moments, summed over its rows and blocks (lane by lane, then across)
         vblock m0{}, mx{}, my{}, mxx{}, mxy{}, myy{}, w0{}, w1{}, w2{}, wd{};
         const iblock posv = iblock{} + pos;
-        row_spans(s, y0, W, sp);
+        row_spans(s, y0, W, E.sp);
+        E.a = s.a;
         alphas.visit(pos);
-        // the blocks the forward pass listed the entry in (it composited those this walk needs)
-        for (uint32_t rows = S.entry_rows[pos]; rows; rows &= rows - 1) {
-          const int bit = __builtin_ctz(rows), lr = bit / HALVES, h = bit % HALVES;
-          const vblock& al = alphas.next(bit);
-          const int a = sp.xl[lr] - x0, z = sp.xr[lr] - x0;  // the span in tile columns
-          const int lane0 = h * BLOCK;
-          const iblock lane = block_lanes() + lane0;
-          const iblock m = (lane >= a) & (lane <= z) & (posv <= block(last[lr], h));
-          if (!any(m)) continue;
-          const vblock dx = block_dx(sp, lr, a, lane0);
-          const vblock dy = block_of(sp.dy[lr]);
-          const vblock inv = 1.0f / (1.0f - al);
-          vblock& Tr = block(T[lr], h);
-          vblock& Sr = block(Ssum[lr], h);
-          const vblock G0 = block(g0[lr], h), G1 = block(g1[lr], h), G2 = block(g2[lr], h);
-          const vblock Tb = Tr * inv;  // transmittance before this Gaussian
-          const vblock w = select(m, al * Tb, vblock{});
-          const vblock GD = block(gd[lr], h), GA = block(ga[lr], h);
-          const vblock val_c2 = vfma(block_of(s.col[2]), G2, vfma(block_of(s.z), GD, GA));
-          const vblock val = vfma(block_of(s.col[0]), G0, vfma(block_of(s.col[1]), G1, val_c2));
-          // dL/dlog(alpha) = alpha dL/dalpha = alpha (T v - sum_{j>i} w_j v_j / (1 - alpha)), zero
-          // where alpha is clamped
-          const vblock sg = select(m & (al < ALPHA_MAX), al * vfma(Tb, val, -(Sr * inv)), vblock{});
-          const vblock dxm = select(m, dx, vblock{});
-          const vblock sdx = sg * dxm;
-          const vblock sdy = sg * dy;
-          m0 += sg;
-          mx += sdx;
-          my += sdy;
-          mxx = vfma(sdx, dxm, mxx);
-          mxy = vfma(sdx, dy, mxy);
-          myy = vfma(sdy, dy, myy);
-          w0 = vfma(w, G0, w0);
-          w1 = vfma(w, G1, w1);
-          w2 = vfma(w, G2, w2);
-          wd = vfma(w, GD, wd);
-          Sr = vfma(w, val, Sr);  // w = 0 outside m
-          Tr = select(m, Tb, Tr);
-        }
+        // the blocks the forward pass listed the entry in (it composited those this walk needs),
+        // with the alphas it stored or recomputed (a loop for each: no test per block)
+        auto entry_blocks = [&](auto stored_alphas) {
+          for (uint32_t rows = S.entry_rows[pos]; rows; rows &= rows - 1) {
+            const int bit = __builtin_ctz(rows), lr = bit / HALVES, h = bit % HALVES;
+            const vblock* stored = nullptr;
+            if constexpr (decltype(stored_alphas)::value) stored = alphas.next(bit);
+            const int a = sp.xl[lr] - x0, z = sp.xr[lr] - x0;  // the span in tile columns
+            const int lane0 = h * BLOCK;
+            const iblock lane = block_lanes() + lane0;
+            const iblock m = (lane >= a) & (lane <= z) & (posv <= block(last[lr], h));
+            if (!any(m)) continue;
+            vblock dx, al;
+            if constexpr (decltype(stored_alphas)::value) {
+              al = *stored;
+              dx = block_dx(sp, lr, a, lane0);
+            } else {
+              const ChunkEntry* e = &E;
+              entry_alphas<1>(&e, lr, &a, lane0, &dx, &al);
+            }
+            const vblock dy = block_of(sp.dy[lr]);
+            const vblock inv = 1.0f / (1.0f - al);
+            vblock& Tr = block(T[lr], h);
+            vblock& Sr = block(Ssum[lr], h);
+            const vblock G0 = block(g0[lr], h), G1 = block(g1[lr], h), G2 = block(g2[lr], h);
+            const vblock Tb = Tr * inv;  // transmittance before this Gaussian
+            const vblock w = select(m, al * Tb, vblock{});
+            const vblock GD = block(gd[lr], h), GA = block(ga[lr], h);
+            const vblock val_c2 = vfma(block_of(s.col[2]), G2, vfma(block_of(s.z), GD, GA));
+            const vblock val = vfma(block_of(s.col[0]), G0, vfma(block_of(s.col[1]), G1, val_c2));
+            // dL/dlog(alpha) = alpha dL/dalpha = alpha (T v - sum_{j>i} w_j v_j / (1 - alpha)), zero
+            // where alpha is clamped
+            const vblock sg = select(m & (al < ALPHA_MAX), al * vfma(Tb, val, -(Sr * inv)), vblock{});
+            const vblock dxm = select(m, dx, vblock{});
+            const vblock sdx = sg * dxm;
+            const vblock sdy = sg * dy;
+            m0 += sg;
+            mx += sdx;
+            my += sdy;
+            mxx = vfma(sdx, dxm, mxx);
+            mxy = vfma(sdx, dy, mxy);
+            myy = vfma(sdy, dy, myy);
+            w0 = vfma(w, G0, w0);
+            w1 = vfma(w, G1, w1);
+            w2 = vfma(w, G2, w2);
+            wd = vfma(w, GD, wd);
+            Sr = vfma(w, val, Sr);  // w = 0 outside m
+            Tr = select(m, Tb, Tr);
+          }
+        };
+        if (alphas.stored())
+          entry_blocks(std::true_type{});
+        else
+          entry_blocks(std::false_type{});
         mom[0] = hsum(m0);
         mom[1] = hsum(mx);
         mom[2] = hsum(my);
@@ -1174,9 +1195,11 @@ extern "C" {
 
 int slk_abi_version() { return ABI_VERSION; }
 
+// alpha_bytes: how much of its alphas the forward pass may keep for a backward pass (AlphaStore;
+// all threads together; 0 where no backward follows, or to have the backward recompute them)
 void* slk_forward(int N, const float* means, const float* quats, const float* scales, const float* opac,
                   const float* colors, const double* viewmat, const double* intr, int W, int H, const float* bg,
-                  int nthreads, int for_backward, float* out_color, float* out_depth, float* out_alpha,
+                  int nthreads, int64_t alpha_bytes, float* out_color, float* out_depth, float* out_alpha,
                   int64_t* stats, char* err, int errlen) {
   State* S = nullptr;
   try {
@@ -1187,7 +1210,7 @@ void* slk_forward(int N, const float* means, const float* quats, const float* sc
     S->tiles_x = (W + TILE - 1) / TILE;
     S->tiles_y = (H + TILE - 1) / TILE;
     S->cam = make_camera(viewmat, intr, W, H);
-    S->keep_alphas = for_backward != 0;
+    S->alpha_budget = (size_t)std::max<int64_t>(alpha_bytes, 0) / sizeof(vblock) / std::max(1, nthreads);
     forward(*S, means, quats, scales, opac, colors, bg, std::max(1, nthreads), out_color, out_depth, out_alpha);
     stats[0] = S->num_pairs;
     stats[1] = S->M;
@@ -1210,7 +1233,6 @@ int slk_backward(void* state, const float* means, const float* quats, const floa
                  char* err, int errlen) {
   try {
     State& S = *static_cast<State*>(state);
-    if (!S.keep_alphas) throw std::runtime_error("backward of a forward pass run without for_backward");
     backward(S, means, quats, scales, opac, g_color, g_depth, g_alpha, bg, std::max(1, nthreads), g_means, g_quats,
              g_scales, g_opac, g_colors, g_bg);
     return 0;
