@@ -287,6 +287,14 @@ class GaussianMap:
         """(N,3,3) world-frame covariances R diag(s^2) R^T in m^2."""
         return covariance_from_scales(self.quats.detach(), self.scales.detach())
 
+    def trackable_entry_means(self, first_keyframe: int) -> np.ndarray:
+        """(P,3) float32 world metres: where the trackable Gaussians that keyframes
+        `first_keyframe` and later added entered the map (those a tracker's target built before
+        them lacks)."""
+        with self.lock:
+            keep = self.trackable & (self.keyframe_id >= first_keyframe)
+            return self.entry_means.detach()[keep].cpu().numpy().astype(np.float32, copy=True)
+
     def tracking_target(self, min_opacity: float = 0.0, geometry: str = "entry") -> TrackingTarget:
         """Copy the trackable Gaussians with opacity above `min_opacity` for a tracker, with their
         `geometry`: "entry" (means and shapes as they entered the map) or "optimised" (the

@@ -95,7 +95,8 @@ def capture(slam, run_state, wall_s: float) -> dict[str, Any]:
     gm = slam.gaussian_map
     rows = gm.rows()
     return {"map": {name: getattr(rows, name) for name in MAP_FIELDS}, "map_version": gm.version,
-            "slam": {"num_keyframes": slam.num_keyframes, "last_pose": slam.last_pose},
+            "slam": {"num_keyframes": slam.num_keyframes, "keyframes_in_target": slam.keyframes_in_target,
+                     "last_pose": slam.last_pose},
             "tracker": slam.tracker.state_dict(), "keyframe": slam.keyframe_policy.state_dict(),
             "mapper": slam.mapper.state_dict(), "run": _run_state(run_state, wall_s)}
 
@@ -174,6 +175,7 @@ def restore(checkpoint: dict[str, Any], slam, run_state) -> int:
     gm.append(map_rows(state["map"]))
     gm.version = int(state["map_version"])
     slam.num_keyframes = int(state["slam"]["num_keyframes"])
+    slam.keyframes_in_target = int(state["slam"].get("keyframes_in_target", 0))  # 0: every trackable row counts
     last_pose = state["slam"]["last_pose"]
     slam.last_pose = None if last_pose is None else np.asarray(last_pose, dtype=np.float64)
     if slam.last_pose is not None:

@@ -54,6 +54,7 @@ class SLAM:
         self.map_growth = map_growth
         self.iterations_per_frame = iterations_per_frame
         self.num_keyframes = 0
+        self.keyframes_in_target = 0  # keyframes (ids below this) whose Gaussians the tracker's target was built with
         self.last_pose: np.ndarray | None = None
         mapper.bind(gaussian_map)
 
@@ -88,6 +89,7 @@ class SLAM:
         rows = self.grow_map(frame, result)
         if kind is KeyframeKind.TRACKING:
             self.tracker.update_target(self.gaussian_map)
+            self.keyframes_in_target = self.num_keyframes + 1
         self.mapper.add_keyframe(frame, result, kind, rows)
         self.num_keyframes += 1
         release_free_memory()
@@ -98,7 +100,8 @@ class SLAM:
         gm = self.gaussian_map
         if result.gaussians is None:
             return slice(len(gm), len(gm))
-        new = new_gaussians(result.gaussians, self.num_keyframes, self.map_growth, gm.device)
+        untargeted = gm.trackable_entry_means(self.keyframes_in_target)
+        new = new_gaussians(result.gaussians, self.num_keyframes, self.map_growth, gm.device, untargeted)
         with gm.lock:
             admitted = self.mapper.admit(frame, result.pose, new)
         entering = (new if admitted is None else new.select(admitted)).computed()  # outside the lock
