@@ -4,6 +4,7 @@ mapper), an interrupted run's checkpoint, and `slamkit-export` from a checkpoint
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import signal
@@ -137,6 +138,10 @@ def test_a_resumed_run_continues_exactly_where_its_checkpoint_stopped(tmp_path):
     pipeline.run(part_cfg, registry, names, tmp_path / "part")
     saved = checkpoint.load(tmp_path / "part")
     assert saved["last_frame_index"] == 5 and saved["reason"] == "end" and saved["completed"]
+    # as if the first run had logged two more frames after its checkpoint and been killed while
+    # writing a third: the resumed run logs those frames again, once each
+    with open(tmp_path / "part" / "frames.csv", "a") as log:
+        log.write("6,0.2,none,0,50.0,0.0,2,0.9,100,300.0,\n7,0.23,none,0,50.0,0.0,2,0.9,100,300.0,\n8,0.2")
     resumed_cfg, _ = _cfg(tmp_path, f"resume={tmp_path / 'part'}")
     resumed = pipeline.run(resumed_cfg, registry, names, tmp_path / "part")
     assert resumed["num_frames"] == whole["num_frames"] == 10
@@ -147,7 +152,8 @@ def test_a_resumed_run_continues_exactly_where_its_checkpoint_stopped(tmp_path):
     _, poses_resumed = read_tum_trajectory(tmp_path / "part" / "trajectory.txt")
     assert np.abs(poses_whole - poses_resumed).max() < 1e-6
     assert resumed["psnr"] == pytest.approx(whole["psnr"], abs=1e-3)
-    assert len((tmp_path / "part" / "frames.csv").read_text().splitlines()) == 11  # header + every frame
+    logged = list(csv.DictReader(open(tmp_path / "part" / "frames.csv")))
+    assert [int(r["index"]) for r in logged] == list(range(10))  # every frame once, in order
     map_whole, _ = checkpoint.load_map(tmp_path / "whole")
     map_resumed, _ = checkpoint.load_map(tmp_path / "part")
     assert torch.allclose(map_whole.means, map_resumed.means, atol=1e-6)

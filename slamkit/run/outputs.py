@@ -362,6 +362,14 @@ def summary(m: dict[str, Any]) -> str:
     return text + f" (failed: {m.get('error')})"
 
 
+def _row_index(line: str) -> float:
+    """The frame index a frames.csv line starts with (inf if it starts with none)."""
+    try:
+        return int(line.split(",", 1)[0])
+    except ValueError:
+        return float("inf")
+
+
 class FrameLog:
     """frames.csv: one row per input frame (keyframe kind, lost flag and reason, tracking and
     mapping time in ms, ...), appended as the stream goes and flushed every `flush` call and at
@@ -371,13 +379,25 @@ class FrameLog:
     COLUMNS = ["index", "timestamp", "keyframe", "lost", "tracking_ms", "mapping_ms", "iterations",
                "correspondence_ratio", "num_gaussians", "rss_mb", "note"]
 
-    def __init__(self, path: Path, append: bool = False):
-        """`append`: extend the log of the run this one resumes (no header)."""
+    def __init__(self, path: Path, resume_from: int = 0):
+        """`resume_from` > 0: extend the log of the run this one resumes, from that frame index
+        on; the rows it had logged from there (after its checkpoint, before it was killed) and
+        a last line cut short are dropped first, so every frame has one row."""
         self.path = path
+        append = resume_from > 0 and path.exists()
+        if append:
+            self._guard(self._keep_rows_before, resume_from)
         self._file = self._guard(open, path, "a" if append else "w", newline="")
         self._writer = csv.writer(self._file)
         if not append:
             self._row(self.COLUMNS)
+
+    def _keep_rows_before(self, index: int) -> None:
+        lines = self.path.read_text().splitlines(keepends=True)
+        whole = [line for line in lines[1:] if line.endswith("\n")]
+        kept = [line for line in whole if _row_index(line) < index]
+        if len(kept) < len(lines) - 1:
+            write_atomic(self.path, "".join(lines[:1] + kept))
 
     def frame(self, frame: Frame, step: StepResult, num_gaussians: int) -> None:
         result = step.tracking

@@ -157,7 +157,7 @@ def _phases(cfg: RunConfig, dataset, slam: SLAM, state: RunState, outputs: RunOu
     viewer.start(dataset.camera, outputs.out_dir)
     if first < len(dataset):  # frames to stream: the refinement after them starts over
         state.refine_iterations, state.refine_time_s = 0, 0.0
-    with FrameLog(outputs.out_dir / "frames.csv", append=first > 0) as frames_log:
+    with FrameLog(outputs.out_dir / "frames.csv", resume_from=first) as frames_log:
         _loop(cfg, dataset, slam, state, frames_log, viewer, stop, outputs.checkpoints, first)
     failure = state.tracking_failure(cfg.eval.max_lost_fraction)
     if failure:
