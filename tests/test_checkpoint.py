@@ -25,6 +25,7 @@ from slamkit.formats.tum import read_tum_trajectory
 from slamkit.registry.compose import compose_run
 from slamkit.registry.discovery import default_registry
 from slamkit.run import checkpoint, pipeline
+from slamkit.run.outputs import FrameLog
 
 from conftest import run_slamkit
 
@@ -124,6 +125,27 @@ def _cfg(tmp_path: Path, *overrides: str):
                         "mapper.eval_resolution_scale=0.25", "mapper.eval_every=5", "mapper.save_images=0",
                         "iterations_per_frame=2", "final_iterations=0", "progress=false", "eval.plot=false",
                         "rasterizer=cpu", "strategy.prune_every=0", *overrides])
+
+
+HEADER = ",".join(FrameLog.COLUMNS)
+
+
+@pytest.mark.parametrize("before, kept", [
+    ("", []),  # killed before its header reached the disk
+    (HEADER[:12], []),  # ... while writing it
+    (f"{HEADER}\r\n0,0.0,none,1,,,0,,,,\"unreadable: line\nbreak\"\r\n1,0.1,none\r\n2,0.2,none\r\n3,0.3,no",
+     ["0", "1"]),  # rows past the checkpoint (2, 3), the last one cut short; a note with a line break
+])
+def test_a_resumed_frame_log_has_one_row_per_frame(tmp_path, before, kept):
+    path = tmp_path / "frames.csv"
+    with open(path, "w", newline="") as f:
+        f.write(before)
+    with FrameLog(path, resume_from=2) as log:
+        log.unreadable(2, 0.2, OSError("gone"))
+    with open(path, newline="") as f:
+        rows = list(csv.reader(f))
+    assert rows[0] == FrameLog.COLUMNS
+    assert [row[0] for row in rows[1:]] == kept + ["2"]
 
 
 @pytest.mark.slow

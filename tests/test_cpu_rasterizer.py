@@ -183,14 +183,27 @@ def test_deterministic_across_thread_counts(cpu):
 @pytest.mark.parametrize("stored_alphas_mb", [0.0, 0.01])
 def test_backward_is_the_same_with_the_alphas_recomputed(cpu, stored_alphas_mb):
     """The forward keeps its alphas for the backward up to `stored_alphas_mb` (the default holds
-    them all here); the backward recomputes the rest (0.01 MiB: some chunks stored, some not)."""
+    them all here); the backward recomputes the rest (0.01 MiB on one thread: some stored, some
+    not)."""
     scene = hard_scene(700, 5)
     background = torch.tensor([0.2, 0.5, 0.1], dtype=F64)
     stored = render_and_grads(cpu, scene, CAM, background, F32)
-    other = render_and_grads(CPURasterizer(CPURasterizerConfig(stored_alphas_mb=stored_alphas_mb)), scene, CAM,
-                             background, F32)
+    assert cpu.last_num_rows_stored == cpu.last_num_rows > 0
+    budget = CPURasterizer(CPURasterizerConfig(num_threads=1, stored_alphas_mb=stored_alphas_mb))
+    other = render_and_grads(budget, scene, CAM, background, F32)
+    if stored_alphas_mb == 0:
+        assert budget.last_num_rows_stored == 0
+    else:
+        assert 0 < budget.last_num_rows_stored < budget.last_num_rows
     for name, a, b in zip(NAMES, stored, other):
         assert torch.equal(a, b), name
+
+
+def test_a_render_without_gradients_keeps_no_alphas(cpu):
+    scene = hard_scene(300, 6)
+    with torch.no_grad():
+        cpu.render(*[x.float() for x in scene], CAM, torch.zeros(3))
+    assert cpu.last_num_rows > 0 and cpu.last_num_rows_stored == 0
 
 
 def test_concurrent_renders_from_threads(cpu):

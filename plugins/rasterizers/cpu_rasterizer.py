@@ -33,7 +33,7 @@ from slamkit.roles import PluginConfig, require, thread_count
 from slamkit.types import Camera
 
 SOURCE = Path(__file__).resolve().parent / "csrc" / "cpu_rasterizer.cpp"
-ABI_VERSION = 4
+ABI_VERSION = 5
 
 
 @dataclass
@@ -55,7 +55,8 @@ class CPURasterizerConfig(PluginConfig):
 
     def validate(self) -> None:
         require(self.num_threads >= 0, "rasterizer.num_threads", "an integer >= 0", self.num_threads)
-        require(self.stored_alphas_mb >= 0, "rasterizer.stored_alphas_mb", "a number >= 0", self.stored_alphas_mb)
+        require(0 <= self.stored_alphas_mb < 2**40, "rasterizer.stored_alphas_mb", "a finite number >= 0",
+                self.stored_alphas_mb)
 
 
 def _declare(lib) -> None:
@@ -130,7 +131,7 @@ class _Render(torch.autograd.Function):
         color = torch.empty(H, W, 3, dtype=torch.float32)
         depth = torch.empty(H, W, dtype=torch.float32)
         alpha = torch.empty(H, W, dtype=torch.float32)
-        stats = torch.zeros(5, dtype=torch.int64)
+        stats = torch.zeros(6, dtype=torch.int64)
         err = ctypes.create_string_buffer(512)
         ptr = lib.slk_forward(
             means.shape[0], _ptr(means), _ptr(quats), _ptr(scales), _ptr(opacities), _ptr(colors), _ptr(viewmat),
@@ -141,7 +142,7 @@ class _Render(torch.autograd.Function):
             raise RuntimeError(f"cpu rasteriser: {err.value.decode(errors='replace')}")
         handle = _Handle(lib, ptr)
         (owner.last_num_pairs, owner.last_num_visible, owner.last_num_entries, owner.last_num_rows,
-         owner.last_num_threads) = stats.tolist()
+         owner.last_num_threads, owner.last_num_rows_stored) = stats.tolist()
         owner.last_times = _times(lib, ptr)
         if keep_state:
             ctx.handle, ctx.lib, ctx.nthreads, ctx.owner = handle, lib, nthreads, owner
@@ -202,6 +203,7 @@ class CPURasterizer(Rasterizer):
         self.last_num_entries = 0  # (tile, Gaussian) entries
         self.last_num_rows = 0  # (entry, tile row) spans composited, in 16-pixel vector steps (8-lane halves count 1/2)
         self.last_num_threads = 0  # threads that composited tiles in the last forward pass
+        self.last_num_rows_stored = 0  # of last_num_rows, those whose alphas were kept for the backward
         self.last_times: dict[str, float] = {}  # seconds per phase of the last forward (+ backward)
 
     def render(

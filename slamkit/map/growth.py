@@ -131,14 +131,16 @@ def sq_dist_to_nearest(points: np.ndarray, others: np.ndarray) -> np.ndarray:
 def new_gaussians(gaussians: FrameGaussians, keyframe_id: int, cfg: MapGrowthConfig, device=None,
                   untargeted: np.ndarray | None = None) -> GaussianRows:
     """A keyframe's Gaussians as map rows (scale-aligned, opacity `initial_opacity`), not yet in
-    the map. Trackable are those the tracker found trackable and farther than
-    new_gaussian_overlap from its target (`sq_dist_to_map`) and from `untargeted` ((P,3) world
-    metres: the trackable map Gaussians its target does not hold yet)."""
-    trackable = gaussians.trackable
+    the map. Trackable are those the tracker found trackable whose squared distance (m^2) to
+    its target (`sq_dist_to_map`) and to `untargeted` ((P,3) world metres: where the trackable
+    map Gaussians its target does not hold yet entered the map) exceeds new_gaussian_overlap."""
+    trackable = np.asarray(gaussians.trackable, dtype=bool)
     if gaussians.sq_dist_to_map is not None and cfg.new_gaussian_overlap is not None:
         trackable = trackable & (gaussians.sq_dist_to_map > cfg.new_gaussian_overlap)
         if untargeted is not None and len(untargeted) and trackable.any():
-            trackable = trackable & (sq_dist_to_nearest(gaussians.means, untargeted) > cfg.new_gaussian_overlap)
+            rows = np.flatnonzero(trackable)
+            sq_dist = sq_dist_to_nearest(np.asarray(gaussians.means)[rows], untargeted)
+            trackable[rows] = sq_dist > cfg.new_gaussian_overlap
     if cfg.initial_shape is InitialShape.knn:
         quats = np.tile([1.0, 0.0, 0.0, 0.0], (len(gaussians), 1))
         return GaussianRows.from_shapes(gaussians.means, quats, knn_isotropic_scales(gaussians.means),

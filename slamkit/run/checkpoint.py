@@ -28,7 +28,7 @@ import logging
 import time
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import torch
@@ -60,10 +60,12 @@ class CheckpointWriter:
         self.started = time.perf_counter()
         self.saved_keyframes = slam.num_keyframes
 
-    def after_frame(self) -> None:
-        """Every `checkpoint.every_keyframes` keyframes (0: never)."""
+    def after_frame(self, flush_logs: Callable[[], None] = lambda: None) -> None:
+        """Every `checkpoint.every_keyframes` keyframes (0: never); `flush_logs` first, so that
+        the logs on disk reach the frame the checkpoint does (a resumed run logs from there)."""
         every = self.cfg.checkpoint.every_keyframes
         if every and self.slam.num_keyframes - self.saved_keyframes >= every:
+            flush_logs()
             self.save("keyframes")
 
     def save(self, reason: str) -> Path | None:

@@ -11,6 +11,7 @@ others are still tried: metrics.json is small and is written where space allows.
 from __future__ import annotations
 
 import csv
+import io
 import json
 import logging
 import os
@@ -362,12 +363,8 @@ def summary(m: dict[str, Any]) -> str:
     return text + f" (failed: {m.get('error')})"
 
 
-def _row_index(line: str) -> float:
-    """The frame index a frames.csv line starts with (inf if it starts with none)."""
-    try:
-        return int(line.split(",", 1)[0])
-    except ValueError:
-        return float("inf")
+def _index_below(cell: str, index: int) -> bool:
+    return cell.isdigit() and int(cell) < index
 
 
 class FrameLog:
@@ -382,7 +379,7 @@ class FrameLog:
     def __init__(self, path: Path, resume_from: int = 0):
         """`resume_from` > 0: extend the log of the run this one resumes, from that frame index
         on; the rows it had logged from there (after its checkpoint, before it was killed) and
-        a last line cut short are dropped first, so every frame has one row."""
+        a last row cut short are dropped first, so that every frame has one row."""
         self.path = path
         append = resume_from > 0 and path.exists()
         if append:
@@ -393,11 +390,13 @@ class FrameLog:
             self._row(self.COLUMNS)
 
     def _keep_rows_before(self, index: int) -> None:
-        lines = self.path.read_text().splitlines(keepends=True)
-        whole = [line for line in lines[1:] if line.endswith("\n")]
-        kept = [line for line in whole if _row_index(line) < index]
-        if len(kept) < len(lines) - 1:
-            write_atomic(self.path, "".join(lines[:1] + kept))
+        with open(self.path, newline="") as f:
+            text = f.read()
+        text = text[: text.rfind("\n") + 1]  # (a row cut short has no line end)
+        rows = list(csv.reader(io.StringIO(text)))[1:]
+        out = io.StringIO()
+        csv.writer(out).writerows([self.COLUMNS] + [row for row in rows if row and _index_below(row[0], index)])
+        write_atomic(self.path, out.getvalue())
 
     def frame(self, frame: Frame, step: StepResult, num_gaussians: int) -> None:
         result = step.tracking

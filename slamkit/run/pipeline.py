@@ -267,7 +267,7 @@ def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, frames_log: Fram
                 frames_log.dropped(frame)
             else:
                 _track(frame, slam, state, frames_log, viewer, mapping)
-                checkpoints.after_frame()  # checkpoint: every N keyframes
+                checkpoints.after_frame(frames_log.flush)  # checkpoint: every N keyframes
             bar.update(1)
             every = cfg.eval.running_ate_every
             if every and len(state.poses) % every == 0:

@@ -63,7 +63,7 @@
 
 namespace {
 
-constexpr int ABI_VERSION = 4;
+constexpr int ABI_VERSION = 5;
 constexpr int TILE = 16;
 constexpr int TILE_PIX = TILE * TILE;
 constexpr double NEAR_PLANE = 0.01;
@@ -538,31 +538,45 @@ inline void fence_streaming() {
 
 // Stores outlive the render that filled them and are handed to the next: a fresh store a render
 // (~15 MB at 320x240) would cost a page fault every 4 KB, most of what keeping the alphas saves.
+// The pool keeps about one render's worth (the budget of the render giving its stores back).
 class AlphaStorePool {
  public:
-  static AlphaStorePool& instance() {
-    static AlphaStorePool pool;
-    return pool;
+  static AlphaStorePool& instance() {  // (as Pool::instance: never destroyed, one per process)
+    static std::mutex m;
+    static AlphaStorePool* pool = nullptr;
+    static int64_t pid = -1;
+    std::lock_guard<std::mutex> lock(m);
+    const int64_t now = (int64_t)::getpid();
+    if (pool == nullptr || pid != now) {  // a forked child must not wait on the parent's lock
+      pool = new AlphaStorePool();
+      pid = now;
+    }
+    return *pool;
   }
   AlphaStore take() {
     std::lock_guard<std::mutex> lock(mu_);
     if (free_.empty()) return AlphaStore();
     AlphaStore st = std::move(free_.back());
     free_.pop_back();
+    kept_ -= st.cap;
     st.size = 0;
     return st;
   }
-  void give(std::vector<AlphaStore>& stores) {
+  // keeps `stores` while the pool holds at most `max_blocks` in all (the rest are freed)
+  void give(std::vector<AlphaStore>& stores, size_t max_blocks) {
     std::lock_guard<std::mutex> lock(mu_);
     for (AlphaStore& st : stores)
-      if (free_.size() < MAX_KEPT && st.cap > 0) free_.push_back(std::move(st));
+      if (st.cap > 0 && kept_ + st.cap <= max_blocks) {
+        kept_ += st.cap;
+        free_.push_back(std::move(st));
+      }
     stores.clear();
   }
 
  private:
-  static constexpr size_t MAX_KEPT = 16;  // stores kept for later renders (the rest are freed)
   std::mutex mu_;
   std::vector<AlphaStore> free_;
+  size_t kept_ = 0;  // blocks held by free_
 };
 
 struct State {
@@ -585,11 +599,12 @@ struct State {
   std::vector<uint32_t> entry_rows;     // entries: bit lr * HALVES + h set where the entry was listed
   int64_t num_pairs = 0;
   int64_t num_rows = 0;  // vector steps of the forward pass, in 16-lane units (an 8-lane half counts 1/2)
+  int64_t num_rows_stored = 0;  // of those, the ones whose alphas were kept for the backward
   int threads_used = 0;  // threads that composited at least one tile in the forward pass
   // per phase (forward: project, sort, bin, lists, composite; backward: tiles, reduce): wall, CPU
   int64_t wall_us[8] = {0}, cpu_us[8] = {0};
 
-  ~State() { AlphaStorePool::instance().give(alpha_store); }
+  ~State() { AlphaStorePool::instance().give(alpha_store, alpha_budget * alpha_store.size()); }
 };
 
 void radix_sort_by_key(std::vector<uint32_t>& key, std::vector<int32_t>& val) {
@@ -750,7 +765,7 @@ void forward(State& S, const float* means, const float* quats, const float* scal
   Stamp t4 = now_us();
   // 5. composite each tile
   S.T_final.resize((size_t)W * H);
-  AlphaStorePool::instance().give(S.alpha_store);  // (a State renders once; this keeps it safe)
+  AlphaStorePool::instance().give(S.alpha_store, 0);  // (a State renders once; this keeps it safe)
   for (int t = 0; t < std::max(nthreads, 1); ++t)
     S.alpha_store.push_back(S.alpha_budget ? AlphaStorePool::instance().take() : AlphaStore());
   S.tile_store.assign(tiles, 0);
@@ -759,6 +774,7 @@ void forward(State& S, const float* means, const float* quats, const float* scal
   S.entry_rows.resize(num_entries);
   S.last.resize((size_t)W * H);
   std::vector<int64_t> pairs_per_thread(std::max(nthreads, 1), 0), lanes_per_thread(std::max(nthreads, 1), 0),
+      stored_per_thread(std::max(nthreads, 1), 0),
       tiles_per_thread(std::max(nthreads, 1), 0);
   parallel_for(nthreads, tiles, 1, [&](int64_t b, int64_t e, int tid) {
     std::unique_ptr<ChunkEntry[]> ents(new ChunkEntry[CHUNK]);
@@ -780,7 +796,7 @@ void forward(State& S, const float* means, const float* quats, const float* scal
         done[r] = r < th ? outside : vi1(-1);
         for (int h = 0; h < HALVES; ++h) blocks_alive += alive[r][h] = !all(block(done[r], h));
       }
-      int64_t lanes = 0;
+      int64_t lanes = 0, stored_lanes = 0;
       iblock count = iblock{};
       AlphaStore& store = S.alpha_store[tid];
       S.tile_store[tile] = tid;
@@ -838,6 +854,7 @@ void forward(State& S, const float* means, const float* quats, const float* scal
             const int n = nrow[lr][h];
             if (n == 0) continue;
             lanes += n * BLOCK;
+            stored_lanes += alphas ? n * BLOCK : 0;
             const int lane0 = h * BLOCK;
             const iblock lane = block_lanes() + lane0;
             vblock rT = block(T[lr], h), r0c = block(c0[lr], h), r1c = block(c1[lr], h), r2c = block(c2[lr], h),
@@ -910,6 +927,7 @@ void forward(State& S, const float* means, const float* quats, const float* scal
       for (int i = 0; i < BLOCK; ++i) pairs += count[i];
       pairs_per_thread[tid] += pairs;
       lanes_per_thread[tid] += lanes;
+      stored_per_thread[tid] += stored_lanes;
       tiles_per_thread[tid] += 1;
     }
     fence_streaming();  // the alphas, for the backward
@@ -919,6 +937,9 @@ void forward(State& S, const float* means, const float* quats, const float* scal
   S.num_rows = 0;
   for (int64_t r : lanes_per_thread) S.num_rows += r;
   S.num_rows /= TILE;  // in 16-lane steps
+  S.num_rows_stored = 0;
+  for (int64_t r : stored_per_thread) S.num_rows_stored += r;
+  S.num_rows_stored /= TILE;
   S.threads_used = 0;
   for (int64_t t : tiles_per_thread) S.threads_used += t > 0;
   Stamp t5 = now_us();
@@ -1217,6 +1238,7 @@ void* slk_forward(int N, const float* means, const float* quats, const float* sc
     stats[2] = (int64_t)S->tile_ids.size();
     stats[3] = S->num_rows;
     stats[4] = S->threads_used;
+    stats[5] = S->num_rows_stored;
     return S;
   } catch (const std::exception& e) {
     write_error(err, errlen, e.what());
