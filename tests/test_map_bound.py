@@ -15,7 +15,7 @@ import torch
 from mapping_scenes import CAM, N, make_map, make_mapper, plane_scene, render_frame
 from slamkit.errors import ConfigError
 from slamkit.geometry.transforms import invert_pose
-from slamkit.map.coverage import image_cells, occupied_by_centres
+from slamkit.map.coverage import depth_coordinate, depth_tolerances, occupied_by_centres
 from slamkit.map.gaussian_map import GaussianMap
 from slamkit.map.growth import MapGrowthConfig
 from slamkit.registry.discovery import create_rasterizer
@@ -33,48 +33,73 @@ def at_pixel(u: float, v: float, z: float, pose: np.ndarray = np.eye(4)) -> np.n
     return (pose @ camera_point)[:3]
 
 
-def occupied(points, centres, pose=np.eye(4), cell=5.0, tolerance=0.05, min_centres=1) -> list[bool]:
+def occupied(points, centres, pose=np.eye(4), cell=5.0, tolerance=0.05, min_centres=1, quadratic=0.0) -> list[bool]:
     w2c = torch.as_tensor(invert_pose(pose), dtype=torch.float32)
     t = lambda a: torch.as_tensor(np.asarray(a, dtype=np.float32).reshape(-1, 3))  # noqa: E731
-    return occupied_by_centres(t(points), t(centres), w2c, CAM, cell, tolerance, min_centres).tolist()
+    return occupied_by_centres(t(points), t(centres), w2c, CAM, cell, tolerance, min_centres, quadratic).tolist()
 
 
 @pytest.mark.parametrize("pose", [np.eye(4), np.array([[0.0, 0, 1, 0.3], [0, 1, 0, -0.2], [-1, 0, 0, 1.5], [0, 0, 0, 1]])])
-def test_a_point_is_occupied_by_a_centre_in_its_cell_at_its_depth(pose):
-    """Cells of 5x5 pixels centred on every 5th pixel (CAM: 40x30); depth tolerance 5 cm; any
-    camera pose."""
-    centres = [at_pixel(12.0, 7.0, 2.0, pose),  # cell (column 2, row 1): pixels [7.5, 12.5) x [2.5, 7.5)
-               at_pixel(31.0, 22.0, 2.0, pose), at_pixel(29.0, 19.0, 3.0, pose)]  # cell (6, 4) at two depths
+def test_a_point_is_occupied_by_a_centre_near_its_pixel_at_its_depth(pose):
+    """Cell 5 px: a disc of radius 3.54 px (CAM: 40x30); depth tolerance 5 cm, the two combined as
+    an ellipse (pixel distance / radius)^2 + (depth difference / tolerance)^2 < 1; any camera pose."""
+    centres = [at_pixel(12.0, 7.0, 2.0, pose), at_pixel(31.0, 22.0, 2.0, pose), at_pixel(29.0, 19.0, 3.0, pose)]
     points = [
-        at_pixel(8.0, 3.0, 2.03, pose),  # same cell as the first centre, 3 cm behind it: occupied
-        at_pixel(12.4, 7.4, 1.96, pose),  # same cell, 4 cm in front: occupied
+        at_pixel(13.0, 8.0, 2.03, pose),  # 1.4 px from the first centre, 3 cm behind: 0.16 + 0.36
+        at_pixel(12.4, 7.4, 1.96, pose),  # 0.6 px, 4 cm in front: 0.03 + 0.64
         at_pixel(12.0, 7.0, 2.2, pose),  # same pixel, 20 cm behind: a different surface
-        at_pixel(13.0, 7.0, 2.0, pose),  # the next cell to the right: empty
-        at_pixel(30.0, 21.0, 2.98, pose),  # cell (6, 4): the centre at 3 m explains it
-        at_pixel(30.0, 21.0, 2.5, pose),  # cell (6, 4), between the two: neither within 5 cm
+        at_pixel(15.0, 7.0, 2.0, pose),  # 3 px to the right, same depth: within the disc
+        at_pixel(16.0, 7.0, 2.0, pose),  # 4 px: outside it
+        at_pixel(14.0, 9.0, 2.04, pose),  # 2.8 px and 4 cm: each within reach, together not (0.64 + 0.64)
+        at_pixel(30.0, 21.0, 2.98, pose),  # the centre at 3 m explains it
+        at_pixel(30.0, 21.0, 2.5, pose),  # between the two centres: neither within 5 cm
         at_pixel(-3.0, 7.0, 2.0, pose),  # outside the image
     ]
     behind = (pose @ np.array([0.0, 0.0, -2.0, 1.0]))[:3]  # behind the camera, on its axis
-    assert occupied(points + [behind], centres, pose) == [True, True, False, False, True, False, False, False]
+    assert occupied(points + [behind], centres, pose) == [True, True, False, True, False, False, True, False, False,
+                                                          False]
     assert occupied(points, [], pose) == [False] * len(points)
-    # a larger cell takes in the neighbour; a larger tolerance the surface 20 cm behind
-    assert occupied(points[3], centres, pose, cell=10.0) == [True]
+    # a larger cell takes in the point 4 px away; a larger tolerance the surface 20 cm behind
+    assert occupied(points[4], centres, pose, cell=10.0) == [True]
     assert occupied(points[2], centres, pose, tolerance=0.25) == [True]
-    # two centres needed: only where two lie in the cell within the tolerance
-    two = centres + [at_pixel(8.0, 6.0, 1.99, pose)]  # a second centre in the first cell
-    assert occupied(points[:2] + points[4:6], two, pose, min_centres=2) == [True, True, False, False]
-    assert occupied(points[4:6], two, pose, tolerance=0.6, min_centres=2) == [False, True]  # 2.5 m: both in reach
+    # two centres needed: only where two lie within reach
+    two = centres + [at_pixel(11.0, 6.0, 1.98, pose)]  # a second centre near the first
+    assert occupied(points[:2] + points[6:8], two, pose, min_centres=2) == [False, True, False, False]
+    assert occupied(points[6:8], two, pose, tolerance=0.8, min_centres=2) == [False, True]  # 2.5 m: both in reach
     assert occupied(points[:2], two, pose, min_centres=3) == [False, False]
 
 
-def test_image_cells_number_the_image_row_by_row():
-    points = torch.as_tensor(np.array([at_pixel(0.0, 0.0, 1.0), at_pixel(39.4, 0.0, 1.0), at_pixel(0.0, 29.4, 1.0),
-                                       at_pixel(40.0, 0.0, 1.0)], dtype=np.float32))
-    cell, z, inside = image_cells(points, torch.eye(4), CAM, 10.0)
-    columns = 6  # cells centred on columns 0, 10, 20, 30, 40 (and a spare)
-    assert inside.tolist() == [True, True, True, False]
-    assert cell[:3].tolist() == [0, 4, 3 * columns]
-    assert torch.allclose(z, torch.ones(4, dtype=torch.float64))
+def test_the_depth_tolerance_grows_with_the_square_of_the_depth():
+    """max(5 cm, 0.01 z^2): 5 cm up to 2.24 m, 16 cm at 4 m; the centres test takes it."""
+    z = torch.tensor([0.5, 1.0, 2.0, 3.0, 4.0, 8.0], dtype=torch.float64)
+    assert torch.allclose(depth_tolerances(z, 0.05, 0.01), torch.tensor([0.05, 0.05, 0.05, 0.09, 0.16, 0.64],
+                                                                         dtype=torch.float64))
+    assert torch.equal(depth_tolerances(z, 0.05, 0.0), torch.full_like(z, 0.05))
+    # the depth coordinate's slope is 1 / tolerance, continuous where the quadratic takes over
+    fine = torch.linspace(0.3, 9.0, 20001, dtype=torch.float64)
+    g = depth_coordinate(fine, 0.05, 0.01)
+    slope = torch.diff(g) / torch.diff(fine)
+    middle = (fine[1:] + fine[:-1]) / 2
+    assert torch.allclose(slope, 1.0 / depth_tolerances(middle, 0.05, 0.01), rtol=1e-3)
+    far = [at_pixel(20.0, 15.0, 4.0)]
+    assert occupied(far, [at_pixel(20.0, 15.0, 4.12)], quadratic=0.01) == [True]  # 12 cm < 16 cm at 4 m
+    assert occupied(far, [at_pixel(20.0, 15.0, 4.12)]) == [False]
+    assert occupied(far, [at_pixel(20.0, 15.0, 4.2)], quadratic=0.01) == [False]
+
+
+@pytest.mark.parametrize("angle", [0.0, 0.2, 0.45, 0.785])
+def test_a_grid_of_centres_a_cell_apart_occupies_a_view_at_any_rotation(angle):
+    """A wall sampled every 5 px by one keyframe, seen by another rotated about its optical
+    axis: every sample of the second view inside the first's footprint is occupied (the square
+    cells of earlier versions left some of them empty at angles other than 0)."""
+    us, vs = np.meshgrid(np.arange(-40.0, 80.0, 5.0), np.arange(-40.0, 70.0, 5.0))
+    first = np.array([at_pixel(u, v, 2.0) for u, v in zip(us.ravel(), vs.ravel())])
+    c, s = np.cos(angle), np.sin(angle)
+    rotated = np.eye(4)
+    rotated[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]  # about the optical axis through the image centre
+    rotated[:3, 3] = [CAM.cx * 0.0, 0.0, 0.0]
+    samples = [at_pixel(u, v, 2.0, rotated) for u in np.arange(0.0, 40.0, 5.0) for v in np.arange(0.0, 30.0, 5.0)]
+    assert all(occupied(samples, first, rotated))
 
 
 def test_coverage_settings_are_validated_and_the_cell_comes_from_the_sensor():
@@ -111,7 +136,7 @@ class PlaneTracker(Tracker):
 
 def grow_once(gm, **strategy) -> tuple[int, object]:
     """One keyframe of PlaneTracker's Gaussians into `gm` through SLAM; (Gaussians added, mapper).
-    Cells of 5x5 pixels: the 300 map Gaussians leave none of CAM's cells empty."""
+    Cell 5 px: the 300 map Gaussians leave no sample of CAM without a centre near it."""
     mapper = make_mapper(gm, strategy=("gsicp", {"covered_cell": 5.0, **strategy}))
     slam = SLAM(PlaneTracker(), EveryNKeyframePolicy(EveryNKeyframeConfig(tracking_every=1)), mapper, gm,
                 MapGrowthConfig(new_gaussian_overlap=1e-3), iterations_per_frame=0)
@@ -124,11 +149,11 @@ def grow_once(gm, **strategy) -> tuple[int, object]:
 
 
 def test_more_centres_a_cell_admit_more_of_a_keyframe():
-    """strategy.covered_centres=2 (the map's 300 centres hold one or two per 5x5 cell): cells
-    with a single centre no longer count as explained, so more of the keyframe enters."""
+    """strategy.covered_centres=8 (the map's 300 centres put about 5-10 in a point's disc of 3.5
+    px): discs with fewer no longer count as explained, so more of the keyframe enters."""
     one, _ = grow_once(make_map(*plane_scene()))
-    two, _ = grow_once(make_map(*plane_scene()), covered_centres=2)
-    assert two > one
+    eight, _ = grow_once(make_map(*plane_scene()), covered_centres=8)
+    assert eight > one
 
 
 @pytest.mark.parametrize("coverage", ["centres", "render", "either"])

@@ -41,10 +41,11 @@ log = logging.getLogger(__name__)
 
 class CoverageTest(enum.Enum):
     """Where `skip_covered` takes the map to explain a keyframe's view (`slamkit.map.coverage`):
-    centres: a map Gaussian's centre lies in the new Gaussian's image cell (covered_cell x
-    covered_cell pixels of the input image) at a camera depth within covered_depth_tolerance;
-    render: the map rendered from the keyframe (training resolution) has alpha > covered_alpha
-    at its pixel and an expected depth within covered_depth_tolerance; either: one of the two."""
+    centres: a map Gaussian's centre projects within covered_cell / sqrt(2) pixels of the new
+    Gaussian's (input image) at a camera depth within the depth tolerance; render: the map
+    rendered from the keyframe (training resolution) has alpha > covered_alpha at its pixel and
+    an expected depth within the depth tolerance; either: one of the two. The depth tolerance:
+    max(covered_depth_tolerance, covered_depth_quadratic z^2) at camera depth z."""
 
     centres = "centres"
     render = "render"
@@ -62,16 +63,21 @@ class StrategyConfig(PluginConfig):
       grows the map without bound.
     coverage: the test (CoverageTest): centres (no render, and no training needed, so it
       bounds the map in real-time mode too), render, or either.
-    covered_cell: input-image pixels; the cell of the centres test (null = the dataset's
-      `SensorProfile.tracking_pixel_stride`, the spacing of a keyframe's Gaussians: 5 TUM, 10
-      Replica, so a view holds about one Gaussian per cell and surface, as one keyframe gives
-      it). Smaller cells allow a denser map (half the stride: up to ~4x) that a looped sequence
-      fills only slowly, pass after pass (docs/results.md).
-    covered_centres: how many map centres the centres test needs in a cell (at the point's
-      depth) to count it explained: a view holds up to this many Gaussians per cell and surface.
+    covered_cell: input-image pixels; the cell of the centres test, whose disc (radius cell /
+      sqrt(2)) holds a map centre wherever the map's centres are spaced at most a cell apart in
+      the view (null = the dataset's `SensorProfile.tracking_pixel_stride`, the spacing of a
+      keyframe's Gaussians: 5 TUM, 10 Replica, so a view holds about one Gaussian per cell and
+      surface, as one keyframe gives it). Smaller cells allow a denser map (half the stride: up
+      to ~4x) that a looped sequence fills only slowly, pass after pass (docs/results.md).
+    covered_centres: how many map centres the centres test needs in a point's disc (at its
+      depth) to count it explained: a view holds up to about this many Gaussians per cell and
+      surface.
     covered_alpha: the render test's alpha threshold.
     covered_depth_tolerance: metres; how far a point's camera depth may be from the map's (the
-      render's expected depth, or a centre's) to count as explained, in both tests.
+      render's expected depth, or a centre's) to count as explained, in both tests, at least.
+    covered_depth_quadratic: 1/metres; beyond sqrt(covered_depth_tolerance / this) the tolerance
+      is this x z^2 (z the camera depth, metres), as the depth noise of structured-light sensors
+      grows (Kinect v1: ~4 cm quantisation at 3.7 m); 0: covered_depth_tolerance at any depth.
     max_gaussians: memory guard, null = unlimited (the paper's behaviour). When a keyframe's
       Gaussians (or densification) take the map above this many, the least opaque Gaussians
       (the keyframe's own new Gaussians, whose opacity is still the initial value and says
@@ -87,6 +93,7 @@ class StrategyConfig(PluginConfig):
     covered_centres: int = 1
     covered_alpha: float = 0.9
     covered_depth_tolerance: float = 0.05
+    covered_depth_quadratic: float = 0.01
     max_gaussians: int | None = None
     memory_guard_margin: float = 0.1
 
@@ -97,6 +104,8 @@ class StrategyConfig(PluginConfig):
         require(0 < self.covered_alpha < 1, "strategy.covered_alpha", "in (0, 1)", self.covered_alpha)
         require(self.covered_depth_tolerance > 0, "strategy.covered_depth_tolerance", "> 0 metres",
                 self.covered_depth_tolerance)
+        require(self.covered_depth_quadratic >= 0, "strategy.covered_depth_quadratic", ">= 0 per metre",
+                self.covered_depth_quadratic)
         require(self.max_gaussians is None or self.max_gaussians > 0, "strategy.max_gaussians",
                 "null (unlimited) or an integer > 0", self.max_gaussians)
         require(0 <= self.memory_guard_margin < 1, "strategy.memory_guard_margin", "in [0, 1)",
@@ -168,10 +177,11 @@ class DensifyStrategy(ABC):
         if test is not CoverageTest.render and view.centres is not None:
             cell = cfg.covered_cell if cfg.covered_cell is not None else default_covered_cell(SensorProfile())
             covered |= occupied_by_centres(points, view.centres, view.world_to_camera, view.input_camera or view.camera,
-                                           cell, cfg.covered_depth_tolerance, cfg.covered_centres)
+                                           cell, cfg.covered_depth_tolerance, cfg.covered_centres,
+                                           cfg.covered_depth_quadratic)
         if test is not CoverageTest.centres:
             covered |= covered_by_render(points, view.render(), view.world_to_camera, view.camera,
-                                         cfg.covered_alpha, cfg.covered_depth_tolerance)
+                                         cfg.covered_alpha, cfg.covered_depth_tolerance, cfg.covered_depth_quadratic)
         return covered
 
     def after_keyframe(self, edit: MapEdit, new_rows: slice) -> None:
