@@ -96,8 +96,7 @@ def test_a_grid_of_centres_a_cell_apart_occupies_a_view_at_any_rotation(angle):
     first = np.array([at_pixel(u, v, 2.0) for u, v in zip(us.ravel(), vs.ravel())])
     c, s = np.cos(angle), np.sin(angle)
     rotated = np.eye(4)
-    rotated[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]  # about the optical axis through the image centre
-    rotated[:3, 3] = [CAM.cx * 0.0, 0.0, 0.0]
+    rotated[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]  # about the optical axis
     samples = [at_pixel(u, v, 2.0, rotated) for u in np.arange(0.0, 40.0, 5.0) for v in np.arange(0.0, 30.0, 5.0)]
     assert all(occupied(samples, first, rotated))
 
