@@ -15,7 +15,8 @@ import torch
 from mapping_scenes import CAM, N, make_map, make_mapper, plane_scene, render_frame
 from slamkit.errors import ConfigError
 from slamkit.geometry.transforms import invert_pose
-from slamkit.map.coverage import depth_coordinate, depth_tolerances, occupied_by_centres
+from slamkit.map.coverage import DepthTolerance, covered_by_render, occupied_by_centres
+from slamkit.map.rendering import RenderOutput
 from slamkit.map.gaussian_map import GaussianMap
 from slamkit.map.growth import MapGrowthConfig
 from slamkit.registry.discovery import create_rasterizer
@@ -36,7 +37,8 @@ def at_pixel(u: float, v: float, z: float, pose: np.ndarray = np.eye(4)) -> np.n
 def occupied(points, centres, pose=np.eye(4), cell=5.0, tolerance=0.05, min_centres=1, quadratic=0.0) -> list[bool]:
     w2c = torch.as_tensor(invert_pose(pose), dtype=torch.float32)
     t = lambda a: torch.as_tensor(np.asarray(a, dtype=np.float32).reshape(-1, 3))  # noqa: E731
-    return occupied_by_centres(t(points), t(centres), w2c, CAM, cell, tolerance, min_centres, quadratic).tolist()
+    return occupied_by_centres(t(points), t(centres), w2c, CAM, cell, DepthTolerance(tolerance, quadratic),
+                               min_centres).tolist()
 
 
 @pytest.mark.parametrize("pose", [np.eye(4), np.array([[0.0, 0, 1, 0.3], [0, 1, 0, -0.2], [-1, 0, 0, 1.5], [0, 0, 0, 1]])])
@@ -70,21 +72,25 @@ def test_a_point_is_occupied_by_a_centre_near_its_pixel_at_its_depth(pose):
 
 
 def test_the_depth_tolerance_grows_with_the_square_of_the_depth():
-    """max(5 cm, 0.01 z^2): 5 cm up to 2.24 m, 16 cm at 4 m; the centres test takes it."""
+    """max(5 cm, 0.01 z^2): 5 cm up to 2.24 m, 16 cm at 4 m; both tests take it."""
+    tolerance = DepthTolerance(0.05, 0.01)
     z = torch.tensor([0.5, 1.0, 2.0, 3.0, 4.0, 8.0], dtype=torch.float64)
-    assert torch.allclose(depth_tolerances(z, 0.05, 0.01), torch.tensor([0.05, 0.05, 0.05, 0.09, 0.16, 0.64],
-                                                                         dtype=torch.float64))
-    assert torch.equal(depth_tolerances(z, 0.05, 0.0), torch.full_like(z, 0.05))
+    assert torch.allclose(tolerance.at(z), torch.tensor([0.05, 0.05, 0.05, 0.09, 0.16, 0.64], dtype=torch.float64))
+    assert torch.equal(DepthTolerance(0.05).at(z), torch.full_like(z, 0.05))
     # the depth coordinate's slope is 1 / tolerance, continuous where the quadratic takes over
     fine = torch.linspace(0.3, 9.0, 20001, dtype=torch.float64)
-    g = depth_coordinate(fine, 0.05, 0.01)
-    slope = torch.diff(g) / torch.diff(fine)
-    middle = (fine[1:] + fine[:-1]) / 2
-    assert torch.allclose(slope, 1.0 / depth_tolerances(middle, 0.05, 0.01), rtol=1e-3)
+    slope = torch.diff(tolerance.coordinate(fine)) / torch.diff(fine)
+    assert torch.allclose(slope, 1.0 / tolerance.at((fine[1:] + fine[:-1]) / 2), rtol=1e-3)
     far = [at_pixel(20.0, 15.0, 4.0)]
     assert occupied(far, [at_pixel(20.0, 15.0, 4.12)], quadratic=0.01) == [True]  # 12 cm < 16 cm at 4 m
     assert occupied(far, [at_pixel(20.0, 15.0, 4.12)]) == [False]
     assert occupied(far, [at_pixel(20.0, 15.0, 4.2)], quadratic=0.01) == [False]
+    # the render test: an opaque render at 4.12 m explains a point at 4 m only with the quadratic term
+    render = RenderOutput(torch.zeros(CAM.height, CAM.width, 3), torch.full((CAM.height, CAM.width), 4.12),
+                          torch.ones(CAM.height, CAM.width))
+    point = torch.as_tensor(np.array(far, dtype=np.float32))
+    assert covered_by_render(point, render, torch.eye(4), CAM, 0.9, tolerance).tolist() == [True]
+    assert covered_by_render(point, render, torch.eye(4), CAM, 0.9, DepthTolerance(0.05)).tolist() == [False]
 
 
 @pytest.mark.parametrize("angle", [0.0, 0.2, 0.45, 0.785])
@@ -106,6 +112,8 @@ def test_coverage_settings_are_validated_and_the_cell_comes_from_the_sensor():
         PruneConfig(covered_cell=0)
     with pytest.raises(ConfigError, match="strategy.covered_centres: expected an integer >= 1"):
         PruneConfig(covered_centres=0)
+    with pytest.raises(ConfigError, match="strategy.covered_depth_quadratic: expected >= 0 per metre"):
+        PruneConfig(covered_depth_quadratic=-0.01)
     with pytest.raises(ConfigError, match="strategy.coverage"):
         from slamkit.registry.compose import build_run
 
@@ -167,6 +175,16 @@ def test_skip_covered_admits_the_uncovered_and_the_trackable(coverage):
     assert int((new[:, 2] < 1.5).sum()) == 10  # the floating ones
     assert int(gm.trackable[N:].sum()) == 5
     assert mapper.strategy.metrics()["skipped_as_covered"] == 20
+
+
+@pytest.mark.parametrize("coverage", ["centres", "render"])
+def test_the_strategy_takes_the_quadratic_depth_tolerance(coverage):
+    """strategy.covered_depth_quadratic=0.35: 69 cm at 1.4 m, so the wall at 2 m explains the
+    floating points 60 cm in front of it, and only the trackable ones enter."""
+    means, quats, scales, colors, _ = plane_scene()
+    added, _ = grow_once(make_map(means, quats, scales * 2, colors, 0.99), coverage=coverage,
+                         covered_depth_quadratic=0.35)
+    assert added == 5
 
 
 def test_without_skip_covered_every_keyframe_gaussian_enters():

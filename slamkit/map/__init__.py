@@ -4,8 +4,8 @@ role), and where it already explains a view (`coverage`)."""
 
 from slamkit.map.editing import MapEdit
 from slamkit.map.gaussian_map import PARAMETERS, GaussianMap, GaussianRows, TrackingTarget
-from slamkit.map.coverage import covered_by_render, occupied_by_centres
+from slamkit.map.coverage import DepthTolerance, covered_by_render, occupied_by_centres
 from slamkit.map.rendering import Rasterizer, RenderOutput, render_map
 
 __all__ = ["PARAMETERS", "GaussianMap", "GaussianRows", "TrackingTarget", "MapEdit", "Rasterizer", "RenderOutput",
-           "covered_by_render", "occupied_by_centres", "render_map"]
+           "DepthTolerance", "covered_by_render", "occupied_by_centres", "render_map"]

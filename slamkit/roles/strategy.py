@@ -29,7 +29,7 @@ import torch
 
 from slamkit.map.gaussian_map import GaussianRows
 from slamkit.map.editing import MapEdit
-from slamkit.map.coverage import covered_by_render, occupied_by_centres
+from slamkit.map.coverage import DepthTolerance, covered_by_render, occupied_by_centres
 from slamkit.map.rendering import RenderOutput
 from slamkit.roles.config import PluginConfig, require
 from slamkit.roles.dataset import SensorProfile
@@ -42,7 +42,8 @@ log = logging.getLogger(__name__)
 class CoverageTest(enum.Enum):
     """Where `skip_covered` takes the map to explain a keyframe's view (`slamkit.map.coverage`):
     centres: a map Gaussian's centre projects within covered_cell / sqrt(2) pixels of the new
-    Gaussian's (input image) at a camera depth within the depth tolerance; render: the map
+    Gaussian's (input image) at its camera depth, or closer at a depth off by up to the depth
+    tolerance (an ellipse, `slamkit.map.coverage.occupied_by_centres`); render: the map
     rendered from the keyframe (training resolution) has alpha > covered_alpha at its pixel and
     an expected depth within the depth tolerance; either: one of the two. The depth tolerance:
     max(covered_depth_tolerance, covered_depth_quadratic z^2) at camera depth z."""
@@ -65,12 +66,12 @@ class StrategyConfig(PluginConfig):
       bounds the map in real-time mode too), render, or either.
     covered_cell: input-image pixels; the cell of the centres test, whose disc (radius cell /
       sqrt(2)) holds a map centre wherever the map's centres are spaced at most a cell apart in
-      the view (null = the dataset's `SensorProfile.tracking_pixel_stride`, the spacing of a
+      the view at the point's depth (null = the dataset's `SensorProfile.tracking_pixel_stride`, the spacing of a
       keyframe's Gaussians: 5 TUM, 10 Replica, so a view holds about one Gaussian per cell and
       surface, as one keyframe gives it). Smaller cells allow a denser map (half the stride: up
       to ~4x) that a looped sequence fills only slowly, pass after pass (docs/results.md).
-    covered_centres: how many map centres the centres test needs in a point's disc (at its
-      depth) to count it explained: a view holds up to about this many Gaussians per cell and
+    covered_centres: how many map centres the centres test needs in a point's ellipse to count
+      it explained: a view holds up to about this many Gaussians per cell and
       surface.
     covered_alpha: the render test's alpha threshold.
     covered_depth_tolerance: metres; how far a point's camera depth may be from the map's (the
@@ -173,15 +174,15 @@ class DensifyStrategy(ABC):
         """(N,) bool: the world points (N,3, metres) where the map already explains the
         keyframe's view, by the configured `coverage` test."""
         cfg, test = self.cfg, CoverageTest(self.cfg.coverage)
+        tolerance = DepthTolerance(cfg.covered_depth_tolerance, cfg.covered_depth_quadratic)
         covered = torch.zeros(len(points), dtype=torch.bool, device=points.device)
         if test is not CoverageTest.render and view.centres is not None:
             cell = cfg.covered_cell if cfg.covered_cell is not None else default_covered_cell(SensorProfile())
             covered |= occupied_by_centres(points, view.centres, view.world_to_camera, view.input_camera or view.camera,
-                                           cell, cfg.covered_depth_tolerance, cfg.covered_centres,
-                                           cfg.covered_depth_quadratic)
+                                           cell, tolerance, cfg.covered_centres)
         if test is not CoverageTest.centres:
             covered |= covered_by_render(points, view.render(), view.world_to_camera, view.camera,
-                                         cfg.covered_alpha, cfg.covered_depth_tolerance, cfg.covered_depth_quadratic)
+                                         cfg.covered_alpha, tolerance)
         return covered
 
     def after_keyframe(self, edit: MapEdit, new_rows: slice) -> None:
