@@ -93,8 +93,8 @@ def occupied_by_centres(points: torch.Tensor, centres: torch.Tensor, world_to_ca
     w2c = world_to_camera.detach().to(device=points.device, dtype=torch.float64)
 
     def ellipse_coordinates(world: torch.Tensor, margin: float) -> tuple[np.ndarray, torch.Tensor]:
-        """(the visible ones' (u / r, v / r, depth coordinate) on the CPU, which are visible):
-        visible = in front of the camera and within `margin` pixels of the image."""
+        """((V,3) numpy (u / r, v / r, depth coordinate) of the visible points, (N,) bool which
+        are visible): in front of the camera and within `margin` pixels of the image."""
         u, v, z = project_points(world.detach().to(device=points.device, dtype=torch.float64), w2c, camera)
         visible = ((z > 1e-6) & (u > -0.5 - margin) & (u < camera.width - 0.5 + margin)
                    & (v > -0.5 - margin) & (v < camera.height - 0.5 + margin))

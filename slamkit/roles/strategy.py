@@ -66,13 +66,13 @@ class StrategyConfig(PluginConfig):
       bounds the map in real-time mode too), render, or either.
     covered_cell: input-image pixels; the cell of the centres test, whose disc (radius cell /
       sqrt(2)) holds a map centre wherever the map's centres are spaced at most a cell apart in
-      the view at the point's depth (null = the dataset's `SensorProfile.tracking_pixel_stride`, the spacing of a
-      keyframe's Gaussians: 5 TUM, 10 Replica, so a view holds about one Gaussian per cell and
-      surface, as one keyframe gives it). Smaller cells allow a denser map (half the stride: up
-      to ~4x) that a looped sequence fills only slowly, pass after pass (docs/results.md).
+      the view at the point's depth (null = the dataset's `SensorProfile.tracking_pixel_stride`,
+      the spacing of a keyframe's Gaussians: 5 TUM, 10 Replica, so a view holds about one
+      Gaussian per cell and surface, as one keyframe gives it). Smaller cells allow a denser map
+      (half the stride: up to ~4x) that a looped sequence fills only slowly, pass after pass
+      (docs/results.md).
     covered_centres: how many map centres the centres test needs in a point's ellipse to count
-      it explained: a view holds up to about this many Gaussians per cell and
-      surface.
+      it explained: a view holds up to about this many Gaussians per cell and surface.
     covered_alpha: the render test's alpha threshold.
     covered_depth_tolerance: metres; how far a point's camera depth may be from the map's (the
       render's expected depth, or a centre's) to count as explained, in both tests, at least.
