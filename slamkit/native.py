@@ -1,5 +1,5 @@
 """Compiled helpers built on first use: one C++17 source file behind a C ABI (plus the shared
-headers of slamkit/csrc), loaded with ctypes.
+headers of slamkit/csrc and the headers beside it), loaded with ctypes.
 
 A library is compiled with the system C++ compiler (`$CXX`, else `c++`; a few seconds) and
 cached by a hash of the source, the flags, the compiler version and (for -march=native) the CPU
@@ -104,7 +104,7 @@ class NativeLibrary:
         for native in ([True, False] if self.native else [False]):
             flags = list(self.flags) + (["-march=native"] if native else [])
             digest = hashlib.sha256()
-            headers = [h.read_bytes() for h in sorted(INCLUDE_DIR.glob("*.h"))]
+            headers = [h.read_bytes() for h in self.headers()]
             for part in (self.source.read_bytes(), *headers, " ".join(flags).encode(), version.encode(),
                          platform.machine().encode()):
                 digest.update(part)
@@ -121,6 +121,11 @@ class NativeLibrary:
             self.path, self.built_flags = path, tuple(flags)
             return lib
         raise error
+
+    def headers(self) -> list[Path]:
+        """The headers the build may include, in the build hash: the shared ones (INCLUDE_DIR) and
+        those beside the source (its own parts, `#include "name.h"`)."""
+        return sorted(INCLUDE_DIR.glob("*.h")) + sorted(self.source.parent.glob("*.h"))
 
     def _compile(self, exe: str, flags: list[str], path: Path) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from slamkit.native import BASE_FLAGS, INCLUDE_DIR
+from slamkit.native import BASE_FLAGS, INCLUDE_DIR, NativeLibrary
 from slamkit_plugins.losses.fused_rgbd_loss import SOURCE as LOSS_SOURCE
 from slamkit_plugins.rasterizers.cpu_rasterizer import SOURCE as RASTERIZER_SOURCE
 
@@ -89,3 +89,21 @@ def test_every_vector_variant_this_cpu_runs_computes_lane_by_lane(tmp_path, vari
     # fused or not, and summed in a variant's own order: within rounding
     np.testing.assert_allclose(got["fma"], a.astype(float) * b + 0.5, rtol=1e-6, atol=1e-6)
     np.testing.assert_allclose(got["hsum"], [a.astype(float).sum()], rtol=1e-6)
+
+
+@pytest.mark.skipif(COMPILER is None, reason="needs a C++ compiler")
+def test_a_changed_header_beside_the_source_rebuilds(monkeypatch, tmp_path):
+    """A library split into headers beside its source (the rasteriser's parts) is rebuilt when
+    one of them changes, not loaded stale from the cache."""
+    monkeypatch.setenv("SLAMKIT_CACHE", str(tmp_path / "cache"))
+    source = tmp_path / "kernel.cpp"
+    source.write_text('#include "part.h"\nextern "C" int slk_abi_version() { return PART; }\n')
+
+    def build(part: int):
+        (tmp_path / "part.h").write_text(f"#pragma once\n#define PART {part}\n")
+        library = NativeLibrary(source, "test kernel", part, lambda lib: None, native=False)
+        assert library.get() is not None, library.error
+        return library.path
+
+    first, second = build(1), build(2)
+    assert first != second and first.exists() and second.exists()

@@ -1,0 +1,187 @@
+// A projected Gaussian as the CPU rasteriser's tiles see it (cpu_rasterizer.cpp): its splat (one
+// cache line), its covered columns on 16 rows at once, and its alphas on a block of a tile row.
+#pragma once
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+
+#include "slk_vec16.h"  // (slamkit/csrc) 16-lane vectors
+#include "conventions.h"
+
+namespace {
+
+struct alignas(64) Splat {
+  float u, v, a, b, c, det, level, boa;  // boa = b / a
+  float logo, z, col[3];
+  int32_t y0, y1;
+  int32_t index;  // input index
+};
+static_assert(sizeof(Splat) == 64, "Splat is one cache line");
+
+// A projected Gaussian's splat (2D mean u, v and conic a, b, c in pixels, camera depth z in
+// metres); false when it covers no pixel of the W x H image.
+inline bool make_splat(double u, double v, double a, double b, double c, double z, float o, const float* col,
+                       int32_t index, int W, int H, Splat& s) {
+  s.u = (float)u;
+  s.v = (float)v;
+  s.a = (float)a;
+  s.b = (float)b;
+  s.c = (float)c;
+  s.z = (float)z;
+  s.level = 2.0f * std::log(255.0f * o);
+  s.logo = std::log(o);
+  s.det = s.a * s.c - s.b * s.b;
+  s.boa = s.b / s.a;
+  for (int k = 0; k < 3; ++k) s.col[k] = col[k];
+  s.index = index;
+  float lv = s.level > 0.0f ? s.level : 0.0f;
+  float ry = std::sqrt(lv * s.a / s.det);
+  float rx = std::sqrt(lv * s.c / s.det);
+  float y0 = std::ceil(s.v - ry), y1 = std::floor(s.v + ry);
+  y0 = y0 > 0.0f ? y0 : 0.0f;
+  y1 = y1 < (float)(H - 1) ? y1 : (float)(H - 1);
+  const bool finite = std::isfinite(s.u) && std::isfinite(s.v) && std::isfinite(s.a) && std::isfinite(s.b) &&
+                      std::isfinite(s.c) && std::isfinite(s.det) && std::isfinite(s.boa) && std::isfinite(s.z);
+  if (!(finite && s.level > 0.0f && y1 >= y0 && std::floor(s.u + rx) >= 0.0f && std::ceil(s.u - rx) <= (float)(W - 1)))
+    return false;
+  s.y0 = (int32_t)y0;
+  s.y1 = (int32_t)y1;
+  return true;
+}
+
+// For the 16 image rows y0 + i: the covered columns [xl[i], xr[i]] (empty where xr < xl) and
+// the rows' constants of log alpha = row_k - dx (a dx + row_b) / 2 with dx = x - xl + row_dx.
+// The float32 operations and their order are the torch backend's (so the covered pixels are
+// exactly the same); the loop is vectorised across rows.
+struct RowSpans {
+  alignas(64) float dy[TILE];
+  alignas(64) float row_dx[TILE];
+  alignas(64) float row_k[TILE];
+  alignas(64) float row_b[TILE];
+  alignas(64) int32_t xl[TILE];
+  alignas(64) int32_t xr[TILE];
+};
+
+// ------------------------------------------------------------------------------------------
+// One tile row = 16 pixels = one vector (slk_vec16.h: vf, vi and their helpers)
+
+static_assert(TILE * sizeof(float) == sizeof(vf), "a tile row is one vector");
+
+// exp for G blocks of float lanes (Cephes' expf: range reduction by ln 2, degree-6 polynomial;
+// within ~1 ulp of the correctly rounded value on [-87, 0], which is all that alpha needs). The G
+// are computed stage by stage: their dependency chains (~60 cycles each) interleave, where one
+// exp at a time leaves the compositing loop waiting on its chain.
+template <int G>
+inline void vexp(vblock* x) {
+  vblock n[G], r[G], p[G];
+  iblock e[G];
+#pragma GCC unroll 8
+  for (int k = 0; k < G; ++k) {
+    x[k] = select(x[k] < -87.0f, block_of(-87.0f), x[k]);
+    const vblock t = x[k] * 1.44269504088896341f + 12582912.0f;  // 1.5 * 2^23: rounds x log2(e) to an integer
+    n[k] = t - 12582912.0f;
+    e[k] = (as_vi(t) - 0x4B400000 + 127) << 23;  // the bits of 2^n
+  }
+#pragma GCC unroll 8
+  for (int k = 0; k < G; ++k) r[k] = vfma(n[k], block_of(-0.693359375f), x[k]);
+#pragma GCC unroll 8
+  for (int k = 0; k < G; ++k) r[k] = vfma(n[k], block_of(2.12194440e-4f), r[k]);
+  // the polynomial by Estrin's scheme (three levels deep, not Horner's six: this chain is what the
+  // compositing loops wait for)
+#pragma GCC unroll 8
+  for (int k = 0; k < G; ++k) {
+    const vblock r2 = r[k] * r[k];
+    const vblock hi = vfma(block_of(1.9875691500E-4f), r[k], block_of(1.3981999507E-3f));
+    const vblock mid = vfma(block_of(8.3334519073E-3f), r[k], block_of(4.1665795894E-2f));
+    const vblock lo = vfma(block_of(1.6666665459E-1f), r[k], block_of(5.0000001201E-1f));
+    p[k] = vfma(vfma(hi, r2, mid), r2, lo);
+    x[k] = (vfma(p[k], r2, r[k]) + 1.0f) * as_vf(e[k]);
+  }
+}
+
+inline vf vclamp(vf x, float lo, float hi) {
+  x = select(x < lo, vf1(lo), x);
+  return select(x > hi, vf1(hi), x);
+}
+
+// exact ceil / floor for |x| < 2^31 (truncation toward zero, then corrected)
+inline vf vceil(vf x) {
+  const vf t = to_vf(to_vi(x));
+  return t + select(t < x, vf1(1.0f), vf{});
+}
+inline vf vfloor(vf x) {
+  const vf t = to_vf(to_vi(x));
+  return t - select(t > x, vf1(1.0f), vf{});
+}
+
+// the rows' spans (see RowSpans): the torch backend's float32 operations, 16 rows at once
+inline void row_spans(const Splat& s, int y0, int W, RowSpans& o) {
+  const float a_level = s.a * s.level, wmax = (float)(W - 1);
+  const vf dy = to_vf(LANE + y0) - s.v;
+  const vf disc = a_level - s.det * dy * dy;
+  const vf half = vsqrt(select(disc > 0.0f, disc, vf{})) / s.a;
+  const vf mid = s.u - s.boa * dy;
+  // clamping the bounds to [-1, W] first changes no result below (they are clamped to
+  // [0, W - 1] after rounding) and keeps the float -> int conversions in range
+  vf xl = vceil(vclamp(mid - half, -1.0f, (float)W));
+  vf xr = vfloor(vclamp(mid + half, -1.0f, (float)W));
+  xl = select(xl > 0.0f, xl, vf{});
+  xr = select(xr < wmax, xr, vf1(wmax));
+  const vi ok = xr >= xl;
+  *(vf*)o.dy = dy;
+  *(vf*)o.row_dx = xl - s.u;
+  *(vf*)o.row_k = s.logo - 0.5f * s.c * dy * dy;
+  *(vf*)o.row_b = 2.0f * s.b * dy;
+  *(vi*)o.xl = select(ok, to_vi(xl), vi1(1));
+  *(vi*)o.xr = select(ok, to_vi(xr), vi{});
+}
+
+// Compositing a tile goes chunk by chunk (CHUNK entries): the entries' row spans are computed
+// (16 rows at once) and, per tile row, the entries covering it are listed, so that each row is
+// then composited with its state in registers.
+constexpr int CHUNK = 32;
+constexpr int PREFETCH = 8;  // entries ahead whose splat is prefetched (they are scattered in memory)
+struct ChunkEntry {
+  RowSpans sp;
+  float a, col[3], z;
+  int32_t pos;  // position in the tile list
+};
+
+// The lanes of a tile row are processed a block at a time (slk_vec16.h: the whole row with
+// AVX-512, else each 8-lane half that the entry's span meets; a span covers ~5-7 of the 16
+// pixels on average, so most need one half).
+constexpr int BLOCK = TILE / HALVES;
+
+// Whether a row span [a, z] in tile columns (empty where z < a) meets block h within the tile's
+// tw columns (no short-circuit: the outcomes are too irregular to predict, and the caller appends
+// without a branch).
+inline bool span_meets(int a, int z, int tw, int h) {
+  return (z >= a) & (a < std::min(tw, (h + 1) * BLOCK)) & (z >= h * BLOCK);
+}
+
+// dx of the block of row lr whose first lane is lane0: lane - span start a + row_dx (a = xl - x0)
+inline vblock block_dx(const RowSpans& sp, int lr, int a, int lane0) {
+  return to_vf(block_lanes() + (lane0 - a)) + sp.row_dx[lr];
+}
+
+// alpha and dx of the block of row lr of G entries (first lane lane0, span starts a); log alpha is
+// the torch backend's expression (fused here: it does not decide which pixels are covered).
+// Computed G at a time so that their exps interleave (vexp).
+template <int G>
+inline void entry_alphas(const ChunkEntry* const* E, int lr, const int* a, int lane0, vblock* dx, vblock* al) {
+#pragma GCC unroll 8
+  for (int k = 0; k < G; ++k) {
+    dx[k] = block_dx(E[k]->sp, lr, a[k], lane0);
+    al[k] = vfma(dx[k] * -0.5f, vfma(dx[k], block_of(E[k]->a), block_of(E[k]->sp.row_b[lr])),
+                 block_of(E[k]->sp.row_k[lr]));
+  }
+  vexp<G>(al);
+#pragma GCC unroll 8
+  for (int k = 0; k < G; ++k) al[k] = select(al[k] < ALPHA_MAX, al[k], block_of(ALPHA_MAX));
+}
+
+// entries whose alphas a compositing block computes at once
+constexpr int GROUP = 4;
+
+}  // namespace
