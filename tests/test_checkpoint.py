@@ -25,7 +25,7 @@ from slamkit.formats.tum import read_tum_trajectory
 from slamkit.registry.compose import compose_run
 from slamkit.registry.discovery import default_registry
 from slamkit.run import checkpoint, pipeline
-from slamkit.run.outputs import FrameLog
+from slamkit.run.frame_log import FrameLog
 
 from conftest import run_slamkit
 

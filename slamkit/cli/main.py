@@ -136,7 +136,7 @@ def _task(cfg) -> float | None:
     from slamkit.registry.schema import Mode, validate_config
     from slamkit.roles import ROLE_KEYS
     from slamkit.run import localization, pipeline
-    from slamkit.run.outputs import FAILED, INTERRUPTED as STOPPED
+    from slamkit.run.state import FAILED, INTERRUPTED as STOPPED
 
     global _stop
     if _startup is not None:

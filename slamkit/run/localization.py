@@ -41,7 +41,7 @@ from slamkit.registry.schema import RunConfig
 from slamkit.run import checkpoint
 from slamkit.run.prefetch import prefetched
 from slamkit.run.lifecycle import Phase, StopSignals, pause_point
-from slamkit.run.outputs import COMPLETED, FAILED, INTERRUPTED
+from slamkit.run.state import COMPLETED, FAILED, INTERRUPTED
 from slamkit.types import Frame, TrackingResult
 
 log = logging.getLogger(__name__)

@@ -25,10 +25,13 @@ from slamkit.native import available_threads
 from slamkit.registry.discovery import Registry
 from slamkit.registry.schema import Mode, RunConfig
 from slamkit.run import checkpoint
+from slamkit.run.frame_log import FrameLog
 from slamkit.run.lifecycle import Phase, StopSignals, pause_point
-from slamkit.run.outputs import COMPLETED, FAILED, INTERRUPTED, FrameLog, RunOutputs, RunState, summary
+from slamkit.run.metrics import summary
+from slamkit.run.outputs import RunOutputs
 from slamkit.run.prefetch import LoadCost, UnreadableFrame, prefetched
 from slamkit.run.slam import SLAM, MappingThread
+from slamkit.run.state import COMPLETED, FAILED, INTERRUPTED, RunState
 from slamkit.run.viewing import ViewerFeed
 from slamkit.types import Frame
 
