@@ -204,14 +204,14 @@ def _main() -> None:
     pause_point("startup")
     import hydra
 
-    from slamkit.registry.compose import CONF_DIR, EXPERIMENTS_DIR, register
+    from slamkit.registry.compose import CONF_DIR, EXPERIMENTS_DIR, contract_overrides, register
     from slamkit.registry.discovery import discover
     from slamkit.run.checkpoint import resume_arguments
     from slamkit.run.localization import localize_arguments
 
     _escape_unencodable_output()
     try:
-        sys.argv[1:] = resume_arguments(localize_arguments(sys.argv[1:]))
+        sys.argv[1:] = resume_arguments(localize_arguments(contract_overrides(sys.argv[1:])))
     except SlamkitError as exc:
         if os.environ.get("SLAMKIT_DEBUG"):
             raise

@@ -7,6 +7,7 @@ for the command's checks, scripts, benchmarks and tests:
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 from slamkit.registry.schema import RunConfig, register_run_config, validate_config
@@ -37,6 +38,18 @@ def register(registry: Registry) -> None:
         OmegaConf.register_new_resolver("slamkit.local_only", lambda address, value: None if address else value)
 
 
+#: DESIGN.md's command-line contract spells the rasteriser `mapper.rasterizer=auto|torch|cpu|gsplat`;
+#: it is its own role (config group `rasterizer`, a part of the mapper), so that spelling is
+#: rewritten to it, options included (`mapper.rasterizer.num_threads=2`).
+_CONTRACT_KEY = re.compile(r"^(\+*)mapper\.rasterizer(?=[.=])")
+
+
+def contract_overrides(overrides: list[str] | tuple[str, ...]) -> list[str]:
+    """`overrides` with DESIGN.md's spellings of a role rewritten to the role's own key
+    (`mapper.rasterizer=cpu` -> `rasterizer=cpu`); the rest unchanged."""
+    return [_CONTRACT_KEY.sub(r"\1rasterizer", o) for o in overrides]
+
+
 def compose_run(overrides: list[str] | tuple[str, ...] = (), registry: Registry | None = None
                 ) -> tuple[RunConfig, dict[str, str]]:
     """The validated run config for `overrides` and the plugin chosen for each role (key ->
@@ -45,7 +58,7 @@ def compose_run(overrides: list[str] | tuple[str, ...] = (), registry: Registry 
     from omegaconf import open_dict
 
     register(registry or default_registry())
-    overrides = list(overrides)
+    overrides = contract_overrides(overrides)
     if EXPERIMENTS_DIR.is_dir() and not any(o.startswith("hydra.searchpath") for o in overrides):
         overrides.append(f"hydra.searchpath=[file://{EXPERIMENTS_DIR}]")
     try:
