@@ -12,9 +12,11 @@ export SLAMKIT_CACHE ?= $(CURDIR)/.cache/slamkit
 
 # Debian packages whose libraries open3d (the `mesh` extra, used by `slamkit-export mesh` and its
 # test) loads: libgl1 libx11-6 libudev1 libgomp1 are linked; libusb-1.0-0 serves its RealSense
-# camera support. `make setup-test` installs the missing ones with apt-get (as root); without apt
-# or root it only warns, and everything but the mesh export still works.
+# camera support. The tests also build the compiled kernels with Clang (TEST_DEBS), as a macOS
+# user would. `make setup-test` installs the missing ones with apt-get (as root); without apt
+# or root it only warns: everything but the mesh export still works, and the Clang test skips.
 MESH_DEBS ?= libusb-1.0-0 libgl1 libx11-6 libudev1 libgomp1
+TEST_DEBS ?= clang
 
 .PHONY: run test setup setup-test system-libs clean gpu-wheels gpu-data
 
@@ -29,9 +31,9 @@ setup-test: system-libs $(VENV)/.installed-test
 
 system-libs:
 	@command -v dpkg >/dev/null 2>&1 || exit 0; \
-	missing=$$(for p in $(MESH_DEBS); do dpkg -s $$p >/dev/null 2>&1 || echo $$p; done); \
+	missing=$$(for p in $(MESH_DEBS) $(TEST_DEBS); do dpkg -s $$p >/dev/null 2>&1 || echo $$p; done); \
 	[ -z "$$missing" ] && exit 0; \
-	echo "installing Debian packages for open3d: $$missing"; \
+	echo "installing Debian packages for open3d and the tests: $$missing"; \
 	if command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then \
 	  apt-get install -y -qq $$missing >/dev/null 2>&1 || \
 	  { apt-get update -qq >/dev/null 2>&1 && apt-get install -y -qq $$missing >/dev/null 2>&1; } || \

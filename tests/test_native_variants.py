@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from slamkit.native import BASE_FLAGS, INCLUDE_DIR, NativeLibrary
 from slamkit_plugins.losses.fused_rgbd_loss import SOURCE as LOSS_SOURCE
@@ -107,3 +108,42 @@ def test_a_changed_header_beside_the_source_rebuilds(monkeypatch, tmp_path):
 
     first, second = build(1), build(2)
     assert first != second and first.exists() and second.exists()
+
+
+CLANG = shutil.which("clang++")
+
+
+@pytest.mark.skipif(CLANG is None, reason="clang++ is not installed (make setup-test installs it)")
+def test_clang_builds_every_kernel_and_computes_what_the_default_build_does(monkeypatch, tmp_path):
+    """The kernels are plain C++17 for GCC or Clang (macOS has only Clang): every one builds
+    with clang++ (-march=native), and the rasteriser's and the fused loss's results (values and
+    gradients) are those of the default compiler's builds."""
+    import slamkit_plugins.losses.fused_rgbd_loss as loss_module
+    import slamkit_plugins.optimizers.visible_adam as adam_module
+    import slamkit_plugins.rasterizers.cpu_rasterizer as raster_module
+    import slamkit_plugins.trackers.gicp.kernels as gicp_module
+    from test_cpu_rasterizer import CAM, hard_scene, rel_err, render_and_grads
+    from test_fused_loss import loss_and_grads, random_inputs
+
+    scene, background = hard_scene(300, seed=5), torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64)
+    loss_inputs = random_inputs(40, 52, seed=3)
+    default_render = render_and_grads(raster_module.CPURasterizer(), scene, CAM, background, torch.float32)
+    default_loss = loss_and_grads(loss_module.fused_rgbd_loss, loss_inputs)
+
+    monkeypatch.setenv("CXX", CLANG)
+    monkeypatch.setenv("SLAMKIT_CACHE", str(tmp_path))
+    libraries = {"rasteriser": raster_module.new_library(), "loss": NativeLibrary(
+        loss_module.SOURCE, "fused RGB-D loss", loss_module.ABI_VERSION, loss_module._declare),
+        "gicp": gicp_module.new_library(), "adam": NativeLibrary(adam_module.SOURCE, "visible-Adam kernel", 3,
+                                                                 adam_module._declare)}
+    for name, library in libraries.items():
+        assert library.get() is not None, f"{name}: {library.error}"
+        assert "-march=native" in library.built_flags and library.path.parent.parent == tmp_path, name
+
+    monkeypatch.setattr(raster_module, "_LIBRARIES", {True: libraries["rasteriser"]})
+    clang_render = render_and_grads(raster_module.CPURasterizer(), scene, CAM, background, torch.float32)
+    for clang, default in zip(clang_render, default_render):
+        assert rel_err(clang, default) < 1e-6
+    monkeypatch.setattr(loss_module, "LIBRARY", libraries["loss"])
+    for clang, default in zip(loss_and_grads(loss_module.fused_rgbd_loss, loss_inputs), default_loss):
+        assert rel_err(clang, default) < 1e-6
