@@ -30,17 +30,24 @@ setup: $(VENV)/.installed
 setup-test: system-libs $(VENV)/.installed-test
 
 system-libs:
-	@command -v dpkg >/dev/null 2>&1 || exit 0; \
-	missing=$$(for p in $(MESH_DEBS) $(TEST_DEBS); do dpkg -s $$p >/dev/null 2>&1 || echo $$p; done); \
-	[ -z "$$missing" ] && exit 0; \
-	echo "installing Debian packages for open3d and the tests: $$missing"; \
-	if command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then \
-	  apt-get install -y -qq $$missing >/dev/null 2>&1 || \
-	  { apt-get update -qq >/dev/null 2>&1 && apt-get install -y -qq $$missing >/dev/null 2>&1; } || \
-	  echo "warning: apt-get could not install $$missing; slamkit-export mesh may fail to import open3d"; \
-	else \
-	  echo "warning: missing $$missing (as root: apt-get install -y $$missing); slamkit-export mesh may fail to import open3d"; \
-	fi
+	@$(call apt_install,$(MESH_DEBS),slamkit-export mesh may fail to import open3d)
+	@$(call apt_install,$(TEST_DEBS),the Clang build test will skip)
+
+# $(call apt_install,PACKAGES,what fails without them): install the missing Debian packages (as root,
+# with apt-get), else say what is missing and what that costs.
+define apt_install
+command -v dpkg >/dev/null 2>&1 || exit 0; \
+missing=$$(for p in $(1); do dpkg -s $$p >/dev/null 2>&1 || echo $$p; done); \
+[ -z "$$missing" ] && exit 0; \
+echo "installing Debian packages: $$missing"; \
+if command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then \
+  apt-get install -y -qq $$missing >/dev/null 2>&1 || \
+  { apt-get update -qq >/dev/null 2>&1 && apt-get install -y -qq $$missing >/dev/null 2>&1; } || \
+  echo "warning: apt-get could not install $$missing; $(2)"; \
+else \
+  echo "warning: missing $$missing (as root: apt-get install -y $$missing); $(2)"; \
+fi
+endef
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)

@@ -7,14 +7,17 @@ from one run of each version.
 
 The view is the map seen from one of its keyframes (`--view`, an index into the checkpoint's
 keyframes) at `--scale` of the frame size, as the mapper trains it; one thread. The script
-builds the library with `-g` (beside the normal build; the same code), times the render and its
+builds the library with `-g` (beside the normal build; the same code) and, on x86-64, without
+AVX-512 (valgrind cannot run it: 8-lane blocks, as on AVX2 CPUs), times the render and its
 backward outside valgrind (the kernels' own CPU clocks, the best of 5), then runs itself under
 `valgrind --tool=callgrind` (a few minutes: Python and torch start under it) and sums, from
-`callgrind_annotate`, the instructions executed in the rasteriser's code (its sources and the
-shared headers, inlined code included; libc calls such as malloc are not counted) by pass and by
-source file. Printed per composited (pixel, Gaussian) pair and per block visit (one Gaussian
-composited on one block of a tile row: 16 lanes with AVX-512, else 8), with instructions per
-cycle at the clock /proc/cpuinfo reports (boost clocks make it an upper bound). Writes JSON.
+`callgrind_annotate`, the instructions executed in the rasteriser's code (inlined code
+included; libc calls such as malloc are not counted): the forward's and the backward's own
+code, and the helpers both call that the compiler did not inline (the projection, the depth
+sort, the thread pool), by source file too. Printed per composited (pixel, Gaussian) pair and
+per block visit (one Gaussian composited on one 8-lane block of a tile row), with the whole
+render's instructions per cycle at the clock /proc/cpuinfo reports (boost clocks make it an
+upper bound). Writes JSON.
 """
 
 from __future__ import annotations
@@ -37,6 +40,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from cpu_rasterizer import cpu_ghz, map_views  # noqa: E402
 
 import slamkit_plugins.rasterizers.cpu_rasterizer as raster_module  # noqa: E402
+from slamkit.errors import SlamkitError  # noqa: E402
 from slamkit.native import BASE_FLAGS, NativeLibrary  # noqa: E402
 
 CHILD = "SLAMKIT_INSTRUCTIONS_CHILD"  # set in the run under valgrind: where to write the render's stats
@@ -48,8 +52,9 @@ LINE = re.compile(r"^\s*([\d,]+)\s+\(\s*[\d.]+%\)\s+(\S+?):(.*?)(?:\s+\[(.*)\])?
 
 def rasterizer() -> raster_module.CPURasterizer:
     """A one-thread rasteriser on the library built with -g (its own cache entry)."""
+    flags = BASE_FLAGS + ("-g",) + (("-mno-avx512f",) if platform.machine() in ("x86_64", "AMD64") else ())
     library = NativeLibrary(raster_module.SOURCE, "CPU rasteriser (-g)", raster_module.ABI_VERSION,
-                            raster_module._declare, native=True, flags=BASE_FLAGS + ("-g",))
+                            raster_module._declare, native=True, flags=flags)
     raster_module._LIBRARIES[True] = library
     return raster_module.CPURasterizer(raster_module.CPURasterizerConfig(num_threads=1))
 
@@ -67,7 +72,8 @@ def render_once(r, view) -> dict:
 
 def count(annotated: str) -> dict:
     """Instructions in the rasteriser's code from `callgrind_annotate --inclusive=no` output: by
-    pass (the outermost function: forward, backward, or other, e.g. the projection) and by file."""
+    the function that executed them (the forward's or the backward's code, inlined helpers
+    included, or another: a helper the compiler did not inline) and by source file."""
     by_pass, by_file = defaultdict(int), defaultdict(int)
     for line in annotated.splitlines():
         m = LINE.match(line)
@@ -107,7 +113,11 @@ def main() -> int:
     if missing:
         print(f"rasterizer_instructions: {' and '.join(missing)} not found (apt-get install valgrind)", file=sys.stderr)
         return 1
-    views = map_views(args.map, args.scale)
+    try:
+        views = map_views(args.map, args.scale)
+    except (SlamkitError, OSError, KeyError, ValueError) as exc:
+        print(f"rasterizer_instructions: --map {args.map}: not a run's checkpoint.zip ({exc})", file=sys.stderr)
+        return 1
     if not 0 <= args.view < len(views):
         print(f"rasterizer_instructions: --view {args.view}: the map has {len(views)} keyframes", file=sys.stderr)
         return 1
@@ -117,44 +127,45 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         stats_path, out = Path(tmp) / "stats.json", Path(tmp) / "callgrind.out"
         env = {**os.environ, CHILD: str(stats_path), "OMP_NUM_THREADS": "1"}
-        subprocess.run(["valgrind", "--tool=callgrind", f"--callgrind-out-file={out}", sys.executable,
-                        str(Path(__file__).resolve()), *sys.argv[1:]], env=env, check=True,
-                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        proc = subprocess.run(["valgrind", "--tool=callgrind", f"--callgrind-out-file={out}", sys.executable,
+                               str(Path(__file__).resolve()), *sys.argv[1:]], env=env, capture_output=True, text=True)
+        if proc.returncode != 0:
+            last = (proc.stderr.strip().splitlines() or ["no output"])[-1]
+            print(f"rasterizer_instructions: the run under valgrind failed ({last})", file=sys.stderr)
+            return 1
         stats = json.loads(stats_path.read_text())
         annotated = subprocess.run(["callgrind_annotate", "--inclusive=no", "--threshold=100", "--auto=no", str(out)],
                                    capture_output=True, text=True, check=True).stdout
     counts = count(annotated)
-    lanes = 16 if "avx512f" in Path("/proc/cpuinfo").read_text() else 8
-    visits = stats["row_steps"] * 16 // lanes
+    visits = stats["row_steps"] * 2  # 16-lane row steps, composited as two 8-lane blocks
     ghz = cpu_ghz()
-    forward_s = sum(v for k, v in cpu_s.items() if not k.startswith("backward"))
-    backward_s = sum(v for k, v in cpu_s.items() if k.startswith("backward"))
-    rows = []
-    for name, instructions, seconds in (("forward", counts["by_pass"].get("forward", 0), forward_s),
-                                        ("backward", counts["by_pass"].get("backward", 0), backward_s),
-                                        ("other (projection, ...)", counts["by_pass"].get("other", 0), None)):
-        rows.append({"pass": name, "instructions": instructions, "per_pair": instructions / stats["pairs"],
-                     "per_visit": instructions / visits, "cpu_ms": None if seconds is None else 1e3 * seconds,
-                     "ipc": instructions / (seconds * ghz * 1e9) if seconds and ghz else None})
+    total = sum(counts["by_pass"].values())
+    cpu_total_s = sum(cpu_s.values())
+    rows = [{"part": name, "instructions": n, "per_pair": n / stats["pairs"], "per_visit": n / visits}
+            for name, n in (("forward's code", counts["by_pass"].get("forward", 0)),
+                            ("backward's code", counts["by_pass"].get("backward", 0)),
+                            ("helpers not inlined (projection, depth sort, thread pool)",
+                             counts["by_pass"].get("other", 0)),
+                            ("all", total))]
+    ipc = total / (cpu_total_s * ghz * 1e9) if ghz else None
     print(f"{args.map} view {args.view} at {stats['resolution']}: {stats['pairs']:,} pairs, {visits:,} block visits "
-          f"({lanes} lanes), {stats['entries']:,} (tile, Gaussian) entries, {stats['visible']:,} Gaussians; "
-          f"clock {ghz} GHz\n")
-    print("| pass | instructions | per pair | per block visit | CPU ms | instructions / cycle |")
-    print("|---|---|---|---|---|---|")
+          f"(8 lanes), {stats['entries']:,} (tile, Gaussian) entries, {stats['visible']:,} Gaussians\n")
+    print("| part | instructions | per pair | per block visit |")
+    print("|---|---|---|---|")
     for row in rows:
-        ms = "-" if row["cpu_ms"] is None else f"{row['cpu_ms']:.2f}"
-        ipc = "-" if row["ipc"] is None else f"{row['ipc']:.2f}"
-        print(f"| {row['pass']} | {row['instructions'] / 1e6:.1f}M | {row['per_pair']:.1f} | {row['per_visit']:.1f} "
-              f"| {ms} | {ipc} |")
+        print(f"| {row['part']} | {row['instructions'] / 1e6:.1f}M | {row['per_pair']:.1f} | {row['per_visit']:.1f} |")
+    print(f"\nCPU time of the render + backward (best of 5): {1e3 * cpu_total_s:.2f} ms ("
+          + ", ".join(f"{k} {1e3 * v:.2f}" for k, v in cpu_s.items())
+          + (f"); {ipc:.2f} instructions a cycle at {ghz:.2f} GHz" if ghz else "); clock unknown"))
     print("\nby source file (inlined code counts where it is written; files under 0.5 a visit left out):")
     for name, n in counts["by_file"].items():
         if n >= 0.5 * visits:
             print(f"  {name:20} {n / 1e6:8.1f}M  {n / visits:6.1f} per visit")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({"machine": platform.platform(), "ghz": ghz, "map": str(args.map),
-                                    "scale": args.scale, "view": args.view, "lanes": lanes, "visits": visits,
-                                    **stats, "cpu_s": cpu_s, "passes": rows, "by_file": counts["by_file"]},
-                                   indent=2) + "\n")
+                                    "scale": args.scale, "view": args.view, "visits": visits, **stats,
+                                    "cpu_s": cpu_s, "instructions_per_cycle": ipc, "parts": rows,
+                                    "by_file": counts["by_file"]}, indent=2) + "\n")
     print(f"\nwrote {args.out}")
     return 0
 

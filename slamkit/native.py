@@ -2,9 +2,9 @@
 headers of slamkit/csrc and the headers beside it), loaded with ctypes.
 
 A library is compiled with the system C++ compiler (`$CXX`, else `c++`; a few seconds) and
-cached by a hash of the source, the flags, the compiler version and (for -march=native) the CPU
-under `$SLAMKIT_CACHE/extensions/` (else `~/.cache/slamkit/extensions/`), never in the source
-tree. Without a compiler, or if the build fails, `NativeLibrary.get()` returns None and `error`
+cached by a hash of the source and its headers, the flags, the compiler version and (for
+-march=native) the CPU under `$SLAMKIT_CACHE/extensions/` (else `~/.cache/slamkit/extensions/`),
+never in the source tree. Without a compiler, or if the build fails, `NativeLibrary.get()` returns None and `error`
 says why in one line; the caller falls back to its numpy / torch path.
 
 We use ctypes rather than `torch.utils.cpp_extension`: the same code serves numpy callers, and

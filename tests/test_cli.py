@@ -117,7 +117,8 @@ def test_design_spelling_mapper_rasterizer_chooses_the_rasteriser(tmp_path):
                     cwd=tmp_path))
     config = (out / ".hydra" / "config.yaml").read_text()
     assert "max_pairs_per_chunk: 4096" in config
-    assert "rasterizer=torch" in (out / ".hydra" / "overrides.yaml").read_text()
+    overrides = (out / ".hydra" / "overrides.yaml").read_text().splitlines()
+    assert "- rasterizer=torch" in overrides and not any("mapper.rasterizer" in o for o in overrides)
     _one_line_error(run_slamkit("mapper.rasterizer=nope", cwd=tmp_path), "unknown rasterizer 'nope'", "cpu")
 
 

@@ -159,3 +159,17 @@ def test_a_plugin_that_raises_stops_the_run_cleanly_naming_it(plugin_dir, tmp_pa
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["completed"] is False and "simulated failure" in metrics["error"]
     assert "Traceback" in (out / "slamkit.log").read_text()  # the log keeps the details
+
+
+def test_design_spelling_of_the_rasteriser_is_its_role():
+    """DESIGN.md's `mapper.rasterizer=...` (the command line's contract) chooses and configures the
+    `rasterizer` role, in sweeps and with Hydra's prefixes too; other keys are left alone."""
+    from slamkit.registry.compose import compose_run, contract_overrides
+
+    assert contract_overrides(["mapper.rasterizer=cpu,torch", "+mapper.rasterizer.num_threads=2", "~mapper.rasterizer",
+                               "mapper.rasterizers=1", "mapper.resolution_scale=0.5", "dataset.mapper.rasterizer=1"]) == [
+        "rasterizer=cpu,torch", "+rasterizer.num_threads=2", "~rasterizer",
+        "mapper.rasterizers=1", "mapper.resolution_scale=0.5", "dataset.mapper.rasterizer=1"]
+    cfg, names = compose_run(["mapper=gaussian_splatting", "mapper.rasterizer=torch",
+                              "mapper.rasterizer.max_pairs_per_chunk=4096"])
+    assert names["rasterizer"] == "torch" and cfg.rasterizer.max_pairs_per_chunk == 4096

@@ -38,7 +38,12 @@ def _declare(lib) -> None:
     lib.slk_rgbd_loss.argtypes = [I, I, P, P, P, P, P, D, D, D, D, I, P, P, P, ctypes.c_char_p, I]
 
 
-LIBRARY = NativeLibrary(SOURCE, "fused RGB-D loss", ABI_VERSION, _declare)
+def new_library() -> NativeLibrary:
+    """A handle on the loss's library, not built yet (it builds on its first `get()`)."""
+    return NativeLibrary(SOURCE, "fused RGB-D loss", ABI_VERSION, _declare)
+
+
+LIBRARY = new_library()
 #: The SSIM window's taps exactly as pytorch_msssim makes them (float32, normalised).
 WINDOW = _fspecial_gauss_1d(SSIM_WINDOW, SSIM_SIGMA).reshape(-1).contiguous()
 _warned = False

@@ -36,6 +36,7 @@ from slamkit_plugins.optimizers.adam import AdamConfig
 
 log = logging.getLogger(__name__)
 SOURCE = Path(__file__).resolve().parent / "csrc" / "visible_adam.cpp"
+ABI_VERSION = 3  # what the library's slk_abi_version() must return
 
 
 def _declare(lib) -> None:
@@ -45,7 +46,12 @@ def _declare(lib) -> None:
                                      ctypes.c_float, ctypes.c_float, ctypes.c_float, ctypes.c_int, ctypes.c_int]
 
 
-LIBRARY = NativeLibrary(SOURCE, "visible-Adam kernel", 3, _declare)
+def new_library() -> NativeLibrary:
+    """A handle on the kernel's library, not built yet (it builds on its first `get()`)."""
+    return NativeLibrary(SOURCE, "visible-Adam kernel", ABI_VERSION, _declare)
+
+
+LIBRARY = new_library()
 
 
 #: Which step count bias-corrects a row's moments. row: its own (a late or rarely seen row steps

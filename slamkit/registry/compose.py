@@ -40,8 +40,9 @@ def register(registry: Registry) -> None:
 
 #: DESIGN.md's command-line contract spells the rasteriser `mapper.rasterizer=auto|torch|cpu|gsplat`;
 #: it is its own role (config group `rasterizer`, a part of the mapper), so that spelling is
-#: rewritten to it, options included (`mapper.rasterizer.num_threads=2`).
-_CONTRACT_KEY = re.compile(r"^(\+*)mapper\.rasterizer(?=[.=])")
+#: rewritten to it on the command line, options and sweeps included (`mapper.rasterizer.num_threads=2`,
+#: `-m mapper.rasterizer=cpu,torch`); config files (an experiment's sweeper params) use `rasterizer`.
+_CONTRACT_KEY = re.compile(r"^([+~]*)mapper\.rasterizer(?=[.=]|$)")
 
 
 def contract_overrides(overrides: list[str] | tuple[str, ...]) -> list[str]:

@@ -11,6 +11,7 @@ from slamkit.run.metrics import rss_mb
 from slamkit.run.slam import StepResult
 from slamkit.types import Frame
 
+
 def _index_below(cell: str, index: int) -> bool:
     return cell.isdigit() and int(cell) < index
 

@@ -13,6 +13,7 @@ from slamkit.registry.schema import RunConfig
 from slamkit.run.slam import SLAM
 from slamkit.run.state import COMPLETED, INTERRUPTED, RunState
 
+
 def run_metrics(cfg: RunConfig, slam: SLAM, state: RunState, wall_s: float) -> dict[str, Any]:
     """metrics.json's content for the run as it stands (`wall_s`: seconds since its first frame;
     a resumed run adds the wall time of the runs before it).

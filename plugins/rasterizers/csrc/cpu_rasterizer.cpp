@@ -5,7 +5,7 @@
 // torch version (GCC >= 9 or Clang; vector extensions). Threads: a persistent pool, work handed
 // out dynamically in chunks; results are independent of the thread count (every sum has a
 // fixed order). One translation unit, its parts in the headers beside it, in the order they
-// build on each other: conventions.h (the constants below), projection.h (3D -> 2D and its
+// build on each other: conventions.h (the constants of the conventions below), projection.h (3D -> 2D and its
 // backward), splats.h (a projected Gaussian on a tile's rows), alpha_store.h (the alphas kept
 // for the backward), render_state.h (what a render keeps between its passes), forward.h,
 // backward.h; this file is the C ABI.
@@ -42,6 +42,7 @@
 // the slots are reduced in a fixed order (deterministic) and the projection's analytic backward
 // gives the gradients w.r.t. means, quaternions, scales, opacities and colours.
 
+#include <algorithm>
 #include <cstdint>
 #include <cstdio>
 #include <exception>
