@@ -10,7 +10,7 @@
 //
 // Both variants offer the same interface: arithmetic and comparisons with vectors and scalars,
 // lane access v[i], vf1 / vi1 / vd1 (broadcast), as_vi / as_vf (bit casts), to_vi / to_vf (value
-// conversions, truncating toward zero), select, any, all (of masks: lanes 0 or -1, as comparisons
+// conversions, truncating toward zero), select, any, all, lane_bits (of masks: lanes 0 or -1, as comparisons
 // give; other values test differently per variant), hsum, vfma, vsqrt, LANE (0..15), and
 // for vd: ld8 / st8 (8 floats widened / rounded), widen / narrow (one vf <-> two vd). Arithmetic
 // is IEEE lane by lane in both: without -ffp-contract, results are the same bits, except the
@@ -46,6 +46,7 @@ inline vi to_vi(vf x) { return __builtin_convertvector(x, vi); }
 inline vf to_vf(vi x) { return __builtin_convertvector(x, vf); }
 inline bool any(vi m) { return _mm512_test_epi32_mask((__m512i)m, (__m512i)m) != 0; }
 inline bool all(vi m) { return _mm512_test_epi32_mask((__m512i)m, (__m512i)m) == 0xFFFF; }
+inline uint32_t lane_bits(vi m) { return _mm512_test_epi32_mask((__m512i)m, (__m512i)m); }
 inline float hsum(vf v) { return _mm512_reduce_add_ps((__m512)v); }
 inline vf vfma(vf a, vf b, vf c) { return (vf)_mm512_fmadd_ps((__m512)a, (__m512)b, (__m512)c); }
 inline vf vsqrt(vf x) { return (vf)_mm512_sqrt_ps((__m512)x); }
@@ -267,11 +268,18 @@ inline i8 block_lanes() { return i8{0, 1, 2, 3, 4, 5, 6, 7}; }
 inline i8 as_vi(f8 x) { return (i8)x; }
 inline f8 as_vf(i8 x) { return (f8)x; }
 inline f8 to_vf(i8 x) { return __builtin_convertvector(x, f8); }
+#if defined(__AVX__)
+// (one blend instead of and / andnot / or: a shorter chain where a select carries a loop's state)
+inline f8 select(i8 m, f8 a, f8 b) { return (f8)_mm256_blendv_ps((__m256)b, (__m256)a, (__m256)m); }
+inline i8 select(i8 m, i8 a, i8 b) { return (i8)_mm256_blendv_ps((__m256)b, (__m256)a, (__m256)m); }
+#else
 inline f8 select(i8 m, f8 a, f8 b) { return (f8)(((i8)a & m) | ((i8)b & ~m)); }
 inline i8 select(i8 m, i8 a, i8 b) { return (a & m) | (b & ~m); }
+#endif
 #if defined(__AVX__)
 inline bool any(i8 m) { return _mm256_movemask_ps((__m256)m) != 0; }
 inline bool all(i8 m) { return _mm256_movemask_ps((__m256)m) == 0xFF; }
+inline uint32_t lane_bits(i8 m) { return (uint32_t)_mm256_movemask_ps((__m256)m); }
 #else
 inline bool any(i8 m) {
   for (int i = 0; i < 8; ++i)
@@ -283,9 +291,15 @@ inline bool all(i8 m) {
     if (!m[i]) return false;
   return true;
 }
+inline uint32_t lane_bits(i8 m) {
+  uint32_t bits = 0;
+  for (int i = 0; i < 8; ++i) bits |= (uint32_t)(m[i] != 0) << i;
+  return bits;
+}
 #endif
 inline bool any(vi m) { return any(m.lo | m.hi); }
 inline bool all(vi m) { return all(m.lo & m.hi); }
+inline uint32_t lane_bits(vi m) { return lane_bits(m.lo) | lane_bits(m.hi) << 8; }
 
 #endif  // AVX-512
 

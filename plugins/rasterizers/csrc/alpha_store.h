@@ -18,12 +18,11 @@ namespace {
 
 // The forward's alphas, kept for the backward, which would otherwise recompute every pair's exp
 // (the longest dependency chain of its loop; ~40 % of its time). Blocks are stored in the order
-// the forward composites them (so it writes sequentially): per tile chunk by chunk, per chunk
-// by (row, half), per (row, half) the chunk's entries listed for it in depth order; the backward
-// finds an entry's block from the chunk's list lengths (entry_rows). Each compositing thread
-// appends its tiles' blocks to its own store (grown by doubling up to its share of the budget,
-// never initialised: only the blocks composited are written, and the backward reads no other);
-// a chunk that would exceed it is not stored, and the backward recomputes its alphas.
+// the forward computes them (so it writes sequentially): per tile chunk by chunk, per chunk entry
+// by entry, per entry its blocks in bit order (entry_rows); the backward finds an entry's first
+// block in entry_block. Each compositing thread appends its tiles' blocks to its own store (grown
+// by doubling up to its share of the budget, never initialised: the backward reads only blocks
+// written); a chunk that would exceed it is not stored, and the backward recomputes its alphas.
 struct AlphaStore {
   std::unique_ptr<vblock[]> data;
   size_t size = 0, cap = 0;  // in blocks
@@ -31,7 +30,7 @@ struct AlphaStore {
     if (n <= cap) return;
     const size_t c = std::max(n, std::min(2 * cap, budget));
     std::unique_ptr<vblock[]> d(new vblock[c]);
-    std::atomic_thread_fence(std::memory_order_seq_cst);  // (the streaming stores so far, before they are read)
+    std::atomic_thread_fence(std::memory_order_seq_cst);  // (the streaming stores so far, before they are copied)
     if (cap) std::memcpy((void*)d.get(), (const void*)data.get(), cap * sizeof(vblock));  // the tile being written too
     data.swap(d);
     cap = c;

@@ -5,7 +5,6 @@
 #include <cstdint>
 #include <cstring>
 #include <memory>
-#include <type_traits>
 #include <vector>
 
 #include "slk_thread_pool.h"  // (slamkit/csrc) Pool, parallel_for
@@ -15,45 +14,54 @@ namespace {
 
 constexpr int NUM_MOMENTS = 10;  // accumulated per (tile, Gaussian) entry (backward, step 1)
 
-// A tile's alphas as the forward pass stored them (AlphaStore), for a walk of its list back to
-// front: visit(pos) for each position walked, then next(bit) for each bit of entry_rows[pos] in
-// increasing order gives that block's alphas, where stored().
+// A tile's alphas as the forward pass stored them (AlphaStore): entry by entry, each entry's
+// blocks in bit order.
 class StoredAlphas {
  public:
-  StoredAlphas(const State& S, int tile)
-      : S_(S), tile_(S.alpha_store[S.tile_store[tile]].data.get() + S.tile_block[tile]),
-        start_(S.tile_start[tile]), end_(S.tile_start[tile + 1]) {}
-
-  void visit(int pos) {
-    const int cs = start_ + (pos - start_) / CHUNK * CHUNK;
-    if (cs == chunk_start_) return;
-    // the first position visited in this chunk: the chunk's blocks per (row, half) in all, and
-    // up to this position (the forward numbered them row by row, each row in list order)
-    chunk_start_ = cs;
-    int listed[TILE * HALVES] = {};
-    for (int q = cs; q < std::min(end_, cs + CHUNK); ++q) {
-      for (uint32_t rows = S_.entry_rows[q]; rows; rows &= rows - 1) ++listed[__builtin_ctz(rows)];
-      if (q == pos) std::memcpy(before_, listed, sizeof before_);
-    }
-    int n = 0;
-    for (int b = 0; b < TILE * HALVES; ++b) {
-      row_block_[b] = n;
-      n += listed[b];
-    }
-    chunk_ = S_.chunk_block[cs] < 0 ? nullptr : tile_ + S_.chunk_block[cs];
-    if (chunk_) stream_in(chunk_, chunk_ + n);
+  StoredAlphas(const State& S, int tile) : S_(S), start_(S.tile_start[tile]), end_(S.tile_start[tile + 1]) {
+    const AlphaStore& store = S.alpha_store[S.tile_store[tile]];
+    tile_ = store.data ? store.data.get() + S.tile_block[tile] : nullptr;
   }
-  bool stored() const { return chunk_ != nullptr; }  // false: over the budget, to be recomputed
-  const vblock* next(int bit) { return chunk_ + row_block_[bit] + --before_[bit]; }  // where stored()
+
+  // The alphas of the entry at pos on its blocks (bit order), or nullptr where its chunk was not
+  // stored (the backward recomputes them). The first entry asked for in a chunk reads the whole
+  // chunk's blocks in (stream_in).
+  const vblock* entry(int pos) {
+    const int32_t first = S_.entry_block[pos];
+    if (first < 0) return nullptr;
+    const int cs = start_ + (pos - start_) / CHUNK * CHUNK;
+    if (cs != chunk_) {
+      chunk_ = cs;
+      const int last = std::min(end_, cs + CHUNK) - 1;
+      stream_in(tile_ + S_.entry_block[cs], tile_ + S_.entry_block[last] + __builtin_popcount(S_.entry_rows[last]));
+    }
+    return tile_ + first;
+  }
 
  private:
   const State& S_;
-  const vblock* tile_;               // the tile's first block
-  const vblock* chunk_ = nullptr;    // the current chunk's first block
-  int start_, end_, chunk_start_ = -1;
-  int row_block_[TILE * HALVES];     // per (row, half): its first block in the chunk
-  int before_[TILE * HALVES];        // per (row, half): the chunk's entries listed for it before the current
+  const vblock* tile_;  // the tile's first block
+  int start_, end_, chunk_ = -1;
 };
+
+// The alphas of entry E on its blocks `rows` (bit order) as the forward computed them, into out
+// (BLOCKS + GROUP blocks), GROUP at a time (the last group padded with its last block).
+inline const vblock* recompute_alphas(const ChunkEntry& E, uint32_t rows, int x0, vblock* out) {
+  int n = 0, lr[BLOCKS + GROUP], lane0[BLOCKS + GROUP];
+  for (; rows; rows &= rows - 1, ++n) {
+    const int bit = __builtin_ctz(rows);
+    lr[n] = bit / HALVES;
+    lane0[n] = bit % HALVES * BLOCK;
+  }
+  for (int k = n; k % GROUP; ++k) {
+    lr[k] = lr[n - 1];
+    lane0[k] = lane0[n - 1];
+  }
+  const ChunkEntry* entries[GROUP];
+  std::fill(entries, entries + GROUP, &E);
+  for (int k = 0; k < n; k += GROUP) block_alphas<GROUP>(entries, lr + k, lane0 + k, x0, out + k);
+  return out;
+}
 
 void backward(State& S, const float* means, const float* quats, const float* scales, const float* opac,
               const float* g_color, const float* g_depth, const float* g_alpha, const float* bg, int nthreads,
@@ -73,42 +81,45 @@ void backward(State& S, const float* means, const float* quats, const float* sca
       const int x0 = tx * TILE, y0 = ty * TILE;
       const int tw = std::min(TILE, W - x0), th = std::min(TILE, H - y0);
       const int start = S.tile_start[tile], end = S.tile_start[tile + 1];
-      // per tile row: transmittance (after the current entry), suffix sum of w v, output grads
-      vf T[TILE], Ssum[TILE], g0[TILE], g1[TILE], g2[TILE], gd[TILE], ga[TILE];
-      vi last[TILE];
+      // per block: transmittance (after the current entry), suffix sum of w v, output grads
+      vblock T[BLOCKS], Ssum[BLOCKS], g0[BLOCKS], g1[BLOCKS], g2[BLOCKS], gd[BLOCKS], ga[BLOCKS];
+      iblock last[BLOCKS];
       int maxlast = -1;
-      for (int lr = 0; lr < TILE; ++lr) {
-        T[lr] = Ssum[lr] = g0[lr] = g1[lr] = g2[lr] = gd[lr] = ga[lr] = vf{};
-        last[lr] = vi1(-1);
+      for (int bit = 0; bit < BLOCKS; ++bit) {
+        T[bit] = Ssum[bit] = g0[bit] = g1[bit] = g2[bit] = gd[bit] = ga[bit] = vblock{};
+        last[bit] = iblock{} - 1;
       }
-      for (int lr = 0; lr < th; ++lr)
+      double b0 = 0, b1 = 0, b2 = 0;  // d colour / d bg = T
+      // (the blocks' lanes, in memory, are the tile's pixels row by row)
+      float *Tp = pixels(T), *g0p = pixels(g0), *g1p = pixels(g1), *g2p = pixels(g2), *gdp = pixels(gd), *gap = pixels(ga);
+      int32_t* lastp = pixels(last);
+      for (int lr = 0; lr < th; ++lr) {
+        const size_t q0 = (size_t)(y0 + lr) * W + x0;
+        const int i0 = lr * TILE;
+        std::memcpy(Tp + i0, &S.T_final[q0], tw * sizeof(float));
+        std::memcpy(gdp + i0, g_depth + q0, tw * sizeof(float));
+        std::memcpy(lastp + i0, &S.last[q0], tw * sizeof(int32_t));
         for (int lc = 0; lc < tw; ++lc) {
-          const size_t q = (size_t)(y0 + lr) * W + (x0 + lc);
-          T[lr][lc] = S.T_final[q];
-          g0[lr][lc] = g_color[3 * q];
-          g1[lr][lc] = g_color[3 * q + 1];
-          g2[lr][lc] = g_color[3 * q + 2];
-          gd[lr][lc] = g_depth[q];
+          const size_t q = q0 + lc;
+          const int i = i0 + lc;
+          g0p[i] = g_color[3 * q];
+          g1p[i] = g_color[3 * q + 1];
+          g2p[i] = g_color[3 * q + 2];
           // d colour / d (sum w) = -bg, folded into the alpha gradient
-          ga[lr][lc] = g_alpha[q] - (g_color[3 * q] * bg[0] + g_color[3 * q + 1] * bg[1] + g_color[3 * q + 2] * bg[2]);
-          last[lr][lc] = S.last[q];
-          maxlast = std::max(maxlast, S.last[q]);
+          gap[i] = g_alpha[q] - (g_color[3 * q] * bg[0] + g_color[3 * q + 1] * bg[1] + g_color[3 * q + 2] * bg[2]);
+          maxlast = std::max(maxlast, lastp[i]);
+          b0 += (double)Tp[i] * g_color[3 * q];
+          b1 += (double)Tp[i] * g_color[3 * q + 1];
+          b2 += (double)Tp[i] * g_color[3 * q + 2];
         }
-      {
-        double b0 = 0, b1 = 0, b2 = 0;  // d colour / d bg = T
-        for (int lr = 0; lr < th; ++lr)
-          for (int lc = 0; lc < tw; ++lc) {
-            b0 += (double)T[lr][lc] * g0[lr][lc];
-            b1 += (double)T[lr][lc] * g1[lr][lc];
-            b2 += (double)T[lr][lc] * g2[lr][lc];
-          }
-        bg_tile[3 * tile] = b0;
-        bg_tile[3 * tile + 1] = b1;
-        bg_tile[3 * tile + 2] = b2;
       }
+      bg_tile[3 * tile] = b0;
+      bg_tile[3 * tile + 1] = b1;
+      bg_tile[3 * tile + 2] = b2;
       ChunkEntry E;
       const RowSpans& sp = E.sp;
       StoredAlphas alphas(S, tile);
+      alignas(64) vblock recomputed[BLOCKS + GROUP];
       for (int pos = end - 1; pos >= start; --pos) {
         float* mom = &moments[(size_t)S.tile_slot[pos] * NUM_MOMENTS];
         if (pos > maxlast) {
@@ -117,66 +128,52 @@ void backward(State& S, const float* means, const float* quats, const float* sca
         }
         if (pos - PREFETCH >= start) __builtin_prefetch(&S.splats[S.tile_ids[pos - PREFETCH]]);
         const Splat& s = S.splats[S.tile_ids[pos]];
-        // the entry's moments, summed over its rows and blocks (lane by lane, then across)
+        // the entry's moments, summed over its blocks (lane by lane, then across)
         vblock m0{}, mx{}, my{}, mxx{}, mxy{}, myy{}, w0{}, w1{}, w2{}, wd{};
         const iblock posv = iblock{} + pos;
-        row_spans(s, y0, W, E.sp);
-        E.a = s.a;
-        alphas.visit(pos);
-        // the blocks the forward pass listed the entry in (it composited those this walk needs),
-        // with the alphas it stored or recomputed (a loop for each: no test per block)
-        auto entry_blocks = [&](auto stored_alphas) {
-          for (uint32_t rows = S.entry_rows[pos]; rows; rows &= rows - 1) {
-            const int bit = __builtin_ctz(rows), lr = bit / HALVES, h = bit % HALVES;
-            const vblock* stored = nullptr;
-            if constexpr (decltype(stored_alphas)::value) stored = alphas.next(bit);
-            const int a = sp.xl[lr] - x0, z = sp.xr[lr] - x0;  // the span in tile columns
-            const int lane0 = h * BLOCK;
-            const iblock lane = block_lanes() + lane0;
-            const iblock m = (lane >= a) & (lane <= z) & (posv <= block(last[lr], h));
-            if (!any(m)) continue;
-            vblock dx, al;
-            if constexpr (decltype(stored_alphas)::value) {
-              al = *stored;
-              dx = block_dx(sp, lr, a, lane0);
-            } else {
-              const ChunkEntry* e = &E;
-              entry_alphas<1>(&e, lr, &a, lane0, &dx, &al);
-            }
-            const vblock dy = block_of(sp.dy[lr]);
-            const vblock inv = 1.0f / (1.0f - al);
-            vblock& Tr = block(T[lr], h);
-            vblock& Sr = block(Ssum[lr], h);
-            const vblock G0 = block(g0[lr], h), G1 = block(g1[lr], h), G2 = block(g2[lr], h);
-            const vblock Tb = Tr * inv;  // transmittance before this Gaussian
-            const vblock w = select(m, al * Tb, vblock{});
-            const vblock GD = block(gd[lr], h), GA = block(ga[lr], h);
-            const vblock val_c2 = vfma(block_of(s.col[2]), G2, vfma(block_of(s.z), GD, GA));
-            const vblock val = vfma(block_of(s.col[0]), G0, vfma(block_of(s.col[1]), G1, val_c2));
-            // dL/dlog(alpha) = alpha dL/dalpha = alpha (T v - sum_{j>i} w_j v_j / (1 - alpha)), zero
-            // where alpha is clamped
-            const vblock sg = select(m & (al < ALPHA_MAX), al * vfma(Tb, val, -(Sr * inv)), vblock{});
-            const vblock dxm = select(m, dx, vblock{});
-            const vblock sdx = sg * dxm;
-            const vblock sdy = sg * dy;
-            m0 += sg;
-            mx += sdx;
-            my += sdy;
-            mxx = vfma(sdx, dxm, mxx);
-            mxy = vfma(sdx, dy, mxy);
-            myy = vfma(sdy, dy, myy);
-            w0 = vfma(w, G0, w0);
-            w1 = vfma(w, G1, w1);
-            w2 = vfma(w, G2, w2);
-            wd = vfma(w, GD, wd);
-            Sr = vfma(w, val, Sr);  // w = 0 outside m
-            Tr = select(m, Tb, Tr);
-          }
-        };
-        if (alphas.stored())
-          entry_blocks(std::true_type{});
-        else
-          entry_blocks(std::false_type{});
+        // the entry's alphas on the blocks the forward pass listed it in (it composited those this
+        // walk needs), in bit order: as stored, or recomputed as the forward computed them
+        const vblock* al = alphas.entry(pos);
+        if (al) {
+          spans_from_starts(s, S.entry_xl[pos], y0, E.sp);
+        } else {
+          row_spans(s, y0, W, E.sp);
+          E.a = s.a;
+          al = recompute_alphas(E, S.entry_rows[pos], x0, recomputed);
+        }
+        for (uint32_t rows = S.entry_rows[pos]; rows; rows &= rows - 1, ++al) {
+          const int bit = __builtin_ctz(rows), lr = bit / HALVES, lane0 = bit % HALVES * BLOCK;
+          // alpha > 0 exactly where the entry covers the pixel (block_alphas)
+          const iblock m = (*al > 0.0f) & (posv <= last[bit]);
+          if (!any(m)) continue;
+          const vblock a = *al;
+          const vblock dx = block_dx(sp, lr, sp.xl[lr] - x0, lane0);
+          const vblock dy = block_of(sp.dy[lr]);
+          const vblock inv = 1.0f / (1.0f - a);
+          const vblock G0 = g0[bit], G1 = g1[bit], G2 = g2[bit], GD = gd[bit], GA = ga[bit], Sr = Ssum[bit];
+          const vblock Tb = T[bit] * inv;  // transmittance before this Gaussian
+          const vblock w = select(m, a * Tb, vblock{});
+          const vblock val_c2 = vfma(block_of(s.col[2]), G2, vfma(block_of(s.z), GD, GA));
+          const vblock val = vfma(block_of(s.col[0]), G0, vfma(block_of(s.col[1]), G1, val_c2));
+          // dL/dlog(alpha) = alpha dL/dalpha = alpha (T v - sum_{j>i} w_j v_j / (1 - alpha)), zero
+          // where alpha is clamped
+          const vblock sg = select(m & (a < ALPHA_MAX), a * vfma(Tb, val, -(Sr * inv)), vblock{});
+          const vblock dxm = select(m, dx, vblock{});
+          const vblock sdx = sg * dxm;
+          const vblock sdy = sg * dy;
+          m0 += sg;
+          mx += sdx;
+          my += sdy;
+          mxx = vfma(sdx, dxm, mxx);
+          mxy = vfma(sdx, dy, mxy);
+          myy = vfma(sdy, dy, myy);
+          w0 = vfma(w, G0, w0);
+          w1 = vfma(w, G1, w1);
+          w2 = vfma(w, G2, w2);
+          wd = vfma(w, GD, wd);
+          Ssum[bit] = vfma(w, val, Sr);  // w = 0 outside m
+          T[bit] = select(m, Tb, T[bit]);
+        }
         mom[0] = hsum(m0);
         mom[1] = hsum(mx);
         mom[2] = hsum(my);

@@ -30,12 +30,13 @@
 //
 // Forward: project + cull (parallel over Gaussians) -> radix sort by depth -> binning into
 // 16x16 tiles (each Gaussian is listed, in depth order, in the tiles its exact row intervals
-// touch) -> per tile, 32 entries at a time: their row spans (16 rows at once), per tile row the
-// entries covering it, then each row (16 pixels = one vector; without AVX-512, each 8-pixel
-// half that a span meets) composited with its state in registers, the alphas of four entries
-// computed at once; per-pixel early termination, per-row and per-tile early exit. Kept for the
-// backward pass: the final transmittance and the last composited list position of every pixel,
-// and (when a backward pass follows) every composited block's alphas (AlphaStore).
+// touch) -> per tile, 64 entries at a time: their row spans (16 rows at once) and the blocks
+// they cover (a block: a tile row of 16 pixels = one vector with AVX-512, else each 8-pixel half
+// of it), then the alphas of all those (entry, block) visits, four at a time, then each block
+// composited through its visits in depth order with its state in registers; per-pixel early
+// termination, per-block and per-tile early exit. Kept for the backward pass: the final
+// transmittance and the last composited list position of every pixel, each entry's blocks and
+// span starts, and (when a backward pass follows) the visits' alphas (AlphaStore).
 // Backward: per tile, the list walked back to front (the stored alphas; transmittance recovered
 // by division, the suffix sum sum_{j>i} w_j v_j carried per pixel), per (tile, Gaussian) entry ten moments
 // accumulated in registers and stored in that entry's own slot (no atomics); then per Gaussian

@@ -3,6 +3,7 @@
 
 #include <algorithm>
 #include <cstdint>
+#include <cstring>
 #include <memory>
 #include <vector>
 
@@ -147,31 +148,39 @@ void forward(State& S, const float* means, const float* quats, const float* scal
     S.alpha_store.push_back(S.alpha_budget ? AlphaStorePool::instance().take() : AlphaStore());
   S.tile_store.assign(tiles, 0);
   S.tile_block.assign(tiles, 0);
-  S.chunk_block.resize(num_entries);
+  S.entry_block.resize(num_entries);
   S.entry_rows.resize(num_entries);
+  S.entry_xl.resize(num_entries);
   S.last.resize((size_t)W * H);
   std::vector<int64_t> pairs_per_thread(std::max(nthreads, 1), 0), lanes_per_thread(std::max(nthreads, 1), 0),
       stored_per_thread(std::max(nthreads, 1), 0),
       tiles_per_thread(std::max(nthreads, 1), 0);
   parallel_for(nthreads, tiles, 1, [&](int64_t b, int64_t e, int tid) {
     std::unique_ptr<ChunkEntry[]> ents(new ChunkEntry[CHUNK]);
+    // a chunk's visits (an entry on a block it covers, entry by entry, each entry's blocks in bit
+    // order: k * BLOCKS + bit for entry k) and their alphas (the store keeps a copy where it can)
+    constexpr int MAX_VISITS = CHUNK * BLOCKS + GROUP;
+    static_assert(CHUNK * BLOCKS <= 65536, "a chunk's visits are numbered in uint16_t");
+    std::unique_ptr<uint16_t[]> visit_(new uint16_t[MAX_VISITS]);
+    std::unique_ptr<vblock[]> alphas_(new vblock[MAX_VISITS]);
+    uint16_t* const visit = visit_.get();
+    vblock* const alphas = alphas_.get();
     for (int64_t ti = b; ti < e; ++ti) {
       const int tile = S.tile_order[ti];
       const int tx = tile % S.tiles_x, ty = tile / S.tiles_x;
       const int x0 = tx * TILE, y0 = ty * TILE;
       const int tw = std::min(TILE, W - x0), th = std::min(TILE, H - y0);
-      // per tile row: transmittance, colour, depth and alpha sums, last position, done lanes
-      vf T[TILE], c0[TILE], c1[TILE], c2[TILE], dep[TILE], acc[TILE];
-      vi last[TILE], done[TILE];
-      bool alive[TILE][HALVES];  // blocks with lanes not done
-      int blocks_alive = 0;
-      const vi outside = LANE >= tw;
-      for (int r = 0; r < TILE; ++r) {
-        T[r] = vf1(1.0f);
-        c0[r] = c1[r] = c2[r] = dep[r] = acc[r] = vf{};
-        last[r] = vi1(-1);
-        done[r] = r < th ? outside : vi1(-1);
-        for (int h = 0; h < HALVES; ++h) blocks_alive += alive[r][h] = !all(block(done[r], h));
+      // per block: transmittance, colour, depth and alpha sums, last position, done lanes
+      vblock T[BLOCKS], c0[BLOCKS], c1[BLOCKS], c2[BLOCKS], dep[BLOCKS], acc[BLOCKS];
+      iblock last[BLOCKS], done[BLOCKS];
+      uint32_t alive = 0;  // blocks with lanes not done
+      for (int bit = 0; bit < BLOCKS; ++bit) {
+        const int lr = bit / HALVES, lane0 = bit % HALVES * BLOCK;
+        T[bit] = block_of(1.0f);
+        c0[bit] = c1[bit] = c2[bit] = dep[bit] = acc[bit] = vblock{};
+        last[bit] = iblock{} - 1;
+        done[bit] = lr < th ? block_lanes() + lane0 >= tw : iblock{} - 1;
+        alive |= (uint32_t)!all(done[bit]) << bit;
       }
       int64_t lanes = 0, stored_lanes = 0;
       iblock count = iblock{};
@@ -180,126 +189,116 @@ void forward(State& S, const float* means, const float* quats, const float* scal
       S.tile_block[tile] = (int64_t)store.size;
       int32_t tile_blocks = 0;
       const int end = S.tile_start[tile + 1];
-      for (int cs = S.tile_start[tile]; cs < end && blocks_alive > 0; cs += CHUNK) {
-        // the chunk's entries: their row spans, and per tile row and block the ones covering it
-        // in depth order (blocks already done are skipped)
+      for (int cs = S.tile_start[tile]; cs < end && alive; cs += CHUNK) {
+        // the chunk's entries: their row spans and the blocks they cover (blocks already done
+        // are skipped), as visits, and per block its visits in depth order
         const int ce = std::min(end, cs + CHUNK);
-        int nrow[TILE][HALVES] = {};
-        uint8_t list[TILE][HALVES][CHUNK];
+        int nrow[BLOCKS] = {};
+        uint16_t list[BLOCKS][CHUNK];
+        EntryPaint paint[CHUNK];
+        int first_visit[CHUNK];
+        uint32_t listed = 0;  // blocks with entries
+        int visits = 0;
         for (int pos = cs; pos < ce; ++pos) {
           if (pos + PREFETCH < end) __builtin_prefetch(&S.splats[S.tile_ids[pos + PREFETCH]]);
           const Splat& s = S.splats[S.tile_ids[pos]];
           const int k = pos - cs;
           ChunkEntry& E = ents[k];
-          const int r0 = std::max(s.y0 - y0, 0), r1 = std::min(s.y1 - y0, th - 1);
           row_spans(s, y0, W, E.sp);
           E.a = s.a;
-          E.col[0] = s.col[0];
-          E.col[1] = s.col[1];
-          E.col[2] = s.col[2];
-          E.z = s.z;
-          E.pos = pos;
-          uint32_t rows = 0;
-          for (int lr = r0; lr <= r1; ++lr)
-            for (int h = 0; h < HALVES; ++h) {
-              const bool listed = alive[lr][h] & span_meets(E.sp.xl[lr] - x0, E.sp.xr[lr] - x0, tw, h);
-              list[lr][h][nrow[lr][h]] = (uint8_t)k;  // (kept only when listed: branch-free)
-              nrow[lr][h] += listed;
-              rows |= (uint32_t)listed << (lr * HALVES + h);
-            }
-          S.entry_rows[pos] = rows;
-        }
-        // where the chunk's alphas go (AlphaStore)
-        int row_block[TILE][HALVES], chunk_blocks = 0;
-        for (int lr = 0; lr < TILE; ++lr)
-          for (int h = 0; h < HALVES; ++h) {
-            row_block[lr][h] = chunk_blocks;
-            chunk_blocks += nrow[lr][h];
+          paint[k] = EntryPaint{{s.col[0], s.col[1], s.col[2]}, s.z, pos};
+          const uint32_t met = alive & blocks_met(E.sp, std::max(s.y0 - y0, 0), std::min(s.y1 - y0, th - 1), x0, tw);
+          first_visit[k] = visits;
+          for (uint32_t m = met; m; m &= m - 1, ++visits) {
+            const int bit = __builtin_ctz(m);
+            list[bit][nrow[bit]++] = (uint16_t)visits;
+            visit[visits] = (uint16_t)(k * BLOCKS + bit);
           }
-        vblock* alphas = nullptr;
-        const size_t stored = S.tile_block[tile] + tile_blocks + chunk_blocks;
-        S.chunk_block[cs] = -1;
-        if (stored <= S.alpha_budget) {
+          listed |= met;
+          S.entry_rows[pos] = met;
+          S.entry_xl[pos] = *(const vi*)E.sp.xl;
+        }
+        // the visits' alphas, GROUP at a time (the last group padded with its last visit)
+        for (int v = visits; v % GROUP; ++v) visit[v] = visit[visits - 1];
+        for (int v = 0; v < visits; v += GROUP) {
+          const ChunkEntry* E[GROUP];
+          int lr[GROUP], lane0[GROUP];
+          for (int g = 0; g < GROUP; ++g) {
+            const int bit = visit[v + g] % BLOCKS;
+            E[g] = &ents[visit[v + g] / BLOCKS];
+            lr[g] = bit / HALVES;
+            lane0[g] = bit % HALVES * BLOCK;
+          }
+          block_alphas<GROUP>(E, lr, lane0, x0, alphas + v);
+        }
+        lanes += (int64_t)visits * BLOCK;
+        // kept for the backward where they fit (AlphaStore; else the backward recomputes them)
+        const size_t stored = S.tile_block[tile] + tile_blocks + visits;
+        const bool keep = stored <= S.alpha_budget;
+        if (keep) {
           store.reserve(stored, S.alpha_budget);
-          alphas = store.data.get() + S.tile_block[tile] + tile_blocks;
-          S.chunk_block[cs] = tile_blocks;
-          tile_blocks += chunk_blocks;
+          vblock* kept = store.data.get() + S.tile_block[tile] + tile_blocks;
+          for (int v = 0; v < visits; ++v) store_streaming(kept + v, alphas[v]);
+          stored_lanes += (int64_t)visits * BLOCK;
         }
+        for (int pos = cs; pos < ce; ++pos) S.entry_block[pos] = keep ? tile_blocks + first_visit[pos - cs] : -1;
+        tile_blocks += keep ? visits : 0;
         // composite block by block, the block's state in registers
-        for (int lr = 0; lr < th; ++lr)
-          for (int h = 0; h < HALVES; ++h) {
-            const int n = nrow[lr][h];
-            if (n == 0) continue;
-            lanes += n * BLOCK;
-            stored_lanes += alphas ? n * BLOCK : 0;
-            const int lane0 = h * BLOCK;
-            const iblock lane = block_lanes() + lane0;
-            vblock rT = block(T[lr], h), r0c = block(c0[lr], h), r1c = block(c1[lr], h), r2c = block(c2[lr], h),
-                   rdep = block(dep[lr], h), racc = block(acc[lr], h);
-            iblock rlast = block(last[lr], h), rdone = block(done[lr], h);
-            for (int j0 = 0; j0 < n; j0 += GROUP) {
-              // a group's alphas first (the last group padded with its last entry, not composited)
-              const ChunkEntry* G[GROUP];
-              int a[GROUP];
-              vblock dx[GROUP], al[GROUP];
-              for (int k = 0; k < GROUP; ++k) {
-                G[k] = &ents[list[lr][h][std::min(j0 + k, n - 1)]];
-                a[k] = G[k]->sp.xl[lr] - x0;
-              }
-              entry_alphas<GROUP>(G, lr, a, lane0, dx, al);
-              bool finished = false;
-              for (int k = 0; k < std::min(GROUP, n - j0); ++k) {
-                const ChunkEntry& E = *G[k];
-                if (alphas) store_streaming(&alphas[row_block[lr][h] + j0 + k], al[k]);
-                const iblock in = (lane >= a[k]) & (lane <= E.sp.xr[lr] - x0) & ~rdone;
-                const vblock Tn = rT * (1.0f - al[k]);
-                const iblock stop = in & (Tn < (float)T_MIN);
-                const iblock m = in & ~stop;
-                const vblock w = select(m, al[k] * rT, vblock{});
-                r0c = vfma(w, block_of(E.col[0]), r0c);
-                r1c = vfma(w, block_of(E.col[1]), r1c);
-                r2c = vfma(w, block_of(E.col[2]), r2c);
-                rdep = vfma(w, block_of(E.z), rdep);
-                racc += w;
-                rT = select(m, Tn, rT);
-                rlast = select(m, iblock{} + E.pos, rlast);
-                count -= m;
-                rdone |= stop;  // (branch-free: stops are too frequent and irregular to predict)
-                if (all(rdone)) {
-                  finished = true;
-                  break;
-                }
-              }
-              if (finished) {
-                alive[lr][h] = false;
-                --blocks_alive;
-                break;
-              }
+        for (uint32_t m = listed; m; m &= m - 1) {
+          const int bit = __builtin_ctz(m);
+          vblock rT = T[bit], r0c = c0[bit], r1c = c1[bit], r2c = c2[bit], rdep = dep[bit], racc = acc[bit];
+          iblock rlast = last[bit], rdone = done[bit];
+          for (int j = 0; j < nrow[bit]; ++j) {
+            const int v = list[bit][j];
+            const EntryPaint& P = paint[visit[v] / BLOCKS];
+            const vblock al = alphas[v];
+            // lanes outside the span have alpha 0: they change nothing but stay undone
+            const vblock Tn = rT * (1.0f - al);
+            const iblock now_done = rdone | (Tn < (float)T_MIN);
+            const vblock w = select(now_done, vblock{}, al * rT);
+            r0c = vfma(w, block_of(P.col[0]), r0c);
+            r1c = vfma(w, block_of(P.col[1]), r1c);
+            r2c = vfma(w, block_of(P.col[2]), r2c);
+            rdep = vfma(w, block_of(P.z), rdep);
+            racc += w;
+            rT = select(now_done, rT, Tn);
+            const iblock covered = ~now_done & (al > 0.0f);
+            rlast = select(covered, iblock{} + P.pos, rlast);
+            count -= covered;
+            rdone = now_done;  // (branch-free: stops are too frequent and irregular to predict)
+            if (all(rdone)) {
+              alive &= ~(1u << bit);
+              break;
             }
-            block(T[lr], h) = rT;
-            block(c0[lr], h) = r0c;
-            block(c1[lr], h) = r1c;
-            block(c2[lr], h) = r2c;
-            block(dep[lr], h) = rdep;
-            block(acc[lr], h) = racc;
-            block(last[lr], h) = rlast;
-            block(done[lr], h) = rdone;
           }
+          T[bit] = rT;
+          c0[bit] = r0c;
+          c1[bit] = r1c;
+          c2[bit] = r2c;
+          dep[bit] = rdep;
+          acc[bit] = racc;
+          last[bit] = rlast;
+          done[bit] = rdone;
+        }
       }
       store.size = S.tile_block[tile] + tile_blocks;
-      for (int lr = 0; lr < th; ++lr)
+      // (the blocks' lanes, in memory, are the tile's pixels row by row)
+      const float *Tp = pixels(T), *c0p = pixels(c0), *c1p = pixels(c1), *c2p = pixels(c2);
+      for (int lr = 0; lr < th; ++lr) {
+        const size_t q0 = (size_t)(y0 + lr) * W + x0;
+        const int i0 = lr * TILE;
         for (int lc = 0; lc < tw; ++lc) {
-          const size_t q = (size_t)(y0 + lr) * W + (x0 + lc);
           // the background shows through T = 1 - sum w (T is the more accurate where alpha ~ 1)
-          const float rest = T[lr][lc];
-          out_color[3 * q] = c0[lr][lc] + rest * bg[0];
-          out_color[3 * q + 1] = c1[lr][lc] + rest * bg[1];
-          out_color[3 * q + 2] = c2[lr][lc] + rest * bg[2];
-          out_depth[q] = dep[lr][lc];
-          out_alpha[q] = acc[lr][lc];
-          S.T_final[q] = T[lr][lc];
-          S.last[q] = last[lr][lc];
+          const float rest = Tp[i0 + lc];
+          out_color[3 * (q0 + lc)] = c0p[i0 + lc] + rest * bg[0];
+          out_color[3 * (q0 + lc) + 1] = c1p[i0 + lc] + rest * bg[1];
+          out_color[3 * (q0 + lc) + 2] = c2p[i0 + lc] + rest * bg[2];
         }
+        std::memcpy(out_depth + q0, pixels(dep) + i0, tw * sizeof(float));
+        std::memcpy(out_alpha + q0, pixels(acc) + i0, tw * sizeof(float));
+        std::memcpy(&S.T_final[q0], Tp + i0, tw * sizeof(float));
+        std::memcpy(&S.last[q0], pixels(last) + i0, tw * sizeof(int32_t));
+      }
       int64_t pairs = 0;
       for (int i = 0; i < BLOCK; ++i) pairs += count[i];
       pairs_per_thread[tid] += pairs;

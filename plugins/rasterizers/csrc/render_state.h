@@ -43,8 +43,9 @@ struct State {
   std::vector<AlphaStore> alpha_store;  // per forward thread
   std::vector<int32_t> tile_store;      // tiles: the thread whose store holds the tile's alphas
   std::vector<int64_t> tile_block;      // tiles: the tile's first block in that store
-  std::vector<int32_t> chunk_block;     // entries: at a chunk's first entry, its first block (-1: not stored)
+  std::vector<int32_t> entry_block;     // entries: the first of its blocks in the tile's stored alphas (-1: not stored)
   std::vector<uint32_t> entry_rows;     // entries: bit lr * HALVES + h set where the entry was listed
+  std::vector<vi> entry_xl;             // entries: their row spans' first columns (RowSpans::xl)
   int64_t num_pairs = 0;
   int64_t num_rows = 0;  // vector steps of the forward pass, in 16-lane units (an 8-lane half counts 1/2)
   int64_t num_rows_stored = 0;  // of those, the ones whose alphas were kept for the backward

@@ -68,13 +68,14 @@ struct RowSpans {
 
 static_assert(TILE * sizeof(float) == sizeof(vf), "a tile row is one vector");
 
-// exp for G blocks of float lanes (Cephes' expf: range reduction by ln 2, degree-6 polynomial;
-// within ~1 ulp of the correctly rounded value on [-87, 0], which is all that alpha needs). The G
-// are computed stage by stage: their dependency chains (~60 cycles each) interleave, where one
-// exp at a time leaves the compositing loop waiting on its chain.
+// exp of G blocks of float lanes (Cephes' expf: range reduction by ln 2, degree-6 polynomial;
+// within ~1 ulp of the correctly rounded value on [-87, 0], which is all that alpha needs). The
+// G are computed stage by stage: their dependency chains (~60 cycles each) interleave, where the
+// out-of-order window of one loop over blocks holds barely more than one exp. The polynomial by
+// Estrin's scheme (three levels deep, not Horner's six): a shorter chain still.
 template <int G>
 inline void vexp(vblock* x) {
-  vblock n[G], r[G], p[G];
+  vblock n[G], r[G];
   iblock e[G];
 #pragma GCC unroll 8
   for (int k = 0; k < G; ++k) {
@@ -84,19 +85,15 @@ inline void vexp(vblock* x) {
     e[k] = (as_vi(t) - 0x4B400000 + 127) << 23;  // the bits of 2^n
   }
 #pragma GCC unroll 8
-  for (int k = 0; k < G; ++k) r[k] = vfma(n[k], block_of(-0.693359375f), x[k]);
-#pragma GCC unroll 8
-  for (int k = 0; k < G; ++k) r[k] = vfma(n[k], block_of(2.12194440e-4f), r[k]);
-  // the polynomial by Estrin's scheme (three levels deep, not Horner's six: this chain is what the
-  // compositing loops wait for)
+  for (int k = 0; k < G; ++k) r[k] = vfma(n[k], block_of(2.12194440e-4f), vfma(n[k], block_of(-0.693359375f), x[k]));
 #pragma GCC unroll 8
   for (int k = 0; k < G; ++k) {
     const vblock r2 = r[k] * r[k];
     const vblock hi = vfma(block_of(1.9875691500E-4f), r[k], block_of(1.3981999507E-3f));
     const vblock mid = vfma(block_of(8.3334519073E-3f), r[k], block_of(4.1665795894E-2f));
     const vblock lo = vfma(block_of(1.6666665459E-1f), r[k], block_of(5.0000001201E-1f));
-    p[k] = vfma(vfma(hi, r2, mid), r2, lo);
-    x[k] = (vfma(p[k], r2, r[k]) + 1.0f) * as_vf(e[k]);
+    const vblock p = vfma(vfma(hi, r2, mid), r2, lo);
+    x[k] = (vfma(p, r2, r[k]) + 1.0f) * as_vf(e[k]);
   }
 }
 
@@ -137,27 +134,62 @@ inline void row_spans(const Splat& s, int y0, int W, RowSpans& o) {
   *(vi*)o.xr = select(ok, to_vi(xr), vi{});
 }
 
+// The part of the row spans (RowSpans) that the backward needs where the forward's alphas were
+// stored, from the span starts xl the forward kept: xl, row_dx and dy, as row_spans computes them.
+inline void spans_from_starts(const Splat& s, const vi& xl, int y0, RowSpans& o) {
+  *(vf*)o.dy = to_vf(LANE + y0) - s.v;
+  *(vf*)o.row_dx = to_vf(xl) - s.u;
+  *(vi*)o.xl = xl;
+}
+
 // Compositing a tile goes chunk by chunk (CHUNK entries): the entries' row spans are computed
-// (16 rows at once) and, per tile row, the entries covering it are listed, so that each row is
-// then composited with its state in registers.
-constexpr int CHUNK = 32;
+// (16 rows at once) and the blocks each covers listed, then the alphas of every listed (block,
+// entry) pair are computed, then each block is composited through its entries with its state in
+// registers.
+constexpr int CHUNK = 64;
 constexpr int PREFETCH = 8;  // entries ahead whose splat is prefetched (they are scattered in memory)
 struct ChunkEntry {
   RowSpans sp;
-  float a, col[3], z;
-  int32_t pos;  // position in the tile list
+  float a;
+};
+struct EntryPaint {  // what compositing adds of an entry: colour, depth, its tile list position
+  float col[3], z;
+  int32_t pos;
 };
 
 // The lanes of a tile row are processed a block at a time (slk_vec16.h: the whole row with
 // AVX-512, else each 8-lane half that the entry's span meets; a span covers ~5-7 of the 16
-// pixels on average, so most need one half).
+// pixels on average, so most need one half). Block lr * HALVES + h is half h of row lr; a tile's
+// blocks fit the bits of a uint32_t.
 constexpr int BLOCK = TILE / HALVES;
+constexpr int BLOCKS = TILE * HALVES;
+static_assert(BLOCKS <= 32, "a tile's blocks are the bits of a uint32_t");
 
-// Whether a row span [a, z] in tile columns (empty where z < a) meets block h within the tile's
-// tw columns (no short-circuit: the outcomes are too irregular to predict, and the caller appends
-// without a branch).
-inline bool span_meets(int a, int z, int tw, int h) {
-  return (z >= a) & (a < std::min(tw, (h + 1) * BLOCK)) & (z >= h * BLOCK);
+// the lanes of a tile's blocks (each block's lanes in turn: the tile's pixels row by row)
+inline const float* pixels(const vblock* v) { return reinterpret_cast<const float*>(v); }
+inline const int32_t* pixels(const iblock* v) { return reinterpret_cast<const int32_t*>(v); }
+inline float* pixels(vblock* v) { return reinterpret_cast<float*>(v); }
+inline int32_t* pixels(iblock* v) { return reinterpret_cast<int32_t*>(v); }
+
+// bit i of a 16-bit row mask moved to bit i * HALVES + h
+inline uint32_t spread_rows(uint32_t rows, int h) {
+  if (HALVES == 1) return rows;
+  rows = (rows | rows << 8) & 0x00FF00FFu;  // (the bit interleave; pdep is microcoded on AMD before Zen 3)
+  rows = (rows | rows << 4) & 0x0F0F0F0Fu;
+  rows = (rows | rows << 2) & 0x33333333u;
+  rows = (rows | rows << 1) & 0x55555555u;
+  return rows << h;
+}
+
+// The blocks of the tile (first column x0, tw columns wide) that an entry's spans on rows
+// [r0, r1] meet, as bits (above).
+inline uint32_t blocks_met(const RowSpans& sp, int r0, int r1, int x0, int tw) {
+  const vi a = *(const vi*)sp.xl - x0, z = *(const vi*)sp.xr - x0;  // the spans in tile columns
+  const vi rows = (LANE >= r0) & (LANE <= r1) & (z >= a);
+  uint32_t met = 0;
+  for (int h = 0; h < HALVES; ++h)
+    met |= spread_rows(lane_bits(rows & (a < std::min(tw, (h + 1) * BLOCK)) & (z >= h * BLOCK)), h);
+  return met;
 }
 
 // dx of the block of row lr whose first lane is lane0: lane - span start a + row_dx (a = xl - x0)
@@ -165,23 +197,28 @@ inline vblock block_dx(const RowSpans& sp, int lr, int a, int lane0) {
   return to_vf(block_lanes() + (lane0 - a)) + sp.row_dx[lr];
 }
 
-// alpha and dx of the block of row lr of G entries (first lane lane0, span starts a); log alpha is
-// the torch backend's expression (fused here: it does not decide which pixels are covered).
-// Computed G at a time so that their exps interleave (vexp).
+// Entries' alphas on blocks, G at a time (so that their exps interleave, vexp): entry E[k] on the
+// block of row lr[k] whose first lane is lane0[k] (tile columns; the tile's first column is x0),
+// 0 outside its span on that row: alpha > 0 exactly where it covers a pixel. log alpha is the
+// torch backend's expression (fused here: it does not decide which pixels are covered).
 template <int G>
-inline void entry_alphas(const ChunkEntry* const* E, int lr, const int* a, int lane0, vblock* dx, vblock* al) {
+inline void block_alphas(const ChunkEntry* const* E, const int* lr, const int* lane0, int x0, vblock* al) {
+  iblock in[G];
 #pragma GCC unroll 8
   for (int k = 0; k < G; ++k) {
-    dx[k] = block_dx(E[k]->sp, lr, a[k], lane0);
-    al[k] = vfma(dx[k] * -0.5f, vfma(dx[k], block_of(E[k]->a), block_of(E[k]->sp.row_b[lr])),
-                 block_of(E[k]->sp.row_k[lr]));
+    const RowSpans& sp = E[k]->sp;
+    const int a = sp.xl[lr[k]] - x0, z = sp.xr[lr[k]] - x0;
+    const vblock dx = block_dx(sp, lr[k], a, lane0[k]);
+    al[k] = vfma(dx * -0.5f, vfma(dx, block_of(E[k]->a), block_of(sp.row_b[lr[k]])), block_of(sp.row_k[lr[k]]));
+    const iblock lane = block_lanes() + lane0[k];
+    in[k] = (lane >= a) & (lane <= z);
   }
   vexp<G>(al);
 #pragma GCC unroll 8
-  for (int k = 0; k < G; ++k) al[k] = select(al[k] < ALPHA_MAX, al[k], block_of(ALPHA_MAX));
+  for (int k = 0; k < G; ++k) al[k] = select(in[k], select(al[k] < ALPHA_MAX, al[k], block_of(ALPHA_MAX)), vblock{});
 }
 
-// entries whose alphas a compositing block computes at once
+// entries whose alphas the forward computes at once (block_alphas)
 constexpr int GROUP = 4;
 
 }  // namespace
