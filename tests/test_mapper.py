@@ -130,6 +130,39 @@ def test_new_keyframe_trained_first_then_sampled(truth_frames):
     assert mapper.keyframes[1].kind is KeyframeKind.MAPPING_ONLY
 
 
+def test_training_views_are_kept_between_steps_within_their_budget(truth_frames):
+    mapper = make_mapper()  # 40x30 views: 19 kB each
+    add(mapper, truth_frames[0])
+    add(mapper, truth_frames[1])
+    store = mapper.keyframes
+    first = store.view(0)
+    assert torch.equal(first.image, store[0].view().image) and torch.equal(first.depth, store[0].view().depth)
+    assert store.view(0).image is first.image and store.view(0, scale=0.5).image is not first.image
+    one_view = (first.image.nbytes + first.depth.nbytes) / 2**20
+    small = make_mapper(mapper={"view_cache_mb": 1.5 * one_view})
+    off = make_mapper(mapper={"view_cache_mb": 0})
+    for m in (small, off):
+        add(m, truth_frames[0])
+        add(m, truth_frames[1])
+    kept = small.keyframes.view(0)
+    assert small.keyframes.view(0).image is kept.image
+    small.keyframes.view(1)  # the budget holds one: keyframe 0's is dropped
+    assert small.keyframes.view(0).image is not kept.image
+    assert off.keyframes.view(0).image is not off.keyframes.view(0).image
+
+
+def test_kept_views_train_as_fresh_ones(truth_frames):
+    maps = []
+    for cache_mb in (64.0, 0.0):
+        mapper = make_mapper(mapper={"view_cache_mb": cache_mb})
+        add(mapper, truth_frames[0])
+        add(mapper, truth_frames[1])
+        mapper.optimize(8)
+        maps.append(mapper.gaussian_map.parameters())
+    for name in maps[0]:
+        assert torch.equal(maps[0][name], maps[1][name]), name
+
+
 def test_coarse_steps_train_a_new_keyframe_at_half_resolution_first(truth_frames):
     mapper = make_mapper(mapper={"coarse_steps": 3})
     widths = []

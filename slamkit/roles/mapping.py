@@ -90,7 +90,8 @@ class TrainingView:
     keyframe_id, frame_index: which keyframe and input frame. pose: (4,4) float64
     camera-to-world. world_to_camera: (4,4) float32 tensor on the map's device (its inverse).
     camera: intrinsics in pixels at the training resolution. image: (H,W,3) float32 in [0, 1].
-    depth: (H,W) float32 metres, 0 = invalid.
+    depth: (H,W) float32 metres, 0 = invalid. Read-only: a mapper may hand the same view to
+    several steps.
     """
 
     keyframe_id: int

@@ -13,6 +13,7 @@ import enum
 import shutil
 import tempfile
 import weakref
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -110,17 +111,45 @@ def quantize(image: torch.Tensor, depth: torch.Tensor) -> tuple[np.ndarray, np.n
     return rgb, steps.to(torch.int32).cpu().numpy().astype(np.uint16)
 
 
+class ViewCache:
+    """Training views kept between steps, least recently used dropped first beyond `max_bytes`
+    of image data: a step on a cached view skips converting its keyframe's uint8 / uint16
+    images (~1 ms at 320x240, ~2 ms at 600x340 on one core). Views are read-only to training."""
+
+    def __init__(self, max_bytes: int):
+        self.max_bytes = max_bytes
+        self.bytes = 0
+        self._views: OrderedDict[tuple, TrainingView] = OrderedDict()
+
+    def get(self, key: tuple, make) -> TrainingView:
+        view = self._views.get(key)
+        if view is not None:
+            self._views.move_to_end(key)
+            return view
+        view = make()
+        size = view.image.nbytes + view.depth.nbytes
+        if size <= self.max_bytes:
+            self._views[key] = view
+            self.bytes += size
+            while self.bytes > self.max_bytes:
+                _, old = self._views.popitem(last=False)
+                self.bytes -= old.image.nbytes + old.depth.nbytes
+        return view
+
+
 class KeyframeStore:
     """The keyframes in arrival order (`ids`), by id (`[id]`). Append-only: a keyframe is
     stored before its id is published, so a mapping thread may read while the tracking thread
-    adds."""
+    adds. `view` hands out training views, the recent ones from a cache of `view_cache_mb` MiB."""
 
-    def __init__(self, resolution_scale: float, storage: KeyframeStorage, folder: str | None = None):
+    def __init__(self, resolution_scale: float, storage: KeyframeStorage, folder: str | None = None,
+                 view_cache_mb: float = 0.0):
         self.resolution_scale = resolution_scale
         self.storage = KeyframeStorage(storage)
         self.folder = Path(folder) if folder else None
         self.ids: list[int] = []
         self._by_id: dict[int, Keyframe] = {}
+        self._views = ViewCache(int(view_cache_mb * 2**20))
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -130,6 +159,11 @@ class KeyframeStore:
 
     def values(self) -> list[Keyframe]:
         return [self._by_id[i] for i in list(self.ids)]
+
+    def view(self, kf_id: int, device=None, scale: float = 1.0) -> TrainingView:
+        """Keyframe `kf_id` as a training target (Keyframe.view), from the cache when it holds it.
+        For the mapping thread (the cache is not locked)."""
+        return self._views.get((kf_id, str(device), scale), lambda: self._by_id[kf_id].view(device, scale))
 
     def training_camera(self, camera: Camera) -> Camera:
         return camera.scaled(self.resolution_scale) if self.resolution_scale != 1 else camera

@@ -60,7 +60,8 @@ class GaussianSplattingMapper(Mapper):
         self.cfg = cfg
         self.rasterizer, self.sampler, self.strategy, self.optimizer, self.loss = (
             rasterizer, sampler, strategy, optimizer, loss)
-        self.keyframes = KeyframeStore(cfg.training_scale(realtime=False), cfg.keyframe_storage, cfg.keyframe_dir)
+        self.keyframes = KeyframeStore(cfg.training_scale(realtime=False), cfg.keyframe_storage, cfg.keyframe_dir,
+                                       cfg.view_cache_mb)
         self.pending: deque[int] = deque()  # keyframes not trained on yet
         self.trained: dict[int, int] = {}  # steps taken on each keyframe
         self.rng = np.random.default_rng(cfg.seed)
@@ -109,7 +110,7 @@ class GaussianSplattingMapper(Mapper):
                 kf_id = self.pending.popleft() if self.pending else self._sample()
                 coarse = self.trained.get(kf_id, 0) < self.cfg.coarse_steps
                 self.trained[kf_id] = self.trained.get(kf_id, 0) + 1
-                view = self._window(self.keyframes[kf_id].view(self.gaussian_map.device, 0.5 if coarse else 1.0))
+                view = self._window(self.keyframes.view(kf_id, self.gaussian_map.device, 0.5 if coarse else 1.0))
             self.train_step(view)
             self.timer.steps += 1
             done += 1
