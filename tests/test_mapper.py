@@ -151,6 +151,25 @@ def test_training_views_are_kept_between_steps_within_their_budget(truth_frames)
     assert off.keyframes.view(0).image is not off.keyframes.view(0).image
 
 
+def test_the_least_recently_used_view_is_dropped_first(truth_frames):
+    probe = make_mapper()
+    add(probe, truth_frames[0])
+    one_view = (probe.keyframes.view(0).image.nbytes + probe.keyframes.view(0).depth.nbytes) / 2**20
+    mapper = make_mapper(mapper={"view_cache_mb": 2.5 * one_view})
+    for frame in (*truth_frames, truth_frames[0]):  # three keyframes
+        add(mapper, frame)
+    views = mapper.keyframes
+    first, second = views.view(0), views.view(1)
+    views.view(0)  # used again: keyframe 1's is now the least recently used
+    views.view(2)
+    assert views.view(0).image is first.image and views.view(1).image is not second.image
+
+
+def test_a_negative_view_cache_size_is_a_clear_error():
+    with pytest.raises(ConfigError, match="view_cache_mb"):
+        make_mapper(mapper={"view_cache_mb": -1})
+
+
 def test_kept_views_train_as_fresh_ones(truth_frames):
     maps = []
     for cache_mb in (64.0, 0.0):

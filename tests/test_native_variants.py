@@ -66,8 +66,8 @@ def _probe(tmp_path, variant: str) -> dict[str, np.ndarray]:
 @pytest.mark.parametrize("variant", sorted(VARIANTS))
 def test_every_vector_variant_this_cpu_runs_computes_lane_by_lane(tmp_path, variant):
     """Each operation of slk_vec16.h, in every variant this CPU can run, against numpy: lane
-    order (halves, widen / narrow, 8-lane loads and stores), masks, conversions, and the
-    fixed order of the double sum."""
+    order (halves, widen / narrow, 8-lane loads and stores), masks (lane_bits, selects of whole
+    vectors and of blocks), conversions, and the fixed order of the double sum."""
     if not CPU_NEEDS[variant] <= _cpu_flags():
         pytest.skip(f"this CPU lacks {sorted(CPU_NEEDS[variant])}")
     got = _probe(tmp_path, variant)
@@ -85,6 +85,8 @@ def test_every_vector_variant_this_cpu_runs_computes_lane_by_lane(tmp_path, vari
         "ld8": a[4:12].astype(float), "st8": np.concatenate([[0, 0, 0], (d * 1e-8).astype(f32), [0] * 5]),
         "dsum": [((d[0] + d[4]) + (d[1] + d[5])) + ((d[2] + d[6]) + (d[3] + d[7]))],
         "blocks": a * f32(2) + (i if variant == "avx512" else i % 8).astype(f32),
+        "lane_bits": [1 + 2**9 + 2**15], "block_select": np.where(a < 0, b, a),
+        "block_select_int": np.where(a < 0, 2 * i, i),
     }
     for name, want in exact.items():
         np.testing.assert_array_equal(got[name], np.asarray(want, dtype=float), err_msg=name)

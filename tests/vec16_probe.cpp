@@ -70,5 +70,15 @@ int main() {
   vf blocks = a;
   for (int h = 0; h < HALVES; ++h) block(blocks, h) = block(blocks, h) * block_of(2.0f) + to_vf(block_lanes());
   print("blocks", blocks);
+  print("lane_bits", (double)lane_bits((LANE == 0) | (LANE == 9) | (LANE == 15)));
+  // a select per block (the kernels' loops), of floats and of integers
+  vf picked = a, from_b = b, from_a = a;
+  vi picked_int = LANE, doubled = LANE + LANE, lanes = LANE, negative = a < 0.0f;
+  for (int h = 0; h < HALVES; ++h) {
+    block(picked, h) = select(block(negative, h), block(from_b, h), block(from_a, h));
+    block(picked_int, h) = select(block(negative, h), block(doubled, h), block(lanes, h));
+  }
+  print("block_select", picked);
+  print("block_select_int", picked_int);
   return 0;
 }

@@ -10,14 +10,16 @@
 //
 // Both variants offer the same interface: arithmetic and comparisons with vectors and scalars,
 // lane access v[i], vf1 / vi1 / vd1 (broadcast), as_vi / as_vf (bit casts), to_vi / to_vf (value
-// conversions, truncating toward zero), select, any, all, lane_bits (of masks: lanes 0 or -1, as comparisons
-// give; other values test differently per variant), hsum, vfma, vsqrt, LANE (0..15), and
+// conversions, truncating toward zero), select, any, all, lane_bits (of masks: lanes 0 or -1,
+// as comparisons give; other values, which no kernel passes, act differently per variant: a
+// block's select reads only the sign bit with AVX), hsum, vfma, vsqrt, LANE (0..15), and
 // for vd: ld8 / st8 (8 floats widened / rounded), widen / narrow (one vf <-> two vd). Arithmetic
 // is IEEE lane by lane in both: without -ffp-contract, results are the same bits, except the
 // float hsum's order of additions and vfma (fused where the target has FMA: AVX-512, and AVX2
 // CPUs with FMA, which all have it; a portable build rounds the product and the sum apart). vblock / iblock:
-// what a kernel processes at once, HALVES per vector (one with AVX-512, else the two halves),
-// with block(v, h), block_of (broadcast) and block_lanes (0..7 or 0..15). loadu / storeu:
+// what a kernel processes at once, HALVES per vector (one with AVX-512, else the two halves: the
+// rasteriser's blocks), with block(v, h), block_of (broadcast) and block_lanes (0..7 or 0..15),
+// and the same select / any / all / lane_bits. loadu / storeu:
 // unaligned loads and stores (a memcpy of the pair would go through 16-byte pieces and stall
 // the 32-byte loads that read them back).
 #pragma once
@@ -257,7 +259,8 @@ inline double hsum(vd a) {
 }
 
 // One half (f8 / i8, an AVX2 register) on its own, for kernels that skip a half no work touches
-// (`block`: half h of a vector, by reference): the same lane-by-lane arithmetic as the pair's.
+// (`block`: half h of a vector, by reference; the rasteriser keeps arrays of halves instead): the
+// same lane-by-lane arithmetic as the pair's.
 constexpr int HALVES = 2;
 typedef f8 vblock;
 typedef i8 iblock;

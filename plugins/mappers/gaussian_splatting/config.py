@@ -37,13 +37,14 @@ class GaussianSplattingConfig(PluginConfig):
     keyframe_storage: memory | disk: where keyframe training images live (uint8 colour and
       uint16 millimetre depth at the training resolution either way; disk = .npy files read
       back when the keyframe is trained on, for long runs).
-    view_cache_mb: training views (the keyframes' images as float tensors on the map's device)
-      kept between steps, at most this many MiB, least recently used dropped first: a step on a
-      kept view skips converting its keyframe's images (~1 ms of a 27 ms step at 320x240). 64
-      MiB holds ~50 views at 320x240, ~20 at 600x340 (0 = off).
     keyframe_dir: folder for keyframe_storage=disk (null = a temporary folder, removed when the
       mapper is released; `mapper.keyframe_dir=${hydra:runtime.output_dir}/keyframes` keeps
       them in the run folder).
+    view_cache_mb: training views (the keyframes' images as float tensors on the map's device)
+      kept between steps, at most this many MiB, least recently used dropped first: a step on a
+      kept view skips converting its keyframe's images (~1 ms of a 27 ms step at 320x240). 64
+      MiB holds ~50 views at 320x240, ~20 at 600x340 (0 = off). Not counted in the metrics'
+      keyframe_memory_mb.
     eval_every: evaluate every n-th frame. eval_resolution_scale: resolution of evaluation
       renders (1 = the dataset's). save_images: number of render | ground-truth images written.
     seed: the training-view sampler's random generator.

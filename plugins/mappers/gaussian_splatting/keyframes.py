@@ -12,8 +12,10 @@ from __future__ import annotations
 import enum
 import shutil
 import tempfile
+import threading
 import weakref
 from collections import OrderedDict
+from collections.abc import Callable, Hashable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -113,27 +115,32 @@ def quantize(image: torch.Tensor, depth: torch.Tensor) -> tuple[np.ndarray, np.n
 
 class ViewCache:
     """Training views kept between steps, least recently used dropped first beyond `max_bytes`
-    of image data: a step on a cached view skips converting its keyframe's uint8 / uint16
-    images (~1 ms at 320x240, ~2 ms at 600x340 on one core). Views are read-only to training."""
+    of image data: a step on a kept view skips converting its keyframe's uint8 / uint16 images
+    (~1 ms at 320x240, ~2 ms at 600x340 on one core). Views are read-only to training. Safe to
+    use from several threads (a lock; uncontended in practice: the mapping thread uses it)."""
 
     def __init__(self, max_bytes: int):
         self.max_bytes = max_bytes
-        self.bytes = 0
-        self._views: OrderedDict[tuple, TrainingView] = OrderedDict()
+        self.held_bytes = 0
+        self._views: OrderedDict[Hashable, TrainingView] = OrderedDict()
+        self._lock = threading.Lock()
 
-    def get(self, key: tuple, make) -> TrainingView:
-        view = self._views.get(key)
-        if view is not None:
-            self._views.move_to_end(key)
-            return view
+    def get(self, key: Hashable, make: Callable[[], TrainingView]) -> TrainingView:
+        """The view kept under `key`, else `make()`'s, kept if it fits the budget."""
+        with self._lock:
+            view = self._views.get(key)
+            if view is not None:
+                self._views.move_to_end(key)
+                return view
         view = make()
         size = view.image.nbytes + view.depth.nbytes
-        if size <= self.max_bytes:
-            self._views[key] = view
-            self.bytes += size
-            while self.bytes > self.max_bytes:
-                _, old = self._views.popitem(last=False)
-                self.bytes -= old.image.nbytes + old.depth.nbytes
+        with self._lock:
+            if size <= self.max_bytes and key not in self._views:
+                self._views[key] = view
+                self.held_bytes += size
+                while self.held_bytes > self.max_bytes:
+                    _, dropped = self._views.popitem(last=False)
+                    self.held_bytes -= dropped.image.nbytes + dropped.depth.nbytes
         return view
 
 
@@ -161,8 +168,9 @@ class KeyframeStore:
         return [self._by_id[i] for i in list(self.ids)]
 
     def view(self, kf_id: int, device=None, scale: float = 1.0) -> TrainingView:
-        """Keyframe `kf_id` as a training target (Keyframe.view), from the cache when it holds it.
-        For the mapping thread (the cache is not locked)."""
+        """Keyframe `kf_id` as a training target (Keyframe.view), from the cache when it holds it
+        (a keyframe's half-resolution view for `coarse_steps` is kept too, until newer views push
+        it out)."""
         return self._views.get((kf_id, str(device), scale), lambda: self._by_id[kf_id].view(device, scale))
 
     def training_camera(self, camera: Camera) -> Camera:

@@ -19,10 +19,10 @@ namespace {
 // The forward's alphas, kept for the backward, which would otherwise recompute every pair's exp
 // (the longest dependency chain of its loop; ~40 % of its time). Blocks are stored in the order
 // the forward computes them (so it writes sequentially): per tile chunk by chunk, per chunk entry
-// by entry, per entry its blocks in bit order (entry_rows); the backward finds an entry's first
-// block in entry_block. Each compositing thread appends its tiles' blocks to its own store (grown
-// by doubling up to its share of the budget, never initialised: the backward reads only blocks
-// written); a chunk that would exceed it is not stored, and the backward recomputes its alphas.
+// by entry, per entry its blocks in bit order (entry_blocks); entry_alphas says where an entry's
+// start. Each compositing thread appends its tiles' blocks to its own store (grown by doubling up
+// to its share of the budget, never initialised: the backward reads only blocks written); a
+// chunk that would exceed it is not stored, and the backward recomputes its alphas.
 struct AlphaStore {
   std::unique_ptr<vblock[]> data;
   size_t size = 0, cap = 0;  // in blocks

@@ -23,19 +23,18 @@ class StoredAlphas {
     tile_ = store.data ? store.data.get() + S.tile_block[tile] : nullptr;
   }
 
-  // The alphas of the entry at pos on its blocks (bit order), or nullptr where its chunk was not
-  // stored (the backward recomputes them). The first entry asked for in a chunk reads the whole
-  // chunk's blocks in (stream_in).
+  // The alphas of the entry at pos on its blocks, or nullptr where its chunk was not stored (the
+  // backward recomputes them). The first entry asked for in a chunk reads the whole chunk's
+  // blocks in (stream_in).
   const vblock* entry(int pos) {
-    const int32_t first = S_.entry_block[pos];
-    if (first < 0) return nullptr;
+    if (S_.entry_alphas[pos] < 0) return nullptr;
     const int cs = start_ + (pos - start_) / CHUNK * CHUNK;
     if (cs != chunk_) {
       chunk_ = cs;
       const int last = std::min(end_, cs + CHUNK) - 1;
-      stream_in(tile_ + S_.entry_block[cs], tile_ + S_.entry_block[last] + __builtin_popcount(S_.entry_rows[last]));
+      stream_in(tile_ + S_.entry_alphas[cs], tile_ + S_.entry_alphas[last] + __builtin_popcount(S_.entry_blocks[last]));
     }
-    return tile_ + first;
+    return tile_ + S_.entry_alphas[pos];
   }
 
  private:
@@ -44,14 +43,13 @@ class StoredAlphas {
   int start_, end_, chunk_ = -1;
 };
 
-// The alphas of entry E on its blocks `rows` (bit order) as the forward computed them, into out
+// The alphas of entry E on its blocks (bit order) as the forward computed them, into out
 // (BLOCKS + GROUP blocks), GROUP at a time (the last group padded with its last block).
-inline const vblock* recompute_alphas(const ChunkEntry& E, uint32_t rows, int x0, vblock* out) {
+inline void recompute_alphas(const ChunkEntry& E, uint32_t blocks, int x0, vblock* out) {
   int n = 0, lr[BLOCKS + GROUP], lane0[BLOCKS + GROUP];
-  for (; rows; rows &= rows - 1, ++n) {
-    const int bit = __builtin_ctz(rows);
-    lr[n] = bit / HALVES;
-    lane0[n] = bit % HALVES * BLOCK;
+  for (; blocks; blocks &= blocks - 1, ++n) {
+    lr[n] = block_row(__builtin_ctz(blocks));
+    lane0[n] = block_lane0(__builtin_ctz(blocks));
   }
   for (int k = n; k % GROUP; ++k) {
     lr[k] = lr[n - 1];
@@ -60,7 +58,6 @@ inline const vblock* recompute_alphas(const ChunkEntry& E, uint32_t rows, int x0
   const ChunkEntry* entries[GROUP];
   std::fill(entries, entries + GROUP, &E);
   for (int k = 0; k < n; k += GROUP) block_alphas<GROUP>(entries, lr + k, lane0 + k, x0, out + k);
-  return out;
 }
 
 void backward(State& S, const float* means, const float* quats, const float* scales, const float* opac,
@@ -91,7 +88,8 @@ void backward(State& S, const float* means, const float* quats, const float* sca
       }
       double b0 = 0, b1 = 0, b2 = 0;  // d colour / d bg = T
       // (the blocks' lanes, in memory, are the tile's pixels row by row)
-      float *Tp = pixels(T), *g0p = pixels(g0), *g1p = pixels(g1), *g2p = pixels(g2), *gdp = pixels(gd), *gap = pixels(ga);
+      float *Tp = pixels(T), *g0p = pixels(g0), *g1p = pixels(g1), *g2p = pixels(g2);
+      float *gdp = pixels(gd), *gap = pixels(ga);
       int32_t* lastp = pixels(last);
       for (int lr = 0; lr < th; ++lr) {
         const size_t q0 = (size_t)(y0 + lr) * W + x0;
@@ -122,7 +120,7 @@ void backward(State& S, const float* means, const float* quats, const float* sca
       alignas(64) vblock recomputed[BLOCKS + GROUP];
       for (int pos = end - 1; pos >= start; --pos) {
         float* mom = &moments[(size_t)S.tile_slot[pos] * NUM_MOMENTS];
-        if (pos > maxlast) {
+        if (pos > maxlast || S.entry_blocks[pos] == 0) {  // (no pixel it covers composited it)
           for (int k = 0; k < NUM_MOMENTS; ++k) mom[k] = 0.0f;
           continue;
         }
@@ -131,18 +129,19 @@ void backward(State& S, const float* means, const float* quats, const float* sca
         // the entry's moments, summed over its blocks (lane by lane, then across)
         vblock m0{}, mx{}, my{}, mxx{}, mxy{}, myy{}, w0{}, w1{}, w2{}, wd{};
         const iblock posv = iblock{} + pos;
-        // the entry's alphas on the blocks the forward pass listed it in (it composited those this
-        // walk needs), in bit order: as stored, or recomputed as the forward computed them
+        // the entry's alphas on the blocks the forward pass composited it on (bit order): as
+        // stored, or recomputed as the forward computed them
         const vblock* al = alphas.entry(pos);
         if (al) {
           spans_from_starts(s, S.entry_xl[pos], y0, E.sp);
         } else {
           row_spans(s, y0, W, E.sp);
           E.a = s.a;
-          al = recompute_alphas(E, S.entry_rows[pos], x0, recomputed);
+          recompute_alphas(E, S.entry_blocks[pos], x0, recomputed);
+          al = recomputed;
         }
-        for (uint32_t rows = S.entry_rows[pos]; rows; rows &= rows - 1, ++al) {
-          const int bit = __builtin_ctz(rows), lr = bit / HALVES, lane0 = bit % HALVES * BLOCK;
+        for (uint32_t blocks = S.entry_blocks[pos]; blocks; blocks &= blocks - 1, ++al) {
+          const int bit = __builtin_ctz(blocks), lr = block_row(bit), lane0 = block_lane0(bit);
           // alpha > 0 exactly where the entry covers the pixel (block_alphas)
           const iblock m = (*al > 0.0f) & (posv <= last[bit]);
           if (!any(m)) continue;

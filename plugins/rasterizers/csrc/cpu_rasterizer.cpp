@@ -7,8 +7,9 @@
 // fixed order). One translation unit, its parts in the headers beside it, in the order they
 // build on each other: conventions.h (the constants of the conventions below), projection.h (3D -> 2D and its
 // backward), splats.h (a projected Gaussian on a tile's rows), alpha_store.h (the alphas kept
-// for the backward), render_state.h (what a render keeps between its passes), forward.h,
-// backward.h; this file is the C ABI.
+// for the backward), render_state.h (what a render keeps between its passes), composite.h (a
+// tile's compositing: a chunk's visits and the tile's state), forward.h, backward.h; this file
+// is the C ABI.
 //
 // Conventions: exactly those of slamkit.map.rendering.Rasterizer and the `torch` backend
 // (plugins/rasterizers/torch_rasterizer.py), which is the reference:

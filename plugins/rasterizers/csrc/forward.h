@@ -8,6 +8,7 @@
 #include <vector>
 
 #include "slk_thread_pool.h"  // (slamkit/csrc) Pool, parallel_for
+#include "composite.h"
 #include "render_state.h"
 
 namespace {
@@ -148,160 +149,51 @@ void forward(State& S, const float* means, const float* quats, const float* scal
     S.alpha_store.push_back(S.alpha_budget ? AlphaStorePool::instance().take() : AlphaStore());
   S.tile_store.assign(tiles, 0);
   S.tile_block.assign(tiles, 0);
-  S.entry_block.resize(num_entries);
-  S.entry_rows.resize(num_entries);
-  S.entry_xl.resize(num_entries);
+  S.entry_blocks.resize(num_entries);
+  S.entry_alphas.resize(num_entries);
+  if (S.alpha_budget) S.entry_xl.resize(num_entries);
   S.last.resize((size_t)W * H);
   std::vector<int64_t> pairs_per_thread(std::max(nthreads, 1), 0), lanes_per_thread(std::max(nthreads, 1), 0),
       stored_per_thread(std::max(nthreads, 1), 0),
       tiles_per_thread(std::max(nthreads, 1), 0);
   parallel_for(nthreads, tiles, 1, [&](int64_t b, int64_t e, int tid) {
-    std::unique_ptr<ChunkEntry[]> ents(new ChunkEntry[CHUNK]);
-    // a chunk's visits (an entry on a block it covers, entry by entry, each entry's blocks in bit
-    // order: k * BLOCKS + bit for entry k) and their alphas (the store keeps a copy where it can)
-    constexpr int MAX_VISITS = CHUNK * BLOCKS + GROUP;
-    static_assert(CHUNK * BLOCKS <= 65536, "a chunk's visits are numbered in uint16_t");
-    std::unique_ptr<uint16_t[]> visit_(new uint16_t[MAX_VISITS]);
-    std::unique_ptr<vblock[]> alphas_(new vblock[MAX_VISITS]);
-    uint16_t* const visit = visit_.get();
-    vblock* const alphas = alphas_.get();
+    std::unique_ptr<ChunkVisits> chunk(new ChunkVisits);
+    ChunkVisits& C = *chunk;
     for (int64_t ti = b; ti < e; ++ti) {
       const int tile = S.tile_order[ti];
       const int tx = tile % S.tiles_x, ty = tile / S.tiles_x;
       const int x0 = tx * TILE, y0 = ty * TILE;
       const int tw = std::min(TILE, W - x0), th = std::min(TILE, H - y0);
-      // per block: transmittance, colour, depth and alpha sums, last position, done lanes
-      vblock T[BLOCKS], c0[BLOCKS], c1[BLOCKS], c2[BLOCKS], dep[BLOCKS], acc[BLOCKS];
-      iblock last[BLOCKS], done[BLOCKS];
-      uint32_t alive = 0;  // blocks with lanes not done
-      for (int bit = 0; bit < BLOCKS; ++bit) {
-        const int lr = bit / HALVES, lane0 = bit % HALVES * BLOCK;
-        T[bit] = block_of(1.0f);
-        c0[bit] = c1[bit] = c2[bit] = dep[bit] = acc[bit] = vblock{};
-        last[bit] = iblock{} - 1;
-        done[bit] = lr < th ? block_lanes() + lane0 >= tw : iblock{} - 1;
-        alive |= (uint32_t)!all(done[bit]) << bit;
-      }
+      TileState st(tw, th);
       int64_t lanes = 0, stored_lanes = 0;
-      iblock count = iblock{};
       AlphaStore& store = S.alpha_store[tid];
       S.tile_store[tile] = tid;
       S.tile_block[tile] = (int64_t)store.size;
       int32_t tile_blocks = 0;
       const int end = S.tile_start[tile + 1];
-      for (int cs = S.tile_start[tile]; cs < end && alive; cs += CHUNK) {
-        // the chunk's entries: their row spans and the blocks they cover (blocks already done
-        // are skipped), as visits, and per block its visits in depth order
+      for (int cs = S.tile_start[tile]; cs < end && st.alive; cs += CHUNK) {
         const int ce = std::min(end, cs + CHUNK);
-        int nrow[BLOCKS] = {};
-        uint16_t list[BLOCKS][CHUNK];
-        EntryPaint paint[CHUNK];
-        int first_visit[CHUNK];
-        uint32_t listed = 0;  // blocks with entries
-        int visits = 0;
-        for (int pos = cs; pos < ce; ++pos) {
-          if (pos + PREFETCH < end) __builtin_prefetch(&S.splats[S.tile_ids[pos + PREFETCH]]);
-          const Splat& s = S.splats[S.tile_ids[pos]];
-          const int k = pos - cs;
-          ChunkEntry& E = ents[k];
-          row_spans(s, y0, W, E.sp);
-          E.a = s.a;
-          paint[k] = EntryPaint{{s.col[0], s.col[1], s.col[2]}, s.z, pos};
-          const uint32_t met = alive & blocks_met(E.sp, std::max(s.y0 - y0, 0), std::min(s.y1 - y0, th - 1), x0, tw);
-          first_visit[k] = visits;
-          for (uint32_t m = met; m; m &= m - 1, ++visits) {
-            const int bit = __builtin_ctz(m);
-            list[bit][nrow[bit]++] = (uint16_t)visits;
-            visit[visits] = (uint16_t)(k * BLOCKS + bit);
-          }
-          listed |= met;
-          S.entry_rows[pos] = met;
-          S.entry_xl[pos] = *(const vi*)E.sp.xl;
-        }
-        // the visits' alphas, GROUP at a time (the last group padded with its last visit)
-        for (int v = visits; v % GROUP; ++v) visit[v] = visit[visits - 1];
-        for (int v = 0; v < visits; v += GROUP) {
-          const ChunkEntry* E[GROUP];
-          int lr[GROUP], lane0[GROUP];
-          for (int g = 0; g < GROUP; ++g) {
-            const int bit = visit[v + g] % BLOCKS;
-            E[g] = &ents[visit[v + g] / BLOCKS];
-            lr[g] = bit / HALVES;
-            lane0[g] = bit % HALVES * BLOCK;
-          }
-          block_alphas<GROUP>(E, lr, lane0, x0, alphas + v);
-        }
-        lanes += (int64_t)visits * BLOCK;
-        // kept for the backward where they fit (AlphaStore; else the backward recomputes them)
-        const size_t stored = S.tile_block[tile] + tile_blocks + visits;
-        const bool keep = stored <= S.alpha_budget;
+        C.list(S, cs, ce, end, x0, y0, tw, th, st.alive);
+        C.compute_alphas(x0);
+        lanes += (int64_t)C.visits * BLOCK;
+        // kept for the backward where they fit (AlphaStore; else the backward recomputes them),
+        // with the entries' span starts
+        const size_t stored = S.tile_block[tile] + tile_blocks + C.visits;
+        const bool keep = C.visits > 0 && stored <= S.alpha_budget;
         if (keep) {
           store.reserve(stored, S.alpha_budget);
           vblock* kept = store.data.get() + S.tile_block[tile] + tile_blocks;
-          for (int v = 0; v < visits; ++v) store_streaming(kept + v, alphas[v]);
-          stored_lanes += (int64_t)visits * BLOCK;
+          for (int v = 0; v < C.visits; ++v) store_streaming(kept + v, C.alphas[v]);
+          for (int k = 0; k < ce - cs; ++k) S.entry_xl[cs + k] = *(const vi*)C.ents[k].sp.xl;
+          stored_lanes += (int64_t)C.visits * BLOCK;
         }
-        for (int pos = cs; pos < ce; ++pos) S.entry_block[pos] = keep ? tile_blocks + first_visit[pos - cs] : -1;
-        tile_blocks += keep ? visits : 0;
-        // composite block by block, the block's state in registers
-        for (uint32_t m = listed; m; m &= m - 1) {
-          const int bit = __builtin_ctz(m);
-          vblock rT = T[bit], r0c = c0[bit], r1c = c1[bit], r2c = c2[bit], rdep = dep[bit], racc = acc[bit];
-          iblock rlast = last[bit], rdone = done[bit];
-          for (int j = 0; j < nrow[bit]; ++j) {
-            const int v = list[bit][j];
-            const EntryPaint& P = paint[visit[v] / BLOCKS];
-            const vblock al = alphas[v];
-            // lanes outside the span have alpha 0: they change nothing but stay undone
-            const vblock Tn = rT * (1.0f - al);
-            const iblock now_done = rdone | (Tn < (float)T_MIN);
-            const vblock w = select(now_done, vblock{}, al * rT);
-            r0c = vfma(w, block_of(P.col[0]), r0c);
-            r1c = vfma(w, block_of(P.col[1]), r1c);
-            r2c = vfma(w, block_of(P.col[2]), r2c);
-            rdep = vfma(w, block_of(P.z), rdep);
-            racc += w;
-            rT = select(now_done, rT, Tn);
-            const iblock covered = ~now_done & (al > 0.0f);
-            rlast = select(covered, iblock{} + P.pos, rlast);
-            count -= covered;
-            rdone = now_done;  // (branch-free: stops are too frequent and irregular to predict)
-            if (all(rdone)) {
-              alive &= ~(1u << bit);
-              break;
-            }
-          }
-          T[bit] = rT;
-          c0[bit] = r0c;
-          c1[bit] = r1c;
-          c2[bit] = r2c;
-          dep[bit] = rdep;
-          acc[bit] = racc;
-          last[bit] = rlast;
-          done[bit] = rdone;
-        }
+        for (int k = 0; k < ce - cs; ++k) S.entry_alphas[cs + k] = keep ? tile_blocks + C.first_visit[k] : -1;
+        tile_blocks += keep ? C.visits : 0;
+        for (uint32_t m = C.listed; m; m &= m - 1) st.composite(__builtin_ctz(m), C);
       }
       store.size = S.tile_block[tile] + tile_blocks;
-      // (the blocks' lanes, in memory, are the tile's pixels row by row)
-      const float *Tp = pixels(T), *c0p = pixels(c0), *c1p = pixels(c1), *c2p = pixels(c2);
-      for (int lr = 0; lr < th; ++lr) {
-        const size_t q0 = (size_t)(y0 + lr) * W + x0;
-        const int i0 = lr * TILE;
-        for (int lc = 0; lc < tw; ++lc) {
-          // the background shows through T = 1 - sum w (T is the more accurate where alpha ~ 1)
-          const float rest = Tp[i0 + lc];
-          out_color[3 * (q0 + lc)] = c0p[i0 + lc] + rest * bg[0];
-          out_color[3 * (q0 + lc) + 1] = c1p[i0 + lc] + rest * bg[1];
-          out_color[3 * (q0 + lc) + 2] = c2p[i0 + lc] + rest * bg[2];
-        }
-        std::memcpy(out_depth + q0, pixels(dep) + i0, tw * sizeof(float));
-        std::memcpy(out_alpha + q0, pixels(acc) + i0, tw * sizeof(float));
-        std::memcpy(&S.T_final[q0], Tp + i0, tw * sizeof(float));
-        std::memcpy(&S.last[q0], pixels(last) + i0, tw * sizeof(int32_t));
-      }
-      int64_t pairs = 0;
-      for (int i = 0; i < BLOCK; ++i) pairs += count[i];
-      pairs_per_thread[tid] += pairs;
+      st.write(S, x0, y0, tw, th, bg, out_color, out_depth, out_alpha);
+      pairs_per_thread[tid] += st.pairs();
       lanes_per_thread[tid] += lanes;
       stored_per_thread[tid] += stored_lanes;
       tiles_per_thread[tid] += 1;

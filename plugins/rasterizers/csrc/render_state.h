@@ -43,9 +43,10 @@ struct State {
   std::vector<AlphaStore> alpha_store;  // per forward thread
   std::vector<int32_t> tile_store;      // tiles: the thread whose store holds the tile's alphas
   std::vector<int64_t> tile_block;      // tiles: the tile's first block in that store
-  std::vector<int32_t> entry_block;     // entries: the first of its blocks in the tile's stored alphas (-1: not stored)
-  std::vector<uint32_t> entry_rows;     // entries: bit lr * HALVES + h set where the entry was listed
-  std::vector<vi> entry_xl;             // entries: their row spans' first columns (RowSpans::xl)
+  // per entry of the chunks composited (the backward reads no others):
+  std::vector<uint32_t> entry_blocks;   // the blocks it was composited on (bit lr * HALVES + h)
+  std::vector<int32_t> entry_alphas;    // where its alphas are in the tile's stored ones (-1: not stored)
+  std::vector<vi> entry_xl;             // where they are stored: its span starts (RowSpans::xl)
   int64_t num_pairs = 0;
   int64_t num_rows = 0;  // vector steps of the forward pass, in 16-lane units (an 8-lane half counts 1/2)
   int64_t num_rows_stored = 0;  // of those, the ones whose alphas were kept for the backward

@@ -135,11 +135,12 @@ inline void row_spans(const Splat& s, int y0, int W, RowSpans& o) {
 }
 
 // The part of the row spans (RowSpans) that the backward needs where the forward's alphas were
-// stored, from the span starts xl the forward kept: xl, row_dx and dy, as row_spans computes them.
+// stored, from the span starts xl the forward kept: xl, row_dx and dy, as row_spans computes them
+// (no square root or division).
 inline void spans_from_starts(const Splat& s, const vi& xl, int y0, RowSpans& o) {
+  *(vi*)o.xl = xl;
   *(vf*)o.dy = to_vf(LANE + y0) - s.v;
   *(vf*)o.row_dx = to_vf(xl) - s.u;
-  *(vi*)o.xl = xl;
 }
 
 // Compositing a tile goes chunk by chunk (CHUNK entries): the entries' row spans are computed
@@ -164,6 +165,8 @@ struct EntryPaint {  // what compositing adds of an entry: colour, depth, its ti
 constexpr int BLOCK = TILE / HALVES;
 constexpr int BLOCKS = TILE * HALVES;
 static_assert(BLOCKS <= 32, "a tile's blocks are the bits of a uint32_t");
+inline int block_row(int bit) { return bit / HALVES; }
+inline int block_lane0(int bit) { return bit % HALVES * BLOCK; }  // its first lane in the tile row
 
 // the lanes of a tile's blocks (each block's lanes in turn: the tile's pixels row by row)
 inline const float* pixels(const vblock* v) { return reinterpret_cast<const float*>(v); }
@@ -199,8 +202,10 @@ inline vblock block_dx(const RowSpans& sp, int lr, int a, int lane0) {
 
 // Entries' alphas on blocks, G at a time (so that their exps interleave, vexp): entry E[k] on the
 // block of row lr[k] whose first lane is lane0[k] (tile columns; the tile's first column is x0),
-// 0 outside its span on that row: alpha > 0 exactly where it covers a pixel. log alpha is the
-// torch backend's expression (fused here: it does not decide which pixels are covered).
+// 0 outside its span on that row. log alpha is the torch backend's expression (fused here: it
+// does not decide which pixels are covered). Both passes read "alpha > 0" as "covered": inside a
+// span alpha is at least exp(-87) (vexp's clamp; a normal float), and the clamp to ALPHA_MAX
+// below sends a NaN to ALPHA_MAX (keep its argument order).
 template <int G>
 inline void block_alphas(const ChunkEntry* const* E, const int* lr, const int* lane0, int x0, vblock* al) {
   iblock in[G];
