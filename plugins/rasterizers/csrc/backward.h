@@ -44,20 +44,12 @@ class StoredAlphas {
 };
 
 // The alphas of entry E on its blocks (bit order) as the forward computed them, into out
-// (BLOCKS + GROUP blocks), GROUP at a time (the last group padded with its last block).
+// (BLOCKS + GROUP blocks).
 inline void recompute_alphas(const ChunkEntry& E, uint32_t blocks, int x0, vblock* out) {
-  int n = 0, lr[BLOCKS + GROUP], lane0[BLOCKS + GROUP];
-  for (; blocks; blocks &= blocks - 1, ++n) {
-    lr[n] = block_row(__builtin_ctz(blocks));
-    lane0[n] = block_lane0(__builtin_ctz(blocks));
-  }
-  for (int k = n; k % GROUP; ++k) {
-    lr[k] = lr[n - 1];
-    lane0[k] = lane0[n - 1];
-  }
-  const ChunkEntry* entries[GROUP];
-  std::fill(entries, entries + GROUP, &E);
-  for (int k = 0; k < n; k += GROUP) block_alphas<GROUP>(entries, lr + k, lane0 + k, x0, out + k);
+  uint16_t visit[BLOCKS + GROUP];
+  int n = 0;
+  for (; blocks; blocks &= blocks - 1) visit[n++] = (uint16_t)__builtin_ctz(blocks);  // (entry 0: E)
+  visit_alphas(&E, visit, n, x0, out);
 }
 
 void backward(State& S, const float* means, const float* quats, const float* scales, const float* opac,

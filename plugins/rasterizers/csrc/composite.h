@@ -55,20 +55,8 @@ struct ChunkVisits {
     first_visit[ce - cs] = visits;
   }
 
-  // The visits' alphas (block_alphas), GROUP at a time (the last group padded with its last visit).
-  void compute_alphas(int x0) {
-    for (int v = visits; v % GROUP; ++v) entry[v] = entry[visits - 1];
-    for (int v = 0; v < visits; v += GROUP) {
-      const ChunkEntry* E[GROUP];
-      int lr[GROUP], lane0[GROUP];
-      for (int g = 0; g < GROUP; ++g) {
-        E[g] = &ents[entry[v + g] / BLOCKS];
-        lr[g] = block_row(entry[v + g] % BLOCKS);
-        lane0[g] = block_lane0(entry[v + g] % BLOCKS);
-      }
-      block_alphas<GROUP>(E, lr, lane0, x0, alphas + v);
-    }
-  }
+  // The visits' alphas (visit_alphas).
+  void compute_alphas(int x0) { visit_alphas(ents, entry, visits, x0, alphas); }
 };
 
 // A tile's compositing state, per block: transmittance, colour, depth and alpha sums, last
@@ -77,7 +65,7 @@ struct TileState {
   vblock T[BLOCKS], c0[BLOCKS], c1[BLOCKS], c2[BLOCKS], dep[BLOCKS], acc[BLOCKS];
   iblock last[BLOCKS], done[BLOCKS];
   uint32_t alive = 0;
-  iblock count{};  // per lane
+  iblock pairs_per_lane{};  // composited
 
   TileState(int tw, int th) {
     for (int bit = 0; bit < BLOCKS; ++bit) {
@@ -93,7 +81,7 @@ struct TileState {
   // whose lanes are all done leaves `alive`.
   void composite(int bit, const ChunkVisits& C) {
     vblock rT = T[bit], r0c = c0[bit], r1c = c1[bit], r2c = c2[bit], rdep = dep[bit], racc = acc[bit];
-    iblock rlast = last[bit], rdone = done[bit], rcount = count;
+    iblock rlast = last[bit], rdone = done[bit], rpairs = pairs_per_lane;
     for (int j = 0; j < C.count[bit]; ++j) {
       const int v = C.block_visits[bit][j];
       const EntryPaint& P = C.paint[C.entry[v] / BLOCKS];
@@ -110,7 +98,7 @@ struct TileState {
       rT = select(now_done, rT, Tn);
       const iblock covered = ~now_done & (al > 0.0f);
       rlast = select(covered, iblock{} + P.pos, rlast);
-      rcount -= covered;
+      rpairs -= covered;
       rdone = now_done;  // (branch-free: stops are too frequent and irregular to predict)
       if (all(rdone)) {
         alive &= ~(1u << bit);
@@ -125,7 +113,7 @@ struct TileState {
     acc[bit] = racc;
     last[bit] = rlast;
     done[bit] = rdone;
-    count = rcount;
+    pairs_per_lane = rpairs;
   }
 
   // The tile's pixels (first column x0, row y0, tw x th) into the outputs (W wide), with the
@@ -153,7 +141,7 @@ struct TileState {
 
   int64_t pairs() const {
     int64_t n = 0;
-    for (int i = 0; i < BLOCK; ++i) n += count[i];
+    for (int i = 0; i < BLOCK; ++i) n += pairs_per_lane[i];
     return n;
   }
 };

@@ -226,4 +226,21 @@ inline void block_alphas(const ChunkEntry* const* E, const int* lr, const int* l
 // entries whose alphas the forward computes at once (block_alphas)
 constexpr int GROUP = 4;
 
+// The alphas of n visits, visit v being entry ents[visit[v] / BLOCKS] on block visit[v] % BLOCKS,
+// into out, GROUP at a time; visit[] and out hold n rounded up to GROUP (the last group is
+// padded with its last visit).
+inline void visit_alphas(const ChunkEntry* ents, uint16_t* visit, int n, int x0, vblock* out) {
+  for (int v = n; v % GROUP; ++v) visit[v] = visit[n - 1];
+  for (int v = 0; v < n; v += GROUP) {
+    const ChunkEntry* E[GROUP];
+    int lr[GROUP], lane0[GROUP];
+    for (int g = 0; g < GROUP; ++g) {
+      E[g] = &ents[visit[v + g] / BLOCKS];
+      lr[g] = block_row(visit[v + g] % BLOCKS);
+      lane0[g] = block_lane0(visit[v + g] % BLOCKS);
+    }
+    block_alphas<GROUP>(E, lr, lane0, x0, out + v);
+  }
+}
+
 }  // namespace
