@@ -65,7 +65,7 @@ def sequence_overrides(name: str, data: Path) -> list[str]:
 
 def variant_overrides(variant: str) -> list[str]:
     backend, device = variant.split("@")
-    return [f"rasterizer={backend}", f"mapping_device={device}"]
+    return [f"mapper/rasterizer={backend}", f"mapping_device={device}"]
 
 
 def selected(variants, no_gsplat: bool) -> list[str]:
@@ -198,7 +198,7 @@ def tracking(name: str, device: str, data: Path, frames: list) -> dict:
     import numpy as np
 
     from slamkit.metrics import trajectory as evaluation
-    from slamkit.registry.compose import build_run
+    from slamkit.run.build import build_run
 
     _, slam, _ = build_run([*sequence_overrides(name, data), "tracker=gicp", "keyframe=overlap", "mapper=none",
                             f"mapping_device={device}", "progress=false"])
@@ -242,10 +242,10 @@ def phases(name: str, variant: str, data: Path) -> dict:
     """The map grown over the first PHASE_FRAMES frames, then timed training steps."""
     import torch
 
-    from slamkit.registry.compose import build_run
+    from slamkit.run.build import build_run
 
     sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from step_phases import time_steps, unwrapped
+    from step_phases import time_steps
 
     device = variant.split("@")[1]
     dataset, slam, _ = build_run([*sequence_overrides(name, data), f"dataset.max_frames={PHASE_FRAMES}",
@@ -254,16 +254,16 @@ def phases(name: str, variant: str, data: Path) -> dict:
     slam.initialize(dataset[0].gt_pose)
     for i in range(len(dataset)):
         slam.step(dataset[i])
-    mapper = unwrapped(slam.mapper)
+    mapper = slam.mapper
     sync = torch.cuda.synchronize if device == "cuda" else None
     time_steps(mapper, PHASE_WARMUP, sync)
-    first_loss = mapper.last_loss
+    first_loss = mapper.trainer.last_loss
     timer = time_steps(mapper, PHASE_STEPS, sync)
-    cam = mapper.keyframes[mapper.keyframes.ids[0]].camera
-    return {"sequence": name, "variant": variant, "frames": len(dataset), "keyframes": len(mapper.keyframes),
+    cam = mapper.trainer.keyframes[mapper.trainer.keyframes.ids[0]].camera
+    return {"sequence": name, "variant": variant, "frames": len(dataset), "keyframes": len(mapper.trainer.keyframes),
             "gaussians": len(slam.gaussian_map), "resolution": f"{cam.width}x{cam.height}", "steps": timer.steps,
             "ms": timer.per_step_ms(), "cpu_ms": {k: 1e3 * v / max(timer.steps, 1) for k, v in timer.cpu.items()},
-            "first_loss": first_loss, "last_loss": mapper.last_loss}
+            "first_loss": first_loss, "last_loss": mapper.trainer.last_loss}
 
 
 def realtime(name: str, variant: str, data: Path, runs_dir: Path) -> dict:

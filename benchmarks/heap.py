@@ -19,7 +19,7 @@ import time
 import torch
 
 import slamkit.run.slam
-from slamkit.registry.compose import build_run
+from slamkit.run.build import build_run
 
 
 class MallInfo2(ctypes.Structure):
@@ -45,7 +45,7 @@ def tensor_mb() -> float:
 def build(frames: int, cap: int | None, iterations: int) -> tuple:
     dataset, slam, _ = build_run(["dataset=synthetic", "dataset.num_frames=2000", f"dataset.max_frames={frames}",
                                   "tracker=gicp", "keyframe=overlap", "mapper=gaussian_splatting",
-                                  "final_iterations=0", f"strategy.max_gaussians={cap or 'null'}",
+                                  "final_iterations=0", f"mapper.memory_cap.max_gaussians={cap or 'null'}",
                                   f"iterations_per_frame={iterations}"])
     return dataset, slam
 

@@ -100,8 +100,8 @@ def variants(args) -> list[tuple[str, list[str]]]:
     for cap in caps:
         overrides = dict(base)
         if cap is not None:
-            overrides["strategy.max_gaussians"] = "null" if cap.lower() == "none" else cap
-        label = "tracking only" if not args.mapper else f"max_gaussians={overrides.get('strategy.max_gaussians', 'null')}"
+            overrides["mapper.memory_cap.max_gaussians"] = "null" if cap.lower() == "none" else cap
+        label = "tracking only" if not args.mapper else f"max_gaussians={overrides.get('mapper.memory_cap.max_gaussians', 'null')}"
         out.append((label, [f"{k}={v}" for k, v in overrides.items()]))
     return out
 

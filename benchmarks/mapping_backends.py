@@ -25,7 +25,7 @@ SEQUENCES = {
     "replica": ["dataset=replica", f"dataset.path={DATA / 'replica_room0_first20'}"],
     "tum": ["dataset=tum", f"dataset.path={DATA / 'tum_fr1_rpy_first150'}"],
 }
-PATHS = {"cpu": ["rasterizer=cpu"], "torch": ["rasterizer=torch", "loss.backend=torch"]}
+PATHS = {"cpu": ["mapper/rasterizer=cpu"], "torch": ["mapper/rasterizer=torch", "mapper.loss.backend=torch"]}
 KEYS = ("wall_time_s", "mapping_time_s", "refine_time_s", "mapping_steps", "psnr", "ssim", "ate_rmse_m",
         "num_gaussians", "peak_memory_mb")
 

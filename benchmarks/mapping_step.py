@@ -8,7 +8,7 @@ optimiser, strategy), in wall and thread-CPU milliseconds, with the map size and
 trains differently also times its own map.
 
     OMP_NUM_THREADS=1 python benchmarks/mapping_step.py                       # cpu path vs torch path
-    OMP_NUM_THREADS=1 python benchmarks/mapping_step.py --sequences tum --variant fast="loss.backend=compiled"
+    OMP_NUM_THREADS=1 python benchmarks/mapping_step.py --sequences tum --variant fast="mapper.loss.backend=compiled"
 
 Prints a markdown table and writes JSON (`--out`). The machine is shared: compare variants of
 the same run; thread CPU time is the steadier figure under load.
@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from slamkit.metrics.images import psnr
-from slamkit.registry.compose import build_run
+from slamkit.run.build import build_run
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 SEQUENCES = {  # name -> (overrides, frames that build the map)
@@ -34,8 +34,8 @@ SEQUENCES = {  # name -> (overrides, frames that build the map)
     "replica": (["dataset=replica", f"dataset.path={DATA / 'replica_room0_first20'}"], 20),
 }
 VARIANTS = {
-    "torch": ["rasterizer=torch", "loss=l1_ssim_depth", "optimizer=adam"],
-    "cpu": ["rasterizer=cpu"],
+    "torch": ["mapper/rasterizer=torch", "mapper/loss=l1_ssim_depth", "mapper/optimizer=adam"],
+    "cpu": ["mapper/rasterizer=cpu"],
 }
 
 
@@ -53,10 +53,10 @@ def train_psnr(slam, dataset) -> float:
     """Mean PSNR over the keyframes at the training resolution (a quick quality check)."""
     mapper = slam.mapper
     values = []
-    for kf in mapper.keyframes.values():
+    for kf in mapper.trainer.keyframes.values():
         view = kf.view(slam.gaussian_map.device)
         with torch.no_grad():
-            out = mapper.render(view.world_to_camera, view.camera)
+            out = mapper.trainer.render(view.world_to_camera, view.camera)
         values.append(psnr(out.color.clamp(0, 1), view.image, view.depth > 0))
     return float(np.mean(values))
 
@@ -64,18 +64,18 @@ def train_psnr(slam, dataset) -> float:
 def time_steps(sequence: str, name: str, overrides: list[str], steps: int) -> dict:
     dataset, slam = build_map(sequence, overrides)
     mapper = slam.mapper
-    mapper.timer.reset()
+    mapper.trainer.timer.reset()
     cpu0, wall0 = time.thread_time(), time.perf_counter()
     mapper.optimize(steps)
     wall, cpu = time.perf_counter() - wall0, time.thread_time() - cpu0
-    n = max(mapper.timer.steps, 1)
-    phases = {p: 1e3 * mapper.timer.wall[p] / n for p in mapper.timer.wall}
-    phases_cpu = {p: 1e3 * mapper.timer.cpu[p] / n for p in mapper.timer.cpu}
-    camera = mapper.keyframes.values()[0].camera
+    n = max(mapper.trainer.timer.steps, 1)
+    phases = {p: 1e3 * mapper.trainer.timer.wall[p] / n for p in mapper.trainer.timer.wall}
+    phases_cpu = {p: 1e3 * mapper.trainer.timer.cpu[p] / n for p in mapper.trainer.timer.cpu}
+    camera = mapper.trainer.keyframes.values()[0].camera
     return {
         "sequence": sequence, "variant": name, "overrides": overrides, "steps": n,
         "resolution": f"{camera.width}x{camera.height}", "gaussians": len(slam.gaussian_map),
-        "pairs": getattr(mapper.rasterizer, "last_num_pairs", None),
+        "pairs": getattr(mapper.trainer.rasterizer, "last_num_pairs", None),
         "ms_per_step": 1e3 * wall / n, "cpu_ms_per_step": 1e3 * cpu / n, "steps_per_s": n / wall,
         "phases_ms": phases, "phases_cpu_ms": phases_cpu, "train_psnr": train_psnr(slam, dataset),
     }

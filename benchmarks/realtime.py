@@ -7,7 +7,7 @@ plays its 150 frames once (5 s at 30 fps); Replica room0's 20 frames are played 
 real-time system with extra overrides (an ablation of the mapper's options).
 
     python benchmarks/realtime.py                                   # both sequences, the default systems
-    python benchmarks/realtime.py --sequences tum --variant covered="strategy.skip_covered=true"
+    python benchmarks/realtime.py --sequences tum --variant covered="mapper.admission.skip_covered=true"
 
 Prints a table per sequence and writes JSON (`--out`).
 """

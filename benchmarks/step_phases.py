@@ -15,7 +15,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from contextlib import contextmanager
 
-from slamkit_plugins.mappers.gaussian_splatting.timing import PhaseTimer
+from slamkit.splatting.timing import PhaseTimer
 
 #: The phases every timed step goes through (view: only when the mapper picks the keyframe;
 #: lock: waiting for the map's lock).
@@ -38,26 +38,20 @@ class SyncedPhaseTimer(PhaseTimer):
             self.sync()
 
 
-def unwrapped(plugin):
-    """The plugin itself where `slamkit.run.pipeline` wrapped it (Blamed), else `plugin`."""
-    return getattr(plugin, "_plugin", plugin)
-
-
 def time_steps(mapper, steps: int, sync: Callable[[], None] | None = None, view=None) -> SyncedPhaseTimer:
-    """`steps` training steps of `mapper` (a GaussianSplattingMapper bound to its map; a pipeline's
-    wrapped mapper is unwrapped), timed by phase with `sync` around each phase: the mapper's own
-    `optimize` (it picks the keyframes), or `train_step(view)` on one TrainingView when `view`
-    is given. The mapper's timer is restored afterwards; returns the one that timed them."""
-    mapper = unwrapped(mapper)
-    saved, timer = mapper.timer, SyncedPhaseTimer(sync)
-    mapper.timer = timer
+    """`steps` training steps of `mapper` (a GaussianSplattingMapper), timed by phase with `sync`
+    around each phase: the mapper's own `optimize` (it picks the keyframes), or its trainer's
+    `step(view)` on one TrainingView when `view` is given. The trainer's timer is restored
+    afterwards; returns the one that timed them."""
+    saved, timer = mapper.trainer.timer, SyncedPhaseTimer(sync)
+    mapper.trainer.timer = timer
     try:
         if view is None:
             mapper.optimize(steps)
         else:
             for _ in range(steps):
-                mapper.train_step(view)
+                mapper.trainer.step(view)
                 timer.steps += 1
     finally:
-        mapper.timer = saved
+        mapper.trainer.timer = saved
     return timer

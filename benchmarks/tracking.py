@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from slamkit.metrics import trajectory as evaluation
-from slamkit.registry.compose import build_run
+from slamkit.run.build import build_run
 from slamkit.registry.discovery import default_registry
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"

@@ -27,7 +27,7 @@ VARIANTS = {  # name -> CLI overrides (entry_shape and mapper.freeze_trackable: 
     "tracking_only": ["mapper=none"],
     "mapping": MAPPER + ["tracker.target_geometry=optimised", "tracker.min_target_opacity=0.09"],
     "mapping_lr0": MAPPER + ["tracker.target_geometry=optimised", "tracker.min_target_opacity=0.09",
-                             "optimizer.lr_means=0", "optimizer.lr_quats=0", "optimizer.lr_scales=0", "optimizer.lr_opacity=0"],
+                             "mapper.optimizer.lr_means=0", "mapper.optimizer.lr_quats=0", "mapper.optimizer.lr_scales=0", "mapper.optimizer.lr_opacity=0"],
     "opacity0": MAPPER + ["tracker.target_geometry=optimised", "tracker.min_target_opacity=0"],
     "entry_target": MAPPER + ["tracker.target_geometry=entry", "tracker.min_target_opacity=0"],
     "entry_target_op09": MAPPER + ["tracker.target_geometry=entry", "tracker.min_target_opacity=0.09"],

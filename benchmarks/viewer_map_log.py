@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from slamkit.config import RunContext
 from slamkit.formats.ply import load_ply
 from slamkit.roles import ViewerFrame
 from slamkit.types import Camera, Frame, KeyframeKind
@@ -24,8 +25,7 @@ from slamkit.types import Camera, Frame, KeyframeKind
 def _view(gm) -> ViewerFrame:
     from slamkit_plugins.mappers.none import NoMapper, NoMapperConfig
 
-    mapper = NoMapper(NoMapperConfig())
-    mapper.bind(gm)
+    mapper = NoMapper(NoMapperConfig(), RunContext(gaussian_map=gm))
     cam = Camera(64, 48, 50.0, 50.0, 31.5, 23.5)
     frame = Frame(0, 0.0, np.zeros((48, 64, 3), np.uint8), np.zeros((48, 64), np.float32), cam)
     return ViewerFrame(frame, np.eye(4), KeyframeKind.NONE, False, np.zeros((1, 3)), np.zeros((0, 3)), gm, mapper)

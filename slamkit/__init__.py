@@ -1,12 +1,11 @@
 """slamkit: a plugin-based RGB-D SLAM framework (GS-ICP SLAM first).
 
 What a plugin imports: `slamkit.plugin` (PluginSpec, hookimpl), `slamkit.roles` (the base
-classes), `slamkit.types`, `slamkit.errors`, `slamkit.map` (the Gaussian map, its row
-operations, rendering), `slamkit.geometry` and `slamkit.native` (compiled helpers). The rest is
+classes), `slamkit.config` (the config base, the run context), `slamkit.types`,
+`slamkit.errors`, `slamkit.map` (the Gaussian map), `slamkit.splatting` (the 3DGS trainer and
+its parts' contracts), `slamkit.geometry` and `slamkit.native` (compiled helpers). The rest is
 grouped by concern: `metrics`, `formats`, `registry`, `run`, `cli` (docs/architecture.md).
 """
-
-__version__ = "0.2.0"
 
 import importlib as _importlib
 import importlib.abc as _abc
@@ -18,11 +17,16 @@ import sys as _sys
 # Must be set before either runtime starts, hence here. A user's own setting wins.
 _os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-#: Module paths that plugins used before the package was grouped by concern (0.2), and where
-#: those modules are now: `import slamkit.gaussian_map` still gives `slamkit.map.gaussian_map`.
+#: Module paths that plugins used before 0.2 grouped the package by concern and 0.3 gave the 3DGS
+#: trainer its package, and where those modules are now: `import slamkit.gaussian_map` still
+#: gives `slamkit.map.gaussian_map` (docs/CHANGELOG.md).
 MOVED_MODULES = {
     "slamkit.gaussian_map": "slamkit.map.gaussian_map",
-    "slamkit.rendering": "slamkit.map.rendering",
+    "slamkit.rendering": "slamkit.splatting.rendering",
+    "slamkit.map.rendering": "slamkit.splatting.rendering",
+    "slamkit.map.editing": "slamkit.splatting.ops",
+    "slamkit.map.coverage": "slamkit.splatting.coverage",
+    "slamkit.roles.config": "slamkit.config",
     "slamkit.gaussian_geometry": "slamkit.geometry.gaussians",
     "slamkit.image_metrics": "slamkit.metrics.images",
     "slamkit.evaluation": "slamkit.metrics.trajectory",
@@ -51,3 +55,16 @@ class _MovedModuleFinder(_abc.MetaPathFinder, _abc.Loader):
 
 
 _sys.meta_path.append(_MovedModuleFinder())
+
+
+def __getattr__(name: str):
+    """`slamkit.__version__`: the installed distribution's, one version number (pyproject.toml's),
+    read when asked for (importlib.metadata is not worth importing with every run)."""
+    if name == "__version__":
+        from importlib.metadata import PackageNotFoundError, version
+
+        try:
+            return version("slamkit")
+        except PackageNotFoundError:  # imported from a source tree that was never installed
+            return "unknown"
+    raise AttributeError(f"module 'slamkit' has no attribute {name!r}")

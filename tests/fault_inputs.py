@@ -92,11 +92,11 @@ STILL_TRACKER = """
 
     class StillTracker(Tracker):
         '''Reports the first pose for every frame; raises at frame `fail_at`.'''
-        def __init__(self, cfg):
+        def __init__(self, cfg, context=None):
             self.cfg = cfg
         def initialize(self, first_pose):
             self.pose = first_pose.copy()
-        def track(self, frame, gaussian_map):
+        def track(self, frame):
             if frame.index == self.cfg.fail_at:
                 raise ValueError("simulated failure")
             return TrackingResult(pose=self.pose)
@@ -118,9 +118,9 @@ ARRAY_CONFIG = """
         weights: np.ndarray = field(default_factory=lambda: np.ones(3))
 
     class ArrayTracker(Tracker):
-        def __init__(self, cfg):
+        def __init__(self, cfg, context=None):
             self.cfg = cfg
-        def track(self, frame, gaussian_map):
+        def track(self, frame):
             raise NotImplementedError
 
     @hookimpl
@@ -150,9 +150,9 @@ UNUSUAL_CONFIG = """
         pair: tuple = (1.0, 2.0)
 
     class UnusualTracker(Tracker):
-        def __init__(self, cfg):
+        def __init__(self, cfg, context=None):
             self.cfg = cfg
-        def track(self, frame, gaussian_map):
+        def track(self, frame):
             raise NotImplementedError
 
     @hookimpl
@@ -173,9 +173,9 @@ BAD_DEFAULTS = """
             require(self.radius > 0, "tracker.radius", "> 0 metres", self.radius)
 
     class BadDefaultsTracker(Tracker):
-        def __init__(self, cfg):
+        def __init__(self, cfg, context=None):
             self.cfg = cfg
-        def track(self, frame, gaussian_map):
+        def track(self, frame):
             raise NotImplementedError
 
     @hookimpl

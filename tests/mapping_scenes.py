@@ -1,4 +1,4 @@
-"""Tiny mapping scenes and a mapper built from its parts, for the mapper and parts tests.
+"""Tiny mapping scenes and a 3DGS trainer built from its parts, for the trainer and parts tests.
 
 Scenes are 40x30 pixels with a few hundred Gaussians, so whole training runs take seconds."""
 
@@ -7,10 +7,12 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from slamkit.config import RunContext
 from slamkit.map.gaussian_map import GaussianMap, GaussianRows
 from slamkit.registry.discovery import default_registry
-from slamkit.roles import SensorProfile
-from slamkit.types import Camera, Frame, KeyframeKind, TrackingResult
+from slamkit.tuning import DatasetTuning
+from slamkit.roles import Tracker
+from slamkit.types import Camera, Frame, FrameGaussians, KeyframeKind, TrackingResult
 
 CAM = Camera(40, 30, 30.0, 30.0, 19.5, 14.5)
 N = 300
@@ -66,23 +68,22 @@ PART_DEFAULTS = {"rasterizer": "torch", "sampler": "random", "strategy": "gsicp"
                  "loss": "l1_ssim_depth"}
 
 
-def make_mapper(gm: GaussianMap | None = None, sensor: SensorProfile | None = None, **settings):
-    """A `gaussian_splatting` mapper built from its parts through the registry, bound to `gm`
-    (default `start_map()`). `settings`: `mapper={...}` (the mapper's config fields; training at
-    full resolution and 5 final steps unless given), and per part either a plugin name, or
-    (name, {field: value}), e.g. `strategy=("3dgs", {"densify_every": 3})`."""
+def make_mapper(gm: GaussianMap | None = None, tuning: DatasetTuning | None = None, **settings):
+    """A `gaussian_splatting` mapper (its `trainer` holds the parts) built through the registry,
+    on `gm` (default `start_map()`). `settings`: `mapper={...}` (the mapper's config fields; training
+    at full resolution unless given), and per part either a plugin name, or (name, {field: value}),
+    e.g. `strategy=("3dgs", {"densify_every": 3})`."""
     registry = default_registry()
-    sensor = sensor or SensorProfile()
+    gm = gm if gm is not None else start_map()
+    context = RunContext(tuning=tuning or DatasetTuning(), gaussian_map=gm, build=registry.create)
     parts = {}
     for role, default in PART_DEFAULTS.items():
         name, fields = _choice(settings.pop(role, default))
-        parts[role] = registry.create(role, name, registry.get(role, name).config(**fields), sensor)
+        parts[role] = registry.create(role, name, registry.get(role, name).config(**fields), context)
     mapper_fields = {"resolution_scale": 1.0, **settings.pop("mapper", {})}
     assert not settings, f"unknown settings {settings}"
     spec = registry.get("mapper", "gaussian_splatting")
-    mapper = registry.create("mapper", "gaussian_splatting", spec.config(**mapper_fields), sensor, **parts)
-    mapper.bind(gm if gm is not None else start_map())
-    return mapper
+    return registry.create("mapper", "gaussian_splatting", spec.config(**mapper_fields), context, **parts)
 
 
 def _choice(value):
@@ -93,16 +94,41 @@ def add(mapper, frame: Frame, kind: KeyframeKind = KeyframeKind.TRACKING, new_ro
     """Register `frame` as a keyframe at its ground-truth pose (its Gaussians, if any, already at
     `new_rows`)."""
     n = len(mapper.gaussian_map)
-    mapper.add_keyframe(frame, TrackingResult(frame.gt_pose), kind, new_rows if new_rows is not None else slice(n, n))
+    mapper.add_keyframe(frame, frame.gt_pose, kind, new_rows if new_rows is not None else slice(n, n))
 
 
 def state_follows_map(mapper) -> None:
     """The optimiser's and the strategy's per-row state cover exactly the map's rows, and the
     map's parameters are leaves autograd differentiates."""
-    n = len(mapper.gaussian_map)
-    for name, tensors in mapper.optimizer.row_state().items():
+    trainer = mapper.trainer
+    n = len(trainer.gaussian_map)
+    for name, tensors in trainer.optimizer.row_state().items():
         assert all(t.shape[0] == n for t in tensors), name
-    for name, t in mapper.strategy.state.items():
+    for name, t in trainer.strategy.state.items():
         assert t.shape[0] == n, name
-    for name, p in mapper.gaussian_map.parameters().items():
+    for name, p in trainer.gaussian_map.parameters().items():
         assert p.is_leaf and p.requires_grad, name
+
+
+class GroundTruthTracker(Tracker):
+    """Reports each frame's ground-truth pose with Gaussians from its depth; records the
+    tracking target it is given at each tracking keyframe."""
+
+    def __init__(self, stride: int = 3, geometry: str = "entry"):
+        self.stride, self.geometry = stride, geometry
+        self.targets = []
+
+    def track(self, frame):
+        v, u = np.mgrid[0 : CAM.height : self.stride, 0 : CAM.width : self.stride]
+        v, u = v.ravel(), u.ravel()
+        z = frame.depth[v, u]
+        keep = z > 0
+        v, u, z = v[keep], u[keep], z[keep]
+        pts = np.stack([(u - CAM.cx) / CAM.fx * z, (v - CAM.cy) / CAM.fy * z, z], 1)
+        world = pts @ frame.gt_pose[:3, :3].T + frame.gt_pose[:3, 3]
+        cov = np.tile(np.diag([1.0, 1.0, 0.01]), (len(z), 1, 1))
+        g = FrameGaussians(world, cov, frame.rgb[v, u] / 255.0, z, np.ones(len(z), bool))
+        return TrackingResult(frame.gt_pose, gaussians=g)
+
+    def update_target(self, gaussian_map):
+        self.targets.append(gaussian_map.tracking_target(geometry=self.geometry))

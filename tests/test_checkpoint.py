@@ -124,7 +124,7 @@ def _cfg(tmp_path: Path, *overrides: str):
     return compose_run(["mapper=gaussian_splatting", "dataset.num_frames=10", "mapper.resolution_scale=0.25",
                         "mapper.eval_resolution_scale=0.25", "mapper.eval_every=5", "mapper.save_images=0",
                         "iterations_per_frame=2", "final_iterations=0", "progress=false", "eval.plot=false",
-                        "rasterizer=cpu", "strategy.prune_every=0", *overrides])
+                        "mapper/rasterizer=cpu", "mapper.strategy.prune_every=0", *overrides])
 
 
 HEADER = ",".join(FrameLog.COLUMNS)
@@ -247,7 +247,7 @@ def test_export_reads_a_checkpoint(tmp_path, replica_path, capsys):
     out = tmp_path / "run"
     # the paper's scale alignment: 1-3 mm Gaussians at opacity 0.1, too faint to mesh at alpha 0.5
     proc = run_slamkit("dataset=replica", f"dataset.path={replica_path}", "dataset.max_frames=3", "mapper=none",
-                       "map.scale_alignment=z_pow", "progress=false", f"hydra.run.dir={out}", cwd=tmp_path)
+                       "growth.scale_alignment=z_pow", "progress=false", f"hydra.run.dir={out}", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert not (out / "map.ply").exists()  # mapper=none: the checkpoint is the map
     assert export_main(["ply", str(out / CHECKPOINT_NAME), "--out", str(tmp_path / "m.ply")]) == 0

@@ -108,18 +108,20 @@ def test_config_errors_fail_in_one_line_before_work(tmp_path):
     assert not (tmp_path / "outputs").exists()  # nothing ran
 
 
-def test_design_spelling_mapper_rasterizer_chooses_the_rasteriser(tmp_path):
-    """DESIGN.md's contract spells the backend `mapper.rasterizer=auto|torch|cpu|gsplat`: it
-    chooses the `rasterizer` role's plugin, options included; a wrong name fails in one line."""
+def test_the_mappers_parts_are_chosen_under_it_and_an_old_spelling_is_one_line(tmp_path):
+    """`mapper/rasterizer=torch` chooses the mapper's rasteriser and `mapper.rasterizer.FIELD` sets
+    its options; a wrong name fails in one line listing the others, and 0.2's spelling
+    (`rasterizer=torch`) in one line naming the new one."""
     out = tmp_path / "run"
-    _ok(run_slamkit("dataset.num_frames=4", "mapper=gaussian_splatting", "mapper.rasterizer=torch",
+    _ok(run_slamkit("dataset.num_frames=4", "mapper=gaussian_splatting", "mapper/rasterizer=torch",
                     "mapper.rasterizer.max_pairs_per_chunk=4096", "final_iterations=2", f"hydra.run.dir={out}",
                     cwd=tmp_path))
     config = (out / ".hydra" / "config.yaml").read_text()
     assert "max_pairs_per_chunk: 4096" in config
-    overrides = (out / ".hydra" / "overrides.yaml").read_text().splitlines()
-    assert "- rasterizer=torch" in overrides and not any("mapper.rasterizer" in o for o in overrides)
-    _one_line_error(run_slamkit("mapper.rasterizer=nope", cwd=tmp_path), "unknown rasterizer 'nope'", "cpu")
+    _one_line_error(run_slamkit("mapper=gaussian_splatting", "mapper/rasterizer=nope", cwd=tmp_path),
+                    "unknown rasterizer 'nope'", "cpu")
+    _one_line_error(run_slamkit("mapper=gaussian_splatting", "rasterizer=torch", cwd=tmp_path),
+                    "write mapper/rasterizer=torch")
 
 
 def test_on_error_skip_marks_an_unreadable_frame_lost_and_goes_on(tum_path, tmp_path):

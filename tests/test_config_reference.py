@@ -15,40 +15,41 @@ import pytest
 from conftest import REPO, run_slamkit
 from slamkit.errors import ConfigError, SlamkitError
 from slamkit.registry import default_registry
-from slamkit.registry.compose import build_run, compose_run
-from slamkit.run.pipeline import build
-from slamkit.roles import ROLES
+from slamkit.registry.compose import compose_run
+from slamkit.run.build import build_run
+from slamkit.run.build import build
+from slamkit.roles import PARTS as PART_ROLES
 
 REFERENCE = REPO / "docs" / "configuration.md"
-PARTS = {r.key for r in ROLES if r.part_of == "mapper"}
+PARTS = {r.key for r in PART_ROLES}
 
 #: Values for the keys whose type alone does not give a valid one (files, folders, addresses).
 EXPLICIT = {
     "dataset.intrinsics": "intrinsics.json", "dataset.trajectory": "groundtruth.txt", "dataset.color_dir": "rgb",
     "dataset.depth_dir": "depth", "dataset.gt_path": "{data}/traj.txt", "mapper.keyframe_dir": "{tmp}/keyframes",
     "viewer.save": "{tmp}/x.rrd", "viewer.connect": "rerun+http://127.0.0.1:9876/proxy",
-    "viewer.application_id": "slamkit-test", "dataset.cache_dir": "{tmp}/cache", "rasterizer.prefer": ["torch"],
+    "viewer.application_id": "slamkit-test", "dataset.cache_dir": "{tmp}/cache", "mapper.rasterizer.prefer": ["torch"],
     "dataset.camera": "fr1", "dataset.max_frames": 5, "dataset.start": 2, "dataset.stride": 2,
     "dataset.path": "{data}", "dataset=tum:dataset.gt_path": "{data}/groundtruth.txt",
     "dataset.fx": 500.0, "dataset.fy": 500.0,  # plausible for every dataset's image size (Camera.implausible)
-    "resume": "{tmp}/run", "localize.map": "{tmp}/run",
+    "resume": "{tmp}/run", "map": "{tmp}/run",
     "dataset.color_topic": "/camera/rgb/image_color", "dataset.depth_topic": "/camera/depth/image",
     "dataset.camera_info_topic": "/camera/rgb/camera_info", "dataset.groundtruth": "{data}/groundtruth.txt",
     "objective.metric": "psnr", "viewer.host": "0.0.0.0", "viewer.map_as": "ellipsoids",
 }
 #: Top-level sections of keys that are not a role's (section -> the RunConfig field holding them).
-TOP_SECTIONS = ("map", "eval", "objective", "checkpoint", "localize")
+TOP_SECTIONS = ("growth", "eval", "objective", "checkpoint", "localize")
 
 
 def reference_keys() -> list[tuple[str, str, str, str]]:
     """(section, key, type, default) of every row of docs/configuration.md; section is "" for the
-    top level, "map" / "eval" / "objective", or "role=name"."""
+    top level, "growth" / "eval" / ..., or "group=name" (`tracker=gicp`, `mapper/rasterizer=cpu`)."""
     rows, section = [], ""
     for line in REFERENCE.read_text().splitlines():
-        heading = re.match(r"#+ `(\w+)(?:=(\w+)|\.\*)`", line)
+        heading = re.match(r"#+ `([\w/]+)(?:=(\w+|\.\.\.)|\.\*)`", line)
         if heading:
             section = f"{heading.group(1)}={heading.group(2)}" if heading.group(2) else heading.group(1)
-            if heading.group(2) is None and heading.group(1) in {r.key for r in ROLES}:
+            if heading.group(2) == "...":
                 section = ""  # the role's heading before its plugins
         cells = [c.strip().replace("\\|", "|") for c in re.split(r"(?<!\\)\|", line)[1:-1]]
         if len(cells) == 4 and re.fullmatch(r"`[\w.]+`", cells[0]):
@@ -84,28 +85,32 @@ def base_overrides(section: str, tmp: Path, data: dict[str, Path]) -> list[str]:
     """What selects the plugin a key belongs to (and the data it needs)."""
     if not section or section in TOP_SECTIONS:
         return []
-    role, name = section.split("=")
-    base = [f"{role}={name}"]
-    if role == "dataset" and name != "synthetic":
+    group, name = section.split("=")
+    base = [f"{group}={name}"]
+    if group == "dataset" and name != "synthetic":
         base.append(f"dataset.path={data[name]}")
-    if role in PARTS:
-        base.append("mapper=gaussian_splatting")
+    if group.startswith("mapper/"):
+        base.insert(0, "mapper=gaussian_splatting")
     return base
 
 
-def built_config(section: str, key: str, run, slam, viewer, dataset):
-    """The config object the built run holds for `key`'s group."""
-    group = key.split(".")[0] if "." in key else ""
-    if not group:
+def built_config(key: str, run, slam, viewer, dataset):
+    """The config object that the built run holds `key` in (its last segment is the field)."""
+    path = key.split(".")[:-1]
+    if not path:
         return run
-    if group in ("eval", "objective", "checkpoint", "localize"):
-        return getattr(run, group)
-    if group == "map":
-        return slam.map_growth
+    if path[0] in ("eval", "objective", "checkpoint", "localize"):
+        return getattr(run, path[0])
+    if path[0] == "growth":
+        return slam.growth
     objects = {"dataset": dataset, "tracker": slam.tracker, "keyframe": slam.keyframe_policy,
                "mapper": slam.mapper, "viewer": viewer}
-    obj = objects[group] if group in objects else getattr(slam.mapper, group)
-    return obj.cfg
+    if path[0] == "mapper" and len(path) > 1 and path[1] in PARTS:
+        return getattr(slam.mapper.trainer, path[1]).cfg
+    cfg = objects[path[0]].cfg
+    for name in path[1:]:  # a config nested in the plugin's (mapper.admission)
+        cfg = getattr(cfg, name)
+    return cfg
 
 
 def same(actual, expected) -> bool:
@@ -149,16 +154,22 @@ def data(tmp_path_factory) -> dict[str, Path]:
             "sevenscenes": root / "chess" / "seq-01", "rosbag": bag}
 
 
-def config_class(section: str) -> type:
-    """The dataclass that holds a section's keys."""
+def config_class(section: str, key: str) -> type:
+    """The dataclass that holds `key` of a section (a config nested in the section's: its class)."""
+    import dataclasses
+
     from slamkit.map.growth import MapGrowthConfig
     from slamkit.registry.schema import CheckpointConfig, EvalConfig, LocalizeConfig, ObjectiveConfig, RunConfig
 
     if section in ("", *TOP_SECTIONS):
-        return {"": RunConfig, "map": MapGrowthConfig, "eval": EvalConfig, "objective": ObjectiveConfig,
+        return {"": RunConfig, "growth": MapGrowthConfig, "eval": EvalConfig, "objective": ObjectiveConfig,
                 "checkpoint": CheckpointConfig, "localize": LocalizeConfig}[section]
-    role, name = section.split("=")
-    return default_registry().get(role, name).config
+    group, name = section.split("=")
+    cls = default_registry().get(group.split("/")[-1], name).config
+    depth = len(group.split("/"))  # the key segments that name the section (mapper.rasterizer.)
+    for field_name in key.split(".")[depth:-1]:  # e.g. mapper.admission.skip_covered
+        cls = type(next(f for f in dataclasses.fields(cls) if f.name == field_name).default_factory())
+    return cls
 
 
 def valid_value(section: str, key: str, type_: str, default: str, tmp: Path, data: dict[str, Path]):
@@ -169,7 +180,7 @@ def valid_value(section: str, key: str, type_: str, default: str, tmp: Path, dat
     field, reasons = key.split(".")[-1], []
     for value in candidates(key, type_, default, tmp, data.get(section.partition("=")[2]), section):
         try:
-            check_values(config_class(section)(**{field: value}))
+            check_values(config_class(section, key)(**{field: value}))
             return value
         except (SlamkitError, TypeError, ValueError) as exc:
             reasons.append(f"{value!r}: {exc}")
@@ -179,9 +190,10 @@ def valid_value(section: str, key: str, type_: str, default: str, tmp: Path, dat
 def check_arrivals(section: str, values: dict[str, object], base: list[str]) -> list[str]:
     """Compose the run with `values` set, build it, and list the keys whose value did not arrive."""
     run, names = compose_run([*base, *(override(k, v) for k, v in values.items())])
-    dataset, slam, viewer = build(run, default_registry(), names)
+    built = build(run, default_registry(), names)
     return [f"{key}={value!r} did not arrive" for key, value in values.items()
-            if not same(getattr(built_config(section, key, run, slam, viewer, dataset), key.split(".")[-1]), value)]
+            if not same(getattr(built_config(key, built.config, built.slam, built.viewer, built.dataset),
+                            key.split(".")[-1]), value)]
 
 
 @pytest.mark.slow
@@ -189,11 +201,11 @@ def test_every_key_in_the_reference_reaches_the_object_the_run_builds(data, tmp_
     """Each section's keys are set together to non-default values its config accepts; where the
     built run rejects the combination, key by key, naming the key it rejects."""
     rows = reference_keys()
-    assert len(rows) > 150 and {"sampler.top_k", "rasterizer.num_threads", "strategy.max_gaussians"} <= {
+    assert len(rows) > 150 and {"mapper.sampler.top_k", "mapper.rasterizer.num_threads", "mapper.memory_cap.max_gaussians"} <= {
         k for _, k, _, _ in rows}
     sections: dict[str, dict[str, object]] = {}
     for section, key, type_, default in rows:
-        if section != "rasterizer=gsplat":  # needs CUDA: built against a stand-in gsplat in its own tests
+        if section != "mapper/rasterizer=gsplat":  # needs CUDA: built against a stand-in gsplat in its own tests
             sections.setdefault(section, {})[key] = valid_value(section, key, type_, default, tmp_path, data)
     missed = []
     for section, values in sections.items():
@@ -210,16 +222,16 @@ def test_every_key_in_the_reference_reaches_the_object_the_run_builds(data, tmp_
 
 
 BAD = [
-    ("sampler=covisible", "sampler.top_k=-1", "sampler.top_k"),
-    ("rasterizer=gsplat", "rasterizer.tile_size=0", "rasterizer.tile_size"),
-    ("rasterizer=torch", "rasterizer.max_pairs_per_chunk=10", "rasterizer.max_pairs_per_chunk"),
-    ("rasterizer=cpu", "rasterizer.num_threads=-2", "rasterizer.num_threads"),
-    ("strategy=3dgs", "strategy.grad_threshold=0", "strategy.grad_threshold"),
-    ("optimizer=adam", "optimizer.lr_means=-1", "optimizer.lr_means"),
-    ("loss=l1_ssim_depth", "loss.weight_ssim=-0.2", "loss.weight_ssim"),
-    ("strategy=gsicp", "strategy.prune_evry=100", "prune_evry"),
-    ("sampler=covisible", "sampler.topk=3", "topk"),
-    ("optimizer=visible_adam", "optimizer.only_visible=maybe", "optimizer.only_visible"),
+    ("mapper/sampler=covisible", "mapper.sampler.top_k=-1", "mapper.sampler.top_k"),
+    ("mapper/rasterizer=gsplat", "mapper.rasterizer.tile_size=0", "mapper.rasterizer.tile_size"),
+    ("mapper/rasterizer=torch", "mapper.rasterizer.max_pairs_per_chunk=10", "mapper.rasterizer.max_pairs_per_chunk"),
+    ("mapper/rasterizer=cpu", "mapper.rasterizer.num_threads=-2", "mapper.rasterizer.num_threads"),
+    ("mapper/strategy=3dgs", "mapper.strategy.grad_threshold=0", "mapper.strategy.grad_threshold"),
+    ("mapper/optimizer=adam", "mapper.optimizer.lr_means=-1", "mapper.optimizer.lr_means"),
+    ("mapper/loss=l1_ssim_depth", "mapper.loss.weight_ssim=-0.2", "mapper.loss.weight_ssim"),
+    ("mapper/strategy=gsicp", "mapper.strategy.prune_evry=100", "prune_evry"),
+    ("mapper/sampler=covisible", "mapper.sampler.topk=3", "topk"),
+    ("mapper/optimizer=visible_adam", "mapper.optimizer.only_visible=maybe", "mapper.optimizer.only_visible"),
 ]
 
 

@@ -28,11 +28,12 @@ import pytest
 import torch
 
 from slamkit.geometry.transforms import invert_pose
-from slamkit.registry.compose import build_run, compose_run
+from slamkit.registry.compose import compose_run
+from slamkit.run.build import build_run
 from slamkit.registry.discovery import create_rasterizer, default_registry
 from slamkit.run import pipeline
 from slamkit.types import Camera
-from slamkit_plugins.mappers.gaussian_splatting.keyframes import resize_rgbd
+from slamkit.splatting.keyframes import resize_rgbd
 from slamkit_plugins.rasterizers.torch_rasterizer import TorchRasterizer
 
 from test_rasterizers import a_pose, as_tuple, random_scene, random_weights, weighted_loss
@@ -176,7 +177,7 @@ def run_pipeline(replica_path: Path, out_dir: Path, *overrides: str) -> tuple[di
 def cpu_run(replica_path_module, tmp_path_factory):
     """The CPU path: the map on the CPU, the cpu backend."""
     return run_pipeline(replica_path_module, tmp_path_factory.mktemp("cpu_run"), "mapping_device=cpu",
-                        "rasterizer=cpu")
+                        "mapper/rasterizer=cpu")
 
 
 @pytest.fixture(scope="module")
@@ -190,7 +191,7 @@ def replica_path_module():
 def test_pipeline_on_cuda_matches_the_cpu_path(backend, cpu_run, replica_path_module, tmp_path):
     if backend == "gsplat":
         gsplat_rasterizer()
-    metrics, trajectory = run_pipeline(replica_path_module, tmp_path, "mapping_device=cuda", f"rasterizer={backend}")
+    metrics, trajectory = run_pipeline(replica_path_module, tmp_path, "mapping_device=cuda", f"mapper/rasterizer={backend}")
     ref_metrics, ref_trajectory = cpu_run
     assert metrics["mapping_steps"] == ref_metrics["mapping_steps"] > 0
     assert trajectory.shape == ref_trajectory.shape
@@ -205,25 +206,25 @@ def test_mapping_step_phases_on_cuda(backend, replica_path):
     if backend == "gsplat":
         gsplat_rasterizer()
     dataset, slam, _ = build_run(["dataset=replica", f"dataset.path={replica_path}", "dataset.max_frames=3",
-                                  "mapper=gaussian_splatting", f"rasterizer={backend}", "mapping_device=cuda",
+                                  "mapper=gaussian_splatting", f"mapper/rasterizer={backend}", "mapping_device=cuda",
                                   "iterations_per_frame=0", "progress=false"])
     slam.initialize(dataset[0].gt_pose)
     for i in range(len(dataset)):
         slam.step(dataset[i])
     mapper = step_phases.unwrapped(slam.mapper)
     gm = slam.gaussian_map
-    assert gm.means.device.type == "cuda" and len(mapper.keyframes) > 0
-    view = mapper.keyframes[mapper.keyframes.ids[-1]].view("cuda")
+    assert gm.means.device.type == "cuda" and len(mapper.trainer.keyframes) > 0
+    view = mapper.trainer.keyframes[mapper.trainer.keyframes.ids[-1]].view("cuda")
     losses = []
     for _ in range(6):
         timer = step_phases.time_steps(mapper, 1, torch.cuda.synchronize, view)
-        losses.append(mapper.last_loss)
+        losses.append(mapper.trainer.last_loss)
         assert all(timer.wall[phase] > 0 for phase in step_phases.STEP_PHASES), dict(timer.wall)
     assert all(math.isfinite(v) for v in losses) and losses[-1] < losses[0]  # the same view, trained on
     timer = step_phases.time_steps(mapper, 4, torch.cuda.synchronize)  # the mapper's own choice of views
     ms = timer.per_step_ms()
     assert timer.steps == 4 and ms["view"] > 0 and ms["step"] >= sum(ms[p] for p in step_phases.STEP_PHASES)
-    assert mapper.steps == 10 and all(torch.isfinite(p).all() for p in gm.parameters().values())
+    assert mapper.trainer.steps == 10 and all(torch.isfinite(p).all() for p in gm.parameters().values())
     assert all(p.device.type == "cuda" for p in gm.parameters().values())
 
 

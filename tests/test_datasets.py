@@ -73,7 +73,7 @@ def test_tum_real(data):
     ds = TUMDataset(TUMConfig(path=str(TUM_DIR)))
     assert len(ds) == 150
     assert ds.camera == tum.CAMERAS["fr1"]
-    assert ds.depth_trunc == 3.0 and ds.sensor.tracking_pixel_stride == 5 and ds.sensor.depth_scale == 5000
+    assert ds.depth_trunc == 3.0 and ds.tuning.tracking_pixel_stride == 5 and ds.tuning.depth_scale == 5000
     f = ds[0]
     assert f.index == 0 and f.rgb.shape == (480, 640, 3) and f.rgb.dtype == np.uint8
     assert f.depth.shape == (480, 640) and f.depth.dtype == np.float32

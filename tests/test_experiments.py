@@ -48,7 +48,7 @@ def test_sequential_runs_are_bit_identical_for_the_same_seed(tmp_path):
     outputs = []
     for name in ("a", "b"):
         out = tmp_path / name
-        proc = run_slamkit("tracker=gicp", "keyframe=overlap", "mapper=gaussian_splatting", "sampler=random",
+        proc = run_slamkit("tracker=gicp", "keyframe=overlap", "mapper=gaussian_splatting", "mapper/sampler=random",
                            "iterations_per_frame=2", "final_iterations=0", "mapper.eval_every=4",
                            "dataset.num_frames=12", "seed=3", "progress=false", f"hydra.run.dir={out}", cwd=tmp_path)
         assert proc.returncode == 0, proc.stderr[-2000:]

@@ -19,10 +19,10 @@ import torch
 
 import slamkit_plugins.rasterizers.gsplat_rasterizer as gsplat_module
 from slamkit.errors import ConfigError
-from slamkit.registry.compose import build_run, compose_run
+from slamkit.registry.compose import compose_run
+from slamkit.run.build import build_run
 from slamkit.registry.discovery import create_rasterizer
 from slamkit.types import Camera
-from slamkit_plugins.rasterizers.auto import AutoRasterizer, AutoRasterizerConfig
 from slamkit_plugins.rasterizers.cpu_rasterizer import CPURasterizer
 from slamkit_plugins.rasterizers.gsplat_rasterizer import GsplatRasterizer
 
@@ -83,7 +83,7 @@ def test_unbuildable_extension_fails_at_construction_in_one_line(fake_cuda):
 def test_auto_falls_back_to_cpu_when_the_extension_cannot_be_built(fake_cuda, caplog):
     fake_cuda(fake_gsplat(broken=True))
     with caplog.at_level(logging.INFO, logger="slamkit_plugins.rasterizers.auto"):
-        auto = AutoRasterizer(AutoRasterizerConfig())
+        auto = create_rasterizer("auto")
     assert auto.name == "cpu" and isinstance(auto.backend, CPURasterizer)
     skipped = [r for r in caplog.records if "not using gsplat" in r.getMessage()]
     assert len(skipped) == 1 and skipped[0].levelno == logging.WARNING  # a GPU left unused: shown
@@ -124,16 +124,16 @@ def test_run_config_reaches_gsplat_as_documented(fake_cuda):
     eps2d 0.3, the world-to-camera matrix; a few frames of mapping run through it."""
     calls = []
     fake_cuda(fake_gsplat(calls))
-    dataset, slam, _ = build_run(["dataset.max_frames=2", "mapper=gaussian_splatting", "rasterizer=gsplat",
-                                  "rasterizer.tile_size=8", "mapping_device=cpu", "iterations_per_frame=2"])
-    assert isinstance(slam.mapper.rasterizer, GsplatRasterizer) and slam.mapper.rasterizer.cfg.tile_size == 8
+    dataset, slam, _ = build_run(["dataset.max_frames=2", "mapper=gaussian_splatting", "mapper/rasterizer=gsplat",
+                                  "mapper.rasterizer.tile_size=8", "mapping_device=cpu", "iterations_per_frame=2"])
+    assert isinstance(slam.mapper.trainer.rasterizer, GsplatRasterizer) and slam.mapper.trainer.rasterizer.cfg.tile_size == 8
     assert len(calls) == 1  # the probe, at construction
     slam.initialize(dataset[0].gt_pose)
     for i in range(len(dataset)):
         slam.step(dataset[i])
-    assert slam.mapper.steps > 0 and len(calls) > 1
+    assert slam.mapper.trainer.steps > 0 and len(calls) > 1
     kw = calls[-1]
-    cam = slam.mapper.keyframes.training_camera(dataset.camera)
+    cam = slam.mapper.trainer.keyframes.training_camera(dataset.camera)
     expected_K = torch.tensor([[cam.fx, 0, cam.cx + 0.5], [0, cam.fy, cam.cy + 0.5], [0, 0, 1]])
     torch.testing.assert_close(kw["Ks"], expected_K[None])
     assert (kw["width"], kw["height"]) == (cam.width, cam.height)
@@ -163,22 +163,22 @@ def test_render_returns_the_inputs_dtype_and_passes_the_background(fake_cuda):
 
 @pytest.mark.parametrize("tile_size", [0, 33, 64])
 def test_tile_size_is_bounded(tile_size):
-    with pytest.raises(ConfigError, match=r"rasterizer.tile_size: expected an integer in \[1, 32\]"):
-        compose_run(["mapper=gaussian_splatting", "rasterizer=gsplat", f"rasterizer.tile_size={tile_size}"])
-    compose_run(["rasterizer=gsplat", "rasterizer.tile_size=32"])
+    with pytest.raises(ConfigError, match=r"mapper.rasterizer.tile_size: expected an integer in \[1, 32\]"):
+        compose_run(["mapper=gaussian_splatting", "mapper/rasterizer=gsplat", f"mapper.rasterizer.tile_size={tile_size}"])
+    compose_run(["mapper=gaussian_splatting", "mapper/rasterizer=gsplat", "mapper.rasterizer.tile_size=32"])
 
 
 def test_tile_size_64_is_a_one_line_error_of_the_command(monkeypatch, capsys, tmp_path):
     from slamkit.cli.main import main
 
     monkeypatch.chdir(tmp_path)
-    monkeypatch.setattr(sys, "argv", ["slamkit", "mapper=gaussian_splatting", "rasterizer=gsplat",
-                                      "rasterizer.tile_size=64"])
+    monkeypatch.setattr(sys, "argv", ["slamkit", "mapper=gaussian_splatting", "mapper/rasterizer=gsplat",
+                                      "mapper.rasterizer.tile_size=64"])
     with pytest.raises(SystemExit) as info:
         main()
     assert info.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert err[-1].startswith("slamkit: error: rasterizer.tile_size: expected an integer in [1, 32]")
+    assert err[-1].startswith("slamkit: error: mapper.rasterizer.tile_size: expected an integer in [1, 32]")
     assert "64" in err[-1] and "Traceback" not in "\n".join(err)
     assert not (tmp_path / "outputs").exists()  # nothing ran
 

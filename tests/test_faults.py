@@ -61,13 +61,13 @@ FAULTS = [
     Fault("misspelt-key", ("tracker.no_such_key=1",), 2, "no_such_key"),
     Fault("bad-enum", ("mode=fast",), 2, "mode"),
     Fault("unknown-plugin", ("tracker=nope",), 2, "unknown tracker 'nope'; available:"),
-    Fault("part-bad-value", ("mapper=gaussian_splatting", "sampler=covisible", "sampler.top_k=-1"), 2,
-          "sampler.top_k"),
+    Fault("part-bad-value", ("mapper=gaussian_splatting", "mapper/sampler=covisible", "mapper.sampler.top_k=-1"), 2,
+          "mapper.sampler.top_k"),
     Fault("cx-nan", ("dataset.cx=nan",), 2, "dataset.cx: expected null or >= 0 pixels, got nan"),
     Fault("fx-inf", ("dataset.fx=inf",), 2, "dataset.fx: expected a finite number"),
     Fault("cy-negative", ("dataset.cy=-5",), 2, "dataset.cy: expected null or >= 0 pixels, got -5.0"),
     Fault("depth-trunc-nan", ("dataset.depth_trunc=nan",), 2, "dataset.depth_trunc"),
-    Fault("scale-c-nan", ("map.scale_c=nan",), 2, "map.scale_c"),
+    Fault("scale-c-nan", ("growth.scale_c=nan",), 2, "growth.scale_c"),
     Fault("fps-limit-inf", ("mode=realtime", "fps_limit=inf"), 2, "fps_limit: expected a finite number"),
     Fault("seed-negative", ("seed=-1",), 2, "seed: expected an integer from 0 to 2^32 - 1"),
     Fault("seed-huge", ("seed=1099511627776",), 2, "seed: expected an integer from 0 to 2^32 - 1"),
@@ -75,10 +75,10 @@ FAULTS = [
     Fault("kiss-min-points-0", ("tracker=kiss_icp", "tracker.min_points=0"), 2, "tracker.min_points: expected"),
     Fault("mapping-threads-huge", (f"mapping_threads={HUGE}",), 2, "mapping_threads: expected at most"),
     Fault("tracker-threads-huge", (f"tracker.num_threads={HUGE}",), 2, "tracker.num_threads: expected at most"),
-    Fault("rasterizer-threads-huge", ("mapper=gaussian_splatting", "rasterizer=cpu", f"rasterizer.num_threads={HUGE}"),
-          2, "rasterizer.num_threads: expected at most"),
-    Fault("loss-threads-huge", ("mapper=gaussian_splatting", f"loss.num_threads={HUGE}"), 2,
-          "loss.num_threads: expected at most"),
+    Fault("rasterizer-threads-huge", ("mapper=gaussian_splatting", "mapper/rasterizer=cpu", f"mapper.rasterizer.num_threads={HUGE}"),
+          2, "mapper.rasterizer.num_threads: expected at most"),
+    Fault("loss-threads-huge", ("mapper=gaussian_splatting", f"mapper.loss.num_threads={HUGE}"), 2,
+          "mapper.loss.num_threads: expected at most"),
     # intrinsics against the image size: refused when the dataset is opened, before any frame
     Fault("cx-huge", ("dataset.cx=1e30", *FAST), 2, "dataset.cx: expected 0 to", kept=()),
     Fault("fx-tiny-tum", (*TUM_DATA, "dataset.fx=0.001"), 2, "dataset.fx: expected", kept=(), make=tiny_tum),
@@ -229,23 +229,23 @@ def _numeric_keys():
     declared a thread count (`thread_count`)."""
     import dataclasses
 
-    from test_config_reference import PARTS, config_class, reference_keys
+    from test_config_reference import config_class, reference_keys
 
-    from slamkit.roles.config import THREADS
+    from slamkit.config import THREADS
 
     cases = []
     for section, key, type_, _ in reference_keys():
-        if section == "rasterizer=gsplat":
+        if section == "mapper/rasterizer=gsplat":
             continue  # needs CUDA to build; its config is checked in tests/test_fake_cuda.py
         base = [section] if "=" in section else []
-        if section.partition("=")[0] in PARTS:
-            base.append("mapper=gaussian_splatting")
+        if section.startswith("mapper/"):
+            base.insert(0, "mapper=gaussian_splatting")
         kinds = [t.strip() for t in type_.split("|")]
         if "float" in kinds:
             cases.append((base, key, "nan"))
         if {"int", "float"} & set(kinds) and key not in NEGATIVE_OK:
             cases.append((base, key, "negative"))
-        field = {f.name: f for f in dataclasses.fields(config_class(section))}.get(key.split(".")[-1])
+        field = {f.name: f for f in dataclasses.fields(config_class(section, key))}.get(key.split(".")[-1])
         if field is not None and field.metadata.get(THREADS):
             cases.append((base, key, "threads"))
     return cases
@@ -258,11 +258,11 @@ def test_every_numeric_key_has_a_range_and_every_thread_count_is_bounded_by_the_
     naming the key; a thread count equal to the machine's CPUs is accepted."""
     from slamkit.errors import ConfigError
     from slamkit.registry.compose import compose_run
-    from slamkit.roles.config import machine_threads
+    from slamkit.config import machine_threads
 
     cases = _numeric_keys()
     threads = [key for _, key, kind in cases if kind == "threads"]
-    assert len(cases) > 200 and {"mapping_threads", "tracker.num_threads", "loss.num_threads"} <= set(threads)
+    assert len(cases) > 200 and {"mapping_threads", "tracker.num_threads", "mapper.loss.num_threads"} <= set(threads)
     bad = {"nan": ["nan", "-inf"], "negative": ["-1"], "threads": [str(machine_threads() + 1)]}
     failures = []
     for base, key, kind in cases:
@@ -275,8 +275,10 @@ def test_every_numeric_key_has_a_range_and_every_thread_count_is_bounded_by_the_
                     failures.append(f"{key}={value}: {exc}")
         if kind == "threads":
             run, _ = compose_run([*base, f"{key}={machine_threads()}"])
-            group, _, name = key.rpartition(".")
-            assert getattr(getattr(run, group) if group else run, name) == machine_threads()
+            node = run
+            for name in key.split("."):
+                node = getattr(node, name)
+            assert node == machine_threads()
     assert not failures, "\n".join(failures)
 
 
@@ -299,7 +301,7 @@ def test_check_values_names_the_key_of_a_nan_and_of_too_many_threads():
 
     from slamkit.errors import ConfigError
     from slamkit.roles import PluginConfig, check_values, thread_count, unlimited
-    from slamkit.roles.config import machine_threads
+    from slamkit.config import machine_threads
 
     @dataclass
     class Inner(PluginConfig):

@@ -31,7 +31,8 @@ from slamkit.geometry.transforms import (
     transform_points,
 )
 from slamkit.map.growth import MapGrowthConfig, ScaleAlignment, new_gaussians, scale_alignment_factors
-from slamkit.roles import SensorProfile
+from slamkit.config import RunContext
+from slamkit.tuning import DatasetTuning
 from slamkit_plugins.trackers.gicp import GICPConfig, GICPTracker, InitialGuess, slamkit_plugins
 from slamkit.types import Camera, Frame
 
@@ -185,11 +186,11 @@ def test_scale_alignment_left_null_depends_on_the_mode():
     wins."""
     depths = np.array([0.2, 0.7, 1.0, 3.0])
     default = MapGrowthConfig()
-    np.testing.assert_allclose(scale_alignment_factors(depths, default.for_mode(realtime=True)), 1.0)
-    np.testing.assert_allclose(scale_alignment_factors(depths, default.for_mode(realtime=False)),
+    np.testing.assert_allclose(scale_alignment_factors(depths, default.resolve(RunContext(realtime=True))), 1.0)
+    np.testing.assert_allclose(scale_alignment_factors(depths, default.resolve(RunContext(realtime=False))),
                                np.maximum(depths**1.5, 1.0))
     chosen = MapGrowthConfig(scale_alignment=ScaleAlignment.z, scale_c=2.0)
-    np.testing.assert_allclose(scale_alignment_factors(depths, chosen.for_mode(realtime=True)),
+    np.testing.assert_allclose(scale_alignment_factors(depths, chosen.resolve(RunContext(realtime=True))),
                                np.maximum(2 * depths, 1.0))
 
 
@@ -309,7 +310,7 @@ def test_gicp_recovers_known_transform(reg):
     tracker.update_target(gmap)
     start = POSE @ make_pose(so3_exp(np.radians([1.0, -1.5, 0.8])), [0.02, -0.015, 0.01])
     tracker.initialize(start)
-    result = tracker.track(frame, gmap)
+    result = tracker.track(frame)
     assert not result.lost, result.stats
     E = invert_pose(POSE) @ result.pose
     assert np.linalg.norm(E[:3, 3]) < 1e-4, (reg, E[:3, 3], result.stats)
@@ -329,7 +330,7 @@ def test_gicp_frame_covariances_are_regularised_and_in_world():
     frame = make_frame(POSE)
     tracker = GICPTracker(tight_config())
     tracker.initialize(POSE)
-    result = tracker.track(frame, GaussianMap())  # empty map: first frame
+    result = tracker.track(frame)  # empty map: first frame
     assert not result.lost
     np.testing.assert_allclose(result.pose, POSE, atol=1e-15)
     g = result.gaussians
@@ -354,7 +355,7 @@ def test_gicp_frame_gaussians_read_the_colour_only_when_asked():
     frame.rgb = unreadable
     tracker = GICPTracker(tight_config())
     tracker.initialize(POSE)
-    result = tracker.track(frame, GaussianMap())
+    result = tracker.track(frame)
     assert not result.lost and len(result.gaussians) == result.stats["num_points"]
     assert result.gaussians.covariances.shape == (len(result.gaussians), 3, 3)
     with pytest.raises(DataError, match="x.png"):
@@ -370,7 +371,7 @@ def test_gicp_tracks_a_moving_camera_with_map_growth():
     gmap = GaussianMap()
     growth = MapGrowthConfig(new_gaussian_overlap=1e-4)
     for k, P in enumerate(poses):
-        result = tracker.track(make_frame(P, k), gmap)
+        result = tracker.track(make_frame(P, k))
         assert not result.lost
         E = invert_pose(P) @ result.pose
         assert np.linalg.norm(E[:3, 3]) < 2e-3 and rotation_angle_deg(E[:3, :3]) < 0.1
@@ -389,12 +390,12 @@ def test_degenerate_frame_is_lost_and_keeps_predicted_pose():
     tracker.poses = [POSE, moved]  # history: the prediction extrapolates the motion
     predicted = tracker.predict()
     zero = make_frame(POSE, 2, depth=np.zeros((CAMERA.height, CAMERA.width), np.float32))
-    result = tracker.track(zero, gmap)
+    result = tracker.track(zero)
     assert result.lost
     np.testing.assert_allclose(result.pose, predicted)
     assert "depth" in result.stats["lost_reason"]
     nan = make_frame(POSE, 3, depth=np.full((CAMERA.height, CAMERA.width), np.nan, np.float32))
-    assert tracker.track(nan, gmap).lost
+    assert tracker.track(nan).lost
 
 
 def test_frame_without_overlap_is_lost_with_reason():
@@ -404,7 +405,7 @@ def test_frame_without_overlap_is_lost_with_reason():
     tracker.update_target(gmap)
     far = make_pose(np.eye(3), [50.0, 0, 0]) @ POSE
     tracker.initialize(far)
-    result = tracker.track(frame, gmap)
+    result = tracker.track(frame)
     assert result.lost and "correspondences" in result.stats["lost_reason"]
     np.testing.assert_allclose(result.pose, far)
 
@@ -427,7 +428,7 @@ def test_kdtree_built_only_in_update_target(kernels):
     tracker.update_target(gmap)
     assert tracker.tree_builds == 1 and len(built) == 1
     for k in range(3):
-        assert not tracker.track(make_frame(POSE, k), gmap).lost
+        assert not tracker.track(make_frame(POSE, k)).lost
     assert tracker.tree_builds == 1 and len(built) == 1
     tracker.update_target(gmap)
     assert tracker.tree_builds == 2 and len(built) == 2
@@ -491,10 +492,10 @@ def test_config_validation_and_hints():
     assert cfg.pixel_stride is None and cfg.max_correspondence_distance is None and cfg.min_target_opacity == 0
     with pytest.raises(ConfigError, match="tracker.pixel_stride"):
         GICPTracker(cfg)  # nulls are the dataset's to fill
-    replica = SensorProfile(tracking_pixel_stride=10, correspondence_distance=0.02)
-    tracker = GICPTracker(cfg.with_sensor(replica))
+    replica = RunContext(tuning=DatasetTuning(tracking_pixel_stride=10, correspondence_distance=0.02))
+    tracker = GICPTracker(cfg.resolve(replica))
     assert (tracker.pixel_stride, tracker.max_corr, tracker.min_opacity) == (10, 0.02, 0.0)
-    tracker = GICPTracker(GICPConfig(pixel_stride=3).with_sensor(replica))  # a value given wins
+    tracker = GICPTracker(GICPConfig(pixel_stride=3).resolve(replica))  # a value given wins
     assert (tracker.pixel_stride, tracker.max_corr) == (3, 0.02)
 
 
@@ -513,7 +514,7 @@ def test_fallback_to_previous_pose_after_a_sudden_stop():
                                           fallback_to_previous=fallback, min_correspondences=4000))
         tracker.update_target(gmap)
         tracker.poses = [POSE @ make_pose(so3_exp(np.radians([0, -4.0, 0])), [-0.08, 0, 0]), POSE]
-        result = tracker.track(frame, gmap)
+        result = tracker.track(frame)
         if fallback:
             assert not result.lost and result.stats["fallback"] == "previous pose" and result.stats["retried"]
             E = invert_pose(POSE) @ result.pose
@@ -533,7 +534,7 @@ def test_coarse_to_fine_recovers_a_motion_beyond_the_correspondence_distance():
         tracker = GICPTracker(tight_config(max_correspondence_distance=0.03, coarse_factor=factor))
         tracker.update_target(gmap)
         tracker.initialize(start)
-        result = tracker.track(frame, gmap)
+        result = tracker.track(frame)
         E = invert_pose(POSE) @ result.pose
         errors[factor] = np.linalg.norm(E[:3, 3])
         if factor > 1:

@@ -5,11 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from slamkit.config import RunContext
 from slamkit.errors import ConfigError
+from slamkit.roles import KeyframeDecision
+from slamkit.tuning import DatasetTuning
 from slamkit.types import Camera, Frame, FrameGaussians, KeyframeKind, TrackingResult
 from slamkit_plugins.keyframes.every_n import EveryNKeyframeConfig, EveryNKeyframePolicy
 from slamkit_plugins.keyframes.every_n import slamkit_plugins as every_n_hook
-from slamkit.roles import SensorProfile
 from slamkit_plugins.keyframes.overlap import (
     OverlapKeyframeConfig,
     OverlapKeyframePolicy,
@@ -61,45 +63,46 @@ def test_overlap_policy_scripted_sequence():
     got = []
     for i, r in enumerate(ratios):
         res = result_with_ratio(r)
-        got.append(policy.decide(frame(i), res))
-        assert res.correspondence_ratio == pytest.approx(r)
+        decision = policy.decide(frame(i), res)
+        got.append(decision.kind)
+        assert decision.correspondence_ratio == pytest.approx(r) and res.correspondence_ratio is None  # not written into
     assert got == expected
 
 
 def test_overlap_policy_first_frame_always_tracking_and_mapping_disabled():
     policy = OverlapKeyframePolicy(OverlapKeyframeConfig(overlap_threshold=1e-3, keyframe_threshold=0.5, mapping_every=0))
-    got = [policy.decide(frame(i), result_with_ratio(1.0 if i else 0.99)) for i in range(25)]
+    got = [policy.decide(frame(i), result_with_ratio(1.0 if i else 0.99)).kind for i in range(25)]
     assert got == [T] + [N] * 24
 
 
 def test_overlap_policy_counts_lost_frames_by_index():
     """The pipeline skips decide() for lost frames; mapping-only spacing follows frame indices."""
     policy = OverlapKeyframePolicy(OverlapKeyframeConfig(overlap_threshold=1e-3, keyframe_threshold=0.5, mapping_every=4))
-    assert policy.decide(frame(0), result_with_ratio(0.0)) is T
-    assert policy.decide(frame(1), result_with_ratio(0.9)) is N
+    assert policy.decide(frame(0), result_with_ratio(0.0)).kind is T
+    assert policy.decide(frame(1), result_with_ratio(0.9)).kind is N
     # frames 2..4 lost
-    assert policy.decide(frame(5), result_with_ratio(0.9)) is M
-    assert policy.decide(frame(6), result_with_ratio(0.9)) is N
-    assert policy.decide(frame(9), result_with_ratio(0.9)) is M
+    assert policy.decide(frame(5), result_with_ratio(0.9)).kind is M
+    assert policy.decide(frame(6), result_with_ratio(0.9)).kind is N
+    assert policy.decide(frame(9), result_with_ratio(0.9)).kind is M
 
 
 def test_overlap_policy_max_interval_forces_tracking_keyframe():
     policy = OverlapKeyframePolicy(OverlapKeyframeConfig(overlap_threshold=1e-3, keyframe_threshold=0.5,
                                                          mapping_every=10, max_interval=30))
-    got = [policy.decide(frame(i), result_with_ratio(0.99)) for i in range(61)]
+    got = [policy.decide(frame(i), result_with_ratio(0.99)).kind for i in range(61)]
     assert [i for i, k in enumerate(got) if k is T] == [0, 30, 60]
     assert [i for i, k in enumerate(got) if k is M] == [10, 20, 40, 50]
 
 
-def test_overlap_policy_reads_its_null_thresholds_from_the_sensor_profile():
+def test_overlap_policy_reads_its_null_thresholds_from_the_dataset_tuning():
     cfg = OverlapKeyframeConfig()
     assert cfg.overlap_threshold is None and cfg.keyframe_threshold is None and cfg.mapping_every == 10
-    policy = OverlapKeyframePolicy(cfg.with_sensor(SensorProfile()))
+    policy = OverlapKeyframePolicy(cfg.resolve(RunContext()))
     assert (policy.overlap_threshold, policy.keyframe_threshold) == (1e-3, 0.81)  # a hand-held camera (TUM)
-    replica = SensorProfile(keyframe_overlap=5e-4, keyframe_threshold=0.7)
-    policy = OverlapKeyframePolicy(cfg.with_sensor(replica))
+    replica = RunContext(tuning=DatasetTuning(keyframe_overlap=5e-4, keyframe_threshold=0.7))
+    policy = OverlapKeyframePolicy(cfg.resolve(replica))
     assert (policy.overlap_threshold, policy.keyframe_threshold) == (5e-4, 0.7)
-    policy = OverlapKeyframePolicy(OverlapKeyframeConfig(keyframe_threshold=0.5).with_sensor(replica))
+    policy = OverlapKeyframePolicy(OverlapKeyframeConfig(keyframe_threshold=0.5).resolve(replica))
     assert (policy.overlap_threshold, policy.keyframe_threshold) == (5e-4, 0.5)
     with pytest.raises(ConfigError, match="keyframe.keyframe_threshold"):
         OverlapKeyframeConfig(keyframe_threshold=1.5)
@@ -119,26 +122,26 @@ def test_overlap_policy_ratio_uses_the_threshold():
     for p in (loose, tight):
         p.decide(frame(0), result())
     r1, r2 = result(), result()
-    assert loose.decide(frame(1), r1) is N and r1.correspondence_ratio == 1.0
-    assert tight.decide(frame(1), r2) is T and r2.correspondence_ratio == 0.0
+    assert loose.decide(frame(1), r1) == KeyframeDecision(N, 1.0)
+    assert tight.decide(frame(1), r2) == KeyframeDecision(T, 0.0)
 
 
 def test_every_n_scripted_sequence():
     policy = EveryNKeyframePolicy(EveryNKeyframeConfig(tracking_every=5, mapping_every=2))
-    got = [policy.decide(frame(i), result_with_ratio(0.5)) for i in range(12)]
+    got = [policy.decide(frame(i), result_with_ratio(0.5)).kind for i in range(12)]
     assert got == [T, N, M, N, M, T, N, M, N, M, T, N]
     only = EveryNKeyframePolicy(EveryNKeyframeConfig())
-    got = [only.decide(frame(i), TrackingResult(pose=np.eye(4))) for i in range(61)]
+    got = [only.decide(frame(i), TrackingResult(pose=np.eye(4))).kind for i in range(61)]
     assert [i for i, k in enumerate(got) if k] == [0, 30, 60]
     assert all(k in (T, N) for k in got)
 
 
 def test_every_n_with_lost_frames_and_validation():
     policy = EveryNKeyframePolicy(EveryNKeyframeConfig(tracking_every=3))
-    assert policy.decide(frame(0), TrackingResult(pose=np.eye(4))) is T
+    assert policy.decide(frame(0), TrackingResult(pose=np.eye(4))).kind is T
     # frames 1..3 lost: the next frame asked is overdue and becomes the keyframe
-    assert policy.decide(frame(4), TrackingResult(pose=np.eye(4))) is T
-    assert policy.decide(frame(5), TrackingResult(pose=np.eye(4))) is N
+    assert policy.decide(frame(4), TrackingResult(pose=np.eye(4))).kind is T
+    assert policy.decide(frame(5), TrackingResult(pose=np.eye(4))).kind is N
     with pytest.raises(ConfigError, match="keyframe.tracking_every"):
         EveryNKeyframeConfig(tracking_every=0)
 

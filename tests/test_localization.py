@@ -85,13 +85,15 @@ def test_replica_frames_10_19_localise_in_the_map_of_frames_0_9(tmp_path, replic
     # a frame the tracker loses (no depth) is not localised; the next one is registered again
     from dataclasses import replace
 
+    from slamkit.config import RunContext
     from slamkit.run.checkpoint import load_map
     from slamkit.run.localization import Localizer
 
     registry = default_registry()
-    cfg, names = compose_run([*replica, "mode=localize", f"localize.map={tmp_path / 'map'}", "dataset.start=10"])
+    cfg, names = compose_run([*replica, "mode=localize", f"map={tmp_path / 'map'}", "dataset.start=10"])
     dataset = registry.create("dataset", names["dataset"], cfg.dataset)
-    localizer = Localizer(cfg, registry.create("tracker", names["tracker"], cfg.tracker, dataset.sensor),
+    context = RunContext(tuning=dataset.tuning, build=registry.create)
+    localizer = Localizer(cfg, registry.create("tracker", names["tracker"], cfg.tracker, context),
                           load_map(tmp_path / "map")[0])
     first, blind, after = dataset[0], dataset[1], dataset[2]
     steps = [localizer.step(first), localizer.step(replace(blind, depth=np.zeros_like(blind.depth))),
@@ -125,11 +127,10 @@ def test_localize_needs_a_map(tmp_path):
     from slamkit.errors import ConfigError
     from slamkit.formats.checkpoint import CheckpointError
     from slamkit.run.checkpoint import load_map
-    from slamkit.run.localization import localize_arguments
 
     with pytest.raises(ConfigError, match="map: expected a run folder or checkpoint file with mode=localize"):
         compose_run(["mode=localize"])
-    assert localize_arguments(["mode=localize", "map=out/run", "map.scale_c=3"]) == [
-        "mode=localize", "localize.map=out/run", "map.scale_c=3"]
+    cfg, _ = compose_run(["mode=localize", "map=out/run", "growth.scale_c=3"])
+    assert cfg.map == "out/run" and cfg.growth.scale_c == 3  # `map` names the saved map, `growth.` the map's growth
     with pytest.raises(CheckpointError, match=f"checkpoint {tmp_path / 'nothing'} not found"):
         load_map(tmp_path / "nothing")

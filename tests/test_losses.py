@@ -7,7 +7,7 @@ import pytest
 import torch
 from pytorch_msssim import ssim
 
-from slamkit.map.rendering import RenderOutput
+from slamkit.splatting.rendering import RenderOutput
 from slamkit.roles import TrainingView
 from slamkit.types import Camera
 from slamkit_plugins.losses.l1_ssim_depth import L1SSIMDepthConfig, L1SSIMDepthLoss
@@ -55,7 +55,7 @@ def test_gradients_reach_colour_and_depth():
 
 @pytest.mark.parametrize("seed, invalid", [(0, 0.3), (1, 0.0), (2, 1.1)])
 def test_the_compiled_backend_is_the_same_loss(seed, invalid):
-    """loss.backend=compiled (one kernel call, analytic gradients) against backend=torch
+    """mapper.loss.backend=compiled (one kernel call, analytic gradients) against backend=torch
     (autograd through pytorch-msssim): value and gradients to float precision."""
     from slamkit_plugins.losses.l1_ssim_depth import Backend
 

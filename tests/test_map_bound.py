@@ -1,5 +1,5 @@
 """A map bounded by the scene (issue 20, point 4): the coverage tests a keyframe's new Gaussians
-go through (`slamkit.map.coverage`, `strategy.skip_covered`), and a looped real sequence whose
+go through (`slamkit.splatting.coverage`, `mapper.admission.skip_covered`), and a looped real sequence whose
 map stops growing after the first pass."""
 
 from __future__ import annotations
@@ -15,16 +15,18 @@ import torch
 from mapping_scenes import CAM, N, make_map, make_mapper, plane_scene, render_frame
 from slamkit.errors import ConfigError
 from slamkit.geometry.transforms import invert_pose
-from slamkit.map.coverage import DepthTolerance, covered_by_render, occupied_by_centres
-from slamkit.map.rendering import RenderOutput
+from slamkit.splatting.coverage import DepthTolerance, covered_by_render, occupied_by_centres
+from slamkit.splatting.rendering import RenderOutput
 from slamkit.map.gaussian_map import GaussianMap
 from slamkit.map.growth import MapGrowthConfig
 from slamkit.registry.discovery import create_rasterizer
-from slamkit.roles import SensorProfile, Tracker
+from slamkit.config import RunContext
+from slamkit.roles import Tracker
+from slamkit.splatting import AdmissionConfig, CoverageTest
+from slamkit.tuning import DatasetTuning
 from slamkit.run.slam import SLAM
 from slamkit.types import FrameGaussians, TrackingResult
 from slamkit_plugins.keyframes.every_n import EveryNKeyframeConfig, EveryNKeyframePolicy
-from slamkit_plugins.strategies.gsicp import PruneConfig
 
 
 def at_pixel(u: float, v: float, z: float, pose: np.ndarray = np.eye(4)) -> np.ndarray:
@@ -107,20 +109,20 @@ def test_a_grid_of_centres_a_cell_apart_occupies_a_view_at_any_rotation(angle):
     assert all(occupied(samples, first, rotated))
 
 
-def test_coverage_settings_are_validated_and_the_cell_comes_from_the_sensor():
-    with pytest.raises(ConfigError, match="strategy.covered_cell: expected null or > 0 pixels"):
-        PruneConfig(covered_cell=0)
-    with pytest.raises(ConfigError, match="strategy.covered_centres: expected an integer >= 1"):
-        PruneConfig(covered_centres=0)
-    with pytest.raises(ConfigError, match="strategy.covered_depth_quadratic: expected >= 0 per metre"):
-        PruneConfig(covered_depth_quadratic=-0.01)
-    with pytest.raises(ConfigError, match="strategy.coverage"):
-        from slamkit.registry.compose import build_run
+def test_coverage_settings_are_validated_and_the_cell_comes_from_the_dataset_tuning():
+    with pytest.raises(ConfigError, match="mapper.admission.covered_cell: expected null or > 0 pixels"):
+        AdmissionConfig(covered_cell=0)
+    with pytest.raises(ConfigError, match="mapper.admission.covered_centres: expected an integer >= 1"):
+        AdmissionConfig(covered_centres=0)
+    with pytest.raises(ConfigError, match="mapper.admission.covered_depth_quadratic: expected >= 0 per metre"):
+        AdmissionConfig(covered_depth_quadratic=-0.01)
+    with pytest.raises(ConfigError, match="mapper.admission.coverage"):
+        from slamkit.run.build import build_run
 
-        build_run(["dataset=synthetic", "mapper=gaussian_splatting", "strategy.coverage=nearby"])
-    cfg = PruneConfig().with_sensor(SensorProfile(tracking_pixel_stride=10, max_gaussian_scale=0.25))
-    assert cfg.covered_cell == 10 and cfg.max_scale == 0.25  # the sampling stride
-    assert PruneConfig(covered_cell=3).with_sensor(SensorProfile()).covered_cell == 3
+        build_run(["dataset=synthetic", "mapper=gaussian_splatting", "mapper.admission.coverage=nearby"])
+    cfg = AdmissionConfig().resolve(RunContext(tuning=DatasetTuning(tracking_pixel_stride=10)))
+    assert cfg.covered_cell == 10  # the sampling stride
+    assert AdmissionConfig(covered_cell=3).resolve(RunContext()).covered_cell == 3
 
 
 class PlaneTracker(Tracker):
@@ -128,7 +130,7 @@ class PlaneTracker(Tracker):
     floating in front (z = 1.4 m), all overlapping the tracking target (not trackable), and 5 on
     the wall that are new surface for tracking (trackable)."""
 
-    def track(self, frame, gaussian_map):
+    def track(self, frame):
         rng = np.random.default_rng(3)
         on = np.c_[rng.uniform(-0.6, 0.6, (20, 2)), np.full(20, 2.0)]
         front = np.c_[rng.uniform(-0.6, 0.6, (10, 2)), np.full(10, 1.4)]
@@ -141,10 +143,12 @@ class PlaneTracker(Tracker):
         return TrackingResult(frame.gt_pose, gaussians=g)
 
 
-def grow_once(gm, **strategy) -> tuple[int, object]:
+def grow_once(gm, **admission) -> tuple[int, object]:
     """One keyframe of PlaneTracker's Gaussians into `gm` through SLAM; (Gaussians added, mapper).
     Cell 5 px: the 300 map Gaussians leave no sample of CAM without a centre near it."""
-    mapper = make_mapper(gm, strategy=("gsicp", {"covered_cell": 5.0, **strategy}))
+    if "coverage" in admission:
+        admission["coverage"] = CoverageTest(admission["coverage"])
+    mapper = make_mapper(gm, mapper={"admission": AdmissionConfig(**{"covered_cell": 5.0, **admission})})
     slam = SLAM(PlaneTracker(), EveryNKeyframePolicy(EveryNKeyframeConfig(tracking_every=1)), mapper, gm,
                 MapGrowthConfig(new_gaussian_overlap=1e-3), iterations_per_frame=0)
     slam.initialize(np.eye(4))
@@ -156,7 +160,7 @@ def grow_once(gm, **strategy) -> tuple[int, object]:
 
 
 def test_more_centres_a_cell_admit_more_of_a_keyframe():
-    """strategy.covered_centres=8 (the map's 300 centres put about 5-10 in a point's disc of 3.5
+    """mapper.admission.covered_centres=8 (the map's 300 centres put about 5-10 in a point's disc of 3.5
     px): discs with fewer no longer count as explained, so more of the keyframe enters."""
     one, _ = grow_once(make_map(*plane_scene()))
     eight, _ = grow_once(make_map(*plane_scene()), covered_centres=8)
@@ -174,12 +178,12 @@ def test_skip_covered_admits_the_uncovered_and_the_trackable(coverage):
     new = gm.means.detach()[N:]
     assert int((new[:, 2] < 1.5).sum()) == 10  # the floating ones
     assert int(gm.trackable[N:].sum()) == 5
-    assert mapper.strategy.metrics()["skipped_as_covered"] == 20
+    assert mapper.trainer.admission.skipped == 20
 
 
 @pytest.mark.parametrize("coverage", ["centres", "render"])
 def test_the_strategy_takes_the_quadratic_depth_tolerance(coverage):
-    """strategy.covered_depth_quadratic=0.35: 69 cm at 1.4 m, so the wall at 2 m explains the
+    """mapper.admission.covered_depth_quadratic=0.35: 69 cm at 1.4 m, so the wall at 2 m explains the
     floating points 60 cm in front of it, and only the trackable ones enter."""
     means, quats, scales, colors, _ = plane_scene()
     added, _ = grow_once(make_map(means, quats, scales * 2, colors, 0.99), coverage=coverage,
@@ -190,7 +194,7 @@ def test_the_strategy_takes_the_quadratic_depth_tolerance(coverage):
 def test_without_skip_covered_every_keyframe_gaussian_enters():
     gm = make_map(*plane_scene(opacity=0.99))
     added, mapper = grow_once(gm, skip_covered=False)
-    assert added == 35 and mapper.strategy.metrics()["skipped_as_covered"] == 0
+    assert added == 35 and mapper.trainer.admission.skipped == 0
 
 
 def test_centres_explain_an_untrained_map_where_the_render_does_not():
@@ -208,7 +212,7 @@ class TargetlessTracker(Tracker):
     """Ground-truth poses; every frame the same 40 Gaussians on a wall at z = 3 m, all reported
     far from the tracker's target (it never builds one): new surface for tracking every time."""
 
-    def track(self, frame, gaussian_map):
+    def track(self, frame):
         rng = np.random.default_rng(4)
         means = np.c_[rng.uniform(-0.6, 0.6, (40, 2)), np.full(40, 3.0)].astype(np.float32)
         g = FrameGaussians(means, np.tile(np.eye(3) * 1e-4, (40, 1, 1)), np.full((40, 3), 0.5), means[:, 2],
@@ -222,7 +226,7 @@ def test_gaussians_the_target_lacks_yet_are_not_made_trackable_twice():
     target was built) must not make them trackable again: trackable Gaussians enter the map
     whatever the coverage test says, so a loop would add them at every revisit."""
     gm = GaussianMap()
-    mapper = make_mapper(gm, strategy=("gsicp", {"covered_cell": 5.0}))
+    mapper = make_mapper(gm, mapper={"admission": AdmissionConfig(covered_cell=5.0)})
     slam = SLAM(TargetlessTracker(), EveryNKeyframePolicy(EveryNKeyframeConfig(tracking_every=3, mapping_every=1)),
                 mapper, gm, MapGrowthConfig(new_gaussian_overlap=1e-3), iterations_per_frame=0)
     slam.initialize(np.eye(4))
@@ -238,7 +242,7 @@ def test_gaussians_the_target_lacks_yet_are_not_made_trackable_twice():
     # rebuilds the target from the map, so at frame 4 it lacks nothing again
     assert sizes == [40, 80, 80, 80, 120]
     assert int(gm.trackable.sum()) == 120
-    assert mapper.strategy.metrics()["skipped_as_covered"] == 80
+    assert mapper.trainer.admission.skipped == 80
 
 
 # -- end to end: a looped real sequence ---------------------------------------------------------
@@ -276,7 +280,7 @@ def test_a_looped_sequence_stops_growing_the_map_after_the_first_pass(tmp_path, 
     (skip_covered off) they add at least half as much again. Tracking is the same."""
     run_mode = ["mode=realtime", "fps_limit=30"] if mode == "realtime" else ["iterations_per_frame=2"]
     bounded, m_bounded = loop_run(tmp_path, tum_path, "bounded", *MAPPING, *run_mode)
-    unbounded, m_unbounded = loop_run(tmp_path, tum_path, "unbounded", *MAPPING, "strategy.skip_covered=false",
+    unbounded, m_unbounded = loop_run(tmp_path, tum_path, "unbounded", *MAPPING, "mapper.admission.skip_covered=false",
                                       *run_mode)
     assert len(bounded) == len(unbounded) == 28
     first, later = growth_by_pass(bounded)

@@ -10,7 +10,7 @@ import torch
 
 from mapping_scenes import N, plane_scene, rows, start_map
 from slamkit.map.gaussian_map import PARAMETERS
-from slamkit.map.editing import MapEdit
+from slamkit.splatting.ops import MapEdit
 from slamkit_plugins.optimizers.adam import AdamConfig, TorchAdam
 from slamkit_plugins.optimizers.visible_adam import VisibleAdam, VisibleAdamConfig
 

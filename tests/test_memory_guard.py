@@ -1,4 +1,4 @@
-"""The memory guard every strategy has (`strategy.max_gaussians`) and the 3DGS mapper's keyframe
+"""The memory cap the trainer applies whatever the strategy (`mapper.memory_cap.max_gaussians`) and the 3DGS mapper's keyframe
 image storage (issue 9)."""
 
 from __future__ import annotations
@@ -12,15 +12,14 @@ import torch
 
 from mapping_scenes import N, add, make_map, make_mapper, plane_scene, render_frame, rows, start_map, state_follows_map
 from slamkit.metrics import trajectory as evaluation
-from slamkit.registry.compose import build_run
+from slamkit.run.build import build_run
 from slamkit.errors import ConfigError
 from slamkit.map.gaussian_map import GaussianMap
 from slamkit.map.growth import MapGrowthConfig
 from slamkit.registry.discovery import create_rasterizer
 from slamkit.run.slam import SLAM
-from slamkit_plugins.mappers.gaussian_splatting import KeyframeStorage
-from slamkit_plugins.mappers.gaussian_splatting.keyframes import KEYFRAME_DEPTH_STEP
-from slamkit_plugins.strategies.gsicp import PruneConfig
+from slamkit.splatting import MemoryCapConfig
+from slamkit.splatting.keyframes import KEYFRAME_DEPTH_STEP, KeyframeStorage
 
 
 @pytest.fixture(scope="module")
@@ -33,15 +32,16 @@ def frame(rasterizer):
     return render_frame(rasterizer, make_map(*plane_scene()), np.eye(4))
 
 
-def guarded(cap: int, margin: float = 0.1, **fields):
-    return ("gsicp", {"max_gaussians": cap, "memory_guard_margin": margin, **fields})
+def capped(cap: int, margin: float = 0.1) -> dict:
+    """The mapper's settings of a memory cap of `cap` Gaussians."""
+    return {"memory_cap": MemoryCapConfig(max_gaussians=cap, margin=margin)}
 
 
-@pytest.mark.parametrize("field, value", [("max_gaussians", 0), ("max_gaussians", -5), ("memory_guard_margin", 1.0),
-                                          ("memory_guard_margin", -0.1)])
+@pytest.mark.parametrize("field, value", [("max_gaussians", 0), ("max_gaussians", -5), ("margin", 1.0),
+                                          ("margin", -0.1)])
 def test_guard_settings_are_validated(field, value):
-    with pytest.raises(ConfigError, match=f"strategy.{field}: expected") as err:
-        PruneConfig(**{field: value})
+    with pytest.raises(ConfigError, match=f"mapper.memory_cap.{field}: expected") as err:
+        MemoryCapConfig(**{field: value})
     assert "\n" not in str(err.value)
 
 
@@ -49,10 +49,10 @@ def test_guard_prunes_the_least_opaque_down_to_the_margin_and_spares_new_rows(ra
     gm = start_map()
     with torch.no_grad():  # distinct opacities, shuffled over the rows
         gm.opacity_logits.copy_(torch.linspace(-4, 4, N)[torch.randperm(N, generator=torch.Generator().manual_seed(0))])
-    mapper = make_mapper(gm, strategy=guarded(320, 0.2, prune_every=0))
+    mapper = make_mapper(gm, strategy=("gsicp", {"prune_every": 0}), mapper=capped(320, 0.2))
     add(mapper, frame)
     mapper.optimize(3)
-    assert len(gm) == N and mapper.strategy.stats["memory_guard_prunings"] == 0  # within the cap
+    assert len(gm) == N and mapper.trainer.memory_cap.prunings == 0  # within the cap
     # a keyframe adds 40 Gaussians: 340 > 320, so the guard prunes down to 0.8 x 320 = 256
     before = gm.opacities.detach().clone()
     new = gm.append(rows(*plane_scene(seed=5, n=40)[:4], 0.1, keyframe_id=1))
@@ -60,22 +60,22 @@ def test_guard_prunes_the_least_opaque_down_to_the_margin_and_spares_new_rows(ra
     version = gm.version
     add(mapper, frame, new_rows=new)
     assert len(gm) == 256 and gm.version > version
-    assert mapper.strategy.stats == {"pruned_by_memory_guard": 84, "memory_guard_prunings": 1, "skipped_as_covered": 0}
+    assert mapper.trainer.memory_cap.metrics() == {"pruned_by_memory_guard": 84, "memory_guard_prunings": 1}
     torch.testing.assert_close(gm.means.detach()[-40:], new_means, rtol=0, atol=0)  # the new rows stay
     old = before[:N]
     kept = torch.sort(old, descending=True).values[:216]
     torch.testing.assert_close(torch.sort(gm.opacities.detach()[:216], descending=True).values, kept)
-    assert mapper.optimize(2) == 2 and np.isfinite(mapper.last_loss)
+    assert mapper.optimize(2) == 2 and np.isfinite(mapper.trainer.last_loss)
     state_follows_map(mapper)
     assert mapper.evaluate([frame], [frame.gt_pose], None)["pruned_by_memory_guard"] == 84
 
 
 def test_guard_prunes_new_rows_only_when_the_old_ones_cannot_make_room(rasterizer, frame):
     gm = start_map()
-    mapper = make_mapper(gm, strategy=guarded(50, 0.0))
+    mapper = make_mapper(gm, mapper=capped(50, 0.0))
     new = gm.append(rows(*plane_scene(seed=5, n=80)[:4], 0.1, keyframe_id=1))
     add(mapper, frame, new_rows=new)
-    assert len(gm) == 50 and mapper.strategy.stats["pruned_by_memory_guard"] == N + 30
+    assert len(gm) == 50 and mapper.trainer.memory_cap.pruned == N + 30
     assert bool((gm.keyframe_id == 1).all())  # every old row went first
     mapper.optimize(1)
     state_follows_map(mapper)
@@ -83,11 +83,11 @@ def test_guard_prunes_new_rows_only_when_the_old_ones_cannot_make_room(rasterize
 
 def test_densification_respects_the_cap(rasterizer, frame):
     gm = start_map()
-    mapper = make_mapper(gm, strategy=("3dgs", {"densify_every": 3, "grad_threshold": 1e-9, "max_gaussians": N + 10,
-                                                "memory_guard_margin": 0.0}))
+    mapper = make_mapper(gm, strategy=("3dgs", {"densify_every": 3, "grad_threshold": 1e-9}),
+                         mapper=capped(N + 10, 0.0))
     add(mapper, frame)
     mapper.optimize(3)
-    assert len(gm) <= N + 10 and mapper.strategy.stats["memory_guard_prunings"] >= 1
+    assert len(gm) <= N + 10 and mapper.trainer.memory_cap.prunings >= 1
     state_follows_map(mapper)
 
 
@@ -96,7 +96,7 @@ def test_keyframe_images_are_quantised_and_stored(rasterizer, frame, storage, tm
     folder = tmp_path / "kf"
     mapper = make_mapper(mapper={"keyframe_storage": KeyframeStorage(storage), "keyframe_dir": str(folder)})
     add(mapper, frame)
-    view = mapper.keyframes[0].view()
+    view = mapper.trainer.keyframes[0].view()
     image, depth = view.image, view.depth
     assert image.dtype == depth.dtype == torch.float32 and image.shape == (30, 40, 3)
     torch.testing.assert_close(image, torch.as_tensor(frame.rgb) / 255.0, rtol=0, atol=1e-6)
@@ -107,11 +107,11 @@ def test_keyframe_images_are_quantised_and_stored(rasterizer, frame, storage, tm
     on_disk = sorted(p.name for p in folder.glob("*.npy")) if folder.exists() else []
     if storage == "disk":
         assert on_disk == ["keyframe_000000_depth.npy", "keyframe_000000_rgb.npy"]
-        assert mapper.keyframes.memory_bytes() == 0
+        assert mapper.trainer.keyframes.memory_bytes() == 0
     else:
-        assert on_disk == [] and mapper.keyframes.memory_bytes() == 30 * 40 * (3 + 2)
+        assert on_disk == [] and mapper.trainer.keyframes.memory_bytes() == 30 * 40 * (3 + 2)
     mapper.optimize(3)
-    assert np.isfinite(mapper.last_loss)
+    assert np.isfinite(mapper.trainer.last_loss)
 
 
 def test_disk_storage_trains_exactly_as_memory_storage(rasterizer, frame):
@@ -120,9 +120,9 @@ def test_disk_storage_trains_exactly_as_memory_storage(rasterizer, frame):
         mapper = make_mapper(mapper={"keyframe_storage": storage})
         add(mapper, frame)
         mapper.optimize(4)
-        losses[storage] = (mapper.last_loss, mapper.gaussian_map.colors.detach().clone())
+        losses[storage] = (mapper.trainer.last_loss, mapper.gaussian_map.colors.detach().clone())
         if storage is KeyframeStorage.disk:
-            folder = mapper.keyframes.folder
+            folder = mapper.trainer.keyframes.folder
             assert folder.is_dir()
             del mapper
             import gc
@@ -165,14 +165,14 @@ def test_guarded_replica_run_stays_under_the_cap_keeps_the_most_opaque_and_track
                                   "tracker=gicp", "keyframe=every_n", "keyframe.tracking_every=2",
                                   "mapper=gaussian_splatting", "mapper.resolution_scale=0.25", "final_iterations=0",
                                   "mapper.eval_resolution_scale=0.25", "mapper.save_images=0",
-                                  f"strategy.max_gaussians={cap}", "strategy.memory_guard_margin=0.1",
-                                  "strategy.skip_covered=false",  # every keyframe adds its ~8k Gaussians
+                                  f"mapper.memory_cap.max_gaussians={cap}", "mapper.memory_cap.margin=0.1",
+                                  "mapper.admission.skip_covered=false",  # every keyframe adds its ~8k Gaussians
                                   "iterations_per_frame=2"])
     gm, mapper = slam.gaussian_map, slam.mapper
     recorder = slam.tracker = RecordingTracker(slam.tracker)
 
     prunings, kept_masks = [], []
-    guard, remove = mapper.strategy.enforce_memory_guard, mapper.edit.remove
+    guard, remove = mapper.trainer.memory_cap.enforce, mapper.trainer.edit.remove
 
     def guard_spy(edit, protect=None):
         logits, version, n, first = gm.opacity_logits.detach().clone(), gm.version, len(gm), len(kept_masks)
@@ -185,7 +185,7 @@ def test_guarded_replica_run_stays_under_the_cap_keeps_the_most_opaque_and_track
         kept_masks.append(~drop.clone())
         return remove(drop)
 
-    mapper.strategy.enforce_memory_guard, mapper.edit.remove = guard_spy, remove_spy
+    mapper.trainer.memory_cap.enforce, mapper.trainer.edit.remove = guard_spy, remove_spy
 
     slam.initialize(dataset[0].gt_pose)
     poses, gts = [], []
@@ -198,7 +198,7 @@ def test_guarded_replica_run_stays_under_the_cap_keeps_the_most_opaque_and_track
         state_follows_map(mapper)
         assert not step.tracking.lost
 
-    assert len(prunings) >= 2 and mapper.strategy.stats["pruned_by_memory_guard"] == sum(p[3] for p in prunings)
+    assert len(prunings) >= 2 and mapper.trainer.memory_cap.pruned == sum(p[3] for p in prunings)
     for logits, protect, n, removed, mask, v_before, v_after in prunings:
         assert len(mask) == n and int((~mask).sum()) == removed
         old = torch.ones(n, dtype=torch.bool)
@@ -215,7 +215,7 @@ def test_guarded_replica_run_stays_under_the_cap_keeps_the_most_opaque_and_track
     ate = evaluation.ate(np.array(poses), gts)
     assert ate.rmse_m < 0.01
     metrics = mapper.evaluate(dataset, poses, None)
-    assert metrics["pruned_by_memory_guard"] == mapper.strategy.stats["pruned_by_memory_guard"] > 0
+    assert metrics["pruned_by_memory_guard"] == mapper.trainer.memory_cap.pruned > 0
     assert metrics["num_gaussians"] == len(gm) <= cap and math.isfinite(metrics["psnr"])
     assert metrics["keyframe_memory_mb"] > 0
 
@@ -256,13 +256,13 @@ def test_release_free_memory_returns_a_fragmented_heap_to_the_os():
 def test_slam_releases_free_memory_at_each_keyframe(monkeypatch, rasterizer):
     import slamkit.run.slam
     from slamkit_plugins.keyframes.every_n import EveryNKeyframeConfig, EveryNKeyframePolicy
-    from test_mapper import GroundTruthTracker
+    from mapping_scenes import GroundTruthTracker
 
     calls = []
     monkeypatch.setattr(slamkit.run.slam, "release_free_memory", lambda: calls.append(1) or True)
-    mapper = make_mapper(strategy=guarded(100))
+    mapper = make_mapper(mapper=capped(100))
     slam = SLAM(GroundTruthTracker(), EveryNKeyframePolicy(EveryNKeyframeConfig(tracking_every=2)), mapper,
-                GaussianMap(), MapGrowthConfig(), iterations_per_frame=1)
+                mapper.gaussian_map, MapGrowthConfig(), iterations_per_frame=1)
     frame = render_frame(rasterizer, start_map(), np.eye(4))
     slam.initialize(np.eye(4))
     for i in range(5):
@@ -285,8 +285,8 @@ def test_cli_run_with_the_guard_reports_pruning_and_stays_under_the_cap(tmp_path
     out = tmp_path / "run"
     proc = run_slamkit(
         "dataset=synthetic", "dataset.num_frames=12", "dataset.width=64", "dataset.height=48", "tracker=gicp",
-        "keyframe=every_n", "keyframe.tracking_every=2", "mapper=gaussian_splatting", "strategy.max_gaussians=1000",
-        "strategy.skip_covered=false",
+        "keyframe=every_n", "keyframe.tracking_every=2", "mapper=gaussian_splatting", "mapper.memory_cap.max_gaussians=1000",
+        "mapper.admission.skip_covered=false",
         "final_iterations=2", "mapper.save_images=0", "iterations_per_frame=2", f"mode={mode}",
         "progress=false", "eval.plot=false", f"hydra.run.dir={out}", cwd=tmp_path, timeout=300,
     )

@@ -132,9 +132,9 @@ def test_removing_rows_through_edit_rows_keeps_the_others_on_course(make):
 def test_learning_rates_are_validated():
     from slamkit.errors import ConfigError
 
-    with pytest.raises(ConfigError, match="optimizer.lr_means"):
+    with pytest.raises(ConfigError, match="mapper.optimizer.lr_means"):
         AdamConfig(lr_means=-1.0)
-    with pytest.raises(ConfigError, match="optimizer.eps"):
+    with pytest.raises(ConfigError, match="mapper.optimizer.eps"):
         VisibleAdamConfig(eps=0.0)
 
 

@@ -253,9 +253,12 @@ def test_config_is_validated():
 
 
 def _registry_with_backends() -> Registry:
+    from slamkit_plugins.rasterizers import auto as auto_module
+
     registry = Registry()
     registry.add_module(torch_module, "torch_rasterizer (test)")
     registry.add_module(gsplat_module, "gsplat_rasterizer (test)")
+    registry.add_module(auto_module, "auto_rasterizer (test)")
     return registry
 
 
@@ -263,11 +266,14 @@ def test_auto_takes_the_first_backend_it_can_build(monkeypatch):
     from slamkit_plugins.rasterizers.auto import AutoRasterizer, AutoRasterizerConfig
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
-    auto = AutoRasterizer(AutoRasterizerConfig(prefer=["gsplat", "torch"]))  # no CUDA: gsplat is skipped
-    assert auto.name == "torch" and isinstance(auto.backend, TorchRasterizer)
+    registry = _registry_with_backends()
+    auto = registry.create("rasterizer", "auto", AutoRasterizerConfig(prefer=["gsplat", "torch"]))  # no CUDA: no gsplat
+    assert isinstance(auto, AutoRasterizer) and auto.name == "torch" and isinstance(auto.backend, TorchRasterizer)
     with pytest.raises(ConfigError, match="rasterizer auto: no backend could be built"):
-        AutoRasterizer(AutoRasterizerConfig(prefer=["gsplat"]))
-    with pytest.raises(ConfigError, match="rasterizer.prefer"):
+        registry.create("rasterizer", "auto", AutoRasterizerConfig(prefer=["gsplat"]))
+    with pytest.raises(ConfigError, match="rasterizer auto: built outside a run"):
+        AutoRasterizer(AutoRasterizerConfig())  # a backend comes from the run's registry only
+    with pytest.raises(ConfigError, match="mapper.rasterizer.prefer"):
         AutoRasterizerConfig(prefer=[])
 
 
@@ -280,14 +286,14 @@ def test_gsplat_without_cuda_is_a_config_error(monkeypatch):
 def test_max_pairs_per_chunk_bounds_the_bands_without_changing_the_image():
     """`rasterizer.max_pairs_per_chunk` set through the CLI's composition: a small bound renders the
     same image in more bands of rows (less memory at once)."""
-    from slamkit.registry.compose import build_run
+    from slamkit.run.build import build_run
 
     cam = Camera(width=64, height=48, fx=60.0, fy=58.0, cx=31.5, cy=23.5)
     scene = random_scene(300, seed=5, size=(0.05, 0.2))
     outs, bands = [], []
     for limit in (2_000_000, 1024):
-        rast = build_run(["mapper=gaussian_splatting", "rasterizer=torch",
-                          f"rasterizer.max_pairs_per_chunk={limit}"])[1].mapper.rasterizer
+        rast = build_run(["mapper=gaussian_splatting", "mapper/rasterizer=torch",
+                          f"mapper.rasterizer.max_pairs_per_chunk={limit}"])[1].mapper.trainer.rasterizer
         outs.append(rast.render(*scene, a_pose(), cam))
         bands.append(rast.last_num_bands)
     assert bands[0] == 1 and bands[1] > 5

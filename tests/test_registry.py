@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from slamkit.errors import PluginError
+from slamkit.errors import ConfigError, PluginError
 from slamkit.registry.discovery import discover
 
 from conftest import make_plugin_dist, run_slamkit
@@ -28,12 +28,12 @@ FAKE_TRACKER = """
 
     class StillTracker(Tracker):
         '''Reports the first pose for every frame, shifted by cfg.offset along x.'''
-        def __init__(self, cfg):
+        def __init__(self, cfg, context=None):
             self.cfg = cfg
         def initialize(self, first_pose):
             self.pose = first_pose.copy()
             self.pose[0, 3] += self.cfg.offset
-        def track(self, frame, gaussian_map):
+        def track(self, frame):
             if frame.index == self.cfg.fail_at:
                 raise ValueError("simulated failure")
             return TrackingResult(pose=self.pose)
@@ -67,9 +67,9 @@ ODD_CONFIG = """
         weights: np.ndarray = field(default_factory=lambda: np.ones(3))
 
     class OddTracker(Tracker):
-        def __init__(self, cfg):
+        def __init__(self, cfg, context=None):
             self.cfg = cfg
-        def track(self, frame, gaussian_map):
+        def track(self, frame):
             raise NotImplementedError
 
     @hookimpl
@@ -161,15 +161,34 @@ def test_a_plugin_that_raises_stops_the_run_cleanly_naming_it(plugin_dir, tmp_pa
     assert "Traceback" in (out / "slamkit.log").read_text()  # the log keeps the details
 
 
-def test_design_spelling_of_the_rasteriser_is_its_role():
-    """DESIGN.md's `mapper.rasterizer=...` (the command line's contract) chooses and configures the
-    `rasterizer` role, in sweeps and with Hydra's prefixes too; other keys are left alone."""
-    from slamkit.registry.compose import compose_run, contract_overrides
+def test_the_mappers_parts_are_groups_nested_under_it():
+    """`mapper/rasterizer=torch` chooses the part and `mapper.rasterizer.FIELD` configures it; a
+    run without the 3DGS mapper composes no part."""
+    from slamkit.registry.compose import compose_run
 
-    assert contract_overrides(["mapper.rasterizer=cpu,torch", "+mapper.rasterizer.num_threads=2", "~mapper.rasterizer",
-                               "mapper.rasterizers=1", "mapper.resolution_scale=0.5", "dataset.mapper.rasterizer=1"]) == [
-        "rasterizer=cpu,torch", "+rasterizer.num_threads=2", "~rasterizer",
-        "mapper.rasterizers=1", "mapper.resolution_scale=0.5", "dataset.mapper.rasterizer=1"]
-    cfg, names = compose_run(["mapper=gaussian_splatting", "mapper.rasterizer=torch",
-                              "mapper.rasterizer.max_pairs_per_chunk=4096"])
-    assert names["rasterizer"] == "torch" and cfg.rasterizer.max_pairs_per_chunk == 4096
+    cfg, names = compose_run(["mapper=gaussian_splatting", "mapper/rasterizer=torch",
+                              "mapper.rasterizer.max_pairs_per_chunk=4096", "mapper.strategy.prune_every=400"])
+    assert names["mapper.rasterizer"] == "torch" and cfg.mapper.rasterizer.max_pairs_per_chunk == 4096
+    assert names["mapper.strategy"] == "gsicp" and cfg.mapper.strategy.prune_every == 400
+    cfg, names = compose_run([])
+    assert names["mapper"] == "none" and not any(key.startswith("mapper.") for key in names)
+    with pytest.raises(ConfigError, match=r"^mapper/rasterizer=torch: the mapper 'none' has no rasterizer"):
+        compose_run(["mapper/rasterizer=torch"])
+
+
+@pytest.mark.parametrize("old, new", [
+    ("rasterizer=cpu", "mapper/rasterizer=cpu"),
+    ("mapper.rasterizer=cpu,torch", "mapper/rasterizer=cpu,torch"),
+    ("+rasterizer.num_threads=2", "+mapper.rasterizer.num_threads=2"),
+    ("strategy.prune_every=0", "mapper.strategy.prune_every=0"),
+    ("strategy.skip_covered=false", "mapper.admission.skip_covered=false"),
+    ("mapper.strategy.max_gaussians=1000", "mapper.memory_cap.max_gaussians=1000"),
+    ("map.scale_alignment=z", "growth.scale_alignment=z"),
+    ("localize.map=out", "map=out"),
+])
+def test_an_old_spelling_gets_one_line_naming_the_new_one(old, new):
+    from slamkit.registry.compose import compose_run
+
+    with pytest.raises(ConfigError, match="since slamkit 0.3") as err:
+        compose_run(["mapper=gaussian_splatting", old])
+    assert f"(write {new})" in str(err.value) and "\n" not in str(err.value)

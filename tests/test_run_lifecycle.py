@@ -193,10 +193,10 @@ class HungryConfig(PluginConfig):
     held_mb: int = 400
 
 class HungryMapper(Mapper):
-    def __init__(self, cfg):
+    def __init__(self, cfg, context=None):
         self.cfg, self.frames = cfg, 0
 
-    def add_keyframe(self, frame, result, kind, new_rows):
+    def add_keyframe(self, frame, pose, kind, new_rows):
         pass
 
     def optimize(self, iterations):

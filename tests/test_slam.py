@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from slamkit.registry.compose import build_run
+from slamkit.run.build import build_run
 
 
 def _run(keep_untrackable: bool, frames: int = 30):
@@ -40,7 +40,7 @@ def test_mapping_threads_leave_one_cpu_to_the_tracker_in_realtime_mode(monkeypat
 
 def test_tracking_threads_default_to_one_in_realtime_mode(monkeypatch):
     from slamkit.registry.schema import Mode, RunConfig
-    from slamkit.run.pipeline import tracking_threads
+    from slamkit.run.build import tracking_threads
 
     monkeypatch.setenv("OMP_NUM_THREADS", "3")
     assert tracking_threads(RunConfig(mode=Mode.sequential)) == 3

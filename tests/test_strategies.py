@@ -11,7 +11,8 @@ import torch
 from mapping_scenes import N, add, make_map, make_mapper, plane_scene, pose_x, render_frame, start_map, state_follows_map
 from slamkit.errors import ConfigError
 from slamkit.registry.discovery import create_rasterizer
-from slamkit.roles import SensorProfile
+from slamkit.splatting import AdmissionConfig
+from slamkit.tuning import DatasetTuning
 from slamkit_plugins.strategies.densify_3dgs import Densify3DGSConfig
 
 
@@ -20,13 +21,13 @@ def frame():
     return render_frame(create_rasterizer("torch"), make_map(*plane_scene()), pose_x(0.0))
 
 
-def test_gsicp_prunes_on_schedule_with_the_sensors_scale_limit(frame):
+def test_gsicp_prunes_on_schedule_with_the_datasets_scale_limit(frame):
     gm = start_map()
     with torch.no_grad():
         gm.log_scales[:7, 0] = math.log(0.3)  # above Replica's 0.25 m, below TUM's 1 m
         gm.opacity_logits[7:10] = math.log(0.001 / 0.999)  # nearly transparent
-    replica = SensorProfile(max_gaussian_scale=0.25)
-    mapper = make_mapper(gm, sensor=replica, strategy=("gsicp", {"prune_every": 3}))
+    replica = DatasetTuning(max_gaussian_scale=0.25)
+    mapper = make_mapper(gm, tuning=replica, strategy=("gsicp", {"prune_every": 3}))
     add(mapper, frame)
     mapper.optimize(2)
     assert len(gm) == N  # not yet
@@ -86,7 +87,7 @@ def test_3dgs_densification_stays_within_its_budget(frame):
 
 
 def test_strategy_settings_are_validated():
-    with pytest.raises(ConfigError, match="strategy.densify_every"):
+    with pytest.raises(ConfigError, match="mapper.strategy.densify_every"):
         Densify3DGSConfig(densify_every=0)
-    with pytest.raises(ConfigError, match="strategy.covered_alpha"):
-        Densify3DGSConfig(covered_alpha=1.0)
+    with pytest.raises(ConfigError, match="mapper.admission.covered_alpha"):
+        AdmissionConfig(covered_alpha=1.0)

@@ -18,7 +18,7 @@ import torch
 from conftest import TUM, require_data, run_slamkit
 from mapping_scenes import plane_scene
 from slamkit.map.gaussian_map import GaussianMap, GaussianRows
-from slamkit.registry.compose import build_run
+from slamkit.run.build import build_run
 
 FRAMES = 16
 
@@ -45,7 +45,7 @@ def test_mapping_leaves_the_tracking_target_and_trajectory_as_without_mapping(tr
     last bit, while the mapper does train the trackable Gaussians: the target keeps the
     geometry they entered with."""
     poses, slam = _run("gaussian_splatting")
-    assert slam.num_keyframes >= 4 and slam.mapper.steps == 10 * FRAMES
+    assert slam.num_keyframes >= 4 and slam.mapper.trainer.steps == 10 * FRAMES
     np.testing.assert_array_equal(poses, tracking_only[0])
     gm, lean = slam.gaussian_map, tracking_only[1].gaussian_map
     trk = gm.trackable
@@ -98,7 +98,7 @@ def test_realtime_mapping_run_tracks_as_tracking_only_through_the_cli(tmp_path):
     # one scale alignment for both (real time defaults to none, sequential to z_pow): the tracking
     # target is scale-free, but dividing by another median rounds differently (1e-9)
     common = ["dataset=tum", f"dataset.path={require_data(TUM)}", "dataset.max_frames=30", "tracker=gicp",
-              "map.scale_alignment=z_pow", "progress=false", "eval.plot=false"]
+              "growth.scale_alignment=z_pow", "progress=false", "eval.plot=false"]
     runs = {"none": ["mapper=none"],
             "realtime": ["mapper=gaussian_splatting", "mode=realtime", "fps_limit=30", "mapper.resolution_scale=0.25",
                          "mapper.eval_every=100", "mapper.save_images=0"]}

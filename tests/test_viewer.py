@@ -13,6 +13,7 @@ import pytest
 import torch
 import yaml
 
+from slamkit.config import RunContext
 from slamkit.errors import ConfigError
 from slamkit.map.gaussian_map import GaussianMap, GaussianRows
 from slamkit.registry.discovery import discover
@@ -66,9 +67,7 @@ def _small_map(n: int) -> GaussianMap:
 def _no_mapper(gm: GaussianMap) -> Mapper:
     from slamkit_plugins.mappers.none import NoMapper, NoMapperConfig
 
-    mapper = NoMapper(NoMapperConfig())
-    mapper.bind(gm)
-    return mapper
+    return NoMapper(NoMapperConfig(), RunContext(gaussian_map=gm))
 
 
 def _view(gm: GaussianMap, mapper: Mapper) -> ViewerFrame:
@@ -100,7 +99,7 @@ def test_render_view_is_none_by_default_and_the_3dgs_map_render_otherwise():
     view.pose = pose
     out = view.render(scale=0.5)
     w2c = torch.as_tensor(np.linalg.inv(pose), dtype=torch.float32)
-    reference = mapper.render(w2c, CAMERA.scaled(0.5))
+    reference = mapper.trainer.render(w2c, CAMERA.scaled(0.5))
     assert out.color.shape == (12, 16, 3) and not out.color.requires_grad
     torch.testing.assert_close(out.color, reference.color.detach())
     torch.testing.assert_close(out.depth, reference.depth.detach())
@@ -229,7 +228,7 @@ class BrokenConfig(PluginConfig):
     fail_at: int = 2
 
 class BrokenViewer(Viewer):
-    def __init__(self, cfg):
+    def __init__(self, cfg, context=None):
         self.cfg, self.shown = cfg, []
 
     def start(self, camera, out_dir):

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from slamkit.config import RunContext
 from slamkit.errors import ConfigError
 from slamkit.map.gaussian_map import GaussianMap, GaussianRows
 from slamkit.registry.discovery import discover
@@ -32,8 +33,8 @@ CAMERA = Camera(width=32, height=24, fx=30.0, fy=30.0, cx=15.5, cy=11.5)
 class SlowRenderMapper(NoMapper):
     """A mapper whose render takes `seconds`: the viewer's work must not hold up tracking."""
 
-    def __init__(self, seconds: float):
-        super().__init__(NoMapperConfig())
+    def __init__(self, seconds: float, gaussian_map: GaussianMap):
+        super().__init__(NoMapperConfig(), RunContext(gaussian_map=gaussian_map))
         self.seconds = seconds
 
     def render_view(self, pose, camera):
@@ -101,8 +102,7 @@ def test_viser_is_a_registered_viewer_and_its_config_is_checked():
 
 def test_headless_server_serves_the_page_and_splats_after_keyframes(tmp_path):
     gm = GaussianMap()
-    mapper = SlowRenderMapper(0.0)
-    mapper.bind(gm)
+    mapper = SlowRenderMapper(0.0, gm)
     viewer = ViserViewer(ViserViewerConfig(port=0, splat_keyframes=2, splat_seconds=0, render_every=1))
     viewer.start(CAMERA, tmp_path)
     try:
@@ -135,8 +135,7 @@ def test_show_never_waits_for_the_viewers_work(tmp_path):
     worker skips frames it has no time for, and close() still sends the final map."""
     gm = GaussianMap()
     _add_gaussians(gm, 20, seed=3)
-    mapper = SlowRenderMapper(0.3)
-    mapper.bind(gm)
+    mapper = SlowRenderMapper(0.3, gm)
     viewer = ViserViewer(ViserViewerConfig(port=0, render_every=1, splat_keyframes=1, splat_seconds=0))
     viewer.start(CAMERA, tmp_path)
     start = time.perf_counter()

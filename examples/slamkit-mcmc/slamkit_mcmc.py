@@ -1,15 +1,16 @@
 """slamkit-mcmc: relocation of dead Gaussians as in 3DGS-MCMC, as a third-party densification
-strategy for slamkit's `gaussian_splatting` mapper (``strategy=mcmc``).
+strategy for slamkit's `gaussian_splatting` mapper (``mapper/strategy=mcmc``).
 
 How the plugin is wired (the whole of it; see docs/plugin_guide.md, section 9)
 -----------------------------------------------------------------------------
-1. `MCMCStrategy` subclasses the role `slamkit.roles.DensifyStrategy` and overrides the hooks
+1. `MCMCStrategy` subclasses the part `slamkit.roles.Strategy` and overrides the hooks
    `step_post_backward` (relocate / grow every `refine_every` steps) and `finish`. It changes
    the map only through the `MapEdit` the mapper hands it (`remove`, `duplicate`, `update`),
    which keeps the optimiser's per-row moments aligned with the rows.
-2. `MCMCConfig` derives from `slamkit.roles.StrategyConfig`, so the growth controls every
-   strategy has (`skip_covered`, the memory guard `max_gaussians`) work here too;
-   `with_sensor` fills `max_scale` from the dataset's `SensorProfile.max_gaussian_scale`.
+2. `MCMCConfig` derives from `slamkit.roles.StrategyConfig`; `resolve` fills `max_scale` from
+   the dataset's tuning (`DatasetTuning.max_gaussian_scale`). What every strategy gets from the
+   trainer (which Gaussians enter, `mapper.admission.*`; the memory cap,
+   `mapper.memory_cap.max_gaussians`) needs nothing here.
 3. The hook `slamkit_plugins` returns ``PluginSpec("mcmc", MCMCStrategy, MCMCConfig)``.
 4. pyproject.toml names this module in the entry-point group ``slamkit``.
 
@@ -33,7 +34,8 @@ Every `refine_every` training steps:
    alternating sum's cancellation for large k). The map keeps its size;
 3. grow: draw `grow_fraction` x (map size) more sources the same way, up to `cap_max`
    Gaussians in the map, and append their copies by the same rule;
-4. apply the memory guard (`max_gaussians`), as every strategy does.
+4. the trainer then applies the memory cap (`mapper.memory_cap.max_gaussians`), as after every
+   strategy.
 
 After the last training step (`finish`), dead Gaussians are pruned rather than relocated (a copy
 made then would never be trained), together with the oversized and non-finite ones.
@@ -63,10 +65,10 @@ from dataclasses import dataclass, fields
 import torch
 
 from slamkit.geometry.transforms import quat_to_rotmat
-from slamkit.map.editing import MapEdit
 from slamkit.map.gaussian_map import GaussianRows
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import DensifyStrategy, SensorProfile, StepInfo, StrategyConfig, require
+from slamkit.roles import RunContext, StepInfo, Strategy, StrategyConfig, require
+from slamkit.splatting import MapEdit
 
 log = logging.getLogger(__name__)
 
@@ -88,7 +90,7 @@ class MCMCConfig(StrategyConfig):
     Gaussians in the map (keyframes still add theirs; `max_gaussians` bounds the map).
     jitter: place each copy at a point drawn from its source's Gaussian instead of on its mean.
     max_scale: metres; prune Gaussians whose largest standard deviation exceeds it (null = the
-    dataset's `SensorProfile.max_gaussian_scale`: 0.25 Replica, 1.0 TUM). seed: the sampling's
+    dataset's `DatasetTuning.max_gaussian_scale`: 0.25 Replica, 1.0 TUM). seed: the sampling's
     random generator."""
 
     refine_every: int = 100
@@ -101,15 +103,15 @@ class MCMCConfig(StrategyConfig):
 
     def validate(self) -> None:
         super().validate()
-        require(self.refine_every >= 1, "strategy.refine_every", "an integer >= 1", self.refine_every)
-        require(0 < self.min_opacity < 1, "strategy.min_opacity", "in (0, 1)", self.min_opacity)
-        require(0 <= self.grow_fraction <= 1, "strategy.grow_fraction", "in [0, 1]", self.grow_fraction)
-        require(self.cap_max >= 1, "strategy.cap_max", "an integer >= 1", self.cap_max)
-        require(self.max_scale is None or self.max_scale > 0, "strategy.max_scale", "null or > 0 metres",
+        require(self.refine_every >= 1, "mapper.strategy.refine_every", "an integer >= 1", self.refine_every)
+        require(0 < self.min_opacity < 1, "mapper.strategy.min_opacity", "in (0, 1)", self.min_opacity)
+        require(0 <= self.grow_fraction <= 1, "mapper.strategy.grow_fraction", "in [0, 1]", self.grow_fraction)
+        require(self.cap_max >= 1, "mapper.strategy.cap_max", "an integer >= 1", self.cap_max)
+        require(self.max_scale is None or self.max_scale > 0, "mapper.strategy.max_scale", "null or > 0 metres",
                 self.max_scale)
 
-    def with_sensor(self, sensor: SensorProfile) -> MCMCConfig:
-        return super().with_sensor(sensor).fill_nulls(max_scale=sensor.max_gaussian_scale)
+    def resolve(self, context: RunContext) -> MCMCConfig:
+        return self.fill_nulls(max_scale=context.tuning.max_gaussian_scale)
 
 
 def shared_opacity(opacity: torch.Tensor, copies: torch.Tensor) -> torch.Tensor:
@@ -134,14 +136,14 @@ def concat_rows(a: GaussianRows, b: GaussianRows) -> GaussianRows:
     return GaussianRows(**{f.name: torch.cat([getattr(a, f.name), getattr(b, f.name)]) for f in fields(GaussianRows)})
 
 
-class MCMCStrategy(DensifyStrategy):
+class MCMCStrategy(Strategy):
     """Relocation of dead Gaussians and opacity-proportional growth (see the module docstring).
     stats (metrics.json): mcmc_relocated, mcmc_added, mcmc_pruned (oversized, non-finite, and
     dead ones after the last step), mcmc_refinements."""
 
-    def __init__(self, cfg: MCMCConfig):
-        super().__init__(cfg)
-        require(cfg.max_scale is not None, "strategy.max_scale", "a value (MCMCConfig.with_sensor fills it)", None)
+    def __init__(self, cfg: MCMCConfig, context: RunContext = RunContext()):
+        super().__init__(cfg, context)
+        require(cfg.max_scale is not None, "mapper.strategy.max_scale", "a value (MCMCConfig.resolve fills it)", None)
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.stats.update(mcmc_relocated=0, mcmc_added=0, mcmc_pruned=0, mcmc_refinements=0)
 
@@ -155,11 +157,10 @@ class MCMCStrategy(DensifyStrategy):
 
     # -- one refinement ----------------------------------------------------------------------
     def refine(self, edit: MapEdit) -> None:
-        """Prune, relocate, grow, guard (the module docstring's steps 1-4)."""
+        """Prune, relocate, grow (the module docstring's steps 1-3; the trainer then applies the cap)."""
         pruned = edit.remove(self.broken(edit))
         relocated = self.relocate(edit)
         added = self.grow(edit)
-        self.enforce_memory_guard(edit)
         self.stats["mcmc_pruned"] += pruned
         self.stats["mcmc_relocated"] += relocated
         self.stats["mcmc_added"] += added

@@ -2,13 +2,15 @@
 
 How the plugin is wired (the whole of it; see docs/plugin_guide.md)
 -------------------------------------------------------------------
-1. `P2PlaneTracker` subclasses the role `slamkit.roles.Tracker` and implements `track`
-   (plus `initialize`, which gives the pose the trajectory starts from).
+1. `P2PlaneTracker` subclasses the role `slamkit.roles.Tracker`; slamkit builds it as
+   ``P2PlaneTracker(config, context)`` and calls `track(frame)` (plus `initialize`, which gives
+   the pose the trajectory starts from). It keeps its own model: the shared Gaussian map is
+   offered through `update_target`, which it does not need.
 2. `P2PlaneConfig` subclasses `slamkit.roles.PluginConfig`. slamkit stores this dataclass in
    Hydra's ConfigStore under the group ``tracker``, so ``tracker=p2plane tracker.knn=20`` is
    type-checked without any YAML, and `validate` rejects out-of-range values before any work.
-   Fields left ``None`` are filled by `with_sensor` from the dataset's `SensorProfile`
-   (``pixel_stride`` from its ``tracking_pixel_stride``: 5 on TUM, 10 on Replica).
+   Fields left ``None`` are filled by `resolve` from the run's context, which holds the
+   dataset's tuning (``pixel_stride`` from its ``tracking_pixel_stride``: 5 on TUM, 10 on Replica).
 3. The hook `slamkit_plugins` returns ``PluginSpec("p2plane", P2PlaneTracker, P2PlaneConfig)``.
 4. pyproject.toml names this module in the entry-point group ``slamkit``::
 
@@ -48,7 +50,6 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 
 from slamkit.geometry.gaussians import knn_covariances
-from slamkit.map.gaussian_map import GaussianMap
 from slamkit.geometry.transforms import (
     backproject,
     invert_pose,
@@ -59,7 +60,7 @@ from slamkit.geometry.transforms import (
     transform_points,
 )
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import PluginConfig, SensorProfile, Tracker, require
+from slamkit.roles import PluginConfig, RunContext, Tracker, require
 from slamkit.types import Frame, TrackingResult
 
 
@@ -68,8 +69,8 @@ class P2PlaneConfig(PluginConfig):
     """Options of ``tracker=p2plane`` (lengths in metres).
 
     pixel_stride: back-project every n-th pixel in x and y (null = the dataset's
-      `SensorProfile.tracking_pixel_stride`).
-    max_correspondence_distance: farther matches are ignored (null = the profile's
+      `DatasetTuning.tracking_pixel_stride`).
+    max_correspondence_distance: farther matches are ignored (null = the tuning's
       `correspondence_distance`).
     voxel_size: the model's downsampling grid. knn: neighbours of each model normal.
     huber: residuals beyond this are down-weighted (Huber loss; 0 = plain least squares).
@@ -112,10 +113,10 @@ class P2PlaneConfig(PluginConfig):
         for name, ok, expected in checks:
             require(ok, f"tracker.{name}", expected, getattr(self, name))
 
-    def with_sensor(self, sensor: SensorProfile) -> P2PlaneConfig:
+    def resolve(self, context: RunContext) -> P2PlaneConfig:
         """The nulls filled from what the dataset knows of its camera (slamkit calls it)."""
-        return self.fill_nulls(pixel_stride=sensor.tracking_pixel_stride,
-                               max_correspondence_distance=sensor.correspondence_distance)
+        return self.fill_nulls(pixel_stride=context.tuning.tracking_pixel_stride,
+                               max_correspondence_distance=context.tuning.correspondence_distance)
 
 
 def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
@@ -169,11 +170,11 @@ def point_to_plane(model: Model, points: np.ndarray, pose: np.ndarray, max_dista
 class P2PlaneTracker(Tracker):
     """Frame-to-model point-to-plane ICP with a constant-velocity initial guess."""
 
-    def __init__(self, cfg: P2PlaneConfig):
+    def __init__(self, cfg: P2PlaneConfig, context: RunContext = RunContext()):
         self.cfg = cfg
-        # slamkit filled the nulls from the dataset's sensor profile (`with_sensor`) before this
+        # slamkit filled the nulls from the dataset's tuning (`resolve`) before this
         require(cfg.pixel_stride is not None and cfg.max_correspondence_distance is not None, "tracker",
-                "pixel_stride and max_correspondence_distance (P2PlaneConfig.with_sensor fills them)", cfg)
+                "pixel_stride and max_correspondence_distance (P2PlaneConfig.resolve fills them)", cfg)
         self.pixel_stride = cfg.pixel_stride
         self.max_distance = cfg.max_correspondence_distance
         self.pose = np.eye(4)
@@ -184,7 +185,7 @@ class P2PlaneTracker(Tracker):
     def initialize(self, first_pose: np.ndarray) -> None:
         self.pose = np.asarray(first_pose, dtype=np.float64).copy()
 
-    def track(self, frame: Frame, gaussian_map: GaussianMap) -> TrackingResult:
+    def track(self, frame: Frame) -> TrackingResult:
         start = time.perf_counter()
         points, _ = backproject(frame.depth, frame.camera, self.pixel_stride)
         max_range = self.cfg.max_range if self.cfg.max_range is not None else frame.depth_trunc

@@ -42,7 +42,7 @@ import numpy as np
 from slamkit.errors import DataError
 from slamkit.formats.images import dataset_folder, image_size, read_rgbd
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import Dataset, DatasetConfig, SensorProfile, require
+from slamkit.roles import Dataset, DatasetConfig, RunContext, DatasetTuning, require
 from slamkit.formats.tum import interpolate_poses, read_float_table, read_tum_trajectory
 from slamkit.types import Camera, Frame
 
@@ -164,7 +164,7 @@ class FolderDataset(Dataset):
     """A folder of colour + depth images with an intrinsics file (see the module docstring).
     Depth in metres; gt_pose camera-to-world or None."""
 
-    def __init__(self, cfg: FolderConfig):
+    def __init__(self, cfg: FolderConfig, context: RunContext = RunContext()):
         super().__init__(cfg)
         self.root = dataset_folder(cfg.path, "a folder with color/ (or rgb/), depth/ and an intrinsics file")
         self.intrinsics_file = self.root / cfg.intrinsics
@@ -173,9 +173,9 @@ class FolderDataset(Dataset):
             self.intrinsics_file = next((p for p in others if p.is_file()), self.intrinsics_file)
         self._camera, self.depth_scale, depth_trunc = read_intrinsics(self.intrinsics_file, cfg.depth_scale)
         # a hand-held depth camera: the generic profile, with the intrinsics file's depth facts
-        self.default_sensor = dataclasses.replace(
-            SensorProfile(), depth_scale=self.depth_scale,
-            depth_trunc=depth_trunc if depth_trunc is not None else SensorProfile.depth_trunc)
+        self.default_tuning = dataclasses.replace(
+            DatasetTuning(), depth_scale=self.depth_scale,
+            depth_trunc=depth_trunc if depth_trunc is not None else DatasetTuning.depth_trunc)
 
         default_color = next((d for d in ("color", "rgb") if (self.root / d).is_dir()), "color")
         color_dir = self.root / (cfg.color_dir or default_color)

@@ -23,7 +23,7 @@ import numpy as np
 from slamkit.errors import DataError
 from slamkit.formats.images import dataset_folder, find_ground_truth, read_rgbd
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import Dataset, DatasetConfig, SensorProfile, require
+from slamkit.roles import Dataset, DatasetConfig, RunContext, DatasetTuning, require
 from slamkit.formats.tum import read_float_table
 from slamkit.types import Camera, Frame
 
@@ -67,11 +67,11 @@ class ReplicaDataset(Dataset):
     """Replica (NICE-SLAM layout). Depth in metres; gt_pose camera-to-world from traj.txt."""
 
     # rendered, noiseless depth of 1200x680 frames: the reference code's Replica settings
-    default_sensor = SensorProfile(depth_trunc=12.0, max_gaussian_scale=0.25,
+    default_tuning = DatasetTuning(depth_trunc=12.0, max_gaussian_scale=0.25,
                                    tracking_pixel_stride=10, correspondence_distance=0.02,
                                    new_gaussian_overlap=5e-5, keyframe_overlap=5e-4, keyframe_threshold=0.7)
 
-    def __init__(self, cfg: ReplicaConfig):
+    def __init__(self, cfg: ReplicaConfig, context: RunContext = RunContext()):
         super().__init__(cfg)
         expected = "a Replica folder in the NICE-SLAM layout: results/frame%06d.jpg, results/depth%06d.png, traj.txt"
         self.root = dataset_folder(cfg.path, expected)
@@ -93,7 +93,7 @@ class ReplicaDataset(Dataset):
         if params is not None:
             self._camera, scale = read_cam_params(params)
             self.depth_scale = scale if scale is not None else cfg.depth_scale
-        self.default_sensor = dataclasses.replace(self.default_sensor, depth_scale=self.depth_scale)
+        self.default_tuning = dataclasses.replace(self.default_tuning, depth_scale=self.depth_scale)
 
         self.gt_poses = None
         gt_file = find_ground_truth(self.root, cfg.gt_path, "traj.txt")

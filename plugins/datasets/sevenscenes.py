@@ -25,7 +25,7 @@ import numpy as np
 from slamkit.errors import DataError
 from slamkit.formats.images import dataset_folder, image_size, read_rgbd
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import Dataset, DatasetConfig, SensorProfile, require
+from slamkit.roles import Dataset, DatasetConfig, RunContext, DatasetTuning, require
 from slamkit.formats.tum import read_float_table
 from slamkit.types import Camera, Frame
 
@@ -66,11 +66,11 @@ def read_intrinsics(path: Path) -> tuple[float, float, float, float]:
 class SevenScenesDataset(Dataset):
     """7-Scenes / 3DMatch sequence. Depth in metres (0 = invalid); gt_pose camera-to-world."""
 
-    default_sensor = SensorProfile(depth_trunc=4.0)  # a Kinect v1, like TUM's (depth_scale: the config's)
+    default_tuning = DatasetTuning(depth_trunc=4.0)  # a Kinect v1, like TUM's (depth_scale: the config's)
 
-    def __init__(self, cfg: SevenScenesConfig):
+    def __init__(self, cfg: SevenScenesConfig, context: RunContext = RunContext()):
         super().__init__(cfg)
-        self.default_sensor = dataclasses.replace(self.default_sensor, depth_scale=cfg.depth_scale)
+        self.default_tuning = dataclasses.replace(self.default_tuning, depth_scale=cfg.depth_scale)
         expected = "a 7-Scenes sequence folder with frame-%06d.color.(jpg|png) and frame-%06d.depth.png"
         self.root = dataset_folder(cfg.path, expected)
         colour = {}

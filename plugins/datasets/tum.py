@@ -22,7 +22,7 @@ import numpy as np
 from slamkit.errors import DataError
 from slamkit.formats.images import dataset_folder, find_ground_truth, read_rgbd
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import Dataset, DatasetConfig, SensorProfile, require
+from slamkit.roles import Dataset, DatasetConfig, RunContext, DatasetTuning, require
 from slamkit.formats.tum import associate, interpolate_poses, read_tum_list, read_tum_trajectory
 from slamkit.types import Camera, Frame
 
@@ -73,11 +73,11 @@ class TUMDataset(Dataset):
     """TUM RGB-D sequence. Frame timestamps are the colour images' (seconds); depth in metres;
     gt_pose camera-to-world (None where ground truth does not cover the frame)."""
 
-    default_sensor = SensorProfile(depth_trunc=3.0)  # a Kinect v1 in an office (depth_scale: the config's)
+    default_tuning = DatasetTuning(depth_trunc=3.0)  # a Kinect v1 in an office (depth_scale: the config's)
 
-    def __init__(self, cfg: TUMConfig):
+    def __init__(self, cfg: TUMConfig, context: RunContext = RunContext()):
         super().__init__(cfg)
-        self.default_sensor = dataclasses.replace(self.default_sensor, depth_scale=cfg.depth_scale)
+        self.default_tuning = dataclasses.replace(self.default_tuning, depth_scale=cfg.depth_scale)
         expected = "a TUM RGB-D folder with rgb.txt, depth.txt and their images"
         self.root = dataset_folder(cfg.path, expected, "rgb.txt", "depth.txt")
         rgb_ts, rgb_files = read_tum_list(self.root / "rgb.txt")

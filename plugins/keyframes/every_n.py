@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import KeyframeHistory, KeyframePolicy, PluginConfig, require
+from slamkit.roles import KeyframeDecision, KeyframeHistory, KeyframePolicy, PluginConfig, RunContext, require
 from slamkit.types import Frame, KeyframeKind, TrackingResult
 
 
@@ -30,18 +30,18 @@ class EveryNKeyframePolicy(KeyframePolicy):
     """Keyframes at fixed frame intervals, counted in `frame.index` (so a lost frame, for
     which the pipeline does not ask, does not shift the schedule)."""
 
-    def __init__(self, cfg: EveryNKeyframeConfig):
+    def __init__(self, cfg: EveryNKeyframeConfig, context: RunContext = RunContext()):
         self.cfg = cfg
         self.history = KeyframeHistory()
 
-    def decide(self, frame: Frame, result: TrackingResult) -> KeyframeKind:
+    def decide(self, frame: Frame, result: TrackingResult) -> KeyframeDecision:
         i = frame.index
         kind = KeyframeKind.NONE
         if self.history.last_tracking is None or i - self.history.last_tracking >= self.cfg.tracking_every:
             kind = KeyframeKind.TRACKING
         elif self.cfg.mapping_every and i - self.history.last_keyframe >= self.cfg.mapping_every:
             kind = KeyframeKind.MAPPING_ONLY
-        return self.history.record(i, kind)
+        return KeyframeDecision(self.history.record(i, kind), result.correspondence_ratio)
 
 
 @hookimpl

@@ -4,7 +4,7 @@
 Correspondence ratio = (# trackable frame points whose squared distance to the nearest map
 Gaussian, found by the tracker's own correspondence search, is below `overlap_threshold`) /
 (# trackable points). It is computed from `result.gaussians.sq_dist_to_map` (no extra search)
-and stored in `result.correspondence_ratio`. A frame is a tracking keyframe when the ratio is
+and returned with the decision. A frame is a tracking keyframe when the ratio is
 below `keyframe_threshold` (the first frame always is); otherwise every `mapping_every`-th
 frame after the last keyframe is a mapping-only keyframe.
 """
@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import KeyframeHistory, KeyframePolicy, PluginConfig, SensorProfile, require
+from slamkit.roles import KeyframeDecision, KeyframeHistory, KeyframePolicy, PluginConfig, RunContext, require
 from slamkit.types import Frame, KeyframeKind, TrackingResult
 
 def correspondence_ratio(result: TrackingResult, overlap_threshold: float) -> float | None:
@@ -38,7 +38,7 @@ def correspondence_ratio(result: TrackingResult, overlap_threshold: float) -> fl
 class OverlapKeyframeConfig(PluginConfig):
     """overlap_threshold: m^2, a frame point overlaps the map when its squared distance to the
     nearest map Gaussian is below this (reference: 1e-3 TUM, 5e-4 Replica; null = the
-    dataset's `SensorProfile.keyframe_overlap`). keyframe_threshold: a tracking keyframe when
+    dataset's `DatasetTuning.keyframe_overlap`). keyframe_threshold: a tracking keyframe when
     the overlapping fraction is below this (reference: 0.81 TUM, 0.7 Replica; null = the
     profile's `keyframe_threshold`). mapping_every: a
     mapping-only keyframe every N frames after the last keyframe (0 = none; reference 10).
@@ -58,8 +58,9 @@ class OverlapKeyframeConfig(PluginConfig):
         require(self.mapping_every >= 0, "keyframe.mapping_every", "an integer >= 0", self.mapping_every)
         require(self.max_interval >= 0, "keyframe.max_interval", "an integer >= 0", self.max_interval)
 
-    def with_sensor(self, sensor: SensorProfile) -> OverlapKeyframeConfig:
-        return self.fill_nulls(overlap_threshold=sensor.keyframe_overlap, keyframe_threshold=sensor.keyframe_threshold)
+    def resolve(self, context: RunContext) -> OverlapKeyframeConfig:
+        tuning = context.tuning
+        return self.fill_nulls(overlap_threshold=tuning.keyframe_overlap, keyframe_threshold=tuning.keyframe_threshold)
 
 
 class OverlapKeyframePolicy(KeyframePolicy):
@@ -67,17 +68,16 @@ class OverlapKeyframePolicy(KeyframePolicy):
     at a fixed interval in between. Frame distances use `frame.index`, so lost frames (for
     which the pipeline does not ask) still count."""
 
-    def __init__(self, cfg: OverlapKeyframeConfig):
+    def __init__(self, cfg: OverlapKeyframeConfig, context: RunContext = RunContext()):
         self.cfg = cfg
         require(cfg.overlap_threshold is not None and cfg.keyframe_threshold is not None, "keyframe",
-                "overlap_threshold and keyframe_threshold (OverlapKeyframeConfig.with_sensor fills them)", cfg)
+                "overlap_threshold and keyframe_threshold (OverlapKeyframeConfig.resolve fills them)", cfg)
         self.overlap_threshold = float(cfg.overlap_threshold)
         self.keyframe_threshold = float(cfg.keyframe_threshold)
         self.history = KeyframeHistory()
 
-    def decide(self, frame: Frame, result: TrackingResult) -> KeyframeKind:
+    def decide(self, frame: Frame, result: TrackingResult) -> KeyframeDecision:
         ratio = correspondence_ratio(result, self.overlap_threshold)
-        result.correspondence_ratio = ratio
         i = frame.index
         kind = KeyframeKind.NONE
         if self.history.last_tracking is None:
@@ -88,7 +88,7 @@ class OverlapKeyframePolicy(KeyframePolicy):
             kind = KeyframeKind.TRACKING
         elif self.cfg.mapping_every and i - self.history.last_keyframe >= self.cfg.mapping_every:
             kind = KeyframeKind.MAPPING_ONLY
-        return self.history.record(i, kind)
+        return KeyframeDecision(self.history.record(i, kind), ratio)
 
 
 @hookimpl

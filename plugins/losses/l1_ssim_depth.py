@@ -17,9 +17,9 @@ from dataclasses import dataclass
 import torch
 
 from slamkit.errors import ConfigError
-from slamkit.map.rendering import RenderOutput
+from slamkit.splatting import RenderOutput
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import MappingLoss, PluginConfig, TrainingView, require, thread_count
+from slamkit.roles import MappingLoss, PluginConfig, RunContext, TrainingView, require, thread_count
 from slamkit_plugins.losses import fused_rgbd_loss as rgbd
 
 
@@ -48,20 +48,20 @@ class L1SSIMDepthConfig(PluginConfig):
 
     def validate(self) -> None:
         for name in ("weight_l1", "weight_ssim", "weight_depth"):
-            require(getattr(self, name) >= 0, f"loss.{name}", ">= 0", getattr(self, name))
-        require(self.depth_unit > 0, "loss.depth_unit", "> 0 metres", self.depth_unit)
-        require(self.num_threads >= 0, "loss.num_threads", "an integer >= 0 (0: every CPU)",
+            require(getattr(self, name) >= 0, f"mapper.loss.{name}", ">= 0", getattr(self, name))
+        require(self.depth_unit > 0, "mapper.loss.depth_unit", "> 0 metres", self.depth_unit)
+        require(self.num_threads >= 0, "mapper.loss.num_threads", "an integer >= 0 (0: every CPU)",
                 self.num_threads)
 
 
 class L1SSIMDepthLoss(MappingLoss):
     """See the module docstring."""
 
-    def __init__(self, cfg: L1SSIMDepthConfig):
+    def __init__(self, cfg: L1SSIMDepthConfig, context: RunContext = RunContext()):
         self.cfg = cfg
         backend = Backend(cfg.backend)
         if backend is Backend.compiled and not rgbd.available():
-            raise ConfigError(f"loss.backend=compiled: the kernel is not available ({rgbd.LIBRARY.error})")
+            raise ConfigError(f"mapper.loss.backend=compiled: the kernel is not available ({rgbd.LIBRARY.error})")
         self.compiled = backend is not Backend.torch and rgbd.available()
 
     def __call__(self, render: RenderOutput, view: TrainingView) -> torch.Tensor:

@@ -25,13 +25,10 @@ class NoMapperConfig(PluginConfig):
 class NoMapper(Mapper):
     """Admits a keyframe's trackable Gaussians; trains nothing."""
 
-    def __init__(self, cfg: NoMapperConfig):
-        self.cfg = cfg
-
     def admit(self, frame, pose, new):
         return None if self.cfg.keep_untrackable else new.trackable
 
-    def add_keyframe(self, frame, result, kind, new_rows) -> None:
+    def add_keyframe(self, frame, pose, kind, new_rows) -> None:
         pass
 
     def optimize(self, iterations: int) -> int:

@@ -18,7 +18,7 @@ import torch
 
 from slamkit.map.gaussian_map import PARAMETERS
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import MapOptimizer, PluginConfig, require
+from slamkit.roles import MapOptimizer, PluginConfig, RunContext, require
 
 #: Which config field holds each parameter's learning rate.
 LR_FIELDS = {"means": "lr_means", "quats": "lr_quats", "log_scales": "lr_scales", "opacity_logits": "lr_opacity",
@@ -47,10 +47,10 @@ class AdamConfig(PluginConfig):
     def validate(self) -> None:
         for field in LR_FIELDS.values():
             v = getattr(self, field)
-            require(v >= 0 and v == v and v != float("inf"), f"optimizer.{field}", "a learning rate >= 0", v)
-        require(self.eps > 0, "optimizer.eps", "> 0", self.eps)
-        require(0 <= self.beta1 < 1, "optimizer.beta1", "in [0, 1)", self.beta1)
-        require(0 <= self.beta2 < 1, "optimizer.beta2", "in [0, 1)", self.beta2)
+            require(v >= 0 and v == v and v != float("inf"), f"mapper.optimizer.{field}", "a learning rate >= 0", v)
+        require(self.eps > 0, "mapper.optimizer.eps", "> 0", self.eps)
+        require(0 <= self.beta1 < 1, "mapper.optimizer.beta1", "in [0, 1)", self.beta1)
+        require(0 <= self.beta2 < 1, "mapper.optimizer.beta2", "in [0, 1)", self.beta2)
 
     def learning_rates(self) -> dict[str, float]:
         return {name: float(getattr(self, field)) for name, field in LR_FIELDS.items()}
@@ -59,7 +59,7 @@ class AdamConfig(PluginConfig):
 class TorchAdam(MapOptimizer):
     """torch.optim.Adam with one parameter group per map parameter (see the module docstring)."""
 
-    def __init__(self, cfg: AdamConfig):
+    def __init__(self, cfg: AdamConfig, context: RunContext = RunContext()):
         self.cfg = cfg
         # torch's first Adam imports torch._dynamo (~1.3 s, holding the GIL): at start-up here,
         # not in the first mapping step (in real time that is during the stream, and it stalled

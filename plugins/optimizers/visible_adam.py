@@ -31,7 +31,7 @@ import torch
 from slamkit.errors import ConfigError
 from slamkit.native import NativeLibrary
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import MapOptimizer
+from slamkit.roles import MapOptimizer, RunContext
 from slamkit_plugins.optimizers.adam import AdamConfig
 
 log = logging.getLogger(__name__)
@@ -88,14 +88,14 @@ class VisibleAdam(MapOptimizer):
     """Per-row Adam (see the module docstring). State: first and second moments per parameter,
     one step count per row."""
 
-    def __init__(self, cfg: VisibleAdamConfig):
+    def __init__(self, cfg: VisibleAdamConfig, context: RunContext = RunContext()):
         self.cfg = cfg
         self.lrs = cfg.learning_rates()
         self.moments: dict[str, tuple[torch.Tensor, torch.Tensor]] = {}
         self.steps = torch.zeros(0)
         self.lib = None if Kernels(cfg.kernels) is Kernels.torch else LIBRARY.get()
         if self.lib is None and Kernels(cfg.kernels) is Kernels.compiled:
-            raise ConfigError(f"optimizer.kernels=compiled: the kernel is not available ({LIBRARY.error})")
+            raise ConfigError(f"mapper.optimizer.kernels=compiled: the kernel is not available ({LIBRARY.error})")
         self.last_updated_rows = 0  # rows the last step updated
         self._row_counts = BiasCorrection(cfg.bias_correction) is BiasCorrection["row"]
         self.calls = 0  # steps taken: no row's step count exceeds it

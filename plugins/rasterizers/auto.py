@@ -4,8 +4,8 @@ gsplat needs CUDA, the gsplat package and its compiled extension; cpu needs a C+
 (the library is built on first use); torch always works. A backend that cannot be built is
 skipped with a log line saying why: a warning on a machine with CUDA (gsplat not installed or
 its extension not built: the GPU does not render), else an info line. Each is built with its
-default config: to configure a backend, select it by name (`rasterizer=cpu
-rasterizer.num_threads=2`).
+default config: to configure a backend, select it by name (`mapper/rasterizer=cpu
+mapper.rasterizer.num_threads=2`).
 """
 
 from __future__ import annotations
@@ -17,8 +17,8 @@ import torch
 
 from slamkit.errors import ConfigError, PluginError
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.map.rendering import Rasterizer
-from slamkit.roles import PluginConfig, require
+from slamkit.splatting import Rasterizer
+from slamkit.roles import PluginConfig, RunContext, require
 
 log = logging.getLogger(__name__)
 
@@ -30,23 +30,24 @@ class AutoRasterizerConfig(PluginConfig):
     prefer: list[str] = field(default_factory=lambda: ["gsplat", "cpu", "torch"])
 
     def validate(self) -> None:
-        require(len(self.prefer) > 0 and "auto" not in self.prefer, "rasterizer.prefer",
+        require(len(self.prefer) > 0 and "auto" not in self.prefer, "mapper.rasterizer.prefer",
                 "a non-empty list of backend names other than auto", self.prefer)
 
 
 class AutoRasterizer(Rasterizer):
-    """Renders with `backend`, the first of `prefer` that could be built (its name: `name`);
-    other attributes are the backend's."""
+    """Renders with `backend`, the first of `prefer` that could be built in the run's registry
+    (`context.build`; its name: `name`)."""
 
-    def __init__(self, cfg: AutoRasterizerConfig):
-        from slamkit.registry.discovery import default_registry
-
+    def __init__(self, cfg: AutoRasterizerConfig, context: RunContext = RunContext()):
+        if context.build is None:
+            raise ConfigError("rasterizer auto: built outside a run (its context has no registry to build "
+                              "backends from); build it with Registry.create('rasterizer', 'auto')")
         self.cfg = cfg
         reasons = []
         level = logging.WARNING if torch.cuda.is_available() else logging.INFO
         for name in cfg.prefer:
             try:
-                self.backend = default_registry().create("rasterizer", name)
+                self.backend = context.build("rasterizer", name)
                 self.name = name
                 break
             except (ConfigError, PluginError) as exc:
@@ -59,11 +60,6 @@ class AutoRasterizer(Rasterizer):
 
     def render(self, *args, **kwargs):
         return self.backend.render(*args, **kwargs)
-
-    def __getattr__(self, attr):  # counters and timings of the backend (last_num_pairs, ...)
-        if attr == "backend":
-            raise AttributeError(attr)
-        return getattr(self.backend, attr)
 
 
 @hookimpl

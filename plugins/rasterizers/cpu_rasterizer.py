@@ -1,6 +1,6 @@
 """`rasterizer=cpu`: a tile-based, multi-threaded, compiled CPU rasteriser (forward + backward).
 
-The same conventions as `slamkit.map.rendering.Rasterizer` and the `torch` reference backend (see
+The same conventions as `slamkit.splatting.rendering.Rasterizer` and the `torch` reference backend (see
 `slamkit_plugins.rasterizers.torch_rasterizer`), reproduced to float precision: projection with
 the EWA covariance + 0.3 px^2, near-plane culling at z <= 0.01 m, the torch backend's exact
 per-row pixel coverage (alpha >= 1/255 ellipse), alpha = min(0.99, o exp(-q/2)), front-to-back
@@ -28,8 +28,8 @@ import torch
 from slamkit.errors import ConfigError
 from slamkit.native import NativeLibrary, available_threads
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.map.rendering import Rasterizer, RenderOutput
-from slamkit.roles import PluginConfig, require, thread_count
+from slamkit.splatting import Rasterizer, RenderOutput
+from slamkit.roles import PluginConfig, RunContext, require, thread_count
 from slamkit.types import Camera
 
 SOURCE = Path(__file__).resolve().parent / "csrc" / "cpu_rasterizer.cpp"
@@ -54,8 +54,8 @@ class CPURasterizerConfig(PluginConfig):
     stored_alphas_mb: float = 32.0
 
     def validate(self) -> None:
-        require(self.num_threads >= 0, "rasterizer.num_threads", "an integer >= 0", self.num_threads)
-        require(0 <= self.stored_alphas_mb < 2**40, "rasterizer.stored_alphas_mb", "a finite number >= 0",
+        require(self.num_threads >= 0, "mapper.rasterizer.num_threads", "an integer >= 0", self.num_threads)
+        require(0 <= self.stored_alphas_mb < 2**40, "mapper.rasterizer.stored_alphas_mb", "a finite number >= 0",
                 self.stored_alphas_mb)
 
 
@@ -191,7 +191,7 @@ class CPURasterizer(Rasterizer):
     if needed; ConfigError (one line) where that is impossible. Tensors on another device (a map
     on the GPU) are copied to the CPU and the outputs back (and the gradients with them)."""
 
-    def __init__(self, cfg: CPURasterizerConfig | None = None):
+    def __init__(self, cfg: CPURasterizerConfig | None = None, context: RunContext = RunContext()):
         self.cfg = cfg or CPURasterizerConfig()
         self.library = get_library(self.cfg.native)
         self.lib = self.library.get()

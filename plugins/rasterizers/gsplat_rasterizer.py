@@ -33,8 +33,8 @@ import torch
 
 from slamkit.errors import ConfigError
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.map.rendering import Rasterizer, RenderOutput
-from slamkit.roles import PluginConfig, require
+from slamkit.splatting import Rasterizer, RenderOutput
+from slamkit.roles import PluginConfig, RunContext, require
 from slamkit.types import Camera
 
 NEAR_PLANE = 0.01
@@ -57,14 +57,14 @@ class GsplatRasterizerConfig(PluginConfig):
     tile_size: int = 16
 
     def validate(self) -> None:
-        require(1 <= self.tile_size <= MAX_TILE_SIZE, "rasterizer.tile_size",
+        require(1 <= self.tile_size <= MAX_TILE_SIZE, "mapper.rasterizer.tile_size",
                 f"an integer in [1, {MAX_TILE_SIZE}] (tile_size^2 CUDA threads per block)", self.tile_size)
 
 
 class GsplatRasterizer(Rasterizer):
-    """`gsplat.rasterization` wrapped to `slamkit.map.rendering.Rasterizer` (see module docstring)."""
+    """`gsplat.rasterization` wrapped to `slamkit.splatting.rendering.Rasterizer` (see module docstring)."""
 
-    def __init__(self, cfg: GsplatRasterizerConfig | None = None):
+    def __init__(self, cfg: GsplatRasterizerConfig | None = None, context: RunContext = RunContext()):
         self.cfg = cfg or GsplatRasterizerConfig()
         if not torch.cuda.is_available():
             raise ConfigError(NEEDS)

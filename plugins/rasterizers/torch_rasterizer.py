@@ -3,7 +3,7 @@
 It is the reference for correctness that the other backends are checked against, and the
 fallback where neither gsplat (CUDA) nor a compiled CPU backend is available.
 
-Conventions (those of `slamkit.map.rendering.Rasterizer`, stated exactly):
+Conventions (those of `slamkit.splatting.rendering.Rasterizer`, stated exactly):
 - camera-frame mean p = R m + t; Gaussians with p_z <= 0.01 m are culled;
 - u = fx p_x / p_z + cx, v = fy p_y / p_z + cy; pixel (row i, column j) has its centre at
   (u, v) = (j, i);
@@ -45,8 +45,8 @@ from torch.autograd.function import once_differentiable
 
 from slamkit.geometry.transforms import covariance_from_scales
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.map.rendering import Rasterizer, RenderOutput
-from slamkit.roles import PluginConfig, require
+from slamkit.splatting import Rasterizer, RenderOutput
+from slamkit.roles import PluginConfig, RunContext, require
 from slamkit.types import Camera
 
 NEAR_PLANE = 0.01  # metres: Gaussians at camera z <= this are culled
@@ -70,13 +70,13 @@ class TorchRasterizerConfig(PluginConfig):
 
     def validate(self) -> None:
         n = self.max_pairs_per_chunk
-        require(n >= 1024, "rasterizer.max_pairs_per_chunk", "an integer >= 1024", n)
+        require(n >= 1024, "mapper.rasterizer.max_pairs_per_chunk", "an integer >= 1024", n)
 
 
 class TorchRasterizer(Rasterizer):
     """Pure-PyTorch 3DGS rasteriser; see the module docstring for the exact conventions."""
 
-    def __init__(self, cfg: TorchRasterizerConfig | None = None):
+    def __init__(self, cfg: TorchRasterizerConfig | None = None, context: RunContext = RunContext()):
         self.cfg = cfg or TorchRasterizerConfig()
         self.last_num_pairs = 0  # pairs composited by the last render (after the T cut-off)
         self.last_num_bands = 0  # bands of image rows the last render was processed in

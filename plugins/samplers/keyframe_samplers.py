@@ -9,7 +9,7 @@
   also lie inside the keyframe's frustum, so it needs the keyframes' poses.
 - `recent` (26.85 dB in the paper): always the newest keyframe.
 
-A sampler is a part of the 3DGS mapper, selected with ``sampler=covisible sampler.top_k=3``.
+A sampler is a part of the 3DGS mapper, selected with ``mapper/sampler=covisible mapper.sampler.top_k=3``.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from typing import Mapping
 import numpy as np
 
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import KeyframeSampler, PluginConfig, require
+from slamkit.roles import KeyframeSampler, PluginConfig, RunContext, require
 
 @dataclass
 class RandomSamplerConfig(PluginConfig):
@@ -32,16 +32,16 @@ class RandomSamplerConfig(PluginConfig):
     newest_share: float = 0.0
 
     def validate(self) -> None:
-        require(0 <= self.newest_share <= 1, "sampler.newest_share", "in [0, 1]", self.newest_share)
+        require(0 <= self.newest_share <= 1, "mapper.sampler.newest_share", "in [0, 1]", self.newest_share)
 
 
 class RandomSampler(KeyframeSampler):
     """Uniform over all keyframes (a `newest_share` of the draws: the newest)."""
 
-    def __init__(self, cfg: RandomSamplerConfig | None = None):
+    def __init__(self, cfg: RandomSamplerConfig | None = None, context: RunContext = RunContext()):
         self.cfg = cfg or RandomSamplerConfig()
 
-    def sample(self, keyframe_ids, current_pose, rng, keyframe_poses) -> int:
+    def sample(self, keyframe_ids, keyframe_poses, rng) -> int:
         _check(keyframe_ids)
         if self.cfg.newest_share and rng.random() < self.cfg.newest_share:
             return keyframe_ids[-1]
@@ -56,10 +56,10 @@ class RecentSamplerConfig(PluginConfig):
 class RecentSampler(KeyframeSampler):
     """The newest keyframe (the last of `keyframe_ids`, which lists them in arrival order)."""
 
-    def __init__(self, cfg: RecentSamplerConfig | None = None):
+    def __init__(self, cfg: RecentSamplerConfig | None = None, context: RunContext = RunContext()):
         self.cfg = cfg or RecentSamplerConfig()
 
-    def sample(self, keyframe_ids, current_pose, rng, keyframe_poses) -> int:
+    def sample(self, keyframe_ids, keyframe_poses, rng) -> int:
         _check(keyframe_ids)
         return keyframe_ids[-1]
 
@@ -75,16 +75,16 @@ class CovisibleSamplerConfig(PluginConfig):
     max_depth: float = 3.0
 
     def validate(self) -> None:
-        require(self.top_k >= 1, "sampler.top_k", "an integer >= 1", self.top_k)
-        require(0 < self.fov_deg < 180, "sampler.fov_deg", "in (0, 180) degrees", self.fov_deg)
-        require(self.max_depth > 0, "sampler.max_depth", "> 0 metres", self.max_depth)
+        require(self.top_k >= 1, "mapper.sampler.top_k", "an integer >= 1", self.top_k)
+        require(0 < self.fov_deg < 180, "mapper.sampler.fov_deg", "in (0, 180) degrees", self.fov_deg)
+        require(self.max_depth > 0, "mapper.sampler.max_depth", "> 0 metres", self.max_depth)
 
 
 class CovisibleSampler(KeyframeSampler):
-    """Uniform among the `top_k` keyframes with the largest frustum overlap with the current
-    pose."""
+    """Uniform among the `top_k` keyframes with the largest frustum overlap with the newest
+    keyframe's."""
 
-    def __init__(self, cfg: CovisibleSamplerConfig | None = None):
+    def __init__(self, cfg: CovisibleSamplerConfig | None = None, context: RunContext = RunContext()):
         self.cfg = cfg or CovisibleSamplerConfig()
         t = math.tan(math.radians(self.cfg.fov_deg) / 2)
         g = np.linspace(-t, t, 7)
@@ -106,9 +106,10 @@ class CovisibleSampler(KeyframeSampler):
             out[i] = inside.mean()
         return out
 
-    def sample(self, keyframe_ids, current_pose, rng, keyframe_poses: Mapping[int, np.ndarray]) -> int:
+    def sample(self, keyframe_ids, keyframe_poses: Mapping[int, np.ndarray], rng) -> int:
         _check(keyframe_ids)
-        s = self.scores(np.asarray(current_pose), [np.asarray(keyframe_poses[k]) for k in keyframe_ids])
+        current = np.asarray(keyframe_poses[keyframe_ids[-1]])  # the newest keyframe's view
+        s = self.scores(current, [np.asarray(keyframe_poses[k]) for k in keyframe_ids])
         k = min(self.cfg.top_k, len(keyframe_ids))
         best = np.argsort(-s, kind="stable")[:k]
         return keyframe_ids[int(best[int(rng.integers(k))])]

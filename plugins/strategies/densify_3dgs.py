@@ -6,7 +6,7 @@ gradient with respect to its projected mean in 3DGS's NDC units, approximated fr
 gradient: |dL/d(x, y)_camera| z W / (2 fx). Every `densify_every` steps the Gaussians whose
 average reaches `grad_threshold` are cloned (largest scale <= `split_above_scale` metres) or
 split in two (scales / 1.6), within the `densify_max_gaussians` budget; then the map is pruned
-(as `gsicp`) and the memory guard applied. Every `reset_opacity_every` steps opacities are
+(as `gsicp`). Every `reset_opacity_every` steps opacities are
 clamped to 0.01.
 """
 
@@ -16,9 +16,9 @@ from dataclasses import dataclass
 
 import torch
 
-from slamkit.map.editing import MapEdit
+from slamkit.splatting import MapEdit
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import StepInfo, require
+from slamkit.roles import RunContext, StepInfo, require
 from slamkit_plugins.strategies.gsicp import PruneConfig, PruneStrategy
 
 #: A split Gaussian's children have its scales divided by this (3DGS).
@@ -44,21 +44,21 @@ class Densify3DGSConfig(PruneConfig):
 
     def validate(self) -> None:
         super().validate()
-        require(self.densify_every >= 1, "strategy.densify_every", "an integer >= 1", self.densify_every)
-        require(self.grad_threshold > 0, "strategy.grad_threshold", "> 0", self.grad_threshold)
-        require(self.split_above_scale > 0, "strategy.split_above_scale", "> 0 metres", self.split_above_scale)
-        require(self.densify_max_gaussians >= 0, "strategy.densify_max_gaussians", ">= 0",
+        require(self.densify_every >= 1, "mapper.strategy.densify_every", "an integer >= 1", self.densify_every)
+        require(self.grad_threshold > 0, "mapper.strategy.grad_threshold", "> 0", self.grad_threshold)
+        require(self.split_above_scale > 0, "mapper.strategy.split_above_scale", "> 0 metres", self.split_above_scale)
+        require(self.densify_max_gaussians >= 0, "mapper.strategy.densify_max_gaussians", ">= 0",
                 self.densify_max_gaussians)
-        require(self.reset_opacity_every >= 0, "strategy.reset_opacity_every", "an integer >= 0 (0 = never)",
+        require(self.reset_opacity_every >= 0, "mapper.strategy.reset_opacity_every", "an integer >= 0 (0 = never)",
                 self.reset_opacity_every)
-        require(0 <= self.seed < 2**64, "strategy.seed", "an integer from 0 to 2^64 - 1 (torch's seed range)", self.seed)
+        require(0 <= self.seed < 2**64, "mapper.strategy.seed", "an integer from 0 to 2^64 - 1 (torch's seed range)", self.seed)
 
 
 class Densify3DGSStrategy(PruneStrategy):
     """Clone / split / prune / opacity reset (see the module docstring)."""
 
-    def __init__(self, cfg: Densify3DGSConfig):
-        super().__init__(cfg)
+    def __init__(self, cfg: Densify3DGSConfig, context: RunContext = RunContext()):
+        super().__init__(cfg, context)
         self.state = {"grad_sum": torch.zeros(0), "grad_count": torch.zeros(0)}
         self.generator = torch.Generator().manual_seed(cfg.seed)
 
@@ -77,7 +77,6 @@ class Densify3DGSStrategy(PruneStrategy):
         if info.step % cfg.densify_every == 0:
             self.densify(edit)
             self.prune(edit)
-            self.enforce_memory_guard(edit)
         elif cfg.prune_every and info.step % cfg.prune_every == 0:
             self.prune(edit)
         if cfg.reset_opacity_every and info.step % cfg.reset_opacity_every == 0:

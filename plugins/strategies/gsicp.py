@@ -9,16 +9,16 @@ from dataclasses import dataclass
 
 import torch
 
-from slamkit.map.editing import MapEdit
+from slamkit.splatting import MapEdit
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import DensifyStrategy, SensorProfile, StepInfo, StrategyConfig, require
+from slamkit.roles import RunContext, StepInfo, Strategy, StrategyConfig, require
 
 
 @dataclass
 class PruneConfig(StrategyConfig):
     """prune_every: training steps between prunings (0 = never). prune_min_opacity: prune
     Gaussians less opaque than this. max_scale: metres; prune Gaussians whose largest standard
-    deviation exceeds it (null = the dataset's `SensorProfile.max_gaussian_scale`: 0.25 Replica,
+    deviation exceeds it (null = the dataset's `DatasetTuning.max_gaussian_scale`: 0.25 Replica,
     1.0 TUM)."""
 
     prune_every: int = 200
@@ -27,21 +27,21 @@ class PruneConfig(StrategyConfig):
 
     def validate(self) -> None:
         super().validate()
-        require(self.prune_every >= 0, "strategy.prune_every", "an integer >= 0 (0 = never)", self.prune_every)
-        require(0 <= self.prune_min_opacity < 1, "strategy.prune_min_opacity", "in [0, 1)", self.prune_min_opacity)
-        require(self.max_scale is None or self.max_scale > 0, "strategy.max_scale", "null or > 0 metres",
+        require(self.prune_every >= 0, "mapper.strategy.prune_every", "an integer >= 0 (0 = never)", self.prune_every)
+        require(0 <= self.prune_min_opacity < 1, "mapper.strategy.prune_min_opacity", "in [0, 1)", self.prune_min_opacity)
+        require(self.max_scale is None or self.max_scale > 0, "mapper.strategy.max_scale", "null or > 0 metres",
                 self.max_scale)
 
-    def with_sensor(self, sensor: SensorProfile) -> PruneConfig:
-        return super().with_sensor(sensor).fill_nulls(max_scale=sensor.max_gaussian_scale)
+    def resolve(self, context: RunContext) -> PruneConfig:
+        return self.fill_nulls(max_scale=context.tuning.max_gaussian_scale)
 
 
-class PruneStrategy(DensifyStrategy):
+class PruneStrategy(Strategy):
     """Pruning on a schedule (see the module docstring)."""
 
-    def __init__(self, cfg: PruneConfig):
-        super().__init__(cfg)
-        require(cfg.max_scale is not None, "strategy.max_scale", "a value (PruneConfig.with_sensor fills it)", None)
+    def __init__(self, cfg: PruneConfig, context: RunContext = RunContext()):
+        super().__init__(cfg, context)
+        require(cfg.max_scale is not None, "mapper.strategy.max_scale", "a value (PruneConfig.resolve fills it)", None)
 
     def prune_mask(self, edit: MapEdit) -> torch.Tensor:
         """True for the Gaussians to remove: opacity < prune_min_opacity, largest scale >

@@ -16,9 +16,8 @@ from kiss_icp.config import KISSConfig
 from kiss_icp.kiss_icp import KissICP
 
 from slamkit.geometry.transforms import backproject, invert_pose
-from slamkit.map.gaussian_map import GaussianMap
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import PluginConfig, Tracker, require
+from slamkit.roles import PluginConfig, RunContext, Tracker, require
 from slamkit.types import Frame, TrackingResult
 
 
@@ -60,7 +59,7 @@ class KissICPConfig(PluginConfig):
 class KissICPTracker(Tracker):
     """Point-to-point ICP on KISS-ICP's adaptive voxel map (frame-to-local-map)."""
 
-    def __init__(self, cfg: KissICPConfig):
+    def __init__(self, cfg: KissICPConfig, context: RunContext = RunContext()):
         self.cfg = cfg
         self.first_pose = np.eye(4)
         self.odometry: KissICP | None = None
@@ -80,7 +79,7 @@ class KissICPTracker(Tracker):
         kiss.adaptive_threshold.min_motion_th = c.min_motion
         return KissICP(kiss)
 
-    def track(self, frame: Frame, gaussian_map: GaussianMap) -> TrackingResult:
+    def track(self, frame: Frame) -> TrackingResult:
         if self.odometry is None:
             self.odometry = self._make_odometry(frame)
         start = time.perf_counter()

@@ -15,10 +15,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from slamkit.errors import ConfigError
-from slamkit.map.gaussian_map import GaussianMap
 from slamkit.geometry.transforms import backproject, invert_pose, make_pose, nearest_rotation, rotation_angle_deg, transform_points
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import PluginConfig, Tracker, require, thread_count
+from slamkit.roles import PluginConfig, RunContext, Tracker, require, thread_count
 from slamkit.types import Frame, TrackingResult
 
 
@@ -57,7 +56,7 @@ class SmallGICPConfig(PluginConfig):
 
 
 class SmallGICPTracker(Tracker):
-    def __init__(self, cfg: SmallGICPConfig):
+    def __init__(self, cfg: SmallGICPConfig, context: RunContext = RunContext()):
         try:
             import small_gicp
         except ImportError as exc:
@@ -73,7 +72,7 @@ class SmallGICPTracker(Tracker):
     def initialize(self, first_pose: np.ndarray) -> None:
         self.pose = first_pose.copy()
 
-    def track(self, frame: Frame, gaussian_map: GaussianMap) -> TrackingResult:
+    def track(self, frame: Frame) -> TrackingResult:
         start = time.perf_counter()
         points, _ = backproject(frame.depth, frame.camera, self.cfg.pixel_stride)
         max_range = self.cfg.max_range or frame.depth_trunc

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import PluginConfig, Viewer, ViewerFrame
+from slamkit.roles import PluginConfig, RunContext, Viewer, ViewerFrame
 
 
 @dataclass
@@ -16,7 +16,7 @@ class NoViewerConfig(PluginConfig):
 class NoViewer(Viewer):
     """Shows nothing."""
 
-    def __init__(self, cfg: NoViewerConfig):
+    def __init__(self, cfg: NoViewerConfig, context: RunContext = RunContext()):
         self.cfg = cfg
 
     def show(self, view: ViewerFrame) -> None:

@@ -32,7 +32,7 @@ import numpy as np
 
 from slamkit.errors import ConfigError
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import MapGaussians, MapPoints, Viewer, ViewerConfig, ViewerFrame, require
+from slamkit.roles import MapGaussians, MapPoints, RunContext, Viewer, ViewerConfig, ViewerFrame, require
 from slamkit.types import Camera
 
 log = logging.getLogger(__name__)
@@ -89,7 +89,7 @@ def _import_rerun():
 class RerunViewer(Viewer):
     """Logs the camera, trajectory, images, renders and map to a Rerun recording stream."""
 
-    def __init__(self, cfg: RerunViewerConfig):
+    def __init__(self, cfg: RerunViewerConfig, context: RunContext = RunContext()):
         self.cfg = cfg
         self.rr = _import_rerun()
         self.stream = None

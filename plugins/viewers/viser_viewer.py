@@ -38,7 +38,7 @@ from slamkit.errors import ConfigError
 from slamkit.formats.atomic import write_atomic
 from slamkit.geometry.transforms import rotmat_to_quat
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import Viewer, ViewerConfig, ViewerFrame, require
+from slamkit.roles import RunContext, Viewer, ViewerConfig, ViewerFrame, require
 from slamkit.types import Camera
 
 log = logging.getLogger(__name__)
@@ -113,7 +113,7 @@ class UpdateCost:
 class ViserViewer(Viewer):
     """Serves the run to a browser; the work happens in a worker thread (module docstring)."""
 
-    def __init__(self, cfg: ViserViewerConfig):
+    def __init__(self, cfg: ViserViewerConfig, context: RunContext = RunContext()):
         self.cfg = cfg
         self.viser = _import_viser()
         self.server = None

@@ -1,11 +1,6 @@
-"""The shared Gaussian map: its tensors (`gaussian_map`), how keyframes grow it (`growth`), the
-row operations strategies edit it with (`editing`), rendering it (`rendering`, the rasteriser
-role), and where it already explains a view (`coverage`)."""
+"""The shared Gaussian map: its tensors (`gaussian_map`) and how keyframes grow it (`growth`).
+Training it is `slamkit.splatting`'s."""
 
-from slamkit.map.editing import MapEdit
-from slamkit.map.gaussian_map import PARAMETERS, GaussianMap, GaussianRows, TrackingTarget
-from slamkit.map.coverage import DepthTolerance, covered_by_render, occupied_by_centres
-from slamkit.map.rendering import Rasterizer, RenderOutput, render_map
+from slamkit.map.gaussian_map import PARAMETERS, ROW_WIDTHS, GaussianMap, GaussianRows, TrackingTarget
 
-__all__ = ["PARAMETERS", "GaussianMap", "GaussianRows", "TrackingTarget", "MapEdit", "Rasterizer", "RenderOutput",
-           "DepthTolerance", "covered_by_render", "occupied_by_centres", "render_map"]
+__all__ = ["PARAMETERS", "ROW_WIDTHS", "GaussianMap", "GaussianRows", "TrackingTarget"]

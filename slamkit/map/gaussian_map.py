@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import math
 import threading
+from contextlib import contextmanager
 from dataclasses import dataclass, fields
+from typing import Iterator
 
 import numpy as np
 import torch
@@ -15,6 +18,10 @@ from slamkit.types import Deferred
 PARAMETERS = ("means", "quats", "log_scales", "opacity_logits", "colors")
 #: The geometry a Gaussian entered the map with, which no optimiser changes: entry field -> parameter.
 ENTRY_GEOMETRY = {"entry_means": "means", "entry_quats": "quats", "entry_log_scales": "log_scales"}
+#: The map's row schema: every per-row field (GaussianRows' fields) and its width (0: one value
+#: per row). Checkpoints and exports read the map through it.
+ROW_WIDTHS = {"means": 3, "quats": 4, "log_scales": 3, "opacity_logits": 0, "colors": 3, "trackable": 0,
+              "keyframe_id": 0, "entry_means": 3, "entry_quats": 4, "entry_log_scales": 3}
 
 
 def _logit(p: np.ndarray) -> np.ndarray:
@@ -282,6 +289,51 @@ class GaussianMap:
             self._set(GaussianRows(**{k: v[mask] for k, v in self._columns().items()}))
             self.version += 1
             self.structure_version += 1
+
+    def overwrite(self, index, rows: GaussianRows) -> None:
+        """Give the rows at `index` (integer indices or a slice) the values and flags of `rows`:
+        they hold other Gaussians now (`structure_version` changes)."""
+        with self.lock, torch.no_grad():
+            for f in fields(GaussianRows):
+                getattr(self, f.name)[index] = getattr(rows, f.name).to(self.device)
+            self.version += 1
+            self.structure_version += 1
+
+    def clamp_opacity(self, max_opacity: float) -> None:
+        """Clamp every opacity to at most `max_opacity` (in (0, 1))."""
+        with self.lock, torch.no_grad():
+            self.opacity_logits.clamp_(max=math.log(max_opacity / (1 - max_opacity)))
+            self.version += 1
+
+    @contextmanager
+    def updating(self) -> Iterator[dict[str, torch.Tensor]]:
+        """Hold the lock while the block updates the parameters in place (an optimiser step);
+        yields them by name, and counts the change when the block ends."""
+        with self.lock:
+            try:
+                yield self.parameters()
+            finally:
+                self.version += 1
+
+    def columns(self) -> dict[str, torch.Tensor]:
+        """A detached copy of every per-row field (ROW_WIDTHS), by name."""
+        with self.lock:
+            return {k: v.clone() for k, v in self._columns().items()}
+
+    def restore(self, columns: dict[str, torch.Tensor], version: int) -> None:
+        """Append the rows of a saved `columns()` and take the saved `version` (an empty map
+        restoring a checkpoint)."""
+        with self.lock:
+            self.append(GaussianRows(**{name: torch.as_tensor(columns[name]) for name in ROW_WIDTHS}))
+            self.version = version
+
+    @classmethod
+    def from_columns(cls, columns: dict[str, torch.Tensor], version: int = 0,
+                     device: str | torch.device = "cpu") -> GaussianMap:
+        """A map holding the rows of a saved `columns()`, at `version`."""
+        gm = cls(device)
+        gm.restore(columns, version)
+        return gm
 
     def covariances(self) -> torch.Tensor:
         """(N,3,3) world-frame covariances R diag(s^2) R^T in m^2."""

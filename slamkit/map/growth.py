@@ -29,7 +29,7 @@ trackable Gaussians enter whatever the coverage test says: looped Replica room0 
 grew by ~5,700 Gaussians a mapping-only keyframe, to 180k for 20 frames (docs/results.md).
 
 `new_gaussians` makes a keyframe's candidate rows; which of them enter the map is the mapper's
-decision (`Mapper.admit`, in `slamkit.run.slam.SLAM.grow_map`).
+decision (`Mapper.admit`, in `slamkit.run.slam.SLAM`).
 """
 
 from __future__ import annotations
@@ -39,9 +39,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from slamkit.config import PluginConfig, RunContext, require
 from slamkit.map.gaussian_map import GaussianRows
-from slamkit.roles.config import PluginConfig, require
-from slamkit.roles.dataset import SensorProfile
 from slamkit.types import FrameGaussians
 
 
@@ -68,7 +67,7 @@ class MapGrowthConfig(PluginConfig):
     none in real-time mode (see the module docstring). scale_c, scale_p: the c
     and p of max(c z^p, 1) (the reference code: c = 2, p = 1.5; c = 1 by default, see the
     module docstring). initial_opacity: opacity of new Gaussians in (0, 1).
-    new_gaussian_overlap: m^2, null = the dataset's (`SensorProfile.new_gaussian_overlap`)."""
+    new_gaussian_overlap: m^2, null = the dataset's (`DatasetTuning.new_gaussian_overlap`)."""
 
     initial_shape: InitialShape = InitialShape.gicp
     scale_alignment: ScaleAlignment | None = None
@@ -78,26 +77,25 @@ class MapGrowthConfig(PluginConfig):
     new_gaussian_overlap: float | None = None
 
     def validate(self) -> None:
-        require(self.scale_c > 0, "map.scale_c", "> 0", self.scale_c)
-        require(self.scale_p >= 0, "map.scale_p", ">= 0", self.scale_p)
-        require(0 < self.initial_opacity < 1, "map.initial_opacity", "in (0, 1)", self.initial_opacity)
+        require(self.scale_c > 0, "growth.scale_c", "> 0", self.scale_c)
+        require(self.scale_p >= 0, "growth.scale_p", ">= 0", self.scale_p)
+        require(0 < self.initial_opacity < 1, "growth.initial_opacity", "in (0, 1)", self.initial_opacity)
         require(
             self.new_gaussian_overlap is None or self.new_gaussian_overlap >= 0,
-            "map.new_gaussian_overlap", "null or >= 0 m^2", self.new_gaussian_overlap,
+            "growth.new_gaussian_overlap", "null or >= 0 m^2", self.new_gaussian_overlap,
         )
 
-    def with_sensor(self, sensor: SensorProfile) -> MapGrowthConfig:
-        return self.fill_nulls(new_gaussian_overlap=sensor.new_gaussian_overlap)
-
-    def for_mode(self, realtime: bool) -> MapGrowthConfig:
-        """scale_alignment left null: none in real-time mode, z_pow otherwise."""
-        return self.fill_nulls(scale_alignment=ScaleAlignment.none if realtime else ScaleAlignment.z_pow)
+    def resolve(self, context: RunContext) -> MapGrowthConfig:
+        """new_gaussian_overlap from the dataset's tuning; scale_alignment left null: none in
+        real-time mode, z_pow otherwise."""
+        return self.fill_nulls(new_gaussian_overlap=context.tuning.new_gaussian_overlap,
+                               scale_alignment=ScaleAlignment.none if context.realtime else ScaleAlignment.z_pow)
 
 
 def scale_alignment_factors(depths: np.ndarray, cfg: MapGrowthConfig) -> np.ndarray:
     """Per-Gaussian divisors of the scales, from camera depths in metres (scale_alignment null:
-    z_pow, as `for_mode` outside real time)."""
-    kind = cfg.for_mode(realtime=False).scale_alignment
+    z_pow, as `resolve` outside real time)."""
+    kind = cfg.scale_alignment or ScaleAlignment.z_pow
     if kind is ScaleAlignment.none:
         return np.ones_like(depths)
     if kind is ScaleAlignment.constant:

@@ -2,23 +2,40 @@
 for the command's checks, scripts, benchmarks and tests:
 
     cfg, names = compose_run(["dataset=tum", "dataset.path=PATH", "mapper=gaussian_splatting"])
-    dataset, slam, viewer = build_run(["dataset=tum", "dataset.path=PATH"])
+
+The config tree (`slamkit.conf`) and the experiment configs (`slamkit.experiments`, selected
+with `+experiment=NAME`) ship inside the package, so an installed slamkit finds them from any
+folder.
 """
 
 from __future__ import annotations
 
-import re
-from pathlib import Path
+from typing import Sequence
 
-from slamkit.registry.schema import RunConfig, register_run_config, validate_config
 from slamkit.errors import ConfigError
 from slamkit.registry.discovery import Registry, default_registry, register_configs
-from slamkit.roles import ROLE_KEYS
+from slamkit.registry.schema import RunConfig, register_run_config, validate_config
+from slamkit.roles import PARTS, ROLES
 
-#: The config tree (conf/config.yaml) and the experiment configs (`+experiment=NAME`), found
-#: beside the source tree (slamkit is installed editable).
-CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
-EXPERIMENTS_DIR = Path(__file__).resolve().parents[2] / "experiments"
+#: The Hydra config module of the command (its primary config: config.yaml).
+CONFIG_MODULE = "slamkit.conf"
+#: The primary config's name.
+CONFIG_NAME = "config"
+
+#: Keys that moved in 0.3: an override spelled the old way fails with one line naming the new
+#: key (each entry: old key or key prefix -> new). A mapper's parts are nested under it.
+RENAMED: dict[str, str] = {
+    **{part.key: part.group for part in PARTS},
+    **{f"mapper.{part.key}": part.group for part in PARTS},
+    **{f"{part.key}.": f"{part.path}." for part in PARTS},
+    **{f"{prefix}strategy.{name}": f"mapper.admission.{name}" for prefix in ("", "mapper.")
+       for name in ("skip_covered", "coverage", "covered_cell", "covered_centres", "covered_alpha",
+                    "covered_depth_tolerance", "covered_depth_quadratic")},
+    **{f"{prefix}strategy.{old}": f"mapper.memory_cap.{new}" for prefix in ("", "mapper.")
+       for old, new in (("max_gaussians", "max_gaussians"), ("memory_guard_margin", "margin"))},
+    "map.": "growth.",
+    "localize.map": "map",
+}
 
 
 def register(registry: Registry) -> None:
@@ -38,46 +55,76 @@ def register(registry: Registry) -> None:
         OmegaConf.register_new_resolver("slamkit.local_only", lambda address, value: None if address else value)
 
 
-#: DESIGN.md's command-line contract spells the rasteriser `mapper.rasterizer=auto|torch|cpu|gsplat`;
-#: it is its own role (config group `rasterizer`, a part of the mapper), so that spelling is
-#: rewritten to it on the command line, options and sweeps included (`mapper.rasterizer.num_threads=2`,
-#: `-m mapper.rasterizer=cpu,torch`); config files (an experiment's sweeper params) use `rasterizer`.
-_CONTRACT_KEY = re.compile(r"^([+~]*)mapper\.rasterizer(?=[.=]|$)")
+def parse_overrides(overrides: Sequence[str]) -> list:
+    """Hydra's parse of command-line overrides; ConfigError (one line) for one it cannot parse."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
+    try:
+        return OverridesParser.create().parse_overrides(list(overrides))
+    except HydraException as exc:
+        raise ConfigError(str(exc).strip().splitlines()[0]) from None
 
 
-def contract_overrides(overrides: list[str] | tuple[str, ...]) -> list[str]:
-    """`overrides` with DESIGN.md's spellings of a role rewritten to the role's own key
-    (`mapper.rasterizer=cpu` -> `rasterizer=cpu`); the rest unchanged."""
-    return [_CONTRACT_KEY.sub(r"\1rasterizer", o) for o in overrides]
+def renamed_key(key: str) -> str | None:
+    """The current spelling of an override's key when it is an old one (`RENAMED`), else None."""
+    if key in RENAMED:
+        return RENAMED[key]
+    for old, new in RENAMED.items():
+        if old.endswith(".") and key.startswith(old):
+            return new + key[len(old):]
+    return None
 
 
-def compose_run(overrides: list[str] | tuple[str, ...] = (), registry: Registry | None = None
-                ) -> tuple[RunConfig, dict[str, str]]:
-    """The validated run config for `overrides` and the plugin chosen for each role (key ->
-    name). ConfigError (one line naming the value) for a bad override or value."""
-    from hydra import compose, initialize_config_dir
+def check_spellings(overrides: Sequence[str]) -> None:
+    """ConfigError naming the new spelling for the first override that uses an old key
+    (`slamkit rasterizer=cpu` -> `mapper/rasterizer=cpu`)."""
+    for override in parse_overrides(overrides):
+        new = renamed_key(override.key_or_group)
+        if new is not None:
+            line = override.input_line
+            raise ConfigError(f"{line}: '{override.key_or_group}' is spelled '{new}' since slamkit 0.3 "
+                              f"(write {line.replace(override.key_or_group, new, 1)})")
+
+
+def _part_without_owner(overrides: Sequence[str], error: Exception) -> str | None:
+    """The one line for a part chosen while its owner composes no such part (`mapper/rasterizer=cpu`
+    with `mapper=none`, Hydra's "Could not override 'mapper/rasterizer'"), else None."""
+    for override in parse_overrides(overrides):
+        part = next((p for p in PARTS if p.group == override.key_or_group), None)
+        if part is not None and f"Could not override '{part.group}'" in str(error):
+            owners = [o.value() for o in parse_overrides(overrides) if o.key_or_group == part.part_of]
+            owner = owners[-1] if owners else next(r.default for r in ROLES if r.key == part.part_of)
+            return (f"{override.input_line}: the {part.part_of} {owner!r} has no {part.key} (its parts are "
+                    f"composed with it: choose one that has, e.g. {part.part_of}=gaussian_splatting)")
+    return None
+
+
+def chosen_plugins(choices) -> dict[str, str]:
+    """The plugin chosen for each role and part in a composed config, from Hydra's runtime
+    choices (group -> option), by role path: `tracker`, `mapper.rasterizer` (parts only where
+    their owner composes them)."""
+    return {r.path: str(choices[r.group]) for r in ROLES if choices.get(r.group) is not None}
+
+
+def compose_run(overrides: Sequence[str] = (), registry: Registry | None = None) -> tuple[RunConfig, dict[str, str]]:
+    """The validated run config for `overrides` and the plugin chosen for each role and part
+    (`chosen_plugins`). ConfigError (one line naming the value) for a bad override or value."""
+    from hydra import compose, initialize_config_module
     from omegaconf import open_dict
 
     register(registry or default_registry())
-    overrides = contract_overrides(overrides)
-    if EXPERIMENTS_DIR.is_dir() and not any(o.startswith("hydra.searchpath") for o in overrides):
-        overrides.append(f"hydra.searchpath=[file://{EXPERIMENTS_DIR}]")
+    check_spellings(overrides)
     try:
-        with initialize_config_dir(str(CONF_DIR), version_base=None):
-            cfg = compose("config", overrides=overrides, return_hydra_config=True)
+        with initialize_config_module(CONFIG_MODULE, version_base=None):
+            cfg = compose(CONFIG_NAME, overrides=list(overrides), return_hydra_config=True)
     except Exception as exc:  # Hydra's override and type errors: name the value, one line
+        orphan = _part_without_owner(overrides, exc)
+        if orphan:
+            raise ConfigError(orphan) from None
         causes = [str(e).strip().splitlines()[0] for e in (exc, exc.__cause__) if e is not None and str(e).strip()]
         raise ConfigError(": ".join(dict.fromkeys(causes))) from exc
-    names = {key: cfg.hydra.runtime.choices[key] for key in ROLE_KEYS}
+    names = chosen_plugins(cfg.hydra.runtime.choices)
     with open_dict(cfg):
         del cfg["hydra"]
     return validate_config(cfg), names
-
-
-def build_run(overrides: list[str] | tuple[str, ...] = (), registry: Registry | None = None):
-    """(dataset, SLAM system, viewer) for `overrides`, built as a `slamkit` run builds them."""
-    from slamkit.run.pipeline import build
-
-    registry = registry or default_registry()
-    cfg, names = compose_run(overrides, registry)
-    return build(cfg, registry, names)

@@ -13,13 +13,16 @@ import importlib.metadata
 import logging
 import warnings
 from dataclasses import dataclass, field
+from typing import Any
 
 import pluggy
+from omegaconf import MISSING
 
-from slamkit.registry import hookspecs
+from slamkit.config import RunContext, resolve_tree
 from slamkit.errors import PluginError
 from slamkit.plugin import PROJECT, PluginSpec
-from slamkit.roles import ROLE_KEYS, SensorProfile, role_of
+from slamkit.registry import hookspecs
+from slamkit.roles import ROLE_KEYS, role, role_of
 
 log = logging.getLogger(__name__)
 
@@ -46,15 +49,15 @@ class Registry:
             raise PluginError(f"unknown {role} {name!r}; available: {available}{failed}")
         return found.spec
 
-    def create(self, role: str, name: str, config=None, sensor: SensorProfile | None = None, **parts):
-        """Build plugin `name` of `role` from `config` (None: its defaults), whose null
-        sensor-dependent fields are first filled from `sensor` (None: the generic
-        `SensorProfile()`); `parts` are a mapper's parts, passed as keyword arguments."""
+    def create(self, role: str, name: str, config=None, context: RunContext | None = None, **parts):
+        """Build plugin `name` of `role` as `cls(config, context, **parts)`: `config` (None: its
+        defaults) with its null fields filled from `context` (`slamkit.config.resolve_tree`;
+        None: a context of defaults, whose `build` builds from this registry); `parts` are a
+        mapper's parts."""
         spec = self.get(role, name)
-        config = spec.config() if config is None else config
-        if hasattr(config, "with_sensor"):
-            config = config.with_sensor(sensor or SensorProfile())
-        return spec.cls(config, **parts)
+        context = context or RunContext(build=self.create)
+        config = resolve_tree(spec.config() if config is None else config, context)
+        return spec.cls(config, context, **parts)
 
     def add_module(self, module, source: str, manager: pluggy.PluginManager | None = None) -> None:
         """Register the hook of one plugin module; failures become warnings."""
@@ -134,18 +137,35 @@ def discover() -> Registry:
 
 
 def register_configs(registry: Registry) -> None:
-    """Put each plugin's config dataclass into Hydra's ConfigStore under its role's group; one
-    that cannot be stored is reported by name (a warning) and left out of the registry."""
+    """Put each plugin's config dataclass into Hydra's ConfigStore under its role's group (a
+    part's nested under its owner's: `mapper/rasterizer`); one that cannot be stored is reported
+    by name (a warning) and left out of the registry."""
     from hydra.core.config_store import ConfigStore
 
     store = ConfigStore.instance()
-    for role, plugins in registry.plugins.items():
+    for key, plugins in registry.plugins.items():
         for name, entry in list(plugins.items()):
             try:
-                store.store(group=role, name=name, node=entry.spec.config, provider=entry.source)
+                node = with_parts(entry.spec.config, getattr(entry.spec.cls, "parts", ()))
+                store.store(group=role(key).group, name=name, node=node, provider=entry.source)
             except Exception as exc:
                 del plugins[name]
                 registry._fail(entry.source, exc)
+
+
+def with_parts(config: type, parts: tuple[str, ...]) -> type:
+    """A plugin's config as its group entry: for a plugin composed of `parts` (a mapper's), a
+    subclass with one field per part, holding the part's config, and a Hydra defaults list that
+    selects each part's default (`mapper/rasterizer: auto`), so that the parts are composed only
+    with their owner."""
+    if not parts:
+        return config
+    defaults = [{key: role(key).default} for key in parts] + ["_self_"]
+    fields = [(key, Any, dataclasses.field(default=MISSING)) for key in parts]
+    node = dataclasses.make_dataclass(config.__name__, [("defaults", list[Any], dataclasses.field(
+        default_factory=lambda: list(defaults)))] + fields, bases=(config,))
+    node.__module__, node.__doc__ = config.__module__, config.__doc__
+    return node
 
 
 _discovered: Registry | None = None
@@ -161,5 +181,5 @@ def default_registry() -> Registry:
 
 def create_rasterizer(name: str = "auto", registry: Registry | None = None):
     """A rasteriser backend by name with its default config (``auto``: the first backend
-    available here, see `slamkit_plugins.rasterizers.auto`)."""
+    available here)."""
     return (registry or default_registry()).create("rasterizer", name)

@@ -1,7 +1,8 @@
 """The top-level run configuration (Hydra structured config) and its validation.
 
-The schema is RunConfig's keys plus one group per role of `slamkit.roles.ROLES`, each holding
-the selected plugin's config dataclass (registered by `slamkit.registry.discovery.register_configs`),
+The schema is RunConfig's keys plus one group per run role of `slamkit.roles.RUN_ROLES`, each
+holding the selected plugin's config dataclass (registered by
+`slamkit.registry.discovery.register_configs`; a mapper's parts are groups nested in its own),
 and a defaults list that selects each role's default plugin. Validation turns every group into
 its dataclass (running its `validate`) before any work starts.
 """
@@ -14,14 +15,20 @@ from typing import Any
 
 from omegaconf import MISSING, DictConfig, OmegaConf
 
+from slamkit.config import PluginConfig, check_values, require, thread_count
 from slamkit.errors import ConfigError
 from slamkit.map.growth import MapGrowthConfig
-from slamkit.run.slam import SWITCH_INTERVAL_S
-from slamkit.roles import ROLES, PluginConfig, check_values, require, thread_count
+from slamkit.roles import RUN_ROLES
+
+#: Seconds: Python's thread switch interval while real-time mapping runs. Python's default,
+#: 5 ms, makes each of a mapping step's torch calls (each releases the GIL and takes it back)
+#: wait up to 5 ms for the tracking thread's Python code, and the tracker's kernel calls wait
+#: for the mapper's (docs/results.md, "Speed").
+SWITCH_INTERVAL_S = 5e-4
 
 
 class Mode(enum.Enum):
-    """sequential and realtime build a map (SLAM); localize tracks in a saved map (`localize.map`)."""
+    """sequential and realtime build a map (SLAM); localize tracks in a saved map (`map`)."""
 
     sequential = "sequential"
     realtime = "realtime"
@@ -73,15 +80,13 @@ class LocalizeConfig(PluginConfig):
     """`mode=localize`: tracking in a saved map, which stays as it is (docs/checkpoints.md). The
     first frame, and any frame where tracking is lost, is placed by global registration of its
     points against the map's trackable Gaussians (FPFH + RANSAC, then G-ICP, with open3d) and
-    tracked by the run's tracker from there. map: the run folder or checkpoint file of the map
-    (`map=RUN_DIR` on the command line). voxel: metres, both clouds are downsampled to this for
+    tracked by the run's tracker from there (the map: `map=RUN_DIR`). voxel: metres, both clouds are downsampled to this for
     global registration. min_inlier_fraction: a frame is localised when at least this fraction of
     its trackable points has a map Gaussian within the tracker's correspondence distance.
     ransac_iterations: RANSAC's iteration limit. ransac_confidence: RANSAC's stopping confidence.
     attempts: RANSAC runs (other seeds) per global registration before the frame counts as not
     localised."""
 
-    map: str | None = None
     voxel: float = 0.05
     min_inlier_fraction: float = 0.3
     ransac_iterations: int = 100000
@@ -132,9 +137,12 @@ class RunConfig(PluginConfig):
     paper maps on the GPU; the tracker always runs on the CPU and takes its target from the map
     as a CPU copy). checkpoint: the map checkpoint (CheckpointConfig). resume: a run folder
     (or checkpoint file) whose run this one continues (`slamkit resume=RUN_DIR`). localize:
-    `mode=localize`'s settings (LocalizeConfig)."""
+    `mode=localize`'s settings (LocalizeConfig). growth: how keyframes grow the map
+    (MapGrowthConfig). map: with mode=localize, the run folder or checkpoint file of the saved
+    map to localise in."""
 
-    map: MapGrowthConfig = field(default_factory=MapGrowthConfig)
+    growth: MapGrowthConfig = field(default_factory=MapGrowthConfig)
+    map: str | None = None
     eval: EvalConfig = field(default_factory=EvalConfig)
     objective: ObjectiveConfig = field(default_factory=ObjectiveConfig)
     mode: Mode = Mode.sequential
@@ -176,16 +184,16 @@ class RunConfig(PluginConfig):
         require(0 < self.switch_interval <= 1, "switch_interval", "in (0, 1] seconds", self.switch_interval)
         require(self.mapping_threads >= 0, "mapping_threads", "an integer >= 0 (0: automatic)", self.mapping_threads)
         require(0 <= self.seed < 2**32, "seed", "an integer from 0 to 2^32 - 1 (numpy's seed range)", self.seed)
-        require(self.mode is not Mode.localize or bool(self.localize.map), "map",
-                "a run folder or checkpoint file with mode=localize (map=RUN_DIR)", self.localize.map)
+        require(self.mode is not Mode.localize or bool(self.map), "map",
+                "a run folder or checkpoint file with mode=localize (map=RUN_DIR)", self.map)
         require(self.mode is not Mode.localize or not self.resume, "resume", "null with mode=localize", self.resume)
 
 
 def run_schema() -> type:
-    """RunConfig with one field per role (`slamkit.roles.ROLES`), each the selected plugin's
-    config, and a Hydra defaults list that selects each role's default plugin."""
-    defaults = [{r.key: r.default} for r in ROLES] + ["_self_"]
-    role_fields = [(r.key, Any, field(default=MISSING)) for r in ROLES]
+    """RunConfig with one field per run role (`slamkit.roles.RUN_ROLES`), each the selected
+    plugin's config, and a Hydra defaults list that selects each role's default plugin."""
+    defaults = [{r.key: r.default} for r in RUN_ROLES] + ["_self_"]
+    role_fields = [(r.key, Any, field(default=MISSING)) for r in RUN_ROLES]
     return make_dataclass("SlamkitConfig", [("defaults", list[Any], field(default_factory=lambda: list(defaults)))]
                           + role_fields, bases=(RunConfig,))
 
@@ -209,7 +217,7 @@ def validate_config(cfg: DictConfig) -> RunConfig:
         raise ConfigError(str(exc).splitlines()[0]) from exc
     if not isinstance(run, RunConfig):
         raise ConfigError(f"expected the slamkit run config, got {type(run).__name__}")
-    for r in ROLES:
+    for r in RUN_ROLES:
         if not is_dataclass(getattr(run, r.key)):
             raise ConfigError(f"{r.key}: no plugin selected (use {r.key}=NAME)")
     check_values(run)

@@ -1,22 +1,31 @@
 """The roles a plugin can fill: one abstract base class each, small on purpose, and the table
 of roles (`ROLES`). A plugin provides a subclass of one base and a config dataclass deriving
-from `PluginConfig`; the registry builds the subclass with the validated config (and, for a
-mapper, the parts it names in `Mapper.parts`)."""
+from `PluginConfig`; the registry fills the config's null fields from the run
+(`PluginConfig.resolve`) and builds the subclass as `cls(config, context)` (a mapper also gets
+the parts it names in `Mapper.parts`). The mapper's parts (rasteriser, sampler, strategy,
+optimiser, loss) are the 3DGS trainer's contracts, in `slamkit.splatting`, re-exported here."""
 
-from slamkit.map.rendering import Rasterizer, RenderOutput
-from slamkit.roles.config import PluginConfig, check_values, require, thread_count, unlimited
-from slamkit.roles.dataset import Dataset, DatasetConfig, OnError, SensorProfile
-from slamkit.roles.mapping import KeyframeSampler, Mapper, MapOptimizer, MappingLoss, TrainingView
-from slamkit.roles.strategy import CoverageTest, DensifyStrategy, KeyframeView, StepInfo, StrategyConfig
-from slamkit.roles.table import ROLE_KEYS, ROLES, Role, role, role_of
-from slamkit.roles.tracking import KeyframeHistory, KeyframePolicy, Tracker
+from slamkit.config import PluginConfig, RunContext, check_values, require, thread_count, unlimited
+from slamkit.roles.dataset import Dataset, DatasetConfig, OnError
+from slamkit.roles.mapping import Mapper
+from slamkit.roles.table import PARTS, ROLE_KEYS, ROLES, RUN_ROLES, Role, role, role_of
+from slamkit.roles.tracking import KeyframeDecision, KeyframeHistory, KeyframePolicy, Tracker
 from slamkit.roles.viewer import MapGaussians, MapPoints, Viewer, ViewerConfig, ViewerFrame
+from slamkit.splatting import (KeyframeSampler, KeyframeView, MapOptimizer, MappingLoss, Rasterizer, RenderOutput,
+                               StepInfo, Strategy, StrategyConfig, TrainingView)
+from slamkit.tuning import DatasetTuning
+
+#: Names of 0.2 kept for plugins written against it (docs/CHANGELOG.md): removed in 0.4.
+SensorProfile = DatasetTuning
+DensifyStrategy = Strategy
 
 __all__ = [
-    "ROLES", "ROLE_KEYS", "Role", "role", "role_of", "PluginConfig", "require", "thread_count", "unlimited", "check_values",
-    "Dataset", "DatasetConfig", "OnError", "SensorProfile",
-    "Tracker", "KeyframePolicy", "KeyframeHistory",
-    "Mapper", "Rasterizer", "RenderOutput", "KeyframeSampler", "DensifyStrategy", "StrategyConfig", "CoverageTest", "MapOptimizer",
+    "ROLES", "ROLE_KEYS", "RUN_ROLES", "PARTS", "Role", "role", "role_of",
+    "PluginConfig", "RunContext", "require", "thread_count", "unlimited", "check_values", "DatasetTuning",
+    "Dataset", "DatasetConfig", "OnError",
+    "Tracker", "KeyframePolicy", "KeyframeDecision", "KeyframeHistory",
+    "Mapper", "Rasterizer", "RenderOutput", "KeyframeSampler", "Strategy", "StrategyConfig", "MapOptimizer",
     "MappingLoss", "TrainingView", "KeyframeView", "StepInfo",
     "Viewer", "ViewerConfig", "ViewerFrame", "MapPoints", "MapGaussians",
+    "SensorProfile", "DensifyStrategy",
 ]

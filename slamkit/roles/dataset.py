@@ -1,48 +1,18 @@
-"""The dataset role: a finite RGB-D sequence with random access, and what it knows of its sensor."""
+"""The dataset role: a finite RGB-D sequence with random access, and what it knows of its sensor
+and scenes (`slamkit.tuning.DatasetTuning`)."""
 
 from __future__ import annotations
 
 import dataclasses
 import enum
-import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import Sequence
 
+from slamkit.config import PluginConfig, require, unlimited
 from slamkit.errors import DataError
-from slamkit.roles.config import PluginConfig, require, unlimited
+from slamkit.tuning import DatasetTuning
 from slamkit.types import Camera, Frame
-
-
-@dataclass(frozen=True)
-class SensorProfile:
-    """What a dataset knows of its depth camera and scenes. Other parts read it by field to
-    fill their settings left null (`PluginConfig.with_sensor`): G-ICP's sample stride and
-    correspondence distance, the keyframe thresholds, the largest Gaussian a strategy keeps.
-    The defaults describe a hand-held structured-light camera in a room (TUM RGB-D's values,
-    as the reference code tunes them).
-
-    depth_scale: raw depth-image units per metre (TUM 5000, Replica 6553.5; 0 = depth not
-      stored as integers). depth_trunc: metres, depth beyond is not used for tracking (inf =
-      no limit). max_gaussian_scale: metres, the largest plausible Gaussian standard deviation
-      in these scenes (larger ones are pruned). tracking_pixel_stride: a tracker samples every
-      n-th pixel in x and y at the native resolution (reference: 5 TUM, 10 Replica).
-      correspondence_distance: metres, G-ICP's largest correspondence distance for this depth
-      noise (0.03 TUM, 0.02 Replica). new_gaussian_overlap: m^2, a keyframe Gaussian this close
-      to a trackable map Gaussian is not made trackable (no duplicate targets).
-      keyframe_overlap: m^2, a frame point overlaps the map when its squared distance to the
-      nearest map Gaussian is below this (1e-3 TUM, 5e-4 Replica). keyframe_threshold: a
-      tracking keyframe when the overlapping fraction drops below this (0.81 TUM, 0.7 Replica).
-    """
-
-    depth_scale: float = 0.0
-    depth_trunc: float = math.inf
-    max_gaussian_scale: float = 1.0
-    tracking_pixel_stride: int = 5
-    correspondence_distance: float = 0.03
-    new_gaussian_overlap: float = 1e-3
-    keyframe_overlap: float = 1e-3
-    keyframe_threshold: float = 0.81
 
 
 #: What a frame that fails to load does: stop the run (raise) or become a lost frame (skip).
@@ -122,14 +92,15 @@ class BackAndForth(Sequence[int]):
 class Dataset(ABC):
     """A finite RGB-D sequence with random access.
 
-    Subclasses set `camera` (before intrinsics overrides) and implement `num_available` and
-    `load`; the base class applies start / stride / max_frames, intrinsics overrides and
-    depth_trunc. `default_sensor` describes the sensor (a class attribute, or an instance
-    attribute when it depends on the files, e.g. their depth scale); `sensor` is it with the
-    user's depth_trunc applied.
+    Subclasses set `native_camera` (before intrinsics overrides) and implement `num_available`
+    and `load`; the base class applies start / stride / max_frames, intrinsics overrides and
+    depth_trunc. `default_tuning` describes the sensor and scenes (a class attribute, or an
+    instance attribute when it depends on the files, e.g. their depth scale); `tuning` is it
+    with the user's depth_trunc applied. A dataset is the first plugin a run builds, from its
+    config alone: the run's context (`slamkit.config.RunContext`) holds its tuning.
     """
 
-    default_sensor: SensorProfile = SensorProfile()
+    default_tuning: DatasetTuning = DatasetTuning()
 
     def __init__(self, cfg: DatasetConfig):
         self.cfg = cfg
@@ -163,16 +134,17 @@ class Dataset(ABC):
                             f"(expected {expected})")
 
     @property
-    def sensor(self) -> SensorProfile:
-        """The sensor profile other parts read (`default_sensor`, with `dataset.depth_trunc`)."""
+    def tuning(self) -> DatasetTuning:
+        """What other parts read for their settings left null (`default_tuning`, with
+        `dataset.depth_trunc`)."""
         if self.cfg.depth_trunc is None:
-            return self.default_sensor
-        return dataclasses.replace(self.default_sensor, depth_trunc=float(self.cfg.depth_trunc))
+            return self.default_tuning
+        return dataclasses.replace(self.default_tuning, depth_trunc=float(self.cfg.depth_trunc))
 
     @property
     def depth_trunc(self) -> float:
         """Metres; depth beyond is not used for tracking (inf = no limit)."""
-        return self.sensor.depth_trunc
+        return self.tuning.depth_trunc
 
     def raw_timestamp(self, raw_index: int) -> float:
         """Seconds; must not read image files (used for frames that fail to load). Datasets

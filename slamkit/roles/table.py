@@ -7,27 +7,40 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from slamkit.errors import PluginError
-from slamkit.map.rendering import Rasterizer
 from slamkit.roles.dataset import Dataset
-from slamkit.roles.mapping import KeyframeSampler, Mapper, MapOptimizer, MappingLoss
-from slamkit.roles.strategy import DensifyStrategy
+from slamkit.roles.mapping import Mapper
 from slamkit.roles.tracking import KeyframePolicy, Tracker
 from slamkit.roles.viewer import Viewer
+from slamkit.splatting.loss import MappingLoss
+from slamkit.splatting.optimizer import MapOptimizer
+from slamkit.splatting.rendering import Rasterizer
+from slamkit.splatting.sampler import KeyframeSampler
+from slamkit.splatting.strategy import Strategy
 
 
 @dataclass(frozen=True)
 class Role:
-    """A kind of plugin. key: its config group and command-line key (``tracker=NAME``,
-    ``tracker.FIELD=VALUE``). base: the class its plugins subclass (how a plugin says which role
-    it fills). default: the plugin a run uses unless told otherwise. part_of: the role whose
-    plugins are composed of this one (the mapper's parts), None for the run's own roles.
-    summary: one line for listings and the docs."""
+    """A kind of plugin. key: its name (``tracker``, ``rasterizer``). base: the class its
+    plugins subclass (how a plugin says which role it fills). default: the plugin used unless
+    told otherwise. part_of: the role whose plugins are composed of this one (the mapper's
+    parts), None for the run's own roles. summary: one line for listings and the docs."""
 
     key: str
     base: type
     default: str
     summary: str
     part_of: str | None = None
+
+    @property
+    def group(self) -> str:
+        """Its Hydra config group, what the command line selects it with: the key for a run's
+        role (``tracker=gicp``), nested under its owner for a part (``mapper/rasterizer=cpu``)."""
+        return f"{self.part_of}/{self.key}" if self.part_of else self.key
+
+    @property
+    def path(self) -> str:
+        """Where its config sits in the run config (``tracker``, ``mapper.rasterizer``)."""
+        return self.group.replace("/", ".")
 
 
 ROLES: tuple[Role, ...] = (
@@ -37,13 +50,16 @@ ROLES: tuple[Role, ...] = (
     Role("mapper", Mapper, "none", "optimises the shared Gaussian map"),
     Role("rasterizer", Rasterizer, "auto", "renders the Gaussians, differentiably", "mapper"),
     Role("sampler", KeyframeSampler, "random", "chooses the keyframe each training step uses", "mapper"),
-    Role("strategy", DensifyStrategy, "gsicp", "grows, prunes and bounds the map while it trains", "mapper"),
+    Role("strategy", Strategy, "gsicp", "grows, prunes and bounds the map while it trains", "mapper"),
     Role("optimizer", MapOptimizer, "adam", "updates the Gaussians' parameters from gradients", "mapper"),
     Role("loss", MappingLoss, "l1_ssim_depth", "compares a render with its keyframe", "mapper"),
     Role("viewer", Viewer, "none", "shows or records the run as it goes"),
 )
 
 ROLE_KEYS: tuple[str, ...] = tuple(r.key for r in ROLES)
+#: The run's own roles (a group each at the top of the run config) and the parts of others.
+RUN_ROLES: tuple[Role, ...] = tuple(r for r in ROLES if r.part_of is None)
+PARTS: tuple[Role, ...] = tuple(r for r in ROLES if r.part_of is not None)
 
 
 def role(key: str) -> Role:

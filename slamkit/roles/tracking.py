@@ -8,28 +8,29 @@ from typing import Any
 
 import numpy as np
 
+from slamkit.config import PluginConfig, RunContext
 from slamkit.map.gaussian_map import GaussianMap
 from slamkit.types import Frame, KeyframeKind, TrackingResult
 
 
 class Tracker(ABC):
-    """Estimates each frame's camera-to-world pose."""
+    """Estimates each frame's camera-to-world pose. Built as `cls(config, context)`, complete;
+    the map reaches it only through `update_target`."""
+
+    def __init__(self, cfg: PluginConfig | None = None, context: RunContext = RunContext()):
+        self.cfg = cfg
 
     @abstractmethod
-    def track(self, frame: Frame, gaussian_map: GaussianMap) -> TrackingResult:
-        """Pose of `frame` (camera-to-world). Must not raise on a bad frame: return
-        `lost=True` with the predicted pose instead."""
+    def track(self, frame: Frame) -> TrackingResult:
+        """Pose of `frame` (camera-to-world) against the target of the last `update_target`.
+        Must not raise on a bad frame: return `lost=True` with the predicted pose instead."""
 
     def update_target(self, gaussian_map: GaussianMap) -> None:
-        """Called after a tracking keyframe added its Gaussians: rebuild what is aligned to."""
+        """Called after a tracking keyframe added its Gaussians: rebuild what is aligned to
+        from the map (under the map's lock: take a copy, `GaussianMap.tracking_target`)."""
 
     def initialize(self, first_pose: np.ndarray) -> None:
         """Called once before the first frame with the pose the trajectory starts from."""
-
-    def use_threads(self, threads: int) -> None:
-        """The run's CPU threads for this tracker (one in real-time mode, where mapping has the
-        others; every CPU otherwise), given before the first frame. A tracker whose config fixes
-        its thread count keeps it. The default ignores it."""
 
     def state_dict(self) -> dict[str, Any]:
         """What this tracker needs to go on where a run stopped (saved in the map checkpoint,
@@ -58,12 +59,26 @@ class KeyframeHistory:
         return kind
 
 
+@dataclass(frozen=True)
+class KeyframeDecision:
+    """What a keyframe policy decided for a frame: its kind, and the correspondence ratio the
+    decision was made on (the fraction of trackable frame points close to the map; None for a
+    policy that does not measure it)."""
+
+    kind: KeyframeKind
+    correspondence_ratio: float | None = None
+
+
 class KeyframePolicy(ABC):
-    """Decides which frames become keyframes, and of which kind."""
+    """Decides which frames become keyframes, and of which kind. Built as
+    `cls(config, context)`."""
+
+    def __init__(self, cfg: PluginConfig | None = None, context: RunContext = RunContext()):
+        self.cfg = cfg
 
     @abstractmethod
-    def decide(self, frame: Frame, result: TrackingResult) -> KeyframeKind:
-        """The keyframe kind of `frame` given its tracking result."""
+    def decide(self, frame: Frame, result: TrackingResult) -> KeyframeDecision:
+        """The keyframe kind of `frame` given its tracking result (which it does not change)."""
 
     def state_dict(self) -> dict[str, Any]:
         """What the policy needs to go on where a run stopped (the map checkpoint): by default

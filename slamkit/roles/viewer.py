@@ -11,8 +11,8 @@ import torch
 
 from slamkit.geometry.transforms import covariance_from_scales
 from slamkit.map.gaussian_map import GaussianMap
-from slamkit.map.rendering import RenderOutput
-from slamkit.roles.config import PluginConfig, require
+from slamkit.splatting.rendering import RenderOutput
+from slamkit.config import PluginConfig, require
 from slamkit.roles.mapping import Mapper
 from slamkit.types import Camera, Frame, KeyframeKind
 

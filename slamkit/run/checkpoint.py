@@ -35,14 +35,11 @@ import torch
 
 from slamkit.formats.checkpoint import (CHECKPOINT_NAME, CheckpointError, checkpoint_path, read_checkpoint,
                                         read_meta, write_checkpoint)
-from slamkit.map.gaussian_map import GaussianMap, GaussianRows
+from slamkit.map.gaussian_map import ROW_WIDTHS, GaussianMap
 from slamkit.types import Camera
 
 log = logging.getLogger(__name__)
 
-#: The map's row fields and each one's width (0: one value per row).
-MAP_FIELDS = {"means": 3, "quats": 4, "log_scales": 3, "opacity_logits": 0, "colors": 3, "trackable": 0,
-              "keyframe_id": 0, "entry_means": 3, "entry_quats": 4, "entry_log_scales": 3}
 #: RunState's counters kept in a checkpoint.
 RUN_COUNTERS = ("num_keyframes", "lost_frames", "dropped_frames", "mapping_iterations", "tracking_time_s",
                 "mapping_time_s", "stream_time_s", "refine_iterations", "refine_time_s")
@@ -95,12 +92,10 @@ class CheckpointWriter:
 def capture(slam, run_state, wall_s: float) -> dict[str, Any]:
     """The state of `slam` and the run (call under the map's lock)."""
     gm = slam.gaussian_map
-    rows = gm.rows()
-    return {"map": {name: getattr(rows, name) for name in MAP_FIELDS}, "map_version": gm.version,
+    return {"map": gm.columns(), "map_version": gm.version,
             "slam": {"num_keyframes": slam.num_keyframes, "keyframes_in_target": slam.keyframes_in_target,
                      "last_pose": slam.last_pose},
-            "tracker": slam.tracker.state_dict(), "keyframe": slam.keyframe_policy.state_dict(),
-            "mapper": slam.mapper.state_dict(), "run": _run_state(run_state, wall_s)}
+            **slam.plugin_states(), "run": _run_state(run_state, wall_s)}
 
 
 def _run_state(s, wall_s: float) -> dict[str, Any]:
@@ -136,7 +131,7 @@ def _check(path: Path, checkpoint: dict[str, Any]) -> None:
         fail("its state lacks map, slam, run, tracker or mapper")
     rows = state["map"]
     n = None
-    for name, width in MAP_FIELDS.items():
+    for name, width in ROW_WIDTHS.items():
         value = rows.get(name) if isinstance(rows, dict) else None
         if not isinstance(value, torch.Tensor):
             fail(f"map field {name!r} is missing")
@@ -173,18 +168,12 @@ def restore(checkpoint: dict[str, Any], slam, run_state) -> int:
     """Put `slam` (built from the same config) and `run_state` (empty) back where the checkpoint
     left them; returns the index of the first frame still to process."""
     state = checkpoint["state"]
-    gm = slam.gaussian_map
-    gm.append(map_rows(state["map"]))
-    gm.version = int(state["map_version"])
+    slam.gaussian_map.restore(state["map"], int(state["map_version"]))
     slam.num_keyframes = int(state["slam"]["num_keyframes"])
     slam.keyframes_in_target = int(state["slam"].get("keyframes_in_target", 0))  # 0: every trackable row counts
     last_pose = state["slam"]["last_pose"]
     slam.last_pose = None if last_pose is None else np.asarray(last_pose, dtype=np.float64)
-    if slam.last_pose is not None:
-        slam.tracker.initialize(slam.last_pose)  # a tracker that saves nothing goes on from the last pose
-    slam.tracker.load_state_dict(state["tracker"])
-    slam.keyframe_policy.load_state_dict(state.get("keyframe", {}))
-    slam.mapper.load_state_dict(state["mapper"])
+    slam.load_plugin_states(state)
     run = state["run"]
     run_state.timestamps = [float(t) for t in run["timestamps"]]
     run_state.poses = list(np.asarray(run["poses"], dtype=np.float64))
@@ -210,17 +199,11 @@ def check_resumable(checkpoint: dict[str, Any], cfg, names: dict[str, str], sour
                                   f"run had {saved[key]!r} (raise dataset.max_frames to go further)")
 
 
-def map_rows(rows: dict[str, torch.Tensor]) -> GaussianRows:
-    """The checkpoint's map rows as GaussianRows (CPU tensors)."""
-    return GaussianRows(**{name: rows[name] for name in MAP_FIELDS})
-
-
 def load_map(source: str | Path, device: str | torch.device = "cpu") -> tuple[GaussianMap, dict[str, Any]]:
     """(the checkpoint's GaussianMap on `device`, the whole checkpoint) from RUN_DIR or the file."""
     checkpoint = load(source)
-    gm = GaussianMap(device)
-    gm.append(map_rows(checkpoint["state"]["map"]))
-    return gm, checkpoint
+    state = checkpoint["state"]
+    return GaussianMap.from_columns(state["map"], int(state.get("map_version", 0)), device), checkpoint
 
 
 def keyframe_poses(checkpoint: dict[str, Any]) -> np.ndarray:

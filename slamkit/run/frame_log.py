@@ -51,7 +51,7 @@ class FrameLog:
         result = step.tracking
         self._row([frame.index, f"{frame.timestamp:.6f}", step.keyframe.value, int(result.lost),
                    f"{1e3 * step.tracking_time_s:.2f}", f"{1e3 * step.mapping_time_s:.2f}", step.mapping_iterations,
-                   _fmt(result.correspondence_ratio), num_gaussians, f"{rss_mb():.1f}",
+                   _fmt(step.decision.correspondence_ratio), num_gaussians, f"{rss_mb():.1f}",
                    result.stats.get("lost_reason", "")])
 
     def unreadable(self, index: int, timestamp: float, error: Exception) -> None:

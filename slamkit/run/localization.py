@@ -20,7 +20,6 @@ from __future__ import annotations
 import csv
 import json
 import logging
-import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from slamkit.config import RunContext
 from slamkit.errors import DataError, OutputError
 from slamkit.formats.atomic import write_atomic
 from slamkit.formats.checkpoint import checkpoint_path
@@ -66,12 +66,6 @@ class LocalizedFrame:
     registration_s: float
 
 
-def localize_arguments(argv: list[str]) -> list[str]:
-    """`map=RUN_DIR` on the command line is `localize.map=RUN_DIR` (`map.` keys are the map
-    growth settings)."""
-    return [re.sub(r"^map=", "localize.map=", a) for a in argv]
-
-
 def inlier_fraction(result: TrackingResult) -> float | None:
     """The fraction of the frame's trackable points with a map Gaussian within the tracker's
     correspondence distance (None when the tracker reports no per-point distances)."""
@@ -90,7 +84,7 @@ class Localizer:
         tracker.update_target(gaussian_map)
         target = gaussian_map.tracking_target(0.0, "entry")
         if len(target.means) == 0:
-            raise DataError(f"map {cfg.localize.map}: no trackable Gaussian to localise against")
+            raise DataError(f"map {cfg.map}: no trackable Gaussian to localise against")
         self.registration = GlobalRegistration(target.means, self.cfg.voxel, self.cfg.ransac_iterations,
                                                self.cfg.ransac_confidence)
         self.lost = True  # no pose yet
@@ -103,7 +97,7 @@ class Localizer:
     def step(self, frame: Frame) -> LocalizedFrame:
         start = time.perf_counter()
         registration_s, relocalized = 0.0, False
-        result = None if self.lost else self.tracker.track(frame, self.map)
+        result = None if self.lost else self.tracker.track(frame)
         if result is None or not self.localized(result):
             t0 = time.perf_counter()
             result = self.relocalize(frame) or result
@@ -128,7 +122,7 @@ class Localizer:
             self.relocalizations += 1
             found = self.registration.register(points, seed=attempt)
             self.tracker.initialize(found.pose)
-            result = self.tracker.track(frame, self.map)
+            result = self.tracker.track(frame)
             fraction = inlier_fraction(result)
             if self.localized(result):
                 return result
@@ -139,7 +133,7 @@ class Localizer:
 
 def run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Path,
         stop: StopSignals | None = None) -> dict[str, Any]:
-    """Localise the dataset's frames in `cfg.localize.map`; write the outputs into `out_dir` and
+    """Localise the dataset's frames in `cfg.map`; write the outputs into `out_dir` and
     return the metrics (`status`: completed, or interrupted: SIGINT and SIGTERM stop it between
     two frames, `slamkit.run.lifecycle.StopSignals`, and it writes what it has)."""
     stop = stop or StopSignals()
@@ -149,17 +143,18 @@ def run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Path
 
 def _run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Path, stop: StopSignals) -> dict[str, Any]:
     out_dir.mkdir(parents=True, exist_ok=True)
-    gaussian_map, saved = checkpoint.load_map(cfg.localize.map)
+    gaussian_map, saved = checkpoint.load_map(cfg.map)
     dataset = registry.create("dataset", names["dataset"], cfg.dataset)
     if len(dataset) == 0:
         raise DataError(f"dataset {names['dataset']!r} at {cfg.dataset.path!r}: no frames selected")
-    tracker = registry.create("tracker", names["tracker"], cfg.tracker, dataset.sensor)
-    tracker.use_threads(available_threads())
+    context = RunContext(tuning=dataset.tuning, tracking_threads=available_threads(), device=str(gaussian_map.device),
+                         gaussian_map=gaussian_map)
+    tracker = registry.create("tracker", names["tracker"], cfg.tracker, context)
     start = time.perf_counter()
     localizer = Localizer(cfg, tracker, gaussian_map)
     setup_s = time.perf_counter() - start
     log.info("localising %d frames in %s (%d Gaussians, features in %.1f s)", len(dataset),
-             checkpoint_path(cfg.localize.map), len(gaussian_map), setup_s)
+             checkpoint_path(cfg.map), len(gaussian_map), setup_s)
     frames: list[LocalizedFrame] = []
     status, error = COMPLETED, None
     try:
@@ -189,7 +184,7 @@ def _run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Pat
     finally:
         with stop.writing():
             metrics = _metrics(frames, localizer, time.perf_counter() - start, setup_s,
-                               str(checkpoint_path(cfg.localize.map)), len(gaussian_map), status, error)
+                               str(checkpoint_path(cfg.map)), len(gaussian_map), status, error)
             try:
                 _write(out_dir, frames, metrics)
             except OSError as exc:  # a full disk: exit status 1, naming the file

@@ -101,7 +101,7 @@ class RunOutputs:
 
     def _save_map_ply(self) -> None:
         try:
-            written = self.slam.mapper.save_map(self.out_dir) or []
+            written = self.slam.save_map(self.out_dir)
         except OSError as exc:
             self._unwritten(Path(exc.filename).name if exc.filename else "map.ply", exc)
             if self.state.status == RUNNING:

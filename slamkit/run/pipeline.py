@@ -9,7 +9,6 @@ The algorithm itself is `slamkit.run.slam.SLAM`; this module is the I/O around i
 
 from __future__ import annotations
 
-import inspect
 import logging
 import time
 from pathlib import Path
@@ -18,10 +17,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from slamkit.errors import DataError, OutputError, PluginError, SlamkitError
-from slamkit.map.gaussian_map import GaussianMap
+from slamkit.errors import OutputError
 from slamkit.metrics import trajectory as evaluation
-from slamkit.native import available_threads
 from slamkit.registry.discovery import Registry
 from slamkit.registry.schema import Mode, RunConfig
 from slamkit.run import checkpoint
@@ -30,64 +27,15 @@ from slamkit.run.lifecycle import Phase, StopSignals, pause_point
 from slamkit.run.metrics import summary
 from slamkit.run.outputs import RunOutputs
 from slamkit.run.prefetch import LoadCost, UnreadableFrame, prefetched
+from slamkit.run.build import build
 from slamkit.run.slam import SLAM, MappingThread
 from slamkit.run.state import COMPLETED, FAILED, INTERRUPTED, RunState
 from slamkit.run.viewing import ViewerFeed
 from slamkit.types import Frame
 
-__all__ = ["build", "run", "summary", "mapping_threads", "tracking_threads", "InputClock"]
+__all__ = ["run", "summary", "mapping_threads", "InputClock"]
 
 log = logging.getLogger(__name__)
-
-
-class Blamed:
-    """Wraps a plugin so that an exception escaping any of its methods names the plugin:
-    the run then stops with a one-line PluginError and writes what it has."""
-
-    def __init__(self, plugin, role: str, name: str):
-        self._plugin, self._role, self._name = plugin, role, name
-
-    def __getattr__(self, attr):
-        value = getattr(self._plugin, attr)
-        if not inspect.ismethod(value):  # data, and parts held as attributes (a mapper's loss)
-            return value
-
-        def call(*args, **kwargs):
-            try:
-                return value(*args, **kwargs)
-            except (SlamkitError, OSError):  # the user's input, the environment (a full disk)
-                raise
-            except Exception as exc:
-                # the traceback goes to the log file (INFO), not to the terminal (WARNING and above)
-                log.info("%s %r failed in %s()", self._role, self._name, attr, exc_info=True)
-                message = f"{self._role} plugin {self._name!r} failed in {attr}(): {type(exc).__name__}: {exc}"
-                raise PluginError(message.splitlines()[0]) from exc
-
-        return call
-
-
-def build(cfg: RunConfig, registry: Registry, names: dict[str, str]):
-    """Dataset, SLAM system and viewer from a validated config; `names` maps each role key to
-    the selected plugin's name. Every part reads the dataset's sensor profile for its null
-    fields; the mapper gets the parts it names (`Mapper.parts`), built from their own groups."""
-    dataset = registry.create("dataset", names["dataset"], cfg.dataset)
-    if len(dataset) == 0:
-        raise DataError(f"dataset {names['dataset']!r} at {cfg.dataset.path!r}: no frames selected")
-    dataset.check_camera()
-    sensor = dataset.sensor
-
-    def create(role: str, **parts):
-        return registry.create(role, names[role], getattr(cfg, role), sensor, **parts)
-
-    parts = {role: create(role) for role in registry.get("mapper", names["mapper"]).cls.parts}
-    tracker, policy = create("tracker"), create("keyframe")
-    tracker.use_threads(tracking_threads(cfg))
-    mapper = create("mapper", **parts)
-    mapper.use_mode(realtime=cfg.mode is Mode.realtime)
-    growth = cfg.map.with_sensor(sensor).for_mode(cfg.mode is Mode.realtime)
-    slam = SLAM(Blamed(tracker, "tracker", names["tracker"]), Blamed(policy, "keyframe", names["keyframe"]),
-                Blamed(mapper, "mapper", names["mapper"]), GaussianMap(cfg.device()), growth, cfg.iterations_per_frame)
-    return dataset, slam, create("viewer")
 
 
 def run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Path,
@@ -110,8 +58,9 @@ def run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Path
 def _run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Path, stop: StopSignals) -> dict[str, Any]:
     out_dir.mkdir(parents=True, exist_ok=True)
     np.random.seed(cfg.seed)
-    dataset, slam, viewer = build(cfg, registry, names)
-    viewer = ViewerFeed(viewer, names["viewer"], slam.gaussian_map, slam.mapper)
+    built = build(cfg, registry, names)
+    dataset, slam, cfg = built.dataset, built.slam, built.config
+    viewer = ViewerFeed(built.viewer, names["viewer"], slam.gaussian_map, slam.mapper)
     log.info("%s: %d frames, camera %s; tracker %s, mapper %s, keyframes %s", names["dataset"], len(dataset),
              dataset.camera, names["tracker"], names["mapper"], names["keyframe"])
     state = RunState()
@@ -170,13 +119,13 @@ def _phases(cfg: RunConfig, dataset, slam: SLAM, state: RunState, outputs: RunOu
     _enter(Phase.refine, state, stop)
     outputs.save_trajectory()
     _refine(slam, cfg.refinement_iterations(), state, stop)
-    slam.mapper.finish()
+    slam.finish()
     state.slam_time_s = time.perf_counter() - outputs.start
     _enter(Phase.map, state, stop)
     outputs.save_map()
     _enter(Phase.evaluate, state, stop)
     outputs.save_metrics()
-    state.evaluation = slam.mapper.evaluate(dataset, state.poses, outputs.out_dir)
+    state.evaluation = slam.evaluate(dataset, state.poses, outputs.out_dir)
     state.stop(COMPLETED, None)
 
 
@@ -195,7 +144,7 @@ def _refine(slam: SLAM, iterations: int, state: RunState, stop: StopSignals) -> 
     try:
         while state.refine_iterations < iterations:
             stop.check()
-            if not slam.mapper.optimize(1):
+            if not slam.optimize(1):
                 break
             state.refine_iterations += 1
     finally:
@@ -211,12 +160,6 @@ def mapping_threads(cfg: RunConfig) -> int:
         return cfg.mapping_threads
     default = torch.get_num_threads()
     return max(1, default - 1) if cfg.mode is Mode.realtime else default
-
-
-def tracking_threads(cfg: RunConfig) -> int:
-    """Threads for a tracker whose `num_threads` is null: one in real-time mode (the mapping
-    thread has the other CPUs), else every CPU this process may use (or $OMP_NUM_THREADS)."""
-    return 1 if cfg.mode is Mode.realtime else available_threads()
 
 
 class InputClock:
@@ -250,7 +193,7 @@ def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, frames_log: Fram
 
     realtime = cfg.mode is Mode.realtime
     clock = InputClock(cfg.fps_limit if realtime else None)
-    mapping = MappingThread(slam.mapper, cfg.switch_interval) if realtime else None
+    mapping = MappingThread(slam, cfg.switch_interval) if realtime else None
     bar = tqdm(total=len(dataset), initial=first, unit="frame", disable=None if cfg.progress else True,
                dynamic_ncols=True)
     start, cpu_start, loading = time.perf_counter(), time.thread_time(), LoadCost()

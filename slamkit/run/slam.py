@@ -11,9 +11,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from slamkit.map.gaussian_map import GaussianMap
-from slamkit.run.heap import release_free_memory
 from slamkit.map.growth import MapGrowthConfig, new_gaussians
-from slamkit.roles import KeyframePolicy, Mapper, Tracker
+from slamkit.roles import KeyframeDecision, KeyframePolicy, Mapper, Tracker
+from slamkit.run.boundary import PluginBoundary
+from slamkit.run.heap import release_free_memory
 from slamkit.types import Frame, KeyframeKind, TrackingResult
 
 
@@ -22,10 +23,14 @@ class StepResult:
     """One frame's outcome. Times in seconds."""
 
     tracking: TrackingResult
-    keyframe: KeyframeKind
+    decision: KeyframeDecision
     tracking_time_s: float
     mapping_time_s: float
     mapping_iterations: int
+
+    @property
+    def keyframe(self) -> KeyframeKind:
+        return self.decision.kind
 
 
 class SLAM:
@@ -35,64 +40,102 @@ class SLAM:
     the map (a tracking keyframe also rebuilds the tracker's target from the map, which by then
     holds the mapper's optimised values); then the mapper runs a fixed number of iterations, so
     the run is deterministic. After each keyframe the C heap's free pages go back to the OS
-    (`slamkit.run.heap`), so that a long run's resident memory follows what it holds.
+    (`slamkit.run.heap`), so that a long run's resident memory follows what it holds. Every call
+    into a plugin passes `boundary`, which names the plugin a failure came from.
     """
 
-    def __init__(
-        self,
-        tracker: Tracker,
-        keyframe_policy: KeyframePolicy,
-        mapper: Mapper,
-        gaussian_map: GaussianMap,
-        map_growth: MapGrowthConfig,
-        iterations_per_frame: int = 0,
-    ):
+    def __init__(self, tracker: Tracker, keyframe_policy: KeyframePolicy, mapper: Mapper, gaussian_map: GaussianMap,
+                 growth: MapGrowthConfig, iterations_per_frame: int = 0, boundary: PluginBoundary | None = None):
         self.tracker = tracker
         self.keyframe_policy = keyframe_policy
         self.mapper = mapper
         self.gaussian_map = gaussian_map
-        self.map_growth = map_growth
+        self.growth = growth
         self.iterations_per_frame = iterations_per_frame
+        self.boundary = boundary or PluginBoundary({})
         self.num_keyframes = 0
         self.keyframes_in_target = 0  # keyframes (ids below this) whose Gaussians the tracker's target was built with
         self.last_pose: np.ndarray | None = None
-        mapper.bind(gaussian_map)
 
     def initialize(self, first_pose: np.ndarray) -> None:
         """Set the pose (camera-to-world) the trajectory starts from."""
-        self.tracker.initialize(first_pose)
+        with self.boundary("tracker", "initialize"):
+            self.tracker.initialize(first_pose)
         self.last_pose = first_pose
 
     def step(self, frame: Frame) -> StepResult:
         """Track one frame, then run this frame's mapping iterations (sequential mode)."""
         step = self.track(frame)
         start = time.perf_counter()
-        step.mapping_iterations = self.mapper.optimize(self.iterations_per_frame)
+        step.mapping_iterations = self.optimize(self.iterations_per_frame)
         step.mapping_time_s = time.perf_counter() - start
         return step
+
+    def optimize(self, iterations: int) -> int:
+        """Up to `iterations` mapping steps; the steps done."""
+        with self.boundary("mapper", "optimize"):
+            return self.mapper.optimize(iterations)
 
     def track(self, frame: Frame) -> StepResult:
         """Track one frame and, if it is a keyframe, grow the map (real-time mode maps in
         another thread: see `MappingThread`)."""
         start = time.perf_counter()
-        result = self.tracker.track(frame, self.gaussian_map)
+        with self.boundary("tracker", "track"):
+            result = self.tracker.track(frame)
         if not np.all(np.isfinite(result.pose)):  # a diverged tracker must not poison the map
             pose = self.last_pose if self.last_pose is not None else np.eye(4)
             result = TrackingResult(pose=pose.copy(), lost=True, stats={"lost_reason": "non-finite pose from tracker"})
         self.last_pose = result.pose
-        kind = KeyframeKind.NONE if result.lost else self.keyframe_policy.decide(frame, result)
-        if kind:
-            self.add_keyframe(frame, result, kind)
-        return StepResult(result, kind, time.perf_counter() - start, 0.0, 0)
+        if result.lost:
+            decision = KeyframeDecision(KeyframeKind.NONE)
+        else:
+            with self.boundary("keyframe", "decide"):
+                decision = self.keyframe_policy.decide(frame, result)
+        if decision.kind:
+            self.add_keyframe(frame, result, decision.kind)
+        return StepResult(result, decision, time.perf_counter() - start, 0.0, 0)
 
     def add_keyframe(self, frame: Frame, result: TrackingResult, kind: KeyframeKind) -> None:
         rows = self.grow_map(frame, result)
         if kind is KeyframeKind.TRACKING:
-            self.tracker.update_target(self.gaussian_map)
+            with self.boundary("tracker", "update_target"):
+                self.tracker.update_target(self.gaussian_map)
             self.keyframes_in_target = self.num_keyframes + 1
-        self.mapper.add_keyframe(frame, result, kind, rows)
+        with self.boundary("mapper", "add_keyframe"):
+            self.mapper.add_keyframe(frame, result.pose, kind, rows)
         self.num_keyframes += 1
         release_free_memory()
+
+    def finish(self) -> None:
+        """The mapper's wrap-up after the stream and the refinement."""
+        with self.boundary("mapper", "finish"):
+            self.mapper.finish()
+
+    def save_map(self, out_dir) -> list:
+        """The mapper's map files written into `out_dir` (none for a mapper that keeps none)."""
+        with self.boundary("mapper", "save_map"):
+            return list(self.mapper.save_map(out_dir) or [])
+
+    def evaluate(self, frames, poses: list[np.ndarray], out_dir) -> dict:
+        """The mapper's rendering metrics of the trajectory `poses` (camera-to-world)."""
+        with self.boundary("mapper", "evaluate"):
+            return self.mapper.evaluate(frames, poses, out_dir)
+
+    def plugin_states(self) -> dict[str, dict]:
+        """Each role's `state_dict()` by role key, for a checkpoint (call under the map's lock)."""
+        states = {}
+        for key, plugin in (("tracker", self.tracker), ("keyframe", self.keyframe_policy), ("mapper", self.mapper)):
+            with self.boundary(key, "state_dict"):
+                states[key] = plugin.state_dict()
+        return states
+
+    def load_plugin_states(self, states: dict[str, dict]) -> None:
+        """Take back `plugin_states()` (after the map's rows and the last pose are restored)."""
+        if self.last_pose is not None:
+            self.initialize(self.last_pose)  # a tracker that saves nothing goes on from the last pose
+        for key, plugin in (("tracker", self.tracker), ("keyframe", self.keyframe_policy), ("mapper", self.mapper)):
+            with self.boundary(key, "load_state_dict"):
+                plugin.load_state_dict(states.get(key, {}))
 
     def grow_map(self, frame: Frame, result: TrackingResult) -> slice:
         """The keyframe's Gaussians (scale-aligned, paper Sec. 3.1) that the mapper admits enter
@@ -101,8 +144,8 @@ class SLAM:
         if result.gaussians is None:
             return slice(len(gm), len(gm))
         untargeted = gm.trackable_entry_means(self.keyframes_in_target)
-        new = new_gaussians(result.gaussians, self.num_keyframes, self.map_growth, gm.device, untargeted)
-        with gm.lock:
+        new = new_gaussians(result.gaussians, self.num_keyframes, self.growth, gm.device, untargeted)
+        with gm.lock, self.boundary("mapper", "admit"):
             admitted = self.mapper.admit(frame, result.pose, new)
         entering = (new if admitted is None else new.select(admitted)).computed()  # outside the lock
         return gm.append(entering)
@@ -111,13 +154,6 @@ class SLAM:
 #: How much lower the mapping thread's scheduling priority is than tracking's (Linux nice
 #: steps): where the two compete for a core, the tracker that paces the system goes first.
 MAPPING_NICE = 5
-#: Seconds a thread may hold the GIL while another waits for it, during real-time mapping.
-#: Python's default, 5 ms, made each of the mapping step's ~100 torch calls (each one releases
-#: the GIL and takes it back) wait up to 5 ms for the tracking thread's Python code, and the
-#: tracker's kernel calls wait for the mapper's: TUM fr1/rpy real time with another process
-#: loading the machine, 49 steps at 228 ms against 97 steps at 84 ms with 0.5 ms; on a quiet
-#: machine one run each showed no gain (92 steps with 5 ms, 74 with 0.5 ms; docs/results.md).
-SWITCH_INTERVAL_S = 5e-4
 
 
 def _lower_priority(steps: int) -> None:
@@ -131,18 +167,18 @@ def _lower_priority(steps: int) -> None:
 
 
 class MappingThread(threading.Thread):
-    """Runs `mapper.optimize(1)` in a loop beside tracking (real-time mode).
+    """Runs `slam.optimize(1)` in a loop beside tracking (real-time mode).
 
     The mapper changes the shared map only under `gaussian_map.lock` and the tracker reads it
     only through `tracking_target()` copies, so no copy of the whole map is made per frame.
     An exception in the mapper stops the loop and is re-raised by `check()` / `stop()`.
-    While it runs, Python's thread switch interval is `switch_interval_s` (see SWITCH_INTERVAL_S;
-    restored by `stop()`).
+    While it runs, Python's thread switch interval is `switch_interval_s` (how long a thread
+    waiting for the GIL may wait; restored by `stop()`).
     """
 
-    def __init__(self, mapper: Mapper, switch_interval_s: float = SWITCH_INTERVAL_S):
+    def __init__(self, slam: SLAM, switch_interval_s: float):
         super().__init__(name="slamkit-mapping", daemon=True)
-        self.mapper = mapper
+        self.slam = slam
         self.switch_interval_s = switch_interval_s
         self._saved_switch_interval: float | None = None
         self.iterations = 0
@@ -162,7 +198,7 @@ class MappingThread(threading.Thread):
         try:
             while not self._stop_event.is_set():
                 start = time.perf_counter()
-                done = self.mapper.optimize(1)
+                done = self.slam.optimize(1)
                 self.iterations += done
                 self.busy_time_s += time.perf_counter() - start
                 if not done:  # nothing to train on yet

@@ -20,7 +20,8 @@ import yaml
 from slamkit.errors import ConfigError
 from slamkit.map.gaussian_map import GaussianMap, GaussianRows
 from slamkit.registry.discovery import default_registry, discover
-from slamkit.roles import SensorProfile
+from slamkit.config import RunContext
+from slamkit.tuning import DatasetTuning
 from slamkit.types import Camera, Frame, KeyframeKind, TrackingResult
 from slamkit_mcmc import MCMCConfig, MCMCStrategy, scale_factor, shared_opacity
 
@@ -90,21 +91,20 @@ def make_mapper(gm: GaussianMap, **strategy_fields):
     """slamkit's `gaussian_splatting` mapper with strategy=mcmc, built from its parts through the
     registry as a run builds it, bound to `gm`, with `frame` as its one keyframe."""
     registry = default_registry()
-    sensor = SensorProfile(max_gaussian_scale=0.25)
-    parts = {role: registry.create(role, name, sensor=sensor) for role, name in
+    context = RunContext(tuning=DatasetTuning(max_gaussian_scale=0.25), gaussian_map=gm, build=registry.create)
+    parts = {role: registry.create(role, name, None, context) for role, name in
              [("rasterizer", "torch"), ("sampler", "random"), ("optimizer", "adam"), ("loss", "l1_ssim_depth")]}
-    parts["strategy"] = registry.create("strategy", "mcmc", MCMCConfig(**strategy_fields), sensor)
+    parts["strategy"] = registry.create("strategy", "mcmc", MCMCConfig(**strategy_fields), context)
     config = registry.get("mapper", "gaussian_splatting").config(resolution_scale=1.0)
-    mapper = registry.create("mapper", "gaussian_splatting", config, sensor, **parts)
-    mapper.bind(gm)
-    mapper.add_keyframe(keyframe(), TrackingResult(np.eye(4)), KeyframeKind.TRACKING, slice(N, N))
+    mapper = registry.create("mapper", "gaussian_splatting", config, context, **parts)
+    mapper.add_keyframe(keyframe(), np.eye(4), KeyframeKind.TRACKING, slice(N, N))
     return mapper
 
 
 def assert_state_follows_map(mapper) -> None:
     """The optimiser's per-row state covers exactly the map's rows."""
     n = len(mapper.gaussian_map)
-    for name, tensors in mapper.optimizer.row_state().items():
+    for name, tensors in mapper.trainer.optimizer.row_state().items():
         assert all(t.shape[0] == n for t in tensors), name
 
 
@@ -113,11 +113,11 @@ def test_dead_gaussians_are_relocated_onto_live_ones():
     before = gm.rows()
     mapper = make_mapper(gm, refine_every=3, grow_fraction=0.0, jitter=False)
     mapper.optimize(2)
-    assert mapper.strategy.metrics()["mcmc_relocated"] == 0  # not yet
+    assert mapper.trainer.strategy.metrics()["mcmc_relocated"] == 0  # not yet
     mapper.optimize(1)
-    stats = mapper.strategy.metrics()
+    stats = mapper.trainer.strategy.metrics()
     assert stats["mcmc_relocated"] == DEAD and len(gm) == N
-    assert float(gm.opacities.detach().min()) >= mapper.strategy.cfg.min_opacity
+    assert float(gm.opacities.detach().min()) >= mapper.trainer.strategy.cfg.min_opacity
     # Without jitter each relocated row sits exactly on a live Gaussian of the map before.
     moved = gm.means.detach()[:DEAD]
     distance = torch.cdist(moved, before.means[DEAD:]).min(dim=1).values
@@ -130,7 +130,7 @@ def test_dead_gaussians_are_relocated_onto_live_ones():
     means = gm.means.detach()
     touched = torch.cdist(means, means[:DEAD]).min(dim=1).values < 1e-6
     assert DEAD < int(touched.sum()) <= 2 * DEAD
-    for m in mapper.optimizer.row_state()["colors"]:
+    for m in mapper.trainer.optimizer.row_state()["colors"]:
         assert float(m[touched].abs().max()) == 0 and float(m[~touched].abs().max()) > 0
 
 
@@ -158,7 +158,7 @@ def test_growth_stays_within_the_budget():
     assert len(gm) == N + 45  # the cap
     mapper.optimize(4)
     assert len(gm) == N + 45
-    stats = mapper.strategy.metrics()
+    stats = mapper.trainer.strategy.metrics()
     assert stats["mcmc_added"] == 45 and stats["mcmc_refinements"] == 4
     assert not bool(gm.trackable[N:].any())
     assert_state_follows_map(mapper)
@@ -172,19 +172,19 @@ def test_finish_prunes_the_dead_and_the_oversized():
     mapper = make_mapper(gm, refine_every=1000)
     mapper.finish()
     assert len(gm) == N - DEAD - 5
-    assert mapper.strategy.metrics()["mcmc_pruned"] == DEAD + 5
+    assert mapper.trainer.strategy.metrics()["mcmc_pruned"] == DEAD + 5
     assert_state_follows_map(mapper)
 
 
 # -- config and registration ---------------------------------------------------------------------
 def test_config_validation_names_the_field():
     for field, value in [("refine_every", 0), ("min_opacity", 1.5), ("grow_fraction", -0.1), ("cap_max", 0),
-                         ("max_scale", -1.0), ("max_gaussians", 0)]:
-        with pytest.raises(ConfigError, match=f"^strategy.{field}: expected"):
+                         ("max_scale", -1.0)]:
+        with pytest.raises(ConfigError, match=f"^mapper.strategy.{field}: expected"):
             MCMCConfig(**{field: value})
-    assert MCMCConfig().with_sensor(SensorProfile(max_gaussian_scale=0.25)).max_scale == 0.25
-    with pytest.raises(ConfigError, match="strategy.max_scale"):
-        MCMCStrategy(MCMCConfig())  # not filled from a sensor
+    assert MCMCConfig().resolve(RunContext(tuning=DatasetTuning(max_gaussian_scale=0.25))).max_scale == 0.25
+    with pytest.raises(ConfigError, match="mapper.strategy.max_scale"):
+        MCMCStrategy(MCMCConfig())  # not filled from the dataset's tuning
 
 
 def test_registered_through_the_entry_point():
@@ -201,17 +201,17 @@ def test_slamkit_plugins_lists_it():
 
 
 def test_the_strategy_sweep_selects_every_strategy_it_names():
-    """slamkit's experiments/experiment/compare_strategies.yaml sweeps strategy=gsicp,3dgs,mcmc."""
-    from slamkit.registry.compose import EXPERIMENTS_DIR, compose_run
+    """slamkit's experiment compare_strategies sweeps mapper/strategy=gsicp,3dgs,mcmc."""
+    from importlib.resources import files
 
-    sweep = EXPERIMENTS_DIR / "experiment" / "compare_strategies.yaml"
-    if not sweep.is_file():
-        pytest.skip(f"{sweep} not found (slamkit is not installed from its source tree)")
-    names = yaml.safe_load(sweep.read_text())["hydra"]["sweeper"]["params"]["strategy"].split(",")
+    from slamkit.registry.compose import compose_run
+
+    sweep = files("slamkit.experiments").joinpath("experiment", "compare_strategies.yaml")
+    names = yaml.safe_load(sweep.read_text())["hydra"]["sweeper"]["params"]["mapper/strategy"].split(",")
     assert "mcmc" in names
     for name in names:
-        _, chosen = compose_run(["+experiment=compare_strategies", "dataset=replica", f"strategy={name}"])
-        assert chosen["strategy"] == name and chosen["mapper"] == "gaussian_splatting"
+        _, chosen = compose_run(["+experiment=compare_strategies", "dataset=replica", f"mapper/strategy={name}"])
+        assert chosen["mapper.strategy"] == name and chosen["mapper"] == "gaussian_splatting"
 
 
 # -- end to end ---------------------------------------------------------------------------------
@@ -223,7 +223,7 @@ def test_slamkit_runs_mcmc_on_replica(tmp_path):
     slamkit = Path(sys.executable).with_name("slamkit")
     proc = subprocess.run(
         [str(slamkit), "dataset=replica", f"dataset.path={REPLICA}", "dataset.max_frames=4",
-         "mapper=gaussian_splatting", "strategy=mcmc", "strategy.refine_every=10", "iterations_per_frame=5",
+         "mapper=gaussian_splatting", "mapper/strategy=mcmc", "mapper.strategy.refine_every=10", "iterations_per_frame=5",
          "final_iterations=20", "mapper.resolution_scale=0.25", "mapper.eval_every=3",
          "mapper.save_images=0", "progress=false", f"hydra.run.dir={out}"],
         cwd=tmp_path, capture_output=True, text=True, timeout=600, env=dict(os.environ, OMP_NUM_THREADS="1"),

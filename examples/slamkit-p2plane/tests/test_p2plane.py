@@ -16,7 +16,8 @@ import pytest
 from slamkit.errors import ConfigError
 from slamkit.geometry.transforms import invert_pose, make_pose, rotation_angle_deg, so3_exp, transform_points
 from slamkit.registry.discovery import discover
-from slamkit.roles import SensorProfile
+from slamkit.config import RunContext
+from slamkit.tuning import DatasetTuning
 from slamkit.formats.tum import read_tum_trajectory
 from slamkit_p2plane import Model, P2PlaneConfig, P2PlaneTracker, point_to_plane
 
@@ -53,8 +54,8 @@ def test_config_validation_names_the_field():
         P2PlaneConfig(voxel_size=0)
     with pytest.raises(ConfigError, match="tracker.knn"):
         P2PlaneConfig(knn=2)
-    tracker = P2PlaneTracker(P2PlaneConfig().with_sensor(SensorProfile()))  # nulls: the sensor's values
-    assert tracker.pixel_stride == SensorProfile().tracking_pixel_stride
+    tracker = P2PlaneTracker(P2PlaneConfig().resolve(RunContext()))  # nulls: the dataset's tuning
+    assert tracker.pixel_stride == DatasetTuning().tracking_pixel_stride
 
 
 def test_registered_through_the_entry_point():

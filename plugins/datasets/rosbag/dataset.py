@@ -12,7 +12,7 @@ import numpy as np
 
 from slamkit.errors import DataError
 from slamkit.formats.tum import associate, interpolate_poses, read_tum_trajectory
-from slamkit.roles import Dataset, DatasetConfig, SensorProfile, require
+from slamkit.roles import Dataset, DatasetConfig, RunContext, DatasetTuning, require
 from slamkit.types import Camera, Frame
 from slamkit_plugins.datasets.rosbag.bag import BagIndex
 from slamkit_plugins.datasets.rosbag.images import (
@@ -62,7 +62,7 @@ class RosbagDataset(Dataset):
     """RGB-D frames of a ROS bag (see RosbagConfig). Timestamps are the colour header stamps
     (seconds); depth in metres; gt_pose camera-to-world from `groundtruth` or None."""
 
-    def __init__(self, cfg: RosbagConfig):
+    def __init__(self, cfg: RosbagConfig, context: RunContext = RunContext()):
         super().__init__(cfg)
         self.bag = BagIndex(cfg.path)
         self.color_topic, self.depth_topic = self._image_topics()
@@ -81,7 +81,7 @@ class RosbagDataset(Dataset):
         self.color_k, self.depth_k = ic, idepth
         self.timestamps = color.stamps[ic]
         self._camera = self._intrinsics()
-        self.default_sensor = dataclasses.replace(SensorProfile(), depth_scale=cfg.depth_scale)
+        self.default_tuning = dataclasses.replace(DatasetTuning(), depth_scale=cfg.depth_scale)
         self._check_sizes()
         self.gt_poses = self._ground_truth()
 

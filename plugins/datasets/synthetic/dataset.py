@@ -26,7 +26,7 @@ import numpy as np
 
 from slamkit.cache import cache_dir
 from slamkit.errors import DataError
-from slamkit.roles import Dataset, DatasetConfig, SensorProfile, require
+from slamkit.roles import Dataset, DatasetConfig, RunContext, DatasetTuning, require
 from slamkit.types import Camera, Frame
 from slamkit_plugins.datasets.synthetic.path import FPS, camera_path
 from slamkit_plugins.datasets.synthetic.raycast import render
@@ -109,10 +109,10 @@ class SyntheticDataset(Dataset):
     camera-to-world, timestamp raw_index / 30 s."""
 
     # small frames (320x240 by default) of a 6 x 5 x 3 m room: a dense sample stride
-    default_sensor = SensorProfile(depth_scale=DEPTH_SCALE, depth_trunc=6.0, max_gaussian_scale=0.5,
+    default_tuning = DatasetTuning(depth_scale=DEPTH_SCALE, depth_trunc=6.0, max_gaussian_scale=0.5,
                                    tracking_pixel_stride=2)
 
-    def __init__(self, cfg: SyntheticConfig):
+    def __init__(self, cfg: SyntheticConfig, context: RunContext = RunContext()):
         super().__init__(cfg)
         self.cfg: SyntheticConfig = cfg
         fx = (cfg.width / 2.0) / math.tan(math.radians(cfg.fov_deg) / 2.0)

@@ -2,10 +2,9 @@
 
 from slamkit.plugin import PluginSpec, hookimpl
 from slamkit_plugins.mappers.gaussian_splatting.config import GaussianSplattingConfig
-from slamkit_plugins.mappers.gaussian_splatting.keyframes import KeyframeStorage, resize_rgbd
 from slamkit_plugins.mappers.gaussian_splatting.mapper import GaussianSplattingMapper
 
-__all__ = ["GaussianSplattingConfig", "GaussianSplattingMapper", "KeyframeStorage", "resize_rgbd"]
+__all__ = ["GaussianSplattingConfig", "GaussianSplattingMapper"]
 
 
 @hookimpl

@@ -6,7 +6,7 @@ import enum
 from dataclasses import dataclass
 
 from slamkit.geometry.gaussians import Regularization
-from slamkit.roles import PluginConfig, SensorProfile, require, thread_count
+from slamkit.roles import PluginConfig, RunContext, require, thread_count
 from slamkit_plugins.trackers.gicp.kernels import Kernels
 
 
@@ -29,7 +29,7 @@ class InitialGuess(enum.Enum):
 @dataclass
 class GICPConfig(PluginConfig):
     """G-ICP tracker options. pixel_stride and max_correspondence_distance left null take the
-    dataset's `SensorProfile` values (tracking_pixel_stride, correspondence_distance).
+    dataset's tuning (`DatasetTuning`: (tracking_pixel_stride, correspondence_distance).
 
     pixel_stride: back-project every n-th pixel in x and y (reference: 5 TUM, 10 Replica).
     knn: neighbours (the point included) of each point's covariance.
@@ -124,6 +124,8 @@ class GICPConfig(PluginConfig):
         require(self.num_threads is None or self.num_threads >= 0,
                 "tracker.num_threads", "null or an integer >= 0 (0: all CPUs)", self.num_threads)
 
-    def with_sensor(self, sensor: SensorProfile) -> GICPConfig:
-        return self.fill_nulls(pixel_stride=sensor.tracking_pixel_stride,
-                               max_correspondence_distance=sensor.correspondence_distance)
+    def resolve(self, context: RunContext) -> GICPConfig:
+        tuning = context.tuning
+        return self.fill_nulls(pixel_stride=tuning.tracking_pixel_stride,
+                               max_correspondence_distance=tuning.correspondence_distance,
+                               num_threads=context.tracking_threads)

@@ -39,7 +39,7 @@ import numpy as np
 from slamkit.geometry.gaussians import Regularization, rotate_covariances
 from slamkit.map.gaussian_map import GaussianMap
 from slamkit.geometry.transforms import backproject, invert_pose
-from slamkit.roles import Tracker, require
+from slamkit.roles import RunContext, Tracker, require
 from slamkit.types import Frame, FrameGaussians, TrackingResult
 from slamkit_plugins.trackers.gicp.alignment import Aligner, new_stats, orthonormalize
 from slamkit_plugins.trackers.gicp.config import GICPConfig, InitialGuess, TargetGeometry
@@ -54,10 +54,10 @@ class GICPTracker(Tracker):
     `tree_builds` counts target nearest-neighbour index builds (one per `update_target` with a
     non-empty target)."""
 
-    def __init__(self, cfg: GICPConfig):
+    def __init__(self, cfg: GICPConfig, context: RunContext = RunContext()):
         self.cfg = cfg
         for name in ("pixel_stride", "max_correspondence_distance"):
-            require(getattr(cfg, name) is not None, f"tracker.{name}", "a value (GICPConfig.with_sensor fills it from the dataset)", None)
+            require(getattr(cfg, name) is not None, f"tracker.{name}", "a value (GICPConfig.resolve fills it from the dataset)", None)
         self.pixel_stride = int(cfg.pixel_stride)
         self.max_corr = float(cfg.max_correspondence_distance)
         self.min_opacity = float(cfg.min_target_opacity)
@@ -75,10 +75,6 @@ class GICPTracker(Tracker):
     def initialize(self, first_pose: np.ndarray) -> None:
         self.first_pose = orthonormalize(np.asarray(first_pose, dtype=np.float64))
         self.poses = []
-
-    def use_threads(self, threads: int) -> None:
-        if self.cfg.num_threads is None:
-            self.kernels.num_threads = threads
 
     def update_target(self, gaussian_map: GaussianMap) -> None:
         """Take the map's trackable Gaussians as the new target; regularise their covariances
@@ -118,7 +114,7 @@ class GICPTracker(Tracker):
             return orthonormalize(last @ (invert_pose(prev) @ last))
         return self.poses[-1].copy()
 
-    def track(self, frame: Frame, gaussian_map: GaussianMap) -> TrackingResult:
+    def track(self, frame: Frame) -> TrackingResult:
         predicted = self.predict()
         result = self._track(frame, predicted)
         self.poses = self.poses[-1:] + [result.pose]  # the motion model needs the last two

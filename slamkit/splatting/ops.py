@@ -1,6 +1,6 @@
 """The shared operations that change which Gaussians the map holds (gsplat's strategy ops).
 
-A densification strategy (`slamkit.roles.DensifyStrategy`) edits the map only through a
+A densification strategy (`slamkit.splatting.strategy.Strategy`) edits the map only through a
 `MapEdit`: append, remove, duplicate, split, reset opacity, update rows. Each operation keeps
 every per-row state aligned with the map's rows, in one place: the optimiser's (`MapOptimizer.
 edit_rows`; rows that are new or whose values were replaced start with zero moments) and the
@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import fields
 from typing import TYPE_CHECKING
 
 import torch
@@ -21,7 +20,7 @@ from slamkit.map.gaussian_map import GaussianMap, GaussianRows
 from slamkit.geometry.transforms import quat_to_rotmat
 
 if TYPE_CHECKING:
-    from slamkit.roles.mapping import MapOptimizer
+    from slamkit.splatting.optimizer import MapOptimizer
 
 log = logging.getLogger(__name__)
 
@@ -132,10 +131,8 @@ class MapEdit:
         """Clamp every opacity to at most `max_opacity` and forget the opacity moments (3DGS's
         opacity reset)."""
         self.sync()
-        with torch.no_grad():
-            self.map.opacity_logits.clamp_(max=math.log(max_opacity / (1 - max_opacity)))
+        self.map.clamp_opacity(max_opacity)
         self.optimizer.edit_rows(lambda name, v: torch.zeros_like(v) if name == "opacity_logits" else v)
-        self.map.version += 1
 
     def update(self, index: torch.Tensor, rows: GaussianRows) -> None:
         """Give the rows at `index` (integer indices) the parameters and flags of `rows` and
@@ -144,9 +141,7 @@ class MapEdit:
         self._overwrite(torch.as_tensor(index, dtype=torch.long, device=self.map.device), rows)
 
     def _overwrite(self, index, rows: GaussianRows) -> None:
-        with torch.no_grad():
-            for f in fields(GaussianRows):
-                getattr(self.map, f.name)[index] = getattr(rows, f.name).to(self.map.device)
+        self.map.overwrite(index, rows)
 
         def zero(name, v):
             v = v.clone()
@@ -154,5 +149,3 @@ class MapEdit:
             return v
 
         self.optimizer.edit_rows(zero)
-        self.map.version += 1
-        self.map.structure_version += 1

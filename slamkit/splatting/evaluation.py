@@ -18,9 +18,9 @@ import torch
 
 from slamkit.metrics import images as image_metrics
 from slamkit.map.gaussian_map import GaussianMap
-from slamkit.map.rendering import RenderOutput
+from slamkit.splatting.rendering import RenderOutput
 from slamkit.types import Camera
-from slamkit_plugins.mappers.gaussian_splatting.keyframes import resize_rgbd
+from slamkit.splatting.keyframes import resize_rgbd
 
 
 def evaluate_renders(render: Callable[[np.ndarray, Camera], RenderOutput], gaussian_map: GaussianMap, dataset,

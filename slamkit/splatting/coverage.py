@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from slamkit.geometry.transforms import project_points
-from slamkit.map.rendering import RenderOutput
+from slamkit.splatting.rendering import RenderOutput
 from slamkit.types import Camera
 
 
