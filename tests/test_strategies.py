@@ -86,6 +86,33 @@ def test_3dgs_densification_stays_within_its_budget(frame):
     assert N < len(gm) <= N + 20
 
 
+def test_3dgs_prune_every_zero_never_prunes_even_when_it_densifies(frame):
+    """Table 8b's "densify, no pruning" row: prune_every = 0 keeps the nearly transparent and
+    the oversized Gaussians through densifications and the end of training; with a schedule,
+    the first densification prunes them."""
+    def run(prune_every):
+        gm = start_map()
+        with torch.no_grad():
+            gm.opacity_logits[:5] = math.log(0.001 / 0.999)  # below prune_min_opacity (0.005)
+            gm.log_scales[5:8, 0] = math.log(2.0)  # above the generic profile's 1 m
+        mapper = make_mapper(gm, strategy=("3dgs", {"densify_every": 3, "grad_threshold": 1e-9,
+                                                    "reset_opacity_every": 0, "prune_every": prune_every}))
+        add(mapper, frame)
+        mapper.optimize(3)
+        return gm, mapper
+
+    gm, mapper = run(prune_every=0)
+    assert len(gm) > N  # it densified
+    mapper.optimize(3)  # a second densification
+    mapper.finish()
+    assert int((gm.opacities.detach().reshape(-1) < 0.005).sum()) >= 5
+    assert int((gm.scales.detach().max(dim=1).values > 1.0).sum()) >= 1  # a split child keeps 2 / 1.6 = 1.25 m
+    state_follows_map(mapper)
+    gm, _ = run(prune_every=100)
+    assert int((gm.opacities.detach().reshape(-1) < 0.005).sum()) == 0
+    assert int((gm.scales.detach().max(dim=1).values > 1.0).sum()) == 0
+
+
 def test_strategy_settings_are_validated():
     with pytest.raises(ConfigError, match="mapper.strategy.densify_every"):
         Densify3DGSConfig(densify_every=0)

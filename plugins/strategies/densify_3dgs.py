@@ -6,7 +6,8 @@ gradient with respect to its projected mean in 3DGS's NDC units, approximated fr
 gradient: |dL/d(x, y)_camera| z W / (2 fx). Every `densify_every` steps the Gaussians whose
 average reaches `grad_threshold` are cloned (largest scale <= `split_above_scale` metres) or
 split in two (scales / 1.6), within the `densify_max_gaussians` budget; then the map is pruned
-(as `gsicp`). Every `reset_opacity_every` steps opacities are
+(as `gsicp`; also every `prune_every` steps, and never when prune_every = 0). Every
+`reset_opacity_every` steps opacities are
 clamped to 0.01.
 """
 
@@ -74,10 +75,11 @@ class Densify3DGSStrategy(PruneStrategy):
         cfg = self.cfg
         if "means" in info.grads:
             self.accumulate(edit, info)
-        if info.step % cfg.densify_every == 0:
+        densify_now = info.step % cfg.densify_every == 0
+        if densify_now:
             self.densify(edit)
-            self.prune(edit)
-        elif cfg.prune_every and info.step % cfg.prune_every == 0:
+        # prune_every = 0 turns pruning off, at densifications too (Table 8b's "densify, no pruning").
+        if cfg.prune_every and (densify_now or info.step % cfg.prune_every == 0):
             self.prune(edit)
         if cfg.reset_opacity_every and info.step % cfg.reset_opacity_every == 0:
             edit.reset_opacity(RESET_OPACITY)

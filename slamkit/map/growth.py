@@ -5,7 +5,8 @@ G-ICP aligns with has a median axis of 1 m and would make 10 cm - 1 m Gaussians)
 map, each scale (square root of a raw eigenvalue) is divided by an alignment factor that grows with the point's
 camera depth z (metres): none -> 1, constant -> c, z -> max(c z, 1), z_pow -> max(c z^p, 1)
 (the paper's choice, p = 1.5; the default in sequential mode, with c = 1 where the reference
-code has c = 2). In real-time mode the
+code has c = 2); eq4 -> Eq. 4 as printed, z^p dividing the ellipse-regularised scales (median
+axis 1 m) in place of the raw ones. In real-time mode the
 default is none: a Gaussian there gets a few dozen steps at most, and aligned scales (1-3 mm on
 TUM, spaced ~1 cm) leave the views full of holes that the steps have no time to close (TUM
 fr1/rpy real time 17.7 dB unaligned against 15.6 dB aligned; looped Replica 21.6 against 9.2
@@ -40,6 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slamkit.config import PluginConfig, RunContext, require
+from slamkit.geometry.gaussians import Regularization, regularize
 from slamkit.map.gaussian_map import GaussianRows
 from slamkit.types import FrameGaussians
 
@@ -54,20 +56,26 @@ class InitialShape(enum.Enum):
 
 
 class ScaleAlignment(enum.Enum):
+    """none, constant, z, z_pow: the raw k-NN scales divided by 1, c, max(c z, 1), max(c z^p, 1).
+    eq4: the paper's Eq. 4, the ellipse-regularised scales (median axis 1 m) divided by z^p."""
+
     none = "none"
     constant = "constant"
     z = "z"
     z_pow = "z_pow"
+    eq4 = "eq4"
 
 
 @dataclass
 class MapGrowthConfig(PluginConfig):
-    """initial_shape: gicp | knn (see InitialShape). scale_alignment: none | constant | z |
-    z_pow (paper Table 6), applied to gicp shapes; null: z_pow in sequential mode (the paper's),
-    none in real-time mode (see the module docstring). scale_c, scale_p: the c
-    and p of max(c z^p, 1) (the reference code: c = 2, p = 1.5; c = 1 by default, see the
-    module docstring). initial_opacity: opacity of new Gaussians in (0, 1).
-    new_gaussian_overlap: m^2, null = the dataset's (`DatasetTuning.new_gaussian_overlap`)."""
+    """initial_shape: gicp | knn (see InitialShape). scale_alignment: how gicp shapes are
+    scaled entering the map (paper Table 6): none | constant | z | z_pow divide the raw k-NN
+    scales by 1 | c | max(c z, 1) | max(c z^p, 1); eq4 (the paper's Eq. 4) divides the
+    ellipse-regularised scales (median axis 1 m) by z^p; null: z_pow in sequential mode, none
+    in real-time mode (see the module docstring). scale_c, scale_p: the c and p of max(c z^p, 1), p also Eq. 4's (the
+    reference code: c = 2, p = 1.5; c = 1 by default, see the module docstring).
+    initial_opacity: opacity of new Gaussians in (0, 1). new_gaussian_overlap: m^2, null = the
+    dataset's (`DatasetTuning.new_gaussian_overlap`)."""
 
     initial_shape: InitialShape = InitialShape.gicp
     scale_alignment: ScaleAlignment | None = None
@@ -100,6 +108,8 @@ def scale_alignment_factors(depths: np.ndarray, cfg: MapGrowthConfig) -> np.ndar
         return np.ones_like(depths)
     if kind is ScaleAlignment.constant:
         return np.full_like(depths, cfg.scale_c)
+    if kind is ScaleAlignment.eq4:
+        return depths**cfg.scale_p
     p = 1.0 if kind is ScaleAlignment.z else cfg.scale_p
     return np.maximum(cfg.scale_c * depths**p, 1.0)
 
@@ -146,7 +156,9 @@ def new_gaussians(gaussians: FrameGaussians, keyframe_id: int, cfg: MapGrowthCon
 
     def shapes() -> np.ndarray:  # called once the admitted rows' shapes are read (GaussianRows.from_covariances)
         raw = gaussians.shape_covariances
-        return raw if raw is not None else gaussians.covariances
+        raw = raw if raw is not None else gaussians.covariances
+        eq4 = cfg.scale_alignment is ScaleAlignment.eq4
+        return regularize(raw, Regularization.ellipse) if eq4 else raw
 
     return GaussianRows.from_covariances(
         gaussians.means, shapes, gaussians.colors, cfg.initial_opacity, trackable, keyframe_id,

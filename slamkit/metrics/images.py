@@ -4,14 +4,16 @@ Images are torch tensors (H,W,3) (or (H,W) for one channel) with values in [0, 1
 (H,W) in metres; a mask (H,W) bool marks the pixels that count (e.g. valid ground-truth depth,
 as GS-ICP SLAM's evaluation does). SSIM is pytorch-msssim's (Gaussian window 11, sigma 1.5,
 data range 1, K = (0.01, 0.03)); it is window-based, so a mask is applied the way the reference
-code applies it: pixels outside the mask are set to 0 in both images before SSIM. PSNR and
-depth L1 average over the masked pixels only (the reference zeroes the pixels and averages over
-the whole image, which raises PSNR by 10 log10(1 / valid fraction); identical when every pixel
-is valid, as on Replica).
+code applies it: pixels outside the mask are set to 0 in both images before SSIM. Depth L1
+averages over the masked pixels only; PSNR does by default (`pixels="valid"`), or, as the
+reference code does, over every pixel with the ones outside the mask set to 0 in both images
+(`pixels="all"`), which raises PSNR by 10 log10(1 / valid fraction); the two are identical when
+every pixel is valid, as on Replica.
 """
 
 from __future__ import annotations
 
+import enum
 import math
 
 import torch
@@ -27,6 +29,24 @@ def _check(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None) -> None:
         raise ValueError(f"image shapes differ: {tuple(a.shape)} vs {tuple(b.shape)}")
     if mask is not None and tuple(mask.shape) != tuple(a.shape[:2]):
         raise ValueError(f"mask shape {tuple(mask.shape)} does not match the image's {tuple(a.shape[:2])}")
+
+
+class PsnrPixels(enum.Enum):
+    """Which pixels PSNR averages over when a mask is given. valid: the masked ones. all: every
+    pixel, those outside the mask set to 0 in both images (GS-ICP SLAM's reference code)."""
+
+    valid = "valid"
+    all = "all"
+
+
+def zero_outside(img: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+    """`img` (H,W) or (H,W,C) as float with the pixels outside `mask` (H,W) set to 0 (unchanged
+    when mask is None)."""
+    img = img.float()
+    if mask is None:
+        return img
+    m = mask.to(img.dtype)
+    return img * (m if img.dim() == 2 else m[..., None])
 
 
 def _nchw(img: torch.Tensor) -> torch.Tensor:
@@ -50,9 +70,15 @@ def mse(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None = None) -> t
     return (sq * m).sum() / (m.sum() * sq.shape[-1])
 
 
-def psnr(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None = None) -> float:
-    """Peak signal-to-noise ratio in dB for images in [0, 1], over the masked pixels
-    (inf for identical images, NaN for an empty mask)."""
+def psnr(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None = None,
+         pixels: PsnrPixels | str = PsnrPixels.valid) -> float:
+    """Peak signal-to-noise ratio in dB for images in [0, 1]: over the masked pixels
+    (`pixels="valid"`), or over all pixels with those outside the mask zeroed in both images
+    (`pixels="all"`, see PsnrPixels). inf for identical images, NaN for an empty mask with
+    valid."""
+    if PsnrPixels(pixels) is PsnrPixels.all:
+        _check(a, b, mask)
+        a, b, mask = zero_outside(a, mask), zero_outside(b, mask), None
     e = float(mse(a, b, mask))
     if math.isnan(e):
         return float("nan")
@@ -64,10 +90,7 @@ def ssim(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None = None, dif
     in both images. Returns a float, or a 0-d tensor with gradients when `differentiable`.
     Images must be at least 11 pixels on each side."""
     _check(a, b, mask)
-    x, y = _nchw(a), _nchw(b)
-    if mask is not None:
-        m = mask.to(x.dtype)[None, None]
-        x, y = x * m, y * m
+    x, y = _nchw(zero_outside(a, mask)), _nchw(zero_outside(b, mask))
     value = _ms_ssim(x, y, data_range=1.0, size_average=True, win_size=SSIM_WINDOW, win_sigma=SSIM_SIGMA)
     return value if differentiable else float(value)
 
