@@ -89,9 +89,12 @@ class Command:
 
         _escape_unencodable_output()
         flags = [a for a in argv if a.startswith("-")]
+        # --help, --cfg job, --info ...: Hydra's own options (some take a value), no run to check
+        run = all(f in ("-m", "--multirun") for f in flags)
         try:
-            argv = resume_arguments(argv)
-            check_spellings([a for a in argv if not a.startswith("-")])
+            if run:
+                argv = resume_arguments(argv)
+                check_spellings([a for a in argv if not a.startswith("-")])
         except SlamkitError as exc:
             if os.environ.get("SLAMKIT_DEBUG"):
                 raise
@@ -107,7 +110,7 @@ class Command:
         self.startup.hold()  # Hydra and OmegaConf cut by a KeyboardInterrupt report another error: hold it
         try:
             overrides = [a for a in argv if not a.startswith("-")]
-            if not any(f not in ("-m", "--multirun") for f in flags):  # --help, --cfg: no run
+            if run:
                 _check_output_dir(overrides, multirun=bool(flags))
                 _check_plugin_choices(self.registry, overrides)
                 if not flags and not _is_sweep(overrides):  # a single run: its config checked before any work
