@@ -575,15 +575,18 @@ def run_process(program: str, argv: list[str], cwd: Path, env: dict[str, str], r
                                 text=True, start_new_session=True)
     lines: queue.Queue[str | None] = queue.Queue()
     err: list[str] = []
+    out: list[str] = []
 
-    def read() -> None:
+    def read_stderr() -> None:
         for line in proc.stderr:
             err.append(line)
             lines.put(line)
         lines.put(None)
 
-    reader = threading.Thread(target=read, daemon=True)
-    reader.start()
+    readers = [threading.Thread(target=read_stderr, daemon=True),
+               threading.Thread(target=lambda: out.append(proc.stdout.read()), daemon=True)]
+    for reader in readers:
+        reader.start()
     deadline = time.monotonic() + timeout
     if pause is not None:
         while (line := lines.get(timeout=max(1.0, deadline - time.monotonic()))) is not None:
@@ -591,14 +594,14 @@ def run_process(program: str, argv: list[str], cwd: Path, env: dict[str, str], r
                 proc.send_signal(pause[1])
                 break
     try:
-        out, _ = proc.communicate(timeout=max(1.0, deadline - time.monotonic()))
+        proc.wait(timeout=max(1.0, deadline - time.monotonic()))
     except subprocess.TimeoutExpired:
         os.killpg(proc.pid, signal.SIGKILL)
-        out, _ = proc.communicate()
+        proc.wait()
+        err.insert(0, f"timed out after {timeout} s\n")
+    for reader in readers:
         reader.join(timeout=10)
-        return Outcome(-1, out, f"timed out after {timeout} s\n" + "".join(err), [])
-    reader.join(timeout=10)
-    return Outcome(proc.returncode, out, "".join(err), [])
+    return Outcome(proc.returncode, "".join(out), "".join(err), [])
 
 
 def check_kept(out: Path, kept: tuple[str, ...] | None, completed: bool) -> None:

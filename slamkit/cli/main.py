@@ -7,9 +7,10 @@ is an override (`slamkit dataset=tum dataset.path=... tracker=kiss_icp`), `-m` r
 Exit status (docs/architecture.md, "Run outputs"): 0 completed; 2 a user error (a bad file, a
 bad value, an output folder that cannot be made), one line, SLAMKIT_DEBUG=1 for the traceback;
 1 an environment failure (a full disk: what the run kept is named); 3 tracking failed (no frame
-tracked, or more than `eval.max_lost_fraction` lost: no ATE is reported); 130 interrupted
-(SIGINT or SIGTERM, at any point from start-up: one line, the outputs so far are kept).
-Heavy modules (torch, Hydra, the plugins) are imported only once SIGTERM and SIGINT are handled.
+tracked, or more than `eval.max_lost_fraction` lost: no ATE is reported); 128 + N stopped by
+signal N (130 SIGINT, 143 SIGTERM, 129 SIGHUP, ...: `slamkit.run.lifecycle.SIGNALS`, at any point
+from start-up: one line, the outputs so far are kept).
+Heavy modules (torch, Hydra, the plugins) are imported only once those signals are handled.
 """
 
 from __future__ import annotations
@@ -23,8 +24,9 @@ import tempfile
 import warnings
 from pathlib import Path
 
+from slamkit.cli import streams
 from slamkit.errors import ConfigError, SlamkitError
-from slamkit.run.lifecycle import StopSignals, pause_point
+from slamkit.run.lifecycle import StopSignals, exit_status, pause_point
 
 log = logging.getLogger("slamkit")
 _registry = None  # the plugin Registry, discovered once by main()
@@ -32,8 +34,8 @@ _stop: StopSignals | None = None  # the current run's, for the message of an int
 _startup: StopSignals | None = None  # the command's, from its start to the run's
 _failed_runs: list[str] = []  # a sweep's runs whose tracking failed (the sweep goes on)
 
-#: Exit status of a run whose tracking failed, and of an interrupted run.
-TRACKING_FAILED, INTERRUPTED = 3, 130
+#: Exit status of a run whose tracking failed (an interrupted run's: `exit_status`, 128 + the signal).
+TRACKING_FAILED = 3
 
 
 def _fail(message: str, status: int = 2) -> None:
@@ -163,7 +165,7 @@ def _task(cfg) -> float | None:
     print(f"slamkit: {program.summary(metrics)}")
     print(f"slamkit: outputs in {out_dir}")
     if metrics["status"] == STOPPED:  # interrupted (Ctrl-C, SIGTERM): stop, also a search
-        sys.exit(INTERRUPTED)
+        sys.exit(exit_status(_stop.signal))
     if metrics["status"] == FAILED:  # tracking failed: a sweep goes on, and exits with it at the end
         if hydra_cfg.mode == RunMode.MULTIRUN:
             _failed_runs.append(str(out_dir))
@@ -184,6 +186,7 @@ def _escape_unencodable_output() -> None:
 def main() -> None:
     """The `slamkit` command (see the module docstring)."""
     global _stop, _startup
+    streams.guard()  # a closed, broken or full stdout / stderr never stops the command
     _stop, _startup = None, StopSignals()
     _failed_runs.clear()
     try:
@@ -193,7 +196,7 @@ def main() -> None:
         phase = _stop.phase.value if _stop else "startup"
         print(f"slamkit: interrupted ({str(exc) or 'SIGINT'}) during {phase.replace('startup', 'start-up')}",
               file=sys.stderr)
-        sys.exit(INTERRUPTED)
+        sys.exit(exit_status(str(exc) or "SIGINT"))
     if _failed_runs:
         _fail(f"tracking failed in {len(_failed_runs)} of the sweep's runs: {', '.join(_failed_runs)}",
               TRACKING_FAILED)
