@@ -203,9 +203,10 @@ class Case:
 
 
 def digests(folder: Path, ignore: tuple[str, ...] = ()) -> dict[str, str]:
-    """sha256 of every file under `folder` (relative names), but those under a name in `ignore`."""
+    """sha256 of every file under `folder` (relative names), but the lock (which names the last
+    process that tried the folder) and those under a name in `ignore`."""
     return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(folder.rglob("*")) if p.is_file()
+            for p in sorted(folder.rglob("*")) if p.is_file() and p.name != ".slamkit.lock"
             and not any(str(p.relative_to(folder)).startswith(name) for name in ignore)}
 
 

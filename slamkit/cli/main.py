@@ -27,6 +27,7 @@ from pathlib import Path
 from slamkit.cli import streams
 from slamkit.errors import ConfigError, SlamkitError
 from slamkit.run.lifecycle import StopSignals, exit_status, pause_point
+from slamkit.run.ownership import release_all
 
 log = logging.getLogger("slamkit")
 _registry = None  # the plugin Registry, discovered once by main()
@@ -197,6 +198,8 @@ def main() -> None:
         print(f"slamkit: interrupted ({str(exc) or 'SIGINT'}) during {phase.replace('startup', 'start-up')}",
               file=sys.stderr)
         sys.exit(exit_status(str(exc) or "SIGINT"))
+    finally:
+        release_all()  # the run folders this command claimed (slamkit.cli.hydra_hooks), however it ends
     if _failed_runs:
         _fail(f"tracking failed in {len(_failed_runs)} of the sweep's runs: {', '.join(_failed_runs)}",
               TRACKING_FAILED)

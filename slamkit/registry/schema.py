@@ -16,6 +16,7 @@ from omegaconf import MISSING, DictConfig, OmegaConf
 
 from slamkit.errors import ConfigError
 from slamkit.map.growth import MapGrowthConfig
+from slamkit.run.ownership import ExistingOutputs
 from slamkit.run.slam import SWITCH_INTERVAL_S
 from slamkit.roles import ROLES, PluginConfig, check_values, require, thread_count
 
@@ -132,7 +133,9 @@ class RunConfig(PluginConfig):
     paper maps on the GPU; the tracker always runs on the CPU and takes its target from the map
     as a CPU copy). checkpoint: the map checkpoint (CheckpointConfig). resume: a run folder
     (or checkpoint file) whose run this one continues (`slamkit resume=RUN_DIR`). localize:
-    `mode=localize`'s settings (LocalizeConfig)."""
+    `mode=localize`'s settings (LocalizeConfig). existing_outputs: refuse | clean: a new run into
+    a folder holding an earlier run's outputs stops in one line, or deletes them first (clean;
+    `slamkit.run.ownership`)."""
 
     map: MapGrowthConfig = field(default_factory=MapGrowthConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
@@ -150,6 +153,7 @@ class RunConfig(PluginConfig):
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
     resume: str | None = None
     localize: LocalizeConfig = field(default_factory=LocalizeConfig)
+    existing_outputs: ExistingOutputs = ExistingOutputs.refuse
 
     def device(self) -> str:
         """The torch device the map lives on ("cpu" or "cuda"); ConfigError when cuda is asked

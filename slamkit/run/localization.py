@@ -41,6 +41,7 @@ from slamkit.registry.schema import RunConfig
 from slamkit.run import checkpoint
 from slamkit.run.prefetch import prefetched
 from slamkit.run.lifecycle import Phase, StopSignals, pause_point
+from slamkit.run.ownership import check_localization_folder
 from slamkit.run.state import COMPLETED, FAILED, INTERRUPTED
 from slamkit.types import Frame, TrackingResult
 
@@ -148,6 +149,7 @@ def run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Path
 
 
 def _run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Path, stop: StopSignals) -> dict[str, Any]:
+    check_localization_folder(out_dir, cfg.localize.map)  # never into the map's run folder
     out_dir.mkdir(parents=True, exist_ok=True)
     gaussian_map, saved = checkpoint.load_map(cfg.localize.map)
     dataset = registry.create("dataset", names["dataset"], cfg.dataset)
