@@ -77,7 +77,10 @@ class LocalizeConfig(PluginConfig):
     tracked by the run's tracker from there. map: the run folder or checkpoint file of the map
     (`map=RUN_DIR` on the command line). voxel: metres, both clouds are downsampled to this for
     global registration. min_inlier_fraction: a frame is localised when at least this fraction of
-    its trackable points has a map Gaussian within the tracker's correspondence distance.
+    its trackable points has a map Gaussian within the tracker's correspondence distance, and
+    min_surface_agreement: at least this fraction of the image cells where the map is in view see
+    the map's nearest Gaussian centre on the frame's depth, and min_color_correlation: the map's
+    colours there correlate with the frame's at least this much (slamkit.run.localization).
     ransac_iterations: RANSAC's iteration limit. ransac_confidence: RANSAC's stopping confidence.
     attempts: RANSAC runs (other seeds) per global registration before the frame counts as not
     localised."""
@@ -85,6 +88,8 @@ class LocalizeConfig(PluginConfig):
     map: str | None = None
     voxel: float = 0.05
     min_inlier_fraction: float = 0.3
+    min_surface_agreement: float = 0.7
+    min_color_correlation: float = 0.5
     ransac_iterations: int = 100000
     ransac_confidence: float = 0.999
     attempts: int = 3
@@ -93,6 +98,10 @@ class LocalizeConfig(PluginConfig):
         require(self.voxel > 0, "localize.voxel", "> 0 metres", self.voxel)
         require(0 <= self.min_inlier_fraction <= 1, "localize.min_inlier_fraction", "in [0, 1]",
                 self.min_inlier_fraction)
+        require(0 <= self.min_surface_agreement <= 1, "localize.min_surface_agreement", "in [0, 1]",
+                self.min_surface_agreement)
+        require(-1 <= self.min_color_correlation <= 1, "localize.min_color_correlation", "in [-1, 1]",
+                self.min_color_correlation)
         require(self.ransac_iterations >= 1, "localize.ransac_iterations", "an integer >= 1", self.ransac_iterations)
         require(0 < self.ransac_confidence < 1, "localize.ransac_confidence", "in (0, 1)", self.ransac_confidence)
         require(self.attempts >= 1, "localize.attempts", "an integer >= 1", self.attempts)
