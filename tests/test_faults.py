@@ -501,7 +501,7 @@ ISSUE_36 = [
     Fault("report-into-head-1", ("{out}",), 0, "", kept=RAN, completed=True, make=tiny_tum, program="slamkit-report",
           before=earlier(), process="| head -1"),
     # 6. what slamkit-report and the metrics say
-    Fault("report-sweep-with-a-failed-job", ("{out}",), 0, "3 jobs (1 completed, 1 failed, 1 not run)", kept=(),
+    Fault("report-sweep-with-a-failed-job", ("{out}",), 0, "3 runs (1 completed, 1 failed, 1 not run)", kept=(),
           make=tiny_tum, program="slamkit-report", before=sweep_with_a_failed_job,
           after=report_rows(("1", "completed"), ("0", "failed"), ("2", "not run"))),
     Fault("report-read-only-folder", ("{out}",), 1, "cannot write the report into", kept=RAN, completed=True,
