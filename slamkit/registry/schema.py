@@ -74,13 +74,14 @@ class LocalizeConfig(PluginConfig):
     """`mode=localize`: tracking in a saved map, which stays as it is (docs/checkpoints.md). The
     first frame, and any frame where tracking is lost, is placed by global registration of its
     points against the map's trackable Gaussians (FPFH + RANSAC, then G-ICP, with open3d) and
-    tracked by the run's tracker from there. map: the run folder or checkpoint file of the map
+    tracked by the run's tracker from there; it is localised when it reaches the three min_*
+    figures (slamkit.run.localization). map: the run folder or checkpoint file of the map
     (`map=RUN_DIR` on the command line). voxel: metres, both clouds are downsampled to this for
-    global registration. min_inlier_fraction: a frame is localised when at least this fraction of
-    its trackable points has a map Gaussian within the tracker's correspondence distance, and
-    min_surface_agreement: at least this fraction of the image cells where the map is in view see
-    the map's nearest Gaussian centre on the frame's depth, and min_color_correlation: the map's
-    colours there correlate with the frame's at least this much (slamkit.run.localization).
+    global registration. min_inlier_fraction: a localised frame's least fraction of trackable
+    points with a map Gaussian within the tracker's correspondence distance.
+    min_surface_agreement: a localised frame's least fraction of the image cells where the map is
+    in view whose nearest map Gaussian centre lies on the frame's depth. min_color_correlation: a
+    localised frame's least correlation of the map's colours with its own in those cells.
     ransac_iterations: RANSAC's iteration limit. ransac_confidence: RANSAC's stopping confidence.
     attempts: RANSAC runs (other seeds) per global registration before the frame counts as not
     localised."""
@@ -100,7 +101,7 @@ class LocalizeConfig(PluginConfig):
                 self.min_inlier_fraction)
         require(0 <= self.min_surface_agreement <= 1, "localize.min_surface_agreement", "in [0, 1]",
                 self.min_surface_agreement)
-        require(-1 <= self.min_color_correlation <= 1, "localize.min_color_correlation", "in [-1, 1]",
+        require(0 <= self.min_color_correlation <= 1, "localize.min_color_correlation", "in [0, 1]",
                 self.min_color_correlation)
         require(self.ransac_iterations >= 1, "localize.ransac_iterations", "an integer >= 1", self.ransac_iterations)
         require(0 < self.ransac_confidence < 1, "localize.ransac_confidence", "in (0, 1)", self.ransac_confidence)
