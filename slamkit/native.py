@@ -119,13 +119,14 @@ class NativeLibrary:
             why = damage(path)
             if why is not None:
                 if why != "missing":
-                    print(f"slamkit: the cached {self.label} {path} is damaged ({why}); rebuilding it", file=sys.stderr,
-                          flush=True)
+                    print(f"slamkit: the cached build of the {self.label} ({path}) is damaged ({why}); rebuilding it",
+                          file=sys.stderr, flush=True)
                 try:
                     self._compile(exe, flags, path, compiler)
                 except RuntimeError as exc:
                     if why != "missing":
-                        exc = RuntimeError(f"the cached {self.label} is damaged ({why}) and rebuilding it failed: {exc}")
+                        exc = RuntimeError(f"the cached build of the {self.label} is damaged ({why}) and rebuilding it "
+                                           f"failed: {exc}")
                     error = error or exc
                     continue
             lib = self._open(path)

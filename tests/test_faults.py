@@ -299,6 +299,27 @@ def no_compiler(case: Case) -> None:
     case.env["CXX"] = "false"  # a compiler that fails, saying nothing
 
 
+#: A C++ compiler that reports the real one's version (so the cached library's name is the one it
+#: would build) but fails to build anything: a full disk, a broken installation.
+FAILING_COMPILER = """#!/bin/sh
+if [ "$1" = "--version" ]; then exec c++ --version; fi
+echo "c++: fatal error: cannot write the output: No space left on device" >&2
+exit 1
+"""
+
+
+def failing_compiler(case: Case) -> None:
+    path = case.tmp / "bin" / "c++"
+    path.parent.mkdir()
+    path.write_text(FAILING_COMPILER)
+    path.chmod(0o755)
+    case.env["CXX"] = str(path)
+
+
+def said_damaged(case: Case, result) -> None:
+    assert "is damaged (" in result.stderr and "rebuilding it" in result.stderr
+
+
 def synthetic_cache_damaged(case: Case) -> None:
     case.slamkit(*SYNTHETIC, "hydra.run.dir={tmp}/first")
     (cache,) = (case.tmp / "synthetic").glob("*.npz")
@@ -463,9 +484,10 @@ ISSUE_36 = [
     Fault("kernel-cache-flipped-compiled", (*GICP, "tracker.kernels=compiled"), 0, "is damaged",
           kept=("trajectory.txt:4", "metrics.json", "frames.csv"), make=tiny_tum, before=kernel_cache(flip_bytes),
           after=kernel_rebuilt, process=""),
-    Fault("kernel-cache-truncated-no-compiler", GICP, 0, "using the numpy kernels",
+    Fault("kernel-cache-truncated-compiler-fails", GICP, 0, "using the numpy kernels",
           kept=("trajectory.txt:4", "metrics.json", "frames.csv"), make=tiny_tum,
-          before=lambda case: (kernel_cache(truncate_half)(case), no_compiler(case)), process=""),
+          before=lambda case: (kernel_cache(truncate_half)(case), failing_compiler(case)), after=said_damaged,
+          process=""),
     Fault("kernel-unbuildable-compiled", (*GICP, "tracker.kernels=compiled"), 2,
           "compiling gicp_kernels.cpp failed: the compiler (false) exited with status 1", kept=(), make=tiny_tum,
           before=lambda case: (kernel_cache(None)(case), shutil.rmtree(case.tmp / "cache"), no_compiler(case)),

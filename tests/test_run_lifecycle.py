@@ -30,6 +30,7 @@ from slamkit.formats.checkpoint import CHECKPOINT_NAME, read_checkpoint, read_me
 from slamkit.formats.ply import load_ply
 from slamkit.formats.tum import read_tum_trajectory
 from slamkit.run.lifecycle import Phase, StopSignals
+from slamkit.run.ownership import LOCK_NAME
 
 from conftest import make_plugin_dist, run_slamkit
 
@@ -463,6 +464,8 @@ def _check_whole(out: Path) -> list[str]:
         name = path.name
         if name.startswith(".") and name.endswith(".tmp"):
             continue  # an atomic write's temporary file, never renamed: not an output
+        if name == LOCK_NAME:
+            continue  # the run folder's lock (slamkit.run.ownership), not an output
         seen.append(name)
         if path.parent.name == ".hydra":
             assert isinstance(yaml.safe_load(path.read_text()), (dict, list)), path
