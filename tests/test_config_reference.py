@@ -102,6 +102,8 @@ def built_config(section: str, key: str, run, slam, viewer, dataset):
         return getattr(run, group)
     if group == "map":
         return slam.map_growth
+    if group == "loop_closure":  # not yet part of the built run (issue 35's integration): built from the run's config
+        return default_registry().create("loop_closure", section.partition("=")[2], run.loop_closure).cfg
     objects = {"dataset": dataset, "tracker": slam.tracker, "keyframe": slam.keyframe_policy,
                "mapper": slam.mapper, "viewer": viewer}
     obj = objects[group] if group in objects else getattr(slam.mapper, group)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import enum
+import inspect
 import re
 import sys
 import typing
@@ -17,12 +18,33 @@ from slamkit.roles import ROLES
 _NAMES = r"[a-z_][a-z0-9_]*(?:\s*(?:,|/|and)\s*[a-z_][a-z0-9_]*)*"
 
 
+def comment_docs(cls: type) -> dict[str, str]:
+    """Per-field text from the `#:` comment line directly above each field in `cls`'s own source
+    (empty when the source cannot be read)."""
+    try:
+        lines = inspect.getsource(cls).splitlines()
+    except (OSError, TypeError):
+        return {}
+    docs = {}
+    for above, line in zip(lines, lines[1:]):
+        field = re.match(r"\s+(\w+)\s*:", line)
+        comment = re.match(r"\s+#:\s?(.*)", above)
+        if field and comment:
+            docs[field.group(1)] = comment.group(1).strip()
+    return docs
+
+
 def field_docs(cls: type) -> dict[str, str]:
-    """Per-field text from a config dataclass: `field(metadata={"doc": ...})`, else the sentence
-    of the class docstring that starts with the field's name ("name: what it is.")."""
+    """Per-field text from a config dataclass: `field(metadata={"doc": ...})`, else the `#:`
+    comment line above the field, else the sentence of the class docstring that starts with the
+    field's name ("name: what it is.")."""
     docs: dict[str, str] = {}
     for klass in cls.__mro__:  # the class's own docstring first, then its bases'
-        if "__doc__" not in vars(klass) or not dataclasses.is_dataclass(klass):
+        if not dataclasses.is_dataclass(klass):
+            continue
+        for name, text in comment_docs(klass).items():
+            docs.setdefault(name, text)
+        if "__doc__" not in vars(klass):
             continue
         text = " ".join((klass.__doc__ or "").split())
         starts = list(re.finditer(rf"(?:^|(?<=[.)]\s))({_NAMES})\s*:\s", text))

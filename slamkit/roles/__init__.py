@@ -6,6 +6,8 @@ mapper, the parts it names in `Mapper.parts`)."""
 from slamkit.map.rendering import Rasterizer, RenderOutput
 from slamkit.roles.config import PluginConfig, check_values, require, thread_count, unlimited
 from slamkit.roles.dataset import Dataset, DatasetConfig, OnError, SensorProfile
+from slamkit.roles.loop_closure import (LoopCheck, LoopClosure, LoopDecision, LoopKeyframe, PoseGraph,
+                                        PoseGraphEdge, follow_keyframes)
 from slamkit.roles.mapping import KeyframeSampler, Mapper, MapOptimizer, MappingLoss, TrainingView
 from slamkit.roles.strategy import CoverageTest, DensifyStrategy, KeyframeView, StepInfo, StrategyConfig
 from slamkit.roles.table import ROLE_KEYS, ROLES, Role, role, role_of
@@ -18,5 +20,6 @@ __all__ = [
     "Tracker", "KeyframePolicy", "KeyframeHistory",
     "Mapper", "Rasterizer", "RenderOutput", "KeyframeSampler", "DensifyStrategy", "StrategyConfig", "CoverageTest", "MapOptimizer",
     "MappingLoss", "TrainingView", "KeyframeView", "StepInfo",
+    "LoopClosure", "LoopKeyframe", "LoopDecision", "LoopCheck", "PoseGraph", "PoseGraphEdge", "follow_keyframes",
     "Viewer", "ViewerConfig", "ViewerFrame", "MapPoints", "MapGaussians",
 ]

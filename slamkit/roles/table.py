@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from slamkit.errors import PluginError
 from slamkit.map.rendering import Rasterizer
 from slamkit.roles.dataset import Dataset
+from slamkit.roles.loop_closure import LoopClosure
 from slamkit.roles.mapping import KeyframeSampler, Mapper, MapOptimizer, MappingLoss
 from slamkit.roles.strategy import DensifyStrategy
 from slamkit.roles.tracking import KeyframePolicy, Tracker
@@ -40,6 +41,7 @@ ROLES: tuple[Role, ...] = (
     Role("strategy", DensifyStrategy, "gsicp", "grows, prunes and bounds the map while it trains", "mapper"),
     Role("optimizer", MapOptimizer, "adam", "updates the Gaussians' parameters from gradients", "mapper"),
     Role("loss", MappingLoss, "l1_ssim_depth", "compares a render with its keyframe", "mapper"),
+    Role("loop_closure", LoopClosure, "none", "finds revisited places and corrects the keyframes' poses"),
     Role("viewer", Viewer, "none", "shows or records the run as it goes"),
 )
 
