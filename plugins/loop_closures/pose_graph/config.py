@@ -35,7 +35,7 @@ class PoseGraphConfig(PluginConfig):
     #: cosine similarity of the two keyframes' appearance descriptors (zero-mean 32x24 grey images), at least.
     min_appearance: float = 0.3
     #: candidates verified per keyframe, the most similar in appearance first.
-    max_candidates: int = 2
+    max_candidates: int = 4
     #: RANSAC iterations of the global registration (FPFH feature matches).
     ransac_iterations: int = 100000
     #: RANSAC's confidence: it stops early once this sure of its best pose.
@@ -43,7 +43,7 @@ class PoseGraphConfig(PluginConfig):
     #: feature matches that RANSAC's coarse pose must agree with, at least.
     min_inliers: int = 40
     #: fraction of the keyframe's downsampled points with a candidate point within a voxel after G-ICP, at least.
-    min_fitness: float = 0.6
+    min_fitness: float = 0.62
     #: metres: RMS distance of those point pairs, at most.
     max_inlier_rmse_m: float = 0.015
     #: metres the loop's relative pose may differ from odometry's with no path between them (a registration that snapped elsewhere lands farther).
