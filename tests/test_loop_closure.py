@@ -246,3 +246,32 @@ def test_the_state_round_trips_through_state_dict(kitchen):
     assert decisions[0].world == decisions[1].world
     for k in decisions[0].keyframe_poses:
         np.testing.assert_allclose(decisions[0].keyframe_poses[k], decisions[1].keyframe_poses[k], atol=1e-12)
+
+
+def test_a_wrong_loop_that_passed_verification_is_dropped_by_the_pose_graph(kitchen, monkeypatch):
+    """The first accepted loop is moved by 25 cm and 10 degrees as if verification had been
+    fooled: the optimised graph finds it inconsistent with odometry, drops it (saying why), and
+    the decision's poses are those of the right loops alone."""
+    from slamkit_plugins.loop_closures.pose_graph import closure as closure_module
+
+    honest, fooled = closure_module.verification.verify, []
+
+    def fooled_once(*args, **kwargs):
+        check, information = honest(*args, **kwargs)
+        if check.accepted and not fooled:
+            fooled.append((check.keyframe_id, check.match_id))
+            check = dataclasses.replace(check, relative_pose=check.relative_pose @ se3_exp(
+                np.r_[0.0, np.radians(10.0), 0.0, 0.25, 0.0, 0.0]))
+        return check, information
+
+    monkeypatch.setattr(closure_module.verification, "verify", fooled_once)
+    closure = PoseGraphLoopClosure(PoseGraphConfig(**TEST_CONFIG))
+    numbers = [300, 310, 985, 995]
+    for keyframe in keyframes(kitchen, numbers, [kitchen[n][2] @ se3_exp(DRIFT * (n > 900)) for n in numbers]):
+        closure.add_keyframe(keyframe)
+    decision = closure.detect_and_optimise()
+    assert fooled
+    wrong = next(c for c in decision.checks if (c.keyframe_id, c.match_id) == fooled[0])
+    assert not wrong.accepted and "inconsistent with the pose graph" in wrong.reason
+    assert fooled[0] not in {(c.keyframe_id, c.match_id) for c in closure.loops()}
+    assert sum(e.kind == "loop" for e in closure.pose_graph().edges) == len(closure.loops())

@@ -82,8 +82,10 @@ class PoseGraphLoopClosure(LoopClosure):
             return LoopDecision(tuple(checks), world=self.world)
         before = {n.keyframe_id: n.pose for n in self.nodes}  # as last reported, or as joined
         dropped = self._optimise()
-        checks = [c.rejected(dropped[(c.keyframe_id, c.match_id)]) if (c.keyframe_id, c.match_id) in dropped else c
+        this_call = {(c.keyframe_id, c.match_id) for c in checks}
+        checks = [dropped.pop((c.keyframe_id, c.match_id)) if (c.keyframe_id, c.match_id) in dropped else c
                   for c in checks]
+        checks += [c for key, c in dropped.items() if key not in this_call]  # loops of earlier calls, now dropped
         updates = {n.keyframe_id: n.pose @ np.linalg.inv(before[n.keyframe_id]) for n in self.nodes}
         moved = any(not np.allclose(u, np.eye(4), atol=1e-12) for u in updates.values())
         if not moved:
@@ -156,10 +158,11 @@ class PoseGraphLoopClosure(LoopClosure):
             checks.append(check)
         return checks
 
-    def _optimise(self) -> dict[tuple[int, int], str]:
+    def _optimise(self) -> dict[tuple[int, int], LoopCheck]:
         """Optimise the graph, dropping inconsistent loops one at a time; the nodes take the
-        optimised poses. Returns (keyframe id, match id) -> why, for each loop dropped."""
-        dropped: dict[tuple[int, int], str] = {}
+        optimised poses. Returns (keyframe id, match id) -> its check, rejected with the reason,
+        for each loop dropped."""
+        dropped: dict[tuple[int, int], LoopCheck] = {}
         for _ in range(MAX_DROP_ROUNDS):
             graph = self.pose_graph()
             poses = optimisation.optimise(graph, self.cfg.backend, self.cfg.robust_width)
@@ -170,9 +173,10 @@ class PoseGraphLoopClosure(LoopClosure):
                 break
             edge = self.edges.pop(worst)
             key = (edge.target, edge.source)
-            self.accepted = [c for c in self.accepted if (c.keyframe_id, c.match_id) != key]
-            dropped[key] = (f"inconsistent with the pose graph: whitened residual {residuals[worst]:.1f} > "
-                            f"{self.cfg.max_loop_residual}")
+            check = next(c for c in self.accepted if (c.keyframe_id, c.match_id) == key)
+            self.accepted.remove(check)
+            dropped[key] = check.rejected(f"inconsistent with the pose graph: whitened residual "
+                                          f"{residuals[worst]:.1f} > {self.cfg.max_loop_residual}")
         else:
             graph = self.pose_graph()
             poses = optimisation.optimise(graph, self.cfg.backend, self.cfg.robust_width)
