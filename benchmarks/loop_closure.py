@@ -17,8 +17,11 @@ will. Prints per sequence and setting:
   closure, with it (frames follow their keyframe: `follow_keyframes`), and two references on the
   same odometry edges: every eligible true revisit as a loop with the ground-truth relative pose
   (the floor of a perfect loop closure), and (--oracle) with the relative pose G-ICP finds
-  from odometry's (what the geometry allows at best);
-- the loop closure's CPU seconds per keyframe (this process; indicative only: shared machine).
+  from odometry's (what the geometry allows at best); --oracle also gives the median distances
+  between odometry's, G-ICP's and the ground truth's relative poses of those pairs and of
+  consecutive keyframes (`relative_pose_agreement` in the JSON);
+- the loop closure's CPU seconds per keyframe (this process), and the CPU milliseconds of one
+  optimisation of the final graph alone (indicative only: shared machine).
 
 With --wrong-loop, the first loop that verification accepts has its relative pose moved by
 25 cm and 10 degrees before it enters the graph: a wrong loop that passed verification, which
@@ -216,17 +219,37 @@ def corrected_ate(seq: TrackedSequence, keyframe_poses: np.ndarray) -> float:
 
 
 def gicp_from_odometry(geo: Geometry, cfg):
-    """measure(q, m, odometry) for with_gt_loops: open3d's G-ICP of q's cloud in m's from odometry's pose."""
+    """measure(q, m, odometry) for with_gt_loops: open3d's G-ICP of q's cloud in m's from
+    odometry's pose (each pair registered once)."""
     reg = import_open3d().pipelines.registration
+    found: dict[tuple[int, int], np.ndarray] = {}
 
     def measure(q: int, m: int, start: np.ndarray) -> np.ndarray:
-        found = reg.registration_generalized_icp(geo.clouds[q].cloud, geo.clouds[m].cloud, cfg.voxel, start,
-                                                 reg.TransformationEstimationForGeneralizedICP(),
-                                                 reg.ICPConvergenceCriteria(max_iteration=50))
-        pose = np.asarray(found.transformation, dtype=np.float64).copy()
-        return pose if np.isfinite(pose).all() else start
+        if (q, m) not in found:
+            result = reg.registration_generalized_icp(geo.clouds[q].cloud, geo.clouds[m].cloud, cfg.voxel, start,
+                                                      reg.TransformationEstimationForGeneralizedICP(),
+                                                      reg.ICPConvergenceCriteria(max_iteration=50))
+            pose = np.asarray(result.transformation, dtype=np.float64).copy()
+            found[(q, m)] = pose if np.isfinite(pose).all() else start
+        return found[(q, m)]
 
     return measure
+
+
+def agreement(seq: TrackedSequence, gt: np.ndarray, measure, pairs: list[tuple[int, int]]) -> dict:
+    """Median distances (metres, degrees) between the relative poses of keyframe pairs (q, m) by
+    odometry, by G-ICP (`measure`) and by the ground truth."""
+    kf = seq.keyframe_frames
+    rows = []
+    for q, m in pairs:
+        odometry = relative_pose(seq.poses[kf[m]], seq.poses[kf[q]])
+        truth = relative_pose(gt[kf[m]], gt[kf[q]])
+        gicp = measure(q, m, odometry)
+        rows.append([*pose_difference(odometry, truth), *pose_difference(gicp, truth), *pose_difference(odometry, gicp)])
+    median = np.median(np.array(rows), axis=0) if rows else [None] * 6
+    names = ("odometry_vs_gt_m", "odometry_vs_gt_deg", "gicp_vs_gt_m", "gicp_vs_gt_deg", "odometry_vs_gicp_m",
+             "odometry_vs_gicp_deg")
+    return {"pairs": len(rows), **{n: None if v is None else float(v) for n, v in zip(names, median)}}
 
 
 def feed(seq: TrackedSequence, overrides: list[str], wrong_loop: bool):
@@ -268,12 +291,21 @@ def measure(name: str, seq: TrackedSequence, overrides: list[str], wrong_loop: b
         geo = geometry(seq, gt, cfg)
         floor = with_gt_loops(closure.pose_graph(), geo, seq, gt, cfg)
         ate_floor = corrected_ate(seq, optimisation.optimise(floor, cfg.backend, cfg.robust_width))
-        ate_oracle = None
+        ate_oracle, agree = None, None
         if oracle:
-            measured = with_gt_loops(closure.pose_graph(), geo, seq, gt, cfg, gicp_from_odometry(geo, cfg))
+            register = gicp_from_odometry(geo, cfg)
+            measured = with_gt_loops(closure.pose_graph(), geo, seq, gt, cfg, register)
             ate_oracle = corrected_ate(seq, optimisation.optimise(measured, cfg.backend, cfg.robust_width))
-        references[key] = (geo, ate_floor, ate_oracle)
-    geo, ate_floor, ate_oracle = references[key]
+            revisits = [pair for pair, overlap in geo.overlap.items() if overlap >= TRUE_REVISIT_OVERLAP]
+            agree = {"true_revisits": agreement(seq, gt, register, revisits),
+                     "consecutive_keyframes": agreement(seq, gt, register, [(k, k - 1) for k in range(1, len(kf))])}
+        references[key] = (geo, ate_floor, ate_oracle, agree)
+    geo, ate_floor, ate_oracle, agree = references[key]
+    graph = closure.pose_graph()
+    start, repeats = time.process_time(), 20
+    for _ in range(repeats):  # the optimisation alone, on the final graph
+        optimisation.optimise(graph, cfg.backend, cfg.robust_width)
+    optimise_ms = 1e3 * (time.process_time() - start) / repeats
     index = {int(f): k for k, f in enumerate(kf)}
     final = {(c.keyframe_id, c.match_id) for c in closure.loops()}
     rows = []
@@ -300,6 +332,7 @@ def measure(name: str, seq: TrackedSequence, overrides: list[str], wrong_loop: b
                             if revisit_keyframes else None),
         "ate_none_m": ate(seq.poses, seq.gt_poses).rmse_m, "ate_loop_m": corrected_ate(seq, closure.pose_graph().poses),
         "ate_gt_loops_m": ate_floor, "ate_gicp_loops_m": ate_oracle, "cpu_s_per_keyframe": cpu / len(kf),
+        "optimise_cpu_ms": optimise_ms, "relative_pose_agreement": agree,
         "wrong_loop": None if not wrong_loop else ("none accepted" if injected is None
                                                    else "dropped" if injected not in final else "kept"),
         "checks": rows,
@@ -311,7 +344,8 @@ COLUMNS = [("sequence", "sequence"), ("backend", "backend"), ("setting", "settin
            ("true_revisit_candidates", "true-revisit cand."), ("pair_recall", "pair recall"),
            ("keyframe_recall", "keyframe recall"), ("ate_none_m", "ATE none cm"), ("ate_loop_m", "ATE loop cm"),
            ("ate_gt_loops_m", "ATE GT loops cm"), ("ate_gicp_loops_m", "ATE G-ICP loops cm"),
-           ("cpu_s_per_keyframe", "CPU s/keyframe"), ("wrong_loop", "wrong loop")]
+           ("cpu_s_per_keyframe", "CPU s/keyframe"), ("optimise_cpu_ms", "optimise CPU ms"),
+           ("wrong_loop", "wrong loop")]
 
 
 def print_table(rows: list[dict]) -> None:

@@ -63,10 +63,14 @@ class FeatureCloud:
         if covariances is not None:
             cloud.covariances = o3d.utility.Matrix3dVector(np.asarray(covariances, dtype=np.float64))
         cloud = cloud.voxel_down_sample(self.voxel)
+        self.cloud: Any = cloud
+        self.features: Any = o3d.pipelines.registration.Feature()
+        if len(cloud.points) == 0:  # a frame without valid depth: nothing to register
+            self.features.resize(33, 0)
+            return
         cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=NORMAL_RADIUS_VOXELS * self.voxel,
                                                                     max_nn=30))
-        self.cloud: Any = cloud
-        self.features: Any = o3d.pipelines.registration.compute_fpfh_feature(
+        self.features = o3d.pipelines.registration.compute_fpfh_feature(
             cloud, o3d.geometry.KDTreeSearchParamHybrid(radius=FEATURE_RADIUS_VOXELS * self.voxel, max_nn=100))
 
     def arrays(self) -> dict[str, np.ndarray]:
@@ -105,7 +109,10 @@ class FeatureCloud:
 def register(source: FeatureCloud, target: FeatureCloud, ransac_iterations: int = 100000,
              ransac_confidence: float = 0.999, seed: int = 0, refine_iterations: int = 50) -> Registration:
     """The pose of `source` in `target`'s frame: FPFH + RANSAC (random choices from `seed`),
-    then generalized ICP; distances in units of `target.voxel`."""
+    then generalized ICP; distances in units of `target.voxel`. Identity with fitness 0 when
+    either cloud is empty."""
+    if len(source) == 0 or len(target) == 0:
+        return Registration(np.eye(4), 0.0, 0.0, 0)
     o3d = import_open3d()
     reg = o3d.pipelines.registration
     voxel = target.voxel
@@ -134,6 +141,8 @@ def alignment_information(source: FeatureCloud, target: FeatureCloud, pose: np.n
     does not constrain (sliding along a wall) has a small eigenvalue."""
     from pykdtree.kdtree import KDTree
 
+    if len(source) == 0 or len(target) == 0:
+        return np.zeros((6, 6)), 0
     pose = np.asarray(pose, dtype=np.float64)
     p = source.points
     tree = KDTree(target.points)

@@ -17,12 +17,12 @@ reordering) take it.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
-from slamkit.geometry.transforms import invert_pose, rotation_angle_deg
+from slamkit.geometry.transforms import invert_pose, rotation_angle_deg, rotmat_to_quat
 
 
 def _check(condition: bool, what: str, expected: str, value: Any) -> None:
@@ -109,8 +109,6 @@ class LoopCheck:
     def row(self) -> dict[str, Any]:
         """loops.csv's row: frames and keyframes, the verification's figures, the correction,
         and `relative_pose` as translation (metres) and quaternion (w, x, y, z)."""
-        from slamkit.geometry.transforms import rotmat_to_quat
-
         q = rotmat_to_quat(self.relative_pose[:3, :3])
         values = (self.frame_index, self.match_frame_index, self.keyframe_id, self.match_id, self.fitness, self.inliers,
                   self.inlier_rmse_m, self.correction_m, self.correction_deg, *self.relative_pose[:3, 3], *q)
@@ -118,8 +116,6 @@ class LoopCheck:
 
     def rejected(self, reason: str) -> LoopCheck:
         """This check, not accepted, for `reason`."""
-        from dataclasses import replace
-
         return replace(self, accepted=False, reason=reason)
 
 
