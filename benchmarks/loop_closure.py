@@ -31,6 +31,7 @@ the optimiser must drop (the column `wrong loop dropped`) or absorb.
     python benchmarks/loop_closure.py --sequences 7scenes --backends gtsam,open3d --wrong-loop
     python benchmarks/loop_closure.py --sequences 7scenes --sweep loop_closure.min_fitness=0.5,0.55,0.6,0.65
     python benchmarks/loop_closure.py --keyframes .cache/loop          # keep / reuse the tracking runs
+    python benchmarks/loop_closure.py --square --out benchmarks/results/loop_closure_square.json
 
 Writes JSON (--out, default benchmarks/results/loop_closure.json).
 """
@@ -364,6 +365,33 @@ def print_table(rows: list[dict]) -> None:
             print("|" + "|".join("-" * (w + 2) for w in widths) + "|")
 
 
+def square_drift() -> list[dict]:
+    """The backends on tests/test_loop_closure.py's synthetic square (20 keyframes, 0.3 degrees
+    and 4 mm of drift on every odometry edge, one exact loop): the worst position error before
+    and after optimising, per backend."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the scene the tests use
+    from test_loop_closure import drifted_graph, position_errors, square_path
+
+    from slamkit_plugins.loop_closures.pose_graph.config import Backend
+
+    truth = square_path()
+    drift = {k: np.r_[0.0, np.radians(0.3), 0.0, 0.004, 0.0, 0.0] for k in range(len(truth) - 1)}
+    graph = drifted_graph(truth, drift)
+    rows = []
+    for backend in Backend:
+        poses = optimisation.optimise(graph, backend, robust_width=3.0)
+        rows.append({"backend": backend.value, "worst_error_before_m": float(position_errors(graph.poses, truth).max()),
+                     "worst_error_after_m": float(position_errors(poses, truth).max()),
+                     "loop_residual_before": float(optimisation.whitened_residuals(graph, graph.poses)[-1]),
+                     "loop_residual_after": float(optimisation.whitened_residuals(graph, poses)[-1])})
+        print(f"square, {backend.value}: worst position error {100 * rows[-1]['worst_error_before_m']:.2f} cm -> "
+              f"{100 * rows[-1]['worst_error_after_m']:.2f} cm; the loop's whitened residual "
+              f"{rows[-1]['loop_residual_before']:.1f} -> {rows[-1]['loop_residual_after']:.1f}")
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--sequences", default="7scenes,tum,replica")
@@ -374,9 +402,18 @@ def main() -> None:
     parser.add_argument("--wrong-loop", action="store_true", help="also run with one injected wrong loop")
     parser.add_argument("--oracle", action="store_true",
                         help="the G-ICP-loops reference: G-ICP at every true revisit (minutes)")
+    parser.add_argument("--square", action="store_true",
+                        help="only the backends on the synthetic square of the tests (one loop after drift)")
     parser.add_argument("--keyframes", type=Path, default=None, help="folder to keep / reuse the tracking runs in")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/loop_closure.json"))
     args = parser.parse_args()
+    if args.square:
+        rows = square_drift()
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps({"machine": platform.platform(), "when": time.strftime("%Y-%m-%d %H:%M"),
+                                        "square": rows}, indent=1) + "\n")
+        print(f"wrote {args.out}")
+        return
     settings = [list(args.set)]
     if args.sweep:
         key, _, values = args.sweep.partition("=")
