@@ -17,6 +17,7 @@ REPO = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("SLAMKIT_DATA") or REPO.parent / "shared" / "data")
 TUM = DATA / "tum_fr1_rpy_first150"
 REPLICA = DATA / "replica_room0_first20"
+SEVENSCENES = DATA / "7scenes_redkitchen_300to999"
 
 
 def pytest_collection_modifyitems(config, items):

@@ -1,15 +1,19 @@
-"""Global registration: where a camera's points lie in a map, without a first guess.
+"""Global registration: where one point cloud lies in another's frame, without a first guess.
 
 Both clouds are voxel-downsampled (`voxel`, metres), given normals (radius 2 voxels) and FPFH
 features (radius 5 voxels; Rusu et al. 2009); RANSAC over feature matches (3 points, mutual
 matches, edge-length and distance checks, open3d's `registration_ransac_based_on_feature_matching`)
-finds a coarse pose, which open3d's generalized ICP refines (distance 1 voxel). The map's
-features are computed once. Needs open3d (the optional extra `mesh`).
+finds a coarse pose, which open3d's generalized ICP refines (distance 1 voxel). A cloud's
+features are computed once (`FeatureCloud`), so that one cloud can be registered with many.
+Needs open3d (the optional extra `mesh`).
+
+`alignment_information` is the information matrix of such an alignment, from its correspondences.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -36,11 +40,118 @@ class Registration:
     """pose: 4x4 float64 taking the source points' frame to the target's (camera-to-world
     when the source is a camera's points and the target the map). fitness: the fraction of
     downsampled source points with a target point within one voxel after refinement.
-    rmse_m: their RMS distance in metres."""
+    rmse_m: their RMS distance in metres. ransac_inliers: the feature matches RANSAC's coarse
+    pose agreed with (within RANSAC_DISTANCE_VOXELS voxels)."""
 
     pose: np.ndarray
     fitness: float
     rmse_m: float
+    ransac_inliers: int = 0
+
+
+class FeatureCloud:
+    """A point cloud ready for global registration: `cloud`, the open3d cloud voxel-downsampled
+    (`voxel` metres) with normals (and the given covariances, averaged per voxel, which
+    generalized ICP then uses in place of ones from the normals), and `features`, its FPFH
+    features."""
+
+    def __init__(self, points: np.ndarray, voxel: float, covariances: np.ndarray | None = None):
+        """points: (N,3) metres; covariances: (N,3,3) m^2 in the same frame, or None."""
+        o3d = import_open3d()
+        self.voxel = float(voxel)
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
+        if covariances is not None:
+            cloud.covariances = o3d.utility.Matrix3dVector(np.asarray(covariances, dtype=np.float64))
+        cloud = cloud.voxel_down_sample(self.voxel)
+        self.cloud: Any = cloud
+        self.features: Any = o3d.pipelines.registration.Feature()
+        if len(cloud.points) == 0:  # a frame without valid depth: nothing to register
+            self.features.resize(33, 0)
+            return
+        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=NORMAL_RADIUS_VOXELS * self.voxel,
+                                                                    max_nn=30))
+        self.features = o3d.pipelines.registration.compute_fpfh_feature(
+            cloud, o3d.geometry.KDTreeSearchParamHybrid(radius=FEATURE_RADIUS_VOXELS * self.voxel, max_nn=100))
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The cloud as arrays (points, normals, FPFH features (33,M), covariances when it has
+        them), from which `from_arrays` rebuilds it exactly (e.g. for a checkpoint)."""
+        out = {"points": np.asarray(self.cloud.points).copy(), "normals": np.asarray(self.cloud.normals).copy(),
+               "features": np.asarray(self.features.data).copy()}
+        if self.cloud.has_covariances():
+            out["covariances"] = np.asarray(self.cloud.covariances).copy()
+        return out
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray], voxel: float) -> FeatureCloud:
+        """The FeatureCloud whose `arrays()` these are (downsampled with `voxel` metres)."""
+        o3d = import_open3d()
+        self = cls.__new__(cls)
+        self.voxel = float(voxel)
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(arrays["points"], dtype=np.float64)))
+        cloud.normals = o3d.utility.Vector3dVector(np.asarray(arrays["normals"], dtype=np.float64))
+        if "covariances" in arrays:
+            cloud.covariances = o3d.utility.Matrix3dVector(np.asarray(arrays["covariances"], dtype=np.float64))
+        self.cloud = cloud
+        self.features = o3d.pipelines.registration.Feature()
+        self.features.data = np.asarray(arrays["features"], dtype=np.float64)
+        return self
+
+    @property
+    def points(self) -> np.ndarray:
+        """(M,3) float64 metres: the downsampled points."""
+        return np.asarray(self.cloud.points)
+
+    def __len__(self) -> int:
+        return len(self.cloud.points)
+
+
+def register(source: FeatureCloud, target: FeatureCloud, ransac_iterations: int = 100000,
+             ransac_confidence: float = 0.999, seed: int = 0, refine_iterations: int = 50) -> Registration:
+    """The pose of `source` in `target`'s frame: FPFH + RANSAC (random choices from `seed`),
+    then generalized ICP; distances in units of `target.voxel`. Identity with fitness 0 when
+    either cloud is empty."""
+    if len(source) == 0 or len(target) == 0:
+        return Registration(np.eye(4), 0.0, 0.0, 0)
+    o3d = import_open3d()
+    reg = o3d.pipelines.registration
+    voxel = target.voxel
+    o3d.utility.random.seed(int(seed))
+    distance = RANSAC_DISTANCE_VOXELS * voxel
+    coarse = reg.registration_ransac_based_on_feature_matching(
+        source.cloud, target.cloud, source.features, target.features, True, distance,
+        reg.TransformationEstimationPointToPoint(False), 3,
+        [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(distance)],
+        reg.RANSACConvergenceCriteria(int(ransac_iterations), float(ransac_confidence)))
+    fine = reg.registration_generalized_icp(
+        source.cloud, target.cloud, voxel, coarse.transformation,
+        reg.TransformationEstimationForGeneralizedICP(), reg.ICPConvergenceCriteria(max_iteration=refine_iterations))
+    return Registration(np.asarray(fine.transformation, dtype=np.float64).copy(), float(fine.fitness),
+                        float(fine.inlier_rmse), len(coarse.correspondence_set))
+
+
+def alignment_information(source: FeatureCloud, target: FeatureCloud, pose: np.ndarray,
+                          max_distance: float) -> tuple[np.ndarray, int]:
+    """The point-to-plane information of `source` aligned to `target` by `pose` (source frame to
+    target frame): (6x6, (rotation rad, translation m) order, for a small motion exp(xi) of the
+    source's frame; the number of matched points). Each downsampled source point with a target
+    point within `max_distance` metres (the nearest) adds J^T J, J = n^T [-skew(p) | I], p the
+    source point and n the target point's normal, both in the source frame: the Gauss-Newton
+    Hessian of point-to-plane ICP at `pose`, per unit residual variance. A direction the scene
+    does not constrain (sliding along a wall) has a small eigenvalue."""
+    from pykdtree.kdtree import KDTree
+
+    if len(source) == 0 or len(target) == 0:
+        return np.zeros((6, 6)), 0
+    pose = np.asarray(pose, dtype=np.float64)
+    p = source.points
+    tree = KDTree(target.points)
+    distance, nearest = tree.query(p @ pose[:3, :3].T + pose[:3, 3], k=1, distance_upper_bound=max_distance)
+    matched = np.isfinite(distance) & (nearest < len(target))
+    p = p[matched]
+    n = np.asarray(target.cloud.normals)[nearest[matched]] @ pose[:3, :3]  # rows: R^T n, in the source frame
+    J = np.concatenate([np.cross(p, n), n], axis=1)  # n^T [-skew(p) | I] = [(p x n)^T, n^T]
+    return J.T @ J, int(matched.sum())
 
 
 class GlobalRegistration:
@@ -49,37 +160,12 @@ class GlobalRegistration:
     def __init__(self, target_points: np.ndarray, voxel: float = 0.05, ransac_iterations: int = 100000,
                  ransac_confidence: float = 0.999):
         """target_points: (N,3) metres (e.g. the map's trackable Gaussian centres, world frame)."""
-        self.o3d = import_open3d()
         self.voxel = float(voxel)
         self.ransac_iterations, self.ransac_confidence = int(ransac_iterations), float(ransac_confidence)
-        self.target, self.target_features = self.features(target_points)
-
-    def features(self, points: np.ndarray):
-        """(downsampled open3d cloud with normals, its FPFH features) of (N,3) points in metres."""
-        o3d = self.o3d
-        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
-        cloud = cloud.voxel_down_sample(self.voxel)
-        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=NORMAL_RADIUS_VOXELS * self.voxel,
-                                                                    max_nn=30))
-        features = o3d.pipelines.registration.compute_fpfh_feature(
-            cloud, o3d.geometry.KDTreeSearchParamHybrid(radius=FEATURE_RADIUS_VOXELS * self.voxel, max_nn=100))
-        return cloud, features
+        self.target = FeatureCloud(target_points, self.voxel)
 
     def register(self, points: np.ndarray, seed: int = 0) -> Registration:
         """The pose of (N,3) source points (metres) in the target's frame: FPFH + RANSAC (random
         choices from `seed`), then generalized ICP."""
-        o3d = self.o3d
-        reg = o3d.pipelines.registration
-        source, features = self.features(points)
-        o3d.utility.random.seed(int(seed))
-        distance = RANSAC_DISTANCE_VOXELS * self.voxel
-        coarse = reg.registration_ransac_based_on_feature_matching(
-            source, self.target, features, self.target_features, True, distance,
-            reg.TransformationEstimationPointToPoint(False), 3,
-            [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(distance)],
-            reg.RANSACConvergenceCriteria(self.ransac_iterations, self.ransac_confidence))
-        fine = reg.registration_generalized_icp(
-            source, self.target, self.voxel, coarse.transformation,
-            reg.TransformationEstimationForGeneralizedICP(), reg.ICPConvergenceCriteria(max_iteration=50))
-        return Registration(np.asarray(fine.transformation, dtype=np.float64).copy(), float(fine.fitness),
-                            float(fine.inlier_rmse))
+        return register(FeatureCloud(points, self.voxel), self.target, self.ransac_iterations,
+                        self.ransac_confidence, seed)

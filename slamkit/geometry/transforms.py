@@ -67,9 +67,11 @@ def make_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 
 def nearest_rotation(M: np.ndarray) -> np.ndarray:
-    """The rotation matrix closest (Frobenius) to a 3x3 matrix, via SVD."""
+    """The rotation matrices closest (Frobenius) to (..., 3, 3) matrices, via SVD."""
     U, _, Vt = np.linalg.svd(M)
-    return U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    U = U.copy()
+    U[..., :, 2] *= np.linalg.det(U @ Vt)[..., None]
+    return U @ Vt
 
 
 def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -94,6 +96,18 @@ def so3_exp(w: np.ndarray) -> np.ndarray:
     if theta < 1e-12:
         return np.eye(3) + K
     return np.eye(3) + np.sin(theta) / theta * K + (1 - np.cos(theta)) / theta**2 * (K @ K)
+
+
+def so3_log(R: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) rotation matrices to (..., 3) rotation vectors (axis times angle, radians),
+    the inverse of `so3_exp` for angles below pi (numpy only)."""
+    R = np.asarray(R, dtype=np.float64)
+    angle = np.radians(rotation_angle_deg(R))
+    axis = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
+    s = np.sin(angle)
+    # angle / (2 sin angle) -> 1/2 as the angle -> 0
+    scale = np.where(s > 1e-9, angle / np.where(s > 1e-9, 2 * s, 1.0), 0.5 + angle**2 / 12)
+    return axis * scale[..., None]
 
 
 def se3_exp(xi: np.ndarray) -> np.ndarray:

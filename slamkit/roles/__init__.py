@@ -7,6 +7,8 @@ optimiser, loss) are the 3DGS trainer's contracts, in `slamkit.splatting`, re-ex
 
 from slamkit.config import PluginConfig, RunContext, check_values, require, thread_count, unlimited
 from slamkit.roles.dataset import Dataset, DatasetConfig, OnError
+from slamkit.roles.loop_closure import (LoopCheck, LoopClosure, LoopDecision, LoopKeyframe, PoseGraph,
+                                        PoseGraphEdge, follow_keyframes)
 from slamkit.roles.mapping import Mapper
 from slamkit.roles.table import PARTS, ROLE_KEYS, ROLES, RUN_ROLES, Role, role, role_of
 from slamkit.roles.tracking import KeyframeDecision, KeyframeHistory, KeyframePolicy, Tracker
@@ -26,6 +28,7 @@ __all__ = [
     "Tracker", "KeyframePolicy", "KeyframeDecision", "KeyframeHistory",
     "Mapper", "Rasterizer", "RenderOutput", "KeyframeSampler", "Strategy", "StrategyConfig", "MapOptimizer",
     "MappingLoss", "TrainingView", "KeyframeView", "StepInfo",
+    "LoopClosure", "LoopKeyframe", "LoopDecision", "LoopCheck", "PoseGraph", "PoseGraphEdge", "follow_keyframes",
     "Viewer", "ViewerConfig", "ViewerFrame", "MapPoints", "MapGaussians",
     "SensorProfile", "DensifyStrategy",
 ]

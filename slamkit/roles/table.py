@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 from slamkit.errors import PluginError
 from slamkit.roles.dataset import Dataset
+from slamkit.roles.loop_closure import LoopClosure
 from slamkit.roles.mapping import Mapper
 from slamkit.roles.tracking import KeyframePolicy, Tracker
 from slamkit.roles.viewer import Viewer
@@ -53,6 +54,7 @@ ROLES: tuple[Role, ...] = (
     Role("strategy", Strategy, "gsicp", "grows, prunes and bounds the map while it trains", "mapper"),
     Role("optimizer", MapOptimizer, "adam", "updates the Gaussians' parameters from gradients", "mapper"),
     Role("loss", MappingLoss, "l1_ssim_depth", "compares a render with its keyframe", "mapper"),
+    Role("loop_closure", LoopClosure, "none", "finds revisited places and corrects the keyframes' poses"),
     Role("viewer", Viewer, "none", "shows or records the run as it goes"),
 )
 

@@ -1,0 +1,444 @@
+"""Loop closure measured offline on real data: tracking only (tracker gicp, keyframe overlap,
+mapper none, as `slamkit dataset=NAME mapper=none` runs it, through
+`slamkit.registry.compose.build_run`), then each keyframe, with its estimated pose, points and
+image, given to the loop closure in order (`detect_and_optimise` after each keyframe), as the run
+will. Prints per sequence and setting:
+
+- candidates: keyframe pairs verified; accepted: loops in the final pose graph;
+- right: accepted loops whose relative pose is within 5 cm and 3 degrees of the ground truth's
+  (ground-truth rotations re-orthonormalised first: 7-Scenes' pose files are off by ~1e-4,
+  which alone reads as ~1 degree); precision = right / accepted;
+- true revisits: candidate pairs whose ground-truth overlap is at least 30 % (the fraction of
+  the keyframe's downsampled points with a point of the other within 2 voxels under the
+  ground-truth relative pose); pair recall = right accepted true revisits / true-revisit
+  candidates; keyframe recall = keyframes with a right loop / keyframes with a true revisit
+  among the eligible earlier keyframes (not the last `exclude_recent`, `min_path_m` back);
+- ATE RMSE of every frame (`slamkit.metrics.trajectory.ate`, SE(3)-aligned) without loop
+  closure, with it (frames follow their keyframe: `follow_keyframes`), and two references on the
+  same odometry edges: every eligible true revisit as a loop with the ground-truth relative pose
+  (the floor of a perfect loop closure), and (--oracle) with the relative pose G-ICP finds
+  from odometry's (what the geometry allows at best); --oracle also gives the median distances
+  between odometry's, G-ICP's and the ground truth's relative poses of those pairs and of
+  consecutive keyframes (`relative_pose_agreement` in the JSON);
+- the loop closure's CPU seconds per keyframe (this process), and the CPU milliseconds of one
+  optimisation of the final graph alone (indicative only: shared machine).
+
+With --wrong-loop, the first loop that verification accepts has its relative pose moved by
+25 cm and 10 degrees before it enters the graph: a wrong loop that passed verification, which
+the optimiser must drop (the column `wrong loop dropped`) or absorb.
+
+    python benchmarks/loop_closure.py                                    # 7scenes, tum, replica
+    python benchmarks/loop_closure.py --sequences 7scenes --backends gtsam,open3d --wrong-loop
+    python benchmarks/loop_closure.py --sequences 7scenes --sweep loop_closure.min_fitness=0.5,0.55,0.6,0.65
+    python benchmarks/loop_closure.py --keyframes .cache/loop          # keep / reuse the tracking runs
+    python benchmarks/loop_closure.py --square --out benchmarks/results/loop_closure_square.json
+
+Writes JSON (--out, default benchmarks/results/loop_closure.json).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from slamkit.geometry import invert_pose, nearest_rotation, se3_exp, transform_points
+from slamkit.geometry.registration import import_open3d
+from slamkit.metrics.trajectory import ate
+from slamkit.registry.compose import compose_run
+from slamkit.run.build import build_run
+from slamkit.registry.discovery import default_registry
+from slamkit.roles.loop_closure import (LoopKeyframe, PoseGraph, PoseGraphEdge, follow_keyframes, pose_difference,
+                                        relative_pose)
+from slamkit_plugins.loop_closures.pose_graph import closure as pose_graph_closure
+from slamkit_plugins.loop_closures.pose_graph import optimisation, verification
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+SEQUENCES = {  # name -> (dataset plugin, folder)
+    "7scenes": ("sevenscenes", DATA / "7scenes_redkitchen_300to999"),
+    "tum": ("tum", DATA / "tum_fr1_rpy_first150"),
+    "replica": ("replica", DATA / "replica_room0_first20"),
+}
+#: A loop is right when its relative pose is this close to the ground truth's (metres, degrees).
+RIGHT_M, RIGHT_DEG = 0.05, 3.0
+#: A candidate pair is a true revisit when this fraction of the keyframe's downsampled points has a
+#: point of the other keyframe within TRUE_REVISIT_VOXELS voxels under the ground-truth relative pose.
+TRUE_REVISIT_OVERLAP, TRUE_REVISIT_VOXELS = 0.3, 2.0
+#: The wrong loop of --wrong-loop: its relative pose moved by this (rotation vector rad, translation m).
+WRONG_LOOP = np.array([0.0, np.radians(10.0), 0.0, 0.25, 0.0, 0.0])
+
+
+#: The keyframe image kept for appearance is the frame's colour image averaged over blocks of
+#: this many pixels a side (80x60 from 640x480).
+IMAGE_BLOCK = 8
+
+
+@dataclass
+class TrackedSequence:
+    """One tracking-only run. poses, gt_poses: (F,4,4) camera-to-world, metres (gt NaN where the
+    dataset has none). keyframe_frames: (K,) indices into the F frames. points[k]: (N_k,3) float32,
+    keyframe k's trackable Gaussian centres in its camera frame (metres); covariances[k]:
+    (N_k,3,3) float32, their G-ICP covariances in the same frame (m^2, regularised as the tracker
+    uses them); images[k]: (h,w,3) uint8. overrides: the run's Hydra overrides."""
+
+    poses: np.ndarray
+    gt_poses: np.ndarray
+    keyframe_frames: np.ndarray
+    points: list[np.ndarray]
+    covariances: list[np.ndarray]
+    images: list[np.ndarray]
+    overrides: list[str]
+
+    def save(self, path: Path) -> None:
+        arrays = {"poses": self.poses, "gt_poses": self.gt_poses, "keyframe_frames": self.keyframe_frames,
+                  "overrides": np.array(self.overrides)}
+        for k, (p, c, im) in enumerate(zip(self.points, self.covariances, self.images)):
+            arrays |= {f"points_{k}": p, f"covariances_{k}": c, f"image_{k}": im}
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(path, **arrays)
+
+    @classmethod
+    def load(cls, path: Path) -> TrackedSequence:
+        with np.load(path) as f:
+            k = len(f["keyframe_frames"])
+            return cls(f["poses"], f["gt_poses"], f["keyframe_frames"], [f[f"points_{i}"] for i in range(k)],
+                       [f[f"covariances_{i}"] for i in range(k)], [f[f"image_{i}"] for i in range(k)],
+                       [str(o) for o in f["overrides"]])
+
+
+def block_average(image: np.ndarray, block: int) -> np.ndarray:
+    """(H,W,C) image averaged over block x block pixels (the edge rows and columns that do not
+    fill a block dropped), same dtype."""
+    h, w = image.shape[0] // block * block, image.shape[1] // block * block
+    blocks = image[:h, :w].reshape(h // block, block, w // block, block, -1).astype(np.float32)
+    return blocks.mean(axis=(1, 3)).round().astype(image.dtype)
+
+
+def track(dataset: str, path: Path, max_frames: int | None = None, extra: tuple[str, ...] = ()) -> TrackedSequence:
+    """Track `dataset` at `path` (tracking only) and keep its keyframes (see TrackedSequence)."""
+    overrides = [f"dataset={dataset}", f"dataset.path={path}", "mapper=none", *extra]
+    if max_frames:
+        overrides.append(f"dataset.max_frames={max_frames}")
+    data, slam, _ = build_run(overrides)
+    poses, gts, kf_frames, points, covariances, images = [], [], [], [], [], []
+    for i in range(len(data)):
+        frame = data[i]
+        if i == 0:
+            slam.initialize(frame.gt_pose if frame.gt_pose is not None else np.eye(4))
+        step = slam.step(frame)
+        pose = step.tracking.pose
+        poses.append(pose)
+        gts.append(frame.gt_pose if frame.gt_pose is not None else np.full((4, 4), np.nan))
+        g = step.tracking.gaussians
+        if step.keyframe and g is not None:
+            world_to_camera = invert_pose(pose)
+            keep = np.asarray(g.trackable, dtype=bool)
+            R = world_to_camera[:3, :3]
+            kf_frames.append(i)
+            points.append(transform_points(world_to_camera, np.asarray(g.means, dtype=np.float64)[keep]).astype(np.float32))
+            covariances.append((R @ np.asarray(g.covariances, dtype=np.float64)[keep] @ R.T).astype(np.float32))
+            images.append(block_average(np.asarray(frame.rgb), IMAGE_BLOCK))
+    return TrackedSequence(np.array(poses), np.array(gts), np.array(kf_frames), points, covariances, images, overrides)
+
+
+def tracked(name: str, keyframes_dir: Path | None) -> TrackedSequence:
+    """Sequence `name` tracked (or read back from `keyframes_dir`/NAME.npz, saved there when new)."""
+    cache = keyframes_dir / f"{name}.npz" if keyframes_dir else None
+    if cache is not None and cache.is_file():
+        return TrackedSequence.load(cache)
+    dataset, path = SEQUENCES[name]
+    seq = track(dataset, path)
+    if cache is not None:
+        seq.save(cache)
+    return seq
+
+
+def orthonormal(poses: np.ndarray) -> np.ndarray:
+    """Poses with their rotations replaced by the nearest rotation matrices (NaN poses kept)."""
+    out = np.array(poses, dtype=np.float64)
+    finite = np.isfinite(out).all(axis=(1, 2))
+    out[finite, :3, :3] = nearest_rotation(out[finite, :3, :3])
+    return out
+
+
+@dataclass
+class Geometry:
+    """Each keyframe's downsampled cloud (as the loop closure builds it) and the keyframe pairs
+    eligible as loops with their ground-truth overlap."""
+
+    clouds: list
+    overlap: dict[tuple[int, int], float]  # (keyframe, earlier keyframe) -> ground-truth overlap
+
+
+def geometry(seq: TrackedSequence, gt: np.ndarray, cfg) -> Geometry:
+    from pykdtree.kdtree import KDTree
+
+    from slamkit.geometry.registration import FeatureCloud
+
+    clouds = [FeatureCloud(p, cfg.voxel, c) for p, c in zip(seq.points, seq.covariances)]
+    trees = [KDTree(c.points) for c in clouds]
+    kf = seq.keyframe_frames
+    centres = seq.poses[kf, :3, 3]
+    path = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(centres, axis=0), axis=1))])
+    overlap = {}
+    for q in range(len(kf)):
+        for m in range(max(q - cfg.exclude_recent, 0)):
+            if path[q] - path[m] < cfg.min_path_m or not np.isfinite(gt[kf[[q, m]]]).all():
+                continue
+            p = transform_points(relative_pose(gt[kf[m]], gt[kf[q]]), clouds[q].points)
+            d, _ = trees[m].query(p, k=1, distance_upper_bound=TRUE_REVISIT_VOXELS * cfg.voxel)
+            overlap[(q, m)] = float(np.isfinite(d).mean())
+    return Geometry(clouds, overlap)
+
+
+def with_gt_loops(odometry: PoseGraph, geo: Geometry, seq: TrackedSequence, gt: np.ndarray, cfg,
+                  measure=None) -> PoseGraph:
+    """`odometry`'s graph with a loop edge at every eligible true revisit: the ground truth's
+    relative pose, or `measure(q, m, odometry's relative pose)`'s."""
+    kf = seq.keyframe_frames
+    edges = [e for e in odometry.edges if e.kind == "odometry"]
+    for (q, m), overlap in geo.overlap.items():
+        if overlap < TRUE_REVISIT_OVERLAP:
+            continue
+        T = relative_pose(gt[kf[m]], gt[kf[q]])
+        if measure is not None:
+            T = measure(q, m, relative_pose(seq.poses[kf[m]], seq.poses[kf[q]]))
+        info, _ = verification.normalised_information(geo.clouds[q], geo.clouds[m], T, cfg.voxel)
+        edges.append(PoseGraphEdge("loop", m, q, T, info / cfg.loop_sigma_m**2))
+    return PoseGraph(odometry.keyframe_ids, seq.poses[kf], tuple(edges))
+
+
+def corrected_ate(seq: TrackedSequence, keyframe_poses: np.ndarray) -> float:
+    """ATE RMSE (metres) of every frame once the keyframes sit at `keyframe_poses`."""
+    kf = seq.keyframe_frames
+    after = follow_keyframes(seq.poses, np.arange(len(seq.poses)), kf, keyframe_poses @ invert_pose(seq.poses[kf]))
+    return ate(after, seq.gt_poses).rmse_m
+
+
+def gicp_from_odometry(geo: Geometry, cfg):
+    """measure(q, m, odometry) for with_gt_loops: open3d's G-ICP of q's cloud in m's from
+    odometry's pose (each pair registered once)."""
+    reg = import_open3d().pipelines.registration
+    found: dict[tuple[int, int], np.ndarray] = {}
+
+    def measure(q: int, m: int, start: np.ndarray) -> np.ndarray:
+        if (q, m) not in found:
+            result = reg.registration_generalized_icp(geo.clouds[q].cloud, geo.clouds[m].cloud, cfg.voxel, start,
+                                                      reg.TransformationEstimationForGeneralizedICP(),
+                                                      reg.ICPConvergenceCriteria(max_iteration=50))
+            pose = np.asarray(result.transformation, dtype=np.float64).copy()
+            found[(q, m)] = pose if np.isfinite(pose).all() else start
+        return found[(q, m)]
+
+    return measure
+
+
+def agreement(seq: TrackedSequence, gt: np.ndarray, measure, pairs: list[tuple[int, int]]) -> dict:
+    """Median distances (metres, degrees) between the relative poses of keyframe pairs (q, m) by
+    odometry, by G-ICP (`measure`) and by the ground truth."""
+    kf = seq.keyframe_frames
+    rows = []
+    for q, m in pairs:
+        odometry = relative_pose(seq.poses[kf[m]], seq.poses[kf[q]])
+        truth = relative_pose(gt[kf[m]], gt[kf[q]])
+        gicp = measure(q, m, odometry)
+        rows.append([*pose_difference(odometry, truth), *pose_difference(gicp, truth), *pose_difference(odometry, gicp)])
+    median = np.median(np.array(rows), axis=0) if rows else [None] * 6
+    names = ("odometry_vs_gt_m", "odometry_vs_gt_deg", "gicp_vs_gt_m", "gicp_vs_gt_deg", "odometry_vs_gicp_m",
+             "odometry_vs_gicp_deg")
+    return {"pairs": len(rows), **{n: None if v is None else float(v) for n, v in zip(names, median)}}
+
+
+def feed(seq: TrackedSequence, overrides: list[str], wrong_loop: bool):
+    """(the loop closure after every keyframe went through it, every check it made, CPU seconds,
+    the (keyframe, match) of the injected wrong loop or None)."""
+    cfg, names = compose_run(["loop_closure=pose_graph", *overrides])
+    closure = default_registry().create("loop_closure", names["loop_closure"], cfg.loop_closure)
+    injected: list[tuple[int, int]] = []
+    honest = verification.verify
+
+    def verify_with_one_wrong(*args, **kwargs):
+        check, information = honest(*args, **kwargs)
+        if check.accepted and not injected:
+            injected.append((check.keyframe_id, check.match_id))
+            check = replace(check, relative_pose=check.relative_pose @ se3_exp(WRONG_LOOP))
+        return check, information
+
+    checks, cpu = [], 0.0
+    pose_graph_closure.verification.verify = verify_with_one_wrong if wrong_loop else honest
+    try:
+        for k, frame in enumerate(seq.keyframe_frames):
+            start = time.process_time()
+            closure.add_keyframe(LoopKeyframe(k, int(frame), seq.poses[frame], seq.points[k], seq.covariances[k],
+                                              seq.images[k]))
+            checks += closure.detect_and_optimise().checks
+            cpu += time.process_time() - start
+    finally:
+        pose_graph_closure.verification.verify = honest
+    return closure, cfg.loop_closure, checks, cpu, injected[0] if injected else None
+
+
+def measure(name: str, seq: TrackedSequence, overrides: list[str], wrong_loop: bool, oracle: bool,
+            references: dict) -> dict:
+    closure, cfg, checks, cpu, injected = feed(seq, overrides, wrong_loop)
+    gt = orthonormal(seq.gt_poses)
+    kf = seq.keyframe_frames
+    key = (cfg.voxel, cfg.exclude_recent, cfg.min_path_m, cfg.loop_sigma_m, cfg.backend, cfg.robust_width)
+    if key not in references:  # the references depend on these settings only (not on the thresholds)
+        geo = geometry(seq, gt, cfg)
+        floor = with_gt_loops(closure.pose_graph(), geo, seq, gt, cfg)
+        ate_floor = corrected_ate(seq, optimisation.optimise(floor, cfg.backend, cfg.robust_width))
+        ate_oracle, agree = None, None
+        if oracle:
+            register = gicp_from_odometry(geo, cfg)
+            measured = with_gt_loops(closure.pose_graph(), geo, seq, gt, cfg, register)
+            ate_oracle = corrected_ate(seq, optimisation.optimise(measured, cfg.backend, cfg.robust_width))
+            revisits = [pair for pair, overlap in geo.overlap.items() if overlap >= TRUE_REVISIT_OVERLAP]
+            agree = {"true_revisits": agreement(seq, gt, register, revisits),
+                     "consecutive_keyframes": agreement(seq, gt, register, [(k, k - 1) for k in range(1, len(kf))])}
+        references[key] = (geo, ate_floor, ate_oracle, agree)
+    geo, ate_floor, ate_oracle, agree = references[key]
+    graph = closure.pose_graph()
+    start, repeats = time.process_time(), 20
+    for _ in range(repeats):  # the optimisation alone, on the final graph
+        optimisation.optimise(graph, cfg.backend, cfg.robust_width)
+    optimise_ms = 1e3 * (time.process_time() - start) / repeats
+    index = {int(f): k for k, f in enumerate(kf)}
+    final = {(c.keyframe_id, c.match_id) for c in closure.loops()}
+    rows = []
+    for c in checks:
+        err_m, err_deg = pose_difference(c.relative_pose, relative_pose(gt[c.match_frame_index], gt[c.frame_index]))
+        overlap = geo.overlap.get((index[c.frame_index], index[c.match_frame_index]), 0.0)
+        rows.append({**c.row(), "accepted": (c.keyframe_id, c.match_id) in final, "reason": c.reason,
+                     "error_m": err_m, "error_deg": err_deg, "right": bool(err_m <= RIGHT_M and err_deg <= RIGHT_DEG),
+                     "gt_overlap": overlap, "true_revisit": overlap >= TRUE_REVISIT_OVERLAP,
+                     "injected_wrong": (c.keyframe_id, c.match_id) == injected})
+    accepted = [r for r in rows if r["accepted"]]
+    right = [r for r in accepted if r["right"]]
+    revisits = [r for r in rows if r["true_revisit"]]
+    revisit_keyframes = {q for (q, m), o in geo.overlap.items() if o >= TRUE_REVISIT_OVERLAP}
+    looped_keyframes = {r["keyframe"] for r in right}
+    return {
+        "sequence": name, "backend": cfg.backend.value, "setting": " ".join(overrides) or "defaults",
+        "frames": len(seq.poses), "keyframes": len(kf), "candidates": len(rows), "accepted": len(accepted),
+        "right": len(right), "precision": len(right) / len(accepted) if accepted else None,
+        "true_revisit_candidates": len(revisits),
+        "pair_recall": sum(r["accepted"] and r["right"] for r in revisits) / len(revisits) if revisits else None,
+        "keyframes_with_true_revisit": len(revisit_keyframes),
+        "keyframe_recall": (len(looped_keyframes & revisit_keyframes) / len(revisit_keyframes)
+                            if revisit_keyframes else None),
+        "ate_none_m": ate(seq.poses, seq.gt_poses).rmse_m, "ate_loop_m": corrected_ate(seq, closure.pose_graph().poses),
+        "ate_gt_loops_m": ate_floor, "ate_gicp_loops_m": ate_oracle, "cpu_s_per_keyframe": cpu / len(kf),
+        "optimise_cpu_ms": optimise_ms, "relative_pose_agreement": agree,
+        "wrong_loop": None if not wrong_loop else ("none accepted" if injected is None
+                                                   else "dropped" if injected not in final else "kept"),
+        "checks": rows,
+    }
+
+
+COLUMNS = [("sequence", "sequence"), ("backend", "backend"), ("setting", "setting"), ("keyframes", "keyframes"),
+           ("candidates", "candidates"), ("accepted", "accepted"), ("right", "right"), ("precision", "precision"),
+           ("true_revisit_candidates", "true-revisit cand."), ("pair_recall", "pair recall"),
+           ("keyframe_recall", "keyframe recall"), ("ate_none_m", "ATE none cm"), ("ate_loop_m", "ATE loop cm"),
+           ("ate_gt_loops_m", "ATE GT loops cm"), ("ate_gicp_loops_m", "ATE G-ICP loops cm"),
+           ("cpu_s_per_keyframe", "CPU s/keyframe"), ("optimise_cpu_ms", "optimise CPU ms"),
+           ("wrong_loop", "wrong loop")]
+
+
+def print_table(rows: list[dict]) -> None:
+    def cell(key: str, value) -> str:
+        if value is None:
+            return "-"
+        if key.startswith("ate_"):
+            return f"{100 * value:.2f}"
+        return f"{value:.2f}" if isinstance(value, float) else str(value)
+
+    table = [[title for _, title in COLUMNS]] + [[cell(k, r.get(k)) for k, _ in COLUMNS] for r in rows]
+    widths = [max(len(row[i]) for row in table) for i in range(len(COLUMNS))]
+    for j, row in enumerate(table):
+        print("| " + " | ".join(v.ljust(w) for v, w in zip(row, widths)) + " |")
+        if j == 0:
+            print("|" + "|".join("-" * (w + 2) for w in widths) + "|")
+
+
+def square_drift() -> list[dict]:
+    """The backends on tests/test_loop_closure.py's synthetic square (20 keyframes, 0.3 degrees
+    and 4 mm of drift on every odometry edge, one exact loop): the worst position error before
+    and after optimising, per backend."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the scene the tests use
+    from test_loop_closure import drifted_graph, position_errors, square_path
+
+    from slamkit_plugins.loop_closures.pose_graph.config import Backend
+
+    truth = square_path()
+    drift = {k: np.r_[0.0, np.radians(0.3), 0.0, 0.004, 0.0, 0.0] for k in range(len(truth) - 1)}
+    graph = drifted_graph(truth, drift)
+    rows = []
+    for backend in Backend:
+        poses = optimisation.optimise(graph, backend, robust_width=3.0)
+        rows.append({"backend": backend.value, "worst_error_before_m": float(position_errors(graph.poses, truth).max()),
+                     "worst_error_after_m": float(position_errors(poses, truth).max()),
+                     "loop_residual_before": float(optimisation.whitened_residuals(graph, graph.poses)[-1]),
+                     "loop_residual_after": float(optimisation.whitened_residuals(graph, poses)[-1])})
+        print(f"square, {backend.value}: worst position error {100 * rows[-1]['worst_error_before_m']:.2f} cm -> "
+              f"{100 * rows[-1]['worst_error_after_m']:.2f} cm; the loop's whitened residual "
+              f"{rows[-1]['loop_residual_before']:.1f} -> {rows[-1]['loop_residual_after']:.1f}")
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--sequences", default="7scenes,tum,replica")
+    parser.add_argument("--backends", default="gtsam")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="an override for every run (e.g. loop_closure.max_candidates=4)")
+    parser.add_argument("--sweep", default=None, metavar="KEY=V1,V2,...", help="one run per value")
+    parser.add_argument("--wrong-loop", action="store_true", help="also run with one injected wrong loop")
+    parser.add_argument("--oracle", action="store_true",
+                        help="the G-ICP-loops reference: G-ICP at every true revisit (minutes)")
+    parser.add_argument("--square", action="store_true",
+                        help="only the backends on the synthetic square of the tests (one loop after drift)")
+    parser.add_argument("--keyframes", type=Path, default=None, help="folder to keep / reuse the tracking runs in")
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/loop_closure.json"))
+    args = parser.parse_args()
+    if args.square:
+        rows = square_drift()
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps({"machine": platform.platform(), "when": time.strftime("%Y-%m-%d %H:%M"),
+                                        "square": rows}, indent=1) + "\n")
+        print(f"wrote {args.out}")
+        return
+    settings = [list(args.set)]
+    if args.sweep:
+        key, _, values = args.sweep.partition("=")
+        settings = [[*args.set, f"{key}={v}"] for v in values.split(",")]
+    rows = []
+    for name in args.sequences.split(","):
+        seq, references = tracked(name, args.keyframes), {}
+        for backend in args.backends.split(","):
+            for setting in settings:
+                overrides = [*setting, f"loop_closure.backend={backend}"] if backend != "gtsam" else setting
+                for wrong in (False, True) if args.wrong_loop else (False,):
+                    row = measure(name, seq, overrides, wrong, args.oracle, references)
+                    row["injected"] = wrong
+                    rows.append(row)
+                    print_table([row])
+    print()
+    print_table(rows)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps({"machine": platform.platform(), "when": time.strftime("%Y-%m-%d %H:%M"),
+                                    "command": "python benchmarks/loop_closure.py " + " ".join(
+                                        a if " " not in a else repr(a) for a in __import__("sys").argv[1:]),
+                                    "rows": rows}, indent=1, default=float) + "\n")
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,1 @@
+"""Loop-closure plugins (`loop_closure=NAME`): `none` and `pose_graph`."""

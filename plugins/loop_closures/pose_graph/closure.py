@@ -1,0 +1,218 @@
+"""The pose-graph loop closure: keyframes are the graph's nodes, consecutive keyframes are tied
+by odometry edges, verified loops add loop edges, and each accepted loop re-optimises the graph.
+
+Per `detect_and_optimise` call, for each keyframe added since the last one, in order:
+1. it joins the graph: its points are downsampled with FPFH features (`FeatureCloud`), and an
+   odometry edge from the previous keyframe holds the tracked relative pose, weighted by the
+   point-to-plane information of the two keyframes' points under it (per matched point, over
+   odometry_sigma_m^2);
+2. candidates: earlier keyframes (not the last `exclude_recent`, at least `min_path_m` of path
+   back) near its place and similar in appearance (`detection`), at most `max_candidates`;
+3. each is verified (`verification`); an accepted loop becomes a loop edge (information over
+   loop_sigma_m^2), robust in the optimiser.
+Then, if a loop was accepted, the graph is optimised (`optimisation`); a loop whose whitened
+residual stays above `max_loop_residual` is taken out as inconsistent and the graph optimised
+again without it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from slamkit.config import RunContext
+from slamkit.geometry.registration import FeatureCloud
+from slamkit.roles.loop_closure import (LoopCheck, LoopClosure, LoopDecision, LoopKeyframe, PoseGraph, PoseGraphEdge,
+                                        relative_pose)
+from slamkit_plugins.loop_closures.pose_graph import detection, optimisation, verification
+from slamkit_plugins.loop_closures.pose_graph.config import PoseGraphConfig
+
+#: Added to an odometry edge's information per matched point, so that a direction the two
+#: keyframes' points do not constrain (or a pair with no matched points) stays tied to odometry
+#: with 1/sqrt(this) = ~30 times its sigma.
+ODOMETRY_INFORMATION_FLOOR = 1e-3
+#: Optimise-and-drop rounds at most per decision (each drops the worst inconsistent loop).
+MAX_DROP_ROUNDS = 10
+
+
+@dataclass
+class _Node:
+    """A keyframe in the graph. pose: its current camera-to-world estimate (the world of the
+    latest decision). median_depth: metres, of its points (its place, `detection`)."""
+
+    keyframe_id: int
+    frame_index: int
+    pose: np.ndarray
+    cloud: FeatureCloud
+    descriptor: np.ndarray | None
+    median_depth: float
+
+
+class PoseGraphLoopClosure(LoopClosure):
+    """Loop detection by place and appearance, geometric verification, pose-graph optimisation."""
+
+    def __init__(self, cfg: PoseGraphConfig, context: RunContext = RunContext()):
+        self.cfg = cfg
+        self.nodes: list[_Node] = []
+        self.edges: list[PoseGraphEdge] = []
+        self.accepted: list[LoopCheck] = []  # in the graph, in the order of self.edges' loop edges
+        self.pending: list[LoopKeyframe] = []
+        self.world = 0
+        self.world_updates: list[np.ndarray] = []  # per decision that moved keyframes: its last keyframe's update
+
+    # -- the role -----------------------------------------------------------------------------
+
+    def add_keyframe(self, keyframe: LoopKeyframe) -> None:
+        last = self.pending[-1].keyframe_id if self.pending else self.nodes[-1].keyframe_id if self.nodes else None
+        if last is not None and keyframe.keyframe_id <= last:
+            raise ValueError(f"LoopKeyframe.keyframe_id: expected ids that increase, got {keyframe.keyframe_id} "
+                             f"after {last}")
+        if not 0 <= keyframe.world <= self.world:
+            raise ValueError(f"LoopKeyframe.world: expected 0 to {self.world} (decisions made), got {keyframe.world}")
+        self.pending.append(keyframe)
+
+    def detect_and_optimise(self) -> LoopDecision:
+        checks: list[LoopCheck] = []
+        pending, self.pending = self.pending, []
+        for keyframe in pending:
+            self._join(keyframe)
+            checks += self._detect(len(self.nodes) - 1)
+        if not any(c.accepted for c in checks):
+            return LoopDecision(tuple(checks), world=self.world)
+        before = {n.keyframe_id: n.pose for n in self.nodes}  # as last reported, or as joined
+        dropped = self._optimise()
+        this_call = {(c.keyframe_id, c.match_id) for c in checks}
+        checks = [dropped.pop((c.keyframe_id, c.match_id)) if (c.keyframe_id, c.match_id) in dropped else c
+                  for c in checks]
+        checks += [c for key, c in dropped.items() if key not in this_call]  # loops of earlier calls, now dropped
+        updates = {n.keyframe_id: n.pose @ np.linalg.inv(before[n.keyframe_id]) for n in self.nodes}
+        moved = any(not np.allclose(u, np.eye(4), atol=1e-12) for u in updates.values())
+        if not moved:
+            return LoopDecision(tuple(checks), world=self.world)
+        self.world += 1
+        self.world_updates.append(updates[self.nodes[-1].keyframe_id])
+        return LoopDecision(tuple(checks), {n.keyframe_id: n.pose.copy() for n in self.nodes}, updates, self.world)
+
+    def loops(self) -> list[LoopCheck]:
+        return list(self.accepted)
+
+    def pose_graph(self) -> PoseGraph:
+        ids = np.array([n.keyframe_id for n in self.nodes], dtype=np.int64)
+        poses = np.array([n.pose for n in self.nodes]).reshape(-1, 4, 4)
+        return PoseGraph(ids, poses, tuple(self.edges))
+
+    # -- the steps ----------------------------------------------------------------------------
+
+    def _join(self, keyframe: LoopKeyframe) -> None:
+        """Add `keyframe` as a node (its pose brought into the current world) with its odometry edge."""
+        pose = keyframe.pose
+        for update in self.world_updates[keyframe.world:]:
+            pose = update @ pose
+        cfg = self.cfg
+        cloud = FeatureCloud(keyframe.points, cfg.voxel, keyframe.covariances)
+        depth = float(np.median(np.asarray(keyframe.points)[:, 2])) if len(keyframe.points) else 0.0
+        descriptor = None if keyframe.image is None else detection.appearance_descriptor(keyframe.image)
+        node = _Node(keyframe.keyframe_id, keyframe.frame_index, pose, cloud, descriptor, depth)
+        if self.nodes:
+            previous = self.nodes[-1]
+            relative = relative_pose(previous.pose, pose)
+            information = keyframe.odometry_information
+            if information is None:
+                per_point, _ = verification.normalised_information(cloud, previous.cloud, relative, cfg.voxel)
+                information = (per_point + ODOMETRY_INFORMATION_FLOOR * np.eye(6)) / cfg.odometry_sigma_m**2
+            self.edges.append(PoseGraphEdge("odometry", previous.keyframe_id, node.keyframe_id, relative,
+                                            np.asarray(information, dtype=np.float64)))
+        self.nodes.append(node)
+
+    def _path(self) -> np.ndarray:
+        """(K,) metres of camera path from the first keyframe to each (current estimates)."""
+        centres = np.array([n.pose[:3, 3] for n in self.nodes])
+        return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(centres, axis=0), axis=1))])
+
+    def _detect(self, query: int) -> list[LoopCheck]:
+        """Verify the candidates of node `query`; accepted loops join the graph as loop edges."""
+        cfg = self.cfg
+        path = self._path()
+        eligible = np.arange(max(query - cfg.exclude_recent, 0))
+        eligible = eligible[path[query] - path[eligible] >= cfg.min_path_m]
+        poses = np.array([n.pose for n in self.nodes])
+        depths = np.array([n.median_depth for n in self.nodes])
+        near = detection.place_candidates(poses, depths, path, query, eligible, cfg.search_radius_m,
+                                          cfg.radius_per_path, cfg.max_view_angle_deg)
+        node = self.nodes[query]
+        if node.descriptor is not None:
+            similarity = {int(j): float(self.nodes[j].descriptor @ node.descriptor) for j in near
+                          if self.nodes[j].descriptor is not None}
+            near = sorted((j for j in similarity if similarity[j] >= cfg.min_appearance), key=lambda j: -similarity[j])
+        checks = []
+        for j in list(near)[:cfg.max_candidates]:
+            match = self.nodes[j]
+            ids = (node.keyframe_id, match.keyframe_id, node.frame_index, match.frame_index)
+            check, information = verification.verify(node.cloud, match.cloud, relative_pose(match.pose, node.pose),
+                                                     float(path[query] - path[j]), cfg, ids, cfg.seed + node.keyframe_id)
+            if check.accepted:
+                self.edges.append(PoseGraphEdge("loop", match.keyframe_id, node.keyframe_id, check.relative_pose,
+                                                information))
+                self.accepted.append(check)
+            checks.append(check)
+        return checks
+
+    def _optimise(self) -> dict[tuple[int, int], LoopCheck]:
+        """Optimise the graph, dropping inconsistent loops one at a time; the nodes take the
+        optimised poses. Returns (keyframe id, match id) -> its check, rejected with the reason,
+        for each loop dropped."""
+        dropped: dict[tuple[int, int], LoopCheck] = {}
+        for _ in range(MAX_DROP_ROUNDS):
+            graph = self.pose_graph()
+            poses = optimisation.optimise(graph, self.cfg.backend, self.cfg.robust_width)
+            residuals = optimisation.whitened_residuals(graph, poses)
+            loops = [i for i, e in enumerate(self.edges) if e.kind == "loop"]
+            worst = max(loops, key=lambda i: residuals[i], default=None)
+            if worst is None or residuals[worst] <= self.cfg.max_loop_residual:
+                break
+            edge = self.edges.pop(worst)
+            key = (edge.target, edge.source)
+            check = next(c for c in self.accepted if (c.keyframe_id, c.match_id) == key)
+            self.accepted.remove(check)
+            dropped[key] = check.rejected(f"inconsistent with the pose graph: whitened residual "
+                                          f"{residuals[worst]:.1f} > {self.cfg.max_loop_residual}")
+        else:
+            graph = self.pose_graph()
+            poses = optimisation.optimise(graph, self.cfg.backend, self.cfg.robust_width)
+        for node, pose in zip(self.nodes, poses):
+            node.pose = pose
+        return dropped
+
+    # -- checkpoints --------------------------------------------------------------------------
+
+    def state_dict(self) -> dict[str, Any]:
+        if self.pending:  # a keyframe not yet in the graph would need its raw points: join it first
+            raise ValueError("PoseGraphLoopClosure.state_dict: keyframes are pending; call detect_and_optimise first")
+        nodes = [{"keyframe_id": n.keyframe_id, "frame_index": n.frame_index, "pose": n.pose,
+                  "median_depth": n.median_depth, "descriptor": n.descriptor, "cloud": n.cloud.arrays()}
+                 for n in self.nodes]
+        edges = [{"kind": e.kind, "source": e.source, "target": e.target, "relative_pose": e.relative_pose,
+                  "information": e.information} for e in self.edges]
+        loops = [{**c.row(), "relative_pose": c.relative_pose, "reason": c.reason} for c in self.accepted]
+        return {"nodes": nodes, "edges": edges, "loops": loops, "world": self.world,
+                "world_updates": list(self.world_updates)}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        voxel = self.cfg.voxel
+        self.nodes = [_Node(int(n["keyframe_id"]), int(n["frame_index"]), np.asarray(n["pose"], dtype=np.float64),
+                            FeatureCloud.from_arrays(n["cloud"], voxel),
+                            None if n["descriptor"] is None else np.asarray(n["descriptor"], dtype=np.float32),
+                            float(n["median_depth"])) for n in state["nodes"]]
+        self.edges = [PoseGraphEdge(str(e["kind"]), int(e["source"]), int(e["target"]),
+                                    np.asarray(e["relative_pose"], dtype=np.float64),
+                                    np.asarray(e["information"], dtype=np.float64)) for e in state["edges"]]
+        self.accepted = [LoopCheck(int(c["keyframe"]), int(c["match_keyframe"]), int(c["frame"]),
+                                   int(c["match_frame"]), np.asarray(c["relative_pose"], dtype=np.float64),
+                                   float(c["fitness"]), int(c["inliers"]), float(c["inlier_rmse_m"]),
+                                   float(c["correction_m"]), float(c["correction_deg"]), True, str(c["reason"]))
+                         for c in state["loops"]]
+        self.world = int(state["world"])
+        self.world_updates = [np.asarray(u, dtype=np.float64) for u in state["world_updates"]]
+        self.pending = []

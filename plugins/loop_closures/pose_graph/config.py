@@ -1,0 +1,88 @@
+"""The pose-graph loop closure's options (`loop_closure=pose_graph loop_closure.FIELD=VALUE`)."""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+from slamkit.roles import PluginConfig, require
+
+
+class Backend(enum.Enum):
+    """The pose-graph optimiser: gtsam's Levenberg-Marquardt with robust loop edges, or
+    open3d's global optimisation (Levenberg-Marquardt with a line process on loop edges)."""
+
+    gtsam = "gtsam"
+    open3d = "open3d"
+
+
+@dataclass
+class PoseGraphConfig(PluginConfig):
+    """Options of `loop_closure=pose_graph`: detection, verification and optimisation."""
+
+    #: metres: the keyframes' points are downsampled to one per voxel for registration (FPFH radius 5 voxels).
+    voxel: float = 0.025
+    #: a keyframe's candidates are among the keyframes before its last `exclude_recent` ones.
+    exclude_recent: int = 10
+    #: metres of camera path between a candidate and the keyframe, at least (a shorter gap is odometry's job).
+    min_path_m: float = 1.0
+    #: metres between the places two keyframes look at (camera centre + median depth along the axis) for a candidate, with no path between them.
+    search_radius_m: float = 0.3
+    #: metres added to search_radius_m per metre of camera path between the two keyframes (drift grows with the path).
+    radius_per_path: float = 0.05
+    #: degrees between the two cameras' optical axes, at most.
+    max_view_angle_deg: float = 45.0
+    #: cosine similarity of the two keyframes' appearance descriptors (zero-mean 32x24 grey images), at least.
+    min_appearance: float = 0.3
+    #: candidates verified per keyframe, the most similar in appearance first.
+    max_candidates: int = 4
+    #: RANSAC iterations of the global registration (FPFH feature matches).
+    ransac_iterations: int = 100000
+    #: RANSAC's confidence: it stops early once this sure of its best pose.
+    ransac_confidence: float = 0.999
+    #: feature matches that RANSAC's coarse pose must agree with, at least.
+    min_inliers: int = 40
+    #: fraction of the keyframe's downsampled points with a candidate point within a voxel after G-ICP, at least.
+    min_fitness: float = 0.62
+    #: metres: RMS distance of those point pairs, at most.
+    max_inlier_rmse_m: float = 0.015
+    #: metres the loop's relative pose may differ from odometry's with no path between them (a registration that snapped elsewhere lands farther).
+    max_correction_m: float = 0.1
+    #: metres added to max_correction_m per metre of camera path between the two keyframes.
+    correction_per_path: float = 0.03
+    #: degrees the loop's relative rotation may differ from odometry's with no path between them.
+    max_correction_deg: float = 2.0
+    #: degrees added to max_correction_deg per metre of camera path between the two keyframes.
+    correction_deg_per_path: float = 0.5
+    #: the loop's point-to-plane information per matched point: its weakest translation direction, at least (1/3 for a box; 0 along a wall).
+    min_constraint: float = 0.02
+    #: the pose-graph optimiser: gtsam | open3d.
+    backend: Backend = Backend.gtsam
+    #: metres: standard deviation of an odometry edge along its best-constrained direction.
+    odometry_sigma_m: float = 0.005
+    #: metres: standard deviation of a loop edge along its best-constrained direction.
+    loop_sigma_m: float = 0.01
+    #: whitened residual at which a loop edge's robust kernel halves its weight (gtsam's Cauchy; open3d's line process prunes the loop there).
+    robust_width: float = 3.0
+    #: whitened residual (sqrt of the chi-square) of an optimised loop above which it is dropped as inconsistent and the graph optimised again.
+    max_loop_residual: float = 10.0
+    #: seed of RANSAC's random choices.
+    seed: int = 0
+
+    def validate(self) -> None:
+        for name in ("voxel", "search_radius_m", "odometry_sigma_m", "loop_sigma_m", "robust_width",
+                     "max_loop_residual", "max_inlier_rmse_m", "max_correction_m", "max_correction_deg"):
+            require(getattr(self, name) > 0, f"loop_closure.{name}", "> 0", getattr(self, name))
+        for name in ("min_path_m", "radius_per_path", "correction_per_path", "correction_deg_per_path",
+                     "min_constraint"):
+            require(getattr(self, name) >= 0, f"loop_closure.{name}", ">= 0", getattr(self, name))
+        require(self.exclude_recent >= 1, "loop_closure.exclude_recent", "an integer >= 1", self.exclude_recent)
+        require(0 < self.max_view_angle_deg <= 180, "loop_closure.max_view_angle_deg", "in (0, 180]",
+                self.max_view_angle_deg)
+        require(-1 <= self.min_appearance <= 1, "loop_closure.min_appearance", "in [-1, 1]", self.min_appearance)
+        require(self.max_candidates >= 1, "loop_closure.max_candidates", "an integer >= 1", self.max_candidates)
+        require(self.ransac_iterations >= 1, "loop_closure.ransac_iterations", "an integer >= 1",
+                self.ransac_iterations)
+        require(0 < self.ransac_confidence < 1, "loop_closure.ransac_confidence", "in (0, 1)", self.ransac_confidence)
+        require(self.min_inliers >= 3, "loop_closure.min_inliers", "an integer >= 3", self.min_inliers)
+        require(0 < self.min_fitness <= 1, "loop_closure.min_fitness", "in (0, 1]", self.min_fitness)
