@@ -19,6 +19,7 @@ from slamkit.config import PluginConfig, check_values, require, thread_count
 from slamkit.errors import ConfigError
 from slamkit.map.growth import MapGrowthConfig
 from slamkit.roles import RUN_ROLES
+from slamkit.scheduling import ThreadPriority
 
 #: Seconds: Python's thread switch interval while real-time mapping runs. Python's default,
 #: 5 ms, makes each of a mapping step's torch calls (each releases the GIL and takes it back)
@@ -153,6 +154,8 @@ class RunConfig(PluginConfig):
     progress: bool = True
     mapping_threads: int = thread_count(0)
     switch_interval: float = SWITCH_INTERVAL_S
+    #: realtime: the mapping thread's (and its kernels' threads') priority below tracking and reading: idle (only CPU time they leave), low (5 nice levels), same
+    mapping_priority: ThreadPriority = ThreadPriority.idle
     final_iterations: int | None = None
     mapping_device: Device = Device.auto
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)

@@ -37,6 +37,8 @@ def run_metrics(cfg: RunConfig, slam: SLAM, state: RunState, wall_s: float) -> d
         "mapping_cpu_s": state.mapping_cpu_s,
         "loading_cpu_s": state.loading_cpu_s,
         "stream_cpu_s": state.stream_cpu_s,
+        "tracking_cpu_wait_s": state.tracking_cpu_wait_s,
+        **_throttle(state),
         "wall_time_s": slam_s,
         "mapping_iterations": state.mapping_iterations,
         "refine_iterations": state.refine_iterations,
@@ -61,6 +63,13 @@ def run_metrics(cfg: RunConfig, slam: SLAM, state: RunState, wall_s: float) -> d
     metrics.update(state.evaluation)
     metrics["peak_memory_mb"] = _peak_memory_mb()  # so far: after the evaluation in the last write
     return metrics
+
+
+def _throttle(state: RunState) -> dict[str, Any]:
+    """The real-time mapping thread's priority and what held it back (None in sequential mode)."""
+    t = state.mapping_throttle
+    return {"mapping_priority": t and t.priority, "mapping_cpu_wait_s": t and t.cpu_wait_s,
+            "mapping_no_keyframe_s": t and t.no_keyframe_s, "mapping_blocked_s": t and t.blocked_s}
 
 
 def rss_mb() -> float:
@@ -98,6 +107,10 @@ def summary(m: dict[str, Any]) -> str:
     text = headline(m) + f", {m['num_keyframes']} keyframes, {m['lost_frames']} lost"
     if m.get("psnr") is not None:
         text += f", PSNR {m['psnr']:.2f} dB"
+    if m.get("mapping_priority"):  # real time: the steps mapping got beside tracking, and what held it back
+        waited = m.get("mapping_cpu_wait_s")
+        text += (f", {m['mapping_iterations']} mapping steps in the stream ({m['mapping_priority']} priority"
+                 + ("" if waited is None else f", {waited:.1f} s waiting for a CPU") + ")")
     if m.get("refine_iterations"):
         text += f" after {m['refine_iterations']} refinement steps ({m['refine_time_s']:.1f} s)"
     status = m.get("status", COMPLETED if m["completed"] else INTERRUPTED)
