@@ -128,3 +128,40 @@ def test_process_threads_lists_the_calling_thread():
         return
     me = thread_schedule()
     assert me.tid in {t.tid for t in threads} and me.cpu_s > 0
+
+
+def test_in_real_time_the_mapping_thread_takes_the_keyframes_in_order():
+    """`track(frame, hand_over=True)`: the tracking thread grows the map, and the mapper takes
+    each keyframe as a training view in the thread that calls `optimize`, in order; `finish`
+    takes those still waiting."""
+    from slamkit.roles import Mapper
+    from slamkit.run.build import build_run
+    from slamkit.run.slam import SLAM
+
+    class Recorder(Mapper):
+        def __init__(self):
+            super().__init__()
+            self.added = []  # (frame index, thread)
+
+        def add_keyframe(self, frame, pose, kind, new_rows):
+            self.added.append((frame.index, threading.get_ident()))
+
+        def optimize(self, iterations):
+            return 0
+
+    dataset, built, _ = build_run(["dataset=synthetic", "dataset.num_frames=8", "dataset.width=64",
+                                   "dataset.height=48", "keyframe=every_n", "keyframe.tracking_every=2",
+                                   "mapper=none"])
+    mapper = Recorder()
+    slam = SLAM(built.tracker, built.keyframe_policy, mapper, built.gaussian_map, built.growth)
+    slam.initialize(dataset[0].gt_pose)
+    keyframes = [i for i in range(6) if slam.track(dataset[i], hand_over=True).keyframe]
+    assert keyframes and mapper.added == []  # none taken in the tracking thread
+    mapping = threading.Thread(target=slam.optimize, args=(1,))
+    mapping.start()
+    mapping.join()
+    assert [i for i, _ in mapper.added] == keyframes
+    assert {t for _, t in mapper.added} == {mapping.ident}
+    later = [i for i in range(6, 8) if slam.track(dataset[i], hand_over=True).keyframe]
+    slam.finish()
+    assert [i for i, _ in mapper.added] == keyframes + later
