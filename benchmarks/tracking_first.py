@@ -192,9 +192,10 @@ def acceptance(result: dict) -> dict:
         check(f"{sequence}: stream fps with the mapper / tracking alone", ratio, f">= {TARGETS['ratio']}",
               lambda v: v >= TARGETS["ratio"])
         if sequence == "tum":
-            check("tum: mapping steps in the stream", med["mapping"]["mapping_iterations"], f">= {TARGETS['tum_steps']}",
-                  lambda v: v >= TARGETS["tum_steps"])
-            check("tum: PSNR dB", med["mapping"]["psnr"], f">= {TARGETS['tum_psnr']}", lambda v: v >= TARGETS["tum_psnr"])
+            steps, psnr = TARGETS["tum_steps"], TARGETS["tum_psnr"]
+            check("tum: mapping steps in the stream", med["mapping"]["mapping_iterations"], f">= {steps}",
+                  lambda v: v >= steps)
+            check("tum: PSNR dB", med["mapping"]["psnr"], f">= {psnr}", lambda v: v >= psnr)
         if "drop_frames" in entry["medians"]:
             drop = entry["medians"]["drop_frames"]
             alone_d, mapped_d = drop["tracking"]["dropped_fraction"], drop["mapping"]["dropped_fraction"]

@@ -154,7 +154,7 @@ class RunConfig(PluginConfig):
     progress: bool = True
     mapping_threads: int = thread_count(0)
     switch_interval: float = SWITCH_INTERVAL_S
-    #: realtime: the mapping thread's (and its kernels' threads') priority below tracking and reading: idle (only CPU time they leave), low (5 nice levels), same
+    #: realtime: mapping's priority (its threads' too) below tracking's: idle (only CPU left over), low (5 nice levels), same
     mapping_priority: ThreadPriority = ThreadPriority.idle
     final_iterations: int | None = None
     mapping_device: Device = Device.auto
