@@ -8,7 +8,11 @@ shared machine the medians of many rounds compare decoders fairly where wall tim
 
     python benchmarks/decoders.py --rounds 30 --images 12 --out benchmarks/results/decoders.json
 
-Prints a table (median CPU ms per image, and the ratio to Pillow) and writes JSON (`--out`).
+Then the frame reader itself (`slamkit.formats.images.read_rgbd`: colour checked or decoded,
+depth decoded and converted to metres), as it reads a frame of each sequence, with imagecodecs
+and on Pillow alone (as where imagecodecs is not installed), in turns.
+
+Prints tables (median CPU ms per image or frame, and the ratio to Pillow) and writes JSON (`--out`).
 """
 
 from __future__ import annotations
@@ -115,12 +119,46 @@ def measure(kind: str, images: int, rounds: int) -> dict:
             "identical_to_pillow": identical}
 
 
+READER_SEQUENCES = {  # dataset overrides of the frame reader's measurement
+    "tum": ["dataset=tum", f"dataset.path={DATA / 'tum_fr1_rpy_first150'}"],
+    "7scenes": ["dataset=sevenscenes", f"dataset.path={DATA / '7scenes_redkitchen_300to999'}"],
+    "replica": ["dataset=replica", f"dataset.path={DATA / 'replica_room0_first20'}"],
+}
+
+
+def measure_reader(sequence: str, frames: int, rounds: int) -> dict:
+    """Median CPU ms per frame of `read_rgbd` with imagecodecs and with Pillow alone."""
+    from slamkit.formats import images
+    from slamkit.run.build import build_run
+
+    dataset, _, _ = build_run(READER_SEQUENCES[sequence] + ["mapper=none"])
+    picked = list(range(0, len(dataset), max(1, len(dataset) // frames)))[:frames]
+    invalid = (65535,) if sequence == "7scenes" else ()
+    scale = dataset.tuning.depth_scale
+    installed = images.imagecodecs
+    cpu: dict[str, list[float]] = {"imagecodecs": [], "pillow": []}
+    try:
+        for r in range(rounds):
+            for i in picked:
+                for name in (("imagecodecs", "pillow") if r % 2 == 0 else ("pillow", "imagecodecs")):
+                    images.imagecodecs = installed if name == "imagecodecs" else None
+                    start = time.thread_time()
+                    images.read_rgbd(dataset.rgb_files[i], dataset.depth_files[i], scale, dataset.camera, invalid)
+                    cpu[name].append(time.thread_time() - start)
+    finally:
+        images.imagecodecs = installed
+    medians = {n: statistics.median(v) * 1e3 for n, v in cpu.items()}
+    return {"frames": len(picked), "rounds": rounds, "median_cpu_ms": medians,
+            "ratio_to_pillow": medians["imagecodecs"] / medians["pillow"]}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--kinds", default="tum colour png,tum depth png16,7scenes colour jpeg,7scenes depth png16,"
                                            "replica colour jpeg,replica depth png16")
     parser.add_argument("--images", type=int, default=12)
     parser.add_argument("--rounds", type=int, default=30)
+    parser.add_argument("--reader", default="tum,7scenes,replica", help="sequences of the frame reader's measurement")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/decoders.json"))
     args = parser.parse_args()
     results = {}
@@ -130,6 +168,12 @@ def main() -> None:
         for name, ms in sorted(r["median_cpu_ms"].items(), key=lambda kv: kv[1]):
             same = "" if r["identical_to_pillow"][name] else "  NOT identical to Pillow"
             print(f"  {name:16s} {ms:7.3f}  ({r['ratio_to_pillow'][name]:.2f}){same}")
+    reader = {}
+    for sequence in filter(None, args.reader.split(",")):
+        reader[sequence] = r = measure_reader(sequence, args.images * 2, args.rounds // 3 or 1)
+        ms = r["median_cpu_ms"]
+        print(f"\nframe reader, {sequence} ({r['frames']} frames x {r['rounds']} rounds): median CPU ms per frame "
+              f"imagecodecs {ms['imagecodecs']:.3f}, Pillow alone {ms['pillow']:.3f} ({r['ratio_to_pillow']:.2f})")
     versions = {}
     for module in ("PIL", "cv2", "imageio", "simplejpeg", "pyspng", "imagecodecs", "numpy"):
         try:
@@ -139,7 +183,7 @@ def main() -> None:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({"machine": platform.platform(), "processor": platform.processor(),
                                     "when": time.strftime("%Y-%m-%d %H:%M"), "versions": versions,
-                                    "results": results}, indent=2) + "\n")
+                                    "results": results, "reader": reader}, indent=2) + "\n")
     print(f"wrote {args.out}")
 
 
