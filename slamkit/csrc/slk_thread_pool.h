@@ -59,7 +59,7 @@ struct SchedClass {
 // from several Python threads) does its job alone.
 //
 // There is one pool per scheduling class of the calling threads: a job runs only on workers of
-// its caller's priority, so a real-time mapping thread at a lower priority (slamkit.run.priority)
+// its caller's priority, so a real-time mapping thread at a lower priority (slamkit.scheduling)
 // has its renders done by workers at that priority too, whoever started a pool first, and the
 // tracking side's jobs never wait for a worker of the mapper's lower priority.
 class Pool {

@@ -86,8 +86,9 @@ class SLAM:
             return self.mapper.optimize(iterations)
 
     def take_keyframes(self) -> None:
-        """Give the mapper the keyframes `track(..., hand_over=True)` left for it, in order. Under
-        the map's lock: one thread at a time, and the only lock taken (a checkpoint holds it)."""
+        """Give the mapper the keyframes `track(..., hand_over=True)` left for it, in order, one
+        thread at a time. Under the map's lock, which a checkpoint already holds when it calls
+        this: no second lock that two threads could take in opposite orders."""
         if not self._handed_over:
             return
         with self.gaussian_map.lock:
