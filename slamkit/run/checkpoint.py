@@ -91,7 +91,6 @@ class CheckpointWriter:
 
 def capture(slam, run_state, wall_s: float) -> dict[str, Any]:
     """The state of `slam` and the run (call under the map's lock)."""
-    slam.take_keyframes()  # those the tracking thread left for the mapping thread: in the mapper's state
     gm = slam.gaussian_map
     return {"map": gm.columns(), "map_version": gm.version,
             "slam": {"num_keyframes": slam.num_keyframes, "keyframes_in_target": slam.keyframes_in_target,

@@ -240,7 +240,7 @@ def _track(frame: Frame, slam: SLAM, state: RunState, frames_log: FrameLog, view
            mapping: MappingThread | None) -> None:
     if slam.last_pose is None:  # the first frame tracked
         slam.initialize(frame.gt_pose if frame.gt_pose is not None else np.eye(4))
-    step = slam.track(frame, hand_over=True) if mapping else slam.step(frame)
+    step = slam.track(frame) if mapping else slam.step(frame)
     if mapping:
         mapping.check()
     state.record(frame, step)

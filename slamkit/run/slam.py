@@ -5,7 +5,6 @@ from __future__ import annotations
 import sys
 import threading
 import time
-from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -43,11 +42,6 @@ class SLAM:
     the run is deterministic. After each keyframe the C heap's free pages go back to the OS
     (`slamkit.run.heap`), so that a long run's resident memory follows what it holds. Every call
     into a plugin passes `boundary`, which names the plugin a failure came from.
-
-    In real time (`track(frame, hand_over=True)`) the mapper takes a keyframe as a training view
-    (`Mapper.add_keyframe`: resizing its images, the memory cap) in the mapping thread, at its
-    next `optimize`, not in the tracking thread; everything that reads the mapper's keyframes
-    (`finish`, `save_map`, `evaluate`, `plugin_states`) first hands over those still waiting.
     """
 
     def __init__(self, tracker: Tracker, keyframe_policy: KeyframePolicy, mapper: Mapper, gaussian_map: GaussianMap,
@@ -62,7 +56,6 @@ class SLAM:
         self.num_keyframes = 0
         self.keyframes_in_target = 0  # keyframes (ids below this) whose Gaussians the tracker's target was built with
         self.last_pose: np.ndarray | None = None
-        self._handed_over: deque[tuple[Frame, np.ndarray, KeyframeKind, slice]] = deque()
 
     def initialize(self, first_pose: np.ndarray) -> None:
         """Set the pose (camera-to-world) the trajectory starts from."""
@@ -79,28 +72,13 @@ class SLAM:
         return step
 
     def optimize(self, iterations: int) -> int:
-        """Up to `iterations` mapping steps (after giving the mapper the keyframes handed over);
-        the steps done."""
-        self.take_keyframes()
+        """Up to `iterations` mapping steps; the steps done."""
         with self.boundary("mapper", "optimize"):
             return self.mapper.optimize(iterations)
 
-    def take_keyframes(self) -> None:
-        """Give the mapper the keyframes `track(..., hand_over=True)` left for it, in order, one
-        thread at a time. Under the map's lock, which a checkpoint already holds when it calls
-        this: no second lock that two threads could take in opposite orders."""
-        if not self._handed_over:
-            return
-        with self.gaussian_map.lock:
-            while self._handed_over:
-                frame, pose, kind, rows = self._handed_over.popleft()
-                with self.boundary("mapper", "add_keyframe"):
-                    self.mapper.add_keyframe(frame, pose, kind, rows)
-
-    def track(self, frame: Frame, hand_over: bool = False) -> StepResult:
+    def track(self, frame: Frame) -> StepResult:
         """Track one frame and, if it is a keyframe, grow the map (real-time mode maps in
-        another thread: see `MappingThread`; with `hand_over` the mapper takes the keyframe
-        there, at its next `optimize`)."""
+        another thread: see `MappingThread`)."""
         start = time.perf_counter()
         with self.boundary("tracker", "track"):
             result = self.tracker.track(frame)
@@ -114,42 +92,37 @@ class SLAM:
             with self.boundary("keyframe", "decide"):
                 decision = self.keyframe_policy.decide(frame, result)
         if decision.kind:
-            self.add_keyframe(frame, result, decision.kind, hand_over)
+            self.add_keyframe(frame, result, decision.kind)
         return StepResult(result, decision, time.perf_counter() - start, 0.0, 0)
 
-    def add_keyframe(self, frame: Frame, result: TrackingResult, kind: KeyframeKind, hand_over: bool = False) -> None:
+    def add_keyframe(self, frame: Frame, result: TrackingResult, kind: KeyframeKind) -> None:
         rows = self.grow_map(frame, result)
         if kind is KeyframeKind.TRACKING:
             with self.boundary("tracker", "update_target"):
                 self.tracker.update_target(self.gaussian_map)
             self.keyframes_in_target = self.num_keyframes + 1
-        self._handed_over.append((frame, result.pose, kind, rows))
-        if not hand_over:
-            self.take_keyframes()
+        with self.boundary("mapper", "add_keyframe"):
+            self.mapper.add_keyframe(frame, result.pose, kind, rows)
         self.num_keyframes += 1
         release_free_memory()
 
     def finish(self) -> None:
         """The mapper's wrap-up after the stream and the refinement."""
-        self.take_keyframes()
         with self.boundary("mapper", "finish"):
             self.mapper.finish()
 
     def save_map(self, out_dir) -> list:
         """The mapper's map files written into `out_dir` (none for a mapper that keeps none)."""
-        self.take_keyframes()
         with self.boundary("mapper", "save_map"):
             return list(self.mapper.save_map(out_dir) or [])
 
     def evaluate(self, frames, poses: list[np.ndarray], out_dir) -> dict:
         """The mapper's rendering metrics of the trajectory `poses` (camera-to-world)."""
-        self.take_keyframes()
         with self.boundary("mapper", "evaluate"):
             return self.mapper.evaluate(frames, poses, out_dir)
 
     def plugin_states(self) -> dict[str, dict]:
-        """Each role's `state_dict()` by role key, for a checkpoint (call under the map's lock,
-        after `take_keyframes`)."""
+        """Each role's `state_dict()` by role key, for a checkpoint (call under the map's lock)."""
         states = {}
         for key, plugin in (("tracker", self.tracker), ("keyframe", self.keyframe_policy), ("mapper", self.mapper)):
             with self.boundary(key, "state_dict"):
