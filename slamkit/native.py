@@ -4,8 +4,13 @@ headers of slamkit/csrc and the headers beside it), loaded with ctypes.
 A library is compiled with the system C++ compiler (`$CXX`, else `c++`; a few seconds) and
 cached by a hash of the source and its headers, the flags, the compiler version and (for
 -march=native) the CPU under `$SLAMKIT_CACHE/extensions/` (else `~/.cache/slamkit/extensions/`),
-never in the source tree. Without a compiler, or if the build fails, `NativeLibrary.get()` returns None and `error`
-says why in one line; the caller falls back to its numpy / torch path.
+never in the source tree. It is built under a temporary name, recorded (size and SHA-256,
+`slamkit.cache.record`) and renamed into place; a cached library is loaded only once it matches
+its record (`slamkit.cache.damage`): one cut short, changed or without a record is rebuilt, with
+one line on stderr saying why, so that a damaged file is never mapped into the process (a
+truncated library kills it with SIGBUS). Without a compiler, or if the build fails,
+`NativeLibrary.get()` returns None and `error` says why in one line; the caller falls back to its
+numpy / torch path.
 
 We use ctypes rather than `torch.utils.cpp_extension`: the same code serves numpy callers, and
 the build takes seconds instead of about a minute (docs/cpu_rasterizer.md).
@@ -26,7 +31,7 @@ import time
 from pathlib import Path
 from typing import Callable
 
-from slamkit.cache import cache_dir
+from slamkit.cache import cache_dir, damage, record
 
 #: Flags every library is built with. -ffp-contract=off and no -ffast-math: results must round as
 #: the numpy / torch reference does. -fno-math-errno only lets sqrt be inlined.
@@ -111,10 +116,17 @@ class NativeLibrary:
             if native:
                 digest.update(_cpu_id().encode())
             path = cache_root() / f"slamkit_{self.source.stem}_{digest.hexdigest()[:16]}.so"
-            if not path.exists():
+            why = damage(path)
+            if why is not None:
+                if why != "missing":
+                    print(f"slamkit: the cached build of the {self.label} ({path}) is damaged ({why}); rebuilding it",
+                          file=sys.stderr, flush=True)
                 try:
-                    self._compile(exe, flags, path)
+                    self._compile(exe, flags, path, compiler)
                 except RuntimeError as exc:
+                    if why != "missing":
+                        exc = RuntimeError(f"the cached build of the {self.label} is damaged ({why}) and rebuilding it "
+                                           f"failed: {exc}")
                     error = error or exc
                     continue
             lib = self._open(path)
@@ -127,7 +139,8 @@ class NativeLibrary:
         those beside the source (its own parts, `#include "name.h"`)."""
         return sorted(INCLUDE_DIR.glob("*.h")) + sorted(self.source.parent.glob("*.h"))
 
-    def _compile(self, exe: str, flags: list[str], path: Path) -> None:
+    def _compile(self, exe: str, flags: list[str], path: Path, compiler: str) -> None:
+        """Build into a temporary file beside `path`, record it, then rename it into place."""
         path.parent.mkdir(parents=True, exist_ok=True)
         print(f"slamkit: compiling the {self.label} (first use, a few seconds)...", file=sys.stderr, flush=True)
         t0 = time.perf_counter()
@@ -137,8 +150,12 @@ class NativeLibrary:
             proc = subprocess.run([exe, *flags, f"-I{INCLUDE_DIR}", str(self.source), "-o", tmp],
                                   capture_output=True, text=True, timeout=600)
             if proc.returncode != 0:
-                first = next((ln for ln in proc.stderr.splitlines() if "error" in ln), proc.stderr.strip()[:200])
-                raise RuntimeError(f"compiling {self.source.name} failed: {first.strip()}")
+                lines = proc.stderr.strip().splitlines()
+                first = next((ln for ln in lines if "error" in ln), lines[0] if lines else "")
+                why = first.strip()[:200] or f"the compiler ({compiler}) exited with status {proc.returncode} and " \
+                                             "printed nothing"
+                raise RuntimeError(f"compiling {self.source.name} failed: {why}")
+            record(path, content=Path(tmp))  # a concurrent reader of the old file then rebuilds: never a wrong load
             os.replace(tmp, path)  # atomic: concurrent builders each install a complete file
         finally:
             if os.path.exists(tmp):

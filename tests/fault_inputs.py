@@ -196,3 +196,92 @@ def install(*names: str) -> Callable[[Path], None]:
         sys.path.insert(0, str(site))
 
     return make
+
+
+# --- inputs of issue 36's cases ------------------------------------------------------------------
+
+def float_depth_in_metres(root: Path) -> None:
+    """Every depth image of a TUM folder rewritten as a float32 TIFF in metres (depth.txt names
+    the new files): a unit that is not the folder's 16-bit raw one, but unambiguous."""
+    import numpy as np
+    from PIL import Image
+
+    _rewrite_depth(root, ".tiff", lambda raw: Image.fromarray((raw / 5000.0).astype(np.float32), mode="F"))
+
+
+def uint16_cast_metres(root: Path) -> None:
+    """Every depth image of a TUM folder rewritten as 16-bit PNG holding whole metres (what
+    `depth_m.astype(np.uint16)` writes): at the folder's 5000 units per metre, 0.2 mm steps."""
+    import numpy as np
+    from PIL import Image
+
+    _rewrite_depth(root, ".png", lambda raw: Image.fromarray(np.round(raw / 5000.0).astype(np.uint16)))
+
+
+def _rewrite_depth(root: Path, suffix: str, convert) -> None:
+    import numpy as np
+    from PIL import Image
+
+    lines = []
+    for line in (root / "depth.txt").read_text().splitlines():
+        stamp, rel = line.split()
+        src = root / rel
+        raw = np.asarray(Image.open(src), dtype=np.float64)
+        src.unlink()
+        rel = str(Path(rel).with_suffix(suffix))
+        convert(raw).save(root / rel)
+        lines.append(f"{stamp} {rel}")
+    (root / "depth.txt").write_text("\n".join(lines) + "\n")
+
+
+def drop_frame(index: int) -> Callable[[Path], None]:
+    """Remove frame `index` from a TUM folder's rgb.txt (the frame list changes)."""
+
+    def damage(root: Path) -> None:
+        lines = (root / "rgb.txt").read_text().splitlines()
+        del lines[index]
+        (root / "rgb.txt").write_text("\n".join(lines) + "\n")
+
+    return damage
+
+
+def fifo_bag(root: Path) -> Path:
+    """A FIFO (named pipe) called bag.mcap: opening it for reading blocks until a writer comes."""
+    import os
+
+    root.mkdir(parents=True)
+    os.mkfifo(root / "bag.mcap")
+    return root
+
+
+def flip_bytes(path: Path, fraction: float = 0.5, count: int = 64) -> None:
+    """Invert `count` bytes of `path` from `fraction` of its length on (a damaged file of the same size)."""
+    data = bytearray(path.read_bytes())
+    start = int(len(data) * fraction)
+    for i in range(start, min(start + count, len(data))):
+        data[i] ^= 0xFF
+    path.write_bytes(bytes(data))
+
+
+def truncate_half(path: Path) -> None:
+    """`truncate -s 50% path`."""
+    import os
+
+    os.truncate(path, path.stat().st_size // 2)
+
+
+def make_read_only(folder: Path) -> Callable[[], None]:
+    """Make `folder` read-only for this process (chmod; as root, which chmod does not stop, the
+    immutable attribute); returns the undo. Skips the test where neither takes effect."""
+    import os
+    import subprocess
+
+    import pytest
+
+    folder.chmod(0o555)
+    if not os.access(folder, os.W_OK):
+        return lambda: folder.chmod(0o755)
+    if subprocess.run(["chattr", "+i", str(folder)], capture_output=True).returncode == 0:
+        return lambda: (subprocess.run(["chattr", "-i", str(folder)]), folder.chmod(0o755))
+    folder.chmod(0o755)
+    pytest.skip("cannot make a folder read-only here (root without chattr)")

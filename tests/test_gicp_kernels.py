@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 import slamkit_plugins.trackers.gicp.kernels as kernels_module
+from slamkit.errors import ConfigError
 from slamkit.geometry.gaussians import knn_covariances, regularize
 from slamkit.geometry.transforms import backproject, covariance_from_scales, make_pose, so3_exp
 from slamkit_plugins.datasets.tum import TUMConfig, TUMDataset
@@ -160,7 +161,7 @@ def test_without_a_compiler_auto_falls_back_and_compiled_says_why(monkeypatch, t
     monkeypatch.setattr(kernels_module, "LIBRARY", kernels_module.new_library())  # built again, without a compiler
     with pytest.warns(RuntimeWarning, match="numpy kernels"):
         assert isinstance(create_kernels(Kernels.auto), NumpyKernels)
-    with pytest.raises(RuntimeError, match="no C\\+\\+ compiler found"):
+    with pytest.raises(ConfigError, match="no C\\+\\+ compiler found"):
         create_kernels(Kernels.compiled)
     assert create_kernels(Kernels.numpy).name == "numpy"
 

@@ -103,7 +103,7 @@ def test_replica_frames_10_19_localise_in_the_map_of_frames_0_9(tmp_path, replic
 
 
 @pytest.mark.slow
-def test_an_interrupted_localisation_keeps_its_frames_and_exits_130(tmp_path, tum_path):
+def test_an_interrupted_localisation_keeps_its_frames_and_exits_143_on_sigterm(tmp_path, tum_path):
     from test_run_lifecycle import Slamkit
 
     tum = ("dataset=tum", f"dataset.path={tum_path}", "mapper=none")
@@ -114,7 +114,7 @@ def test_an_interrupted_localisation_keeps_its_frames_and_exits_130(tmp_path, tu
     run.wait_for("slamkit: paused at stream@3")
     run.send(signal.SIGTERM)
     code, stdout, stderr = run.finish()
-    assert code == 130 and "Traceback" not in stderr, stderr[-3000:]
+    assert code == 128 + signal.SIGTERM and "Traceback" not in stderr, stderr[-3000:]
     metrics = json.loads((out / "metrics.json").read_text())
     assert (metrics["status"], metrics["completed"], metrics["num_frames"]) == ("interrupted", False, 3)
     assert metrics["error"] == "interrupted (SIGTERM) during stream"
@@ -134,3 +134,27 @@ def test_localize_needs_a_map(tmp_path):
     assert cfg.map == "out/run" and cfg.growth.scale_c == 3  # `map` names the saved map, `growth.` the map's growth
     with pytest.raises(CheckpointError, match=f"checkpoint {tmp_path / 'nothing'} not found"):
         load_map(tmp_path / "nothing")
+
+
+def test_map_fit_tells_the_right_pose_from_a_shifted_one_by_shape_and_by_colour():
+    """A textured wall 2 m ahead, as a map (a centre per pixel, with the pixel's colour) and as
+    a frame: from the frame's own pose the map lies on its surface with its colours; 0.5 m
+    closer it lies in front of it; 0.1 m to the side (the same wall, so the same depth) its
+    colours no longer line up."""
+    from slamkit.geometry.transforms import backproject, make_pose
+    from slamkit.run.localization import map_fit
+    from slamkit.types import Camera, Frame
+
+    camera = Camera(64, 48, 50.0, 50.0, 31.5, 23.5)
+    rng = np.random.default_rng(0)
+    texture = rng.integers(0, 256, (48, 64, 3)).astype(np.uint8)
+    depth = np.full((48, 64), 2.0, np.float32)
+    frame = Frame(0, 0.0, texture, depth, camera, None)
+    points, pixels = backproject(depth, camera)
+    colors = texture.reshape(-1, 3)[pixels] / 255.0
+    right = map_fit(frame, np.eye(4), points.astype(np.float64), colors)
+    assert right.surface_agreement == 1.0 and right.color_correlation > 0.99
+    closer = map_fit(frame, make_pose(np.eye(3), np.array([0.0, 0.0, 0.5])), points.astype(np.float64), colors)
+    assert closer.surface_agreement == 0.0 and closer.color_correlation is None
+    aside = map_fit(frame, make_pose(np.eye(3), np.array([0.1, 0.0, 0.0])), points.astype(np.float64), colors)
+    assert aside.surface_agreement == 1.0 and abs(aside.color_correlation) < 0.3

@@ -1,4 +1,4 @@
-"""The shared row operations (slamkit.map.editing.MapEdit) keep the optimiser's and the strategy's
+"""The shared row operations (slamkit.splatting.ops.MapEdit) keep the optimiser's and the strategy's
 per-row state aligned with the map, whatever the optimiser."""
 
 from __future__ import annotations

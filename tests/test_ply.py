@@ -120,3 +120,17 @@ def test_truncated_binary_and_missing_file(tmp_path):
         load_ply(tmp_path / "cut.ply")
     with pytest.raises(DataError, match="cannot read"):
         load_ply(tmp_path / "nope.ply")
+
+
+def test_gaussians_with_a_non_finite_parameter_are_left_out_and_counted(tmp_path):
+    gm = random_map(10)
+    with torch.no_grad():
+        gm.means[2, 0] = float("nan")
+        gm.log_scales[5, 1] = float("inf")
+        gm.opacity_logits[7] = float("-inf")
+    assert save_ply(tmp_path / "map.ply", gm) == 3
+    back = load_ply(tmp_path / "map.ply")
+    kept = [i for i in range(10) if i not in (2, 5, 7)]
+    assert len(back) == 7 and torch.isfinite(back.means).all()
+    assert torch.allclose(back.means, gm.means.detach()[kept])
+    assert save_ply(tmp_path / "empty.ply", GaussianMap()) == 0 and len(load_ply(tmp_path / "empty.ply")) == 0

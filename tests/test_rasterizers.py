@@ -49,7 +49,7 @@ def a_pose() -> torch.Tensor:
 
 def brute_force_render(means, quats, scales, opacities, colors, w2c, cam, background):
     """Every pixel against every Gaussian, composited in a Python loop over depth order, with
-    plain autograd: the conventions of `slamkit.map.rendering` written as directly as possible."""
+    plain autograd: the conventions of `slamkit.splatting.rendering` written as directly as possible."""
     R, t = w2c[:3, :3], w2c[:3, 3]
     x, y, z = (means @ R.T + t).unbind(-1)
     u, v = cam.fx * x / z + cam.cx, cam.fy * y / z + cam.cy

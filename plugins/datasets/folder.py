@@ -9,6 +9,7 @@ Layout (the names in brackets are options)::
       color/ (or rgb/)         [dataset.color_dir] colour images, .png / .jpg / .jpeg
       depth/                   [dataset.depth_dir] depth images of the same size: 16-bit PNG
                                (metres = raw / depth_scale, 0 = invalid) or 32-bit float TIFF
+                               (metres)
       timestamps.txt           optional: one timestamp (seconds) per line, line k = frame k
       trajectory.txt           [dataset.trajectory] optional ground truth
 

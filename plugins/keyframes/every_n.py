@@ -15,10 +15,11 @@ from slamkit.types import Frame, KeyframeKind, TrackingResult
 
 @dataclass
 class EveryNKeyframeConfig(PluginConfig):
-    """tracking_every: frames between tracking keyframes (>= 1). mapping_every: frames between
-    a keyframe and the next mapping-only keyframe (0 = no mapping-only keyframes)."""
+    """Keyframes at fixed intervals."""
 
+    #: frames between tracking keyframes
     tracking_every: int = 30
+    #: frames between a keyframe and the next mapping-only keyframe (0: none)
     mapping_every: int = 0
 
     def validate(self) -> None:

@@ -36,18 +36,15 @@ def correspondence_ratio(result: TrackingResult, overlap_threshold: float) -> fl
 
 @dataclass
 class OverlapKeyframeConfig(PluginConfig):
-    """overlap_threshold: m^2, a frame point overlaps the map when its squared distance to the
-    nearest map Gaussian is below this (reference: 1e-3 TUM, 5e-4 Replica; null = the
-    dataset's `DatasetTuning.keyframe_overlap`). keyframe_threshold: a tracking keyframe when
-    the overlapping fraction is below this (reference: 0.81 TUM, 0.7 Replica; null = the
-    profile's `keyframe_threshold`). mapping_every: a
-    mapping-only keyframe every N frames after the last keyframe (0 = none; reference 10).
-    max_interval: force a tracking keyframe when none was chosen for this many frames (the
-    paper's "30th frame" rule of its Fig. 5; 0 = never, as the reference code)."""
+    """The paper's keyframe selection."""
 
+    #: m^2; a frame point overlaps the map below this squared distance (null: the dataset's keyframe_overlap)
     overlap_threshold: float | None = None
+    #: a tracking keyframe when the overlapping fraction is below this (null: the dataset's keyframe_threshold)
     keyframe_threshold: float | None = None
+    #: a mapping-only keyframe every this many frames after the last keyframe (0: none; reference 10)
     mapping_every: int = 10
+    #: a tracking keyframe when none was chosen for this many frames (the paper's Fig. 5 rule; 0: never)
     max_interval: int = 0
 
     def validate(self) -> None:

@@ -34,16 +34,19 @@ class Backend(enum.Enum):
 
 @dataclass
 class L1SSIMDepthConfig(PluginConfig):
-    """weight_l1, weight_ssim, weight_depth: the loss's weights (reference: 0.8, 0.2, 0.1).
-    depth_unit: metres; the depth term is L1(depth / depth_unit) (the reference's 10).
-    backend: auto | compiled | torch (the same loss; see Backend). num_threads: the compiled
-    kernel's threads (0 = every CPU this process may use, as `rasterizer.num_threads`)."""
+    """The paper's loss: L1 + SSIM on colour, L1 on depth."""
 
+    #: weight of the colour L1 term (reference: 0.8)
     weight_l1: float = 0.8
+    #: weight of the colour 1 - SSIM term (reference: 0.2)
     weight_ssim: float = 0.2
+    #: weight of the depth L1 term (reference: 0.1)
     weight_depth: float = 0.1
+    #: metres; the depth term is L1(depth / depth_unit) (the reference's 10)
     depth_unit: float = 10.0
+    #: auto | compiled | torch: the same loss (see Backend)
     backend: Backend = Backend.auto
+    #: the compiled kernel's threads (0: every CPU this process may use)
     num_threads: int = thread_count(0)
 
     def validate(self) -> None:

@@ -16,9 +16,9 @@ from slamkit.roles import Mapper, PluginConfig
 
 @dataclass
 class NoMapperConfig(PluginConfig):
-    """keep_untrackable: admit the keyframe Gaussians that tracking does not use too (as a 3DGS
-    mapper would, for rendering); false saves memory."""
+    """Tracking only."""
 
+    #: admit the keyframe Gaussians that tracking does not use too (as a 3DGS mapper would); false saves memory
     keep_untrackable: bool = False
 
 

@@ -27,21 +27,25 @@ LR_FIELDS = {"means": "lr_means", "quats": "lr_quats", "log_scales": "lr_scales"
 
 @dataclass
 class AdamConfig(PluginConfig):
-    """lr_means, lr_colors, lr_opacity, lr_scales, lr_quats: learning rates (reference code:
-    4e-6, 0.0025, 0.05, 0.005, 0.001; scales and opacity in log / logit space, means in
-    metres). eps: Adam's epsilon (1e-15 as 3DGS). beta1, beta2: its moment decay rates.
-    fused: torch's fused Adam kernel (`torch.optim.Adam(fused=True)`: the same update to float
-    precision, one call per parameter instead of ~8; on a CPU ~3x faster, and in real time each
-    of the unfused calls waited for the GIL while the tracking thread ran Python)."""
+    """Adam's settings (the learning rates: the reference code's)."""
 
+    #: learning rate of the means (metres)
     lr_means: float = 4e-6
+    #: learning rate of the colours
     lr_colors: float = 0.0025
+    #: learning rate of the opacities (logit space)
     lr_opacity: float = 0.05
+    #: learning rate of the scales (log space)
     lr_scales: float = 0.005
+    #: learning rate of the rotations (quaternions)
     lr_quats: float = 0.001
+    #: Adam's epsilon (1e-15 as 3DGS)
     eps: float = 1e-15
+    #: Adam's first-moment decay rate
     beta1: float = 0.9
+    #: Adam's second-moment decay rate
     beta2: float = 0.999
+    #: torch's fused Adam kernel: the same update to float precision, one call per parameter instead of ~8
     fused: bool = True
 
     def validate(self) -> None:

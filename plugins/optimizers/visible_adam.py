@@ -74,13 +74,13 @@ STEPS = "steps"
 
 @dataclass
 class VisibleAdamConfig(AdamConfig):
-    """only_visible: update only the rows with a non-zero gradient (rows the step rendered);
-    false updates every row (moments decay where the gradient is zero). bias_correction: row |
-    global: which step count corrects a row's moments (see BiasCorrection). kernels: auto |
-    compiled | torch (see the module docstring; the same updates to float precision)."""
+    """Adam on the rows a step saw."""
 
+    #: update only the rows with a non-zero gradient (the rows the step rendered); false: every row
     only_visible: bool = True
+    #: row | global: which step count corrects a row's moments (see BiasCorrection)
     bias_correction: BiasCorrection = BiasCorrection["global"]
+    #: auto | compiled | torch: the same updates to float precision (see the module docstring)
     kernels: Kernels = Kernels.auto
 
 

@@ -25,8 +25,9 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class AutoRasterizerConfig(PluginConfig):
-    """prefer: the backends tried, in order (each with its default config)."""
+    """The first backend that builds here."""
 
+    #: the backends tried, in order (each with its default config)
     prefer: list[str] = field(default_factory=lambda: ["gsplat", "cpu", "torch"])
 
     def validate(self) -> None:

@@ -38,19 +38,13 @@ ABI_VERSION = 5
 
 @dataclass
 class CPURasterizerConfig(PluginConfig):
-    """num_threads: threads that render (0 = every CPU this process may use, $OMP_NUM_THREADS
-    when set: the kernel's pool never waits for a thread the OS has not scheduled, so in real-time
-    mode it takes up the CPU time the tracking thread leaves idle, between frames, without
-    delaying tracking; docs/results.md, "Issue 15, fifth pass"). native: compile for this
-    machine's CPU (-march=native; the cached library is keyed by the CPU model, so a copied cache
-    is rebuilt rather than crashing on another CPU). stored_alphas_mb: MiB of its alphas (one
-    float per composited pixel-Gaussian pair, in 8- or 16-pixel blocks) a differentiable render
-    keeps for its backward pass, which recomputes the rest (0 = recompute them all; 32 MiB holds
-    a TUM 320x240 training view's ~15 MiB and a Replica 600x340 one's ~26 MiB: the backward is
-    ~40 % faster with them stored; docs/cpu_rasterizer.md)."""
+    """The compiled CPU rasteriser."""
 
+    #: threads that render (0: every CPU this process may use, $OMP_NUM_THREADS when set)
     num_threads: int = thread_count(0)
+    #: compile for this machine's CPU (-march=native; the cached library is keyed by the CPU model)
     native: bool = True
+    #: MiB of a render's alphas kept for its backward pass, which recomputes the rest (0: recompute all)
     stored_alphas_mb: float = 32.0
 
     def validate(self) -> None:

@@ -51,9 +51,9 @@ NEEDS = "rasterizer gsplat needs CUDA and the gsplat package (pip install 'slamk
 
 @dataclass
 class GsplatRasterizerConfig(PluginConfig):
-    """tile_size: gsplat's tile edge in pixels (speed only; the render does not depend on it).
-    Its CUDA kernels run tile_size^2 threads per block, at most 1024: 32 at most."""
+    """gsplat on CUDA."""
 
+    #: pixels; gsplat's tile edge (speed only; tile_size^2 CUDA threads a block: at most 32)
     tile_size: int = 16
 
     def validate(self) -> None:

@@ -62,10 +62,9 @@ USE_NUMPY_ON_CPU = True  # numpy's radix sort and flatnonzero on CPU tensors (te
 
 @dataclass
 class TorchRasterizerConfig(PluginConfig):
-    """max_pairs_per_chunk: (pixel, Gaussian) pairs processed at once. It bounds memory: about
-    60 bytes a pair while a chunk is processed (float32), 16 bytes a pair kept for the backward
-    pass. On CPU a chunk also holds at most 2^16 pixels (for a 16-bit radix sort)."""
+    """The pure-torch reference rasteriser."""
 
+    #: (pixel, Gaussian) pairs processed at once: ~60 bytes a pair in flight, 16 kept for the backward
     max_pairs_per_chunk: int = 2_000_000
 
     def validate(self) -> None:

@@ -25,10 +25,9 @@ from slamkit.roles import KeyframeSampler, PluginConfig, RunContext, require
 
 @dataclass
 class RandomSamplerConfig(PluginConfig):
-    """newest_share: the share of draws that take the newest keyframe, the rest uniform over all
-    (0 = uniform, the paper's; in real time, where a keyframe gets few steps, it trains the
-    region the camera is in)."""
+    """Uniform draws over all keyframes."""
 
+    #: the share of draws that take the newest keyframe, the rest uniform over all (0: uniform, the paper's)
     newest_share: float = 0.0
 
     def validate(self) -> None:
@@ -66,12 +65,13 @@ class RecentSampler(KeyframeSampler):
 
 @dataclass
 class CovisibleSamplerConfig(PluginConfig):
-    """top_k: choose uniformly among this many most covisible keyframes. fov_deg: full field of
-    view (degrees, both axes) assumed for the frustums. max_depth: metres, depth of the probe
-    points (a 7x7 grid at 4 depths from max_depth/4 to max_depth)."""
+    """Draws among the keyframes that see most of what the newest one sees."""
 
+    #: choose uniformly among this many most covisible keyframes
     top_k: int = 3
+    #: degrees; the full field of view (both axes) assumed for the frustums
     fov_deg: float = 60.0
+    #: metres; the depth of the probe points (a 7x7 grid at 4 depths from max_depth/4 to max_depth)
     max_depth: float = 3.0
 
     def validate(self) -> None:

@@ -30,17 +30,19 @@ RESET_OPACITY = 0.01
 
 @dataclass
 class Densify3DGSConfig(PruneConfig):
-    """densify_every: steps between densifications. grad_threshold: the average view-space
-    positional gradient (NDC units) from which a Gaussian is densified. split_above_scale:
-    metres; a selected Gaussian whose largest scale is above this is split, else cloned.
-    densify_max_gaussians: no densification beyond this many Gaussians. reset_opacity_every:
-    steps between opacity resets (0 = never). seed: the split's random offsets."""
+    """3DGS's adaptive density control on top of the pruning schedule."""
 
+    #: training steps between densifications
     densify_every: int = 100
+    #: the average view-space positional gradient (NDC units) from which a Gaussian is densified
     grad_threshold: float = 0.0002
+    #: metres; a selected Gaussian whose largest scale is above this is split, else cloned
     split_above_scale: float = 0.05
+    #: no densification beyond this many Gaussians
     densify_max_gaussians: int = 2_000_000
+    #: training steps between opacity resets (0: never)
     reset_opacity_every: int = 3000
+    #: the seed of the split's random offsets
     seed: int = 0
 
     def validate(self) -> None:

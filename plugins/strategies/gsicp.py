@@ -16,13 +16,13 @@ from slamkit.roles import RunContext, StepInfo, Strategy, StrategyConfig, requir
 
 @dataclass
 class PruneConfig(StrategyConfig):
-    """prune_every: training steps between prunings (0 = never). prune_min_opacity: prune
-    Gaussians less opaque than this. max_scale: metres; prune Gaussians whose largest standard
-    deviation exceeds it (null = the dataset's `DatasetTuning.max_gaussian_scale`: 0.25 Replica,
-    1.0 TUM)."""
+    """GS-ICP SLAM's pruning schedule."""
 
+    #: training steps between prunings (0: never)
     prune_every: int = 200
+    #: prune Gaussians less opaque than this
     prune_min_opacity: float = 0.005
+    #: metres; prune Gaussians whose largest standard deviation exceeds it (null: the dataset's max_gaussian_scale)
     max_scale: float | None = None
 
     def validate(self) -> None:

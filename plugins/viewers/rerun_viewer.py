@@ -47,26 +47,23 @@ MAP_STYLES = ("splats", "ellipsoids", "points")
 
 @dataclass
 class RerunViewerConfig(ViewerConfig):
-    """Rerun logging (see the module docstring for the entities).
+    """Rerun logging (see the module docstring for the entities)."""
 
-    save: path of a .rrd file to record into, no display needed (null = RUN_DIR/recording.rrd
-    when neither spawn nor connect is set). spawn: start the Rerun viewer app and stream to it
-    (needs a display). connect: URL of a running Rerun viewer to stream to (e.g.
-    rerun+http://127.0.0.1:9876/proxy; null = none). image_every: frames between logs of the
-    input colour and depth images (0 = never). log_depth: log the input depth image.
-    jpeg_quality: JPEG quality of the logged colour images, 1-100 (0 = uncompressed; a
-    640x480 TUM frame is ~60 kB as JPEG 90, 920 kB raw). application_id: the recording's name in
-    the viewer. map_as: how the map is logged: splats (GaussianSplats3D), ellipsoids
-    (Ellipsoids3D, one standard deviation) or points (Points3D of the centres).
-    """
-
+    #: a .rrd file to record into, no display needed (null: RUN_DIR/recording.rrd unless spawn or connect)
     save: str | None = None
+    #: start the Rerun viewer app and stream to it (needs a display)
     spawn: bool = False
+    #: URL of a running Rerun viewer to stream to (e.g. rerun+http://127.0.0.1:9876/proxy; null: none)
     connect: str | None = None
+    #: frames between logs of the input colour and depth images (0: never)
     image_every: int = 1
+    #: log the input depth image
     log_depth: bool = True
+    #: JPEG quality of the logged colour images, 1-100 (0: uncompressed)
     jpeg_quality: int = 90
+    #: the recording's name in the viewer
     application_id: str = "slamkit"
+    #: how the map is logged: splats (GaussianSplats3D), ellipsoids (one standard deviation) or points (centres)
     map_as: str = "splats"
 
     def validate(self) -> None:

@@ -50,29 +50,29 @@ ESTIMATE_COLOUR, GROUND_TRUTH_COLOUR = (230, 90, 30), (40, 160, 60)
 
 @dataclass
 class ViserViewerConfig(ViewerConfig):
-    """The browser viewer (see the module docstring).
+    """The browser viewer (see the module docstring)."""
 
-    host: address to serve on (127.0.0.1 = this machine only; 0.0.0.0 = every interface).
-    port: TCP port (0 = any free port; a port in use is replaced by the next free one).
-    splat_keyframes: refresh the splats after this many new keyframes (0 = not by keyframes).
-    splat_seconds: refresh the splats when this many seconds have passed and the map changed
-    (0 = not by time). image_every: frames between updates of the input image in the panel (0 =
-    never). image_width: pixels, the width the panel's images are resized to. frustum_scale:
-    metres, the drawn frustum's depth. keep_serving: after the last frame, keep serving the
-    page until Ctrl-C or SIGTERM (false: the run exits after sending the final map). map_every (frames)
-    also refreshes the splats when > 0.
-    """
-
+    #: address to serve on (127.0.0.1: this machine only; 0.0.0.0: every interface)
     host: str = "127.0.0.1"
+    #: TCP port (0: any free port; a port in use is replaced by the next free one)
     port: int = 8080
+    #: refresh the splats after this many new keyframes (0: not by keyframes)
     splat_keyframes: int = 5
+    #: refresh the splats when this many seconds have passed and the map changed (0: not by time)
     splat_seconds: float = 2.0
+    #: frames between updates of the input image in the panel (0: never)
     image_every: int = 5
+    #: pixels; the width the panel's images are resized to
     image_width: int = 320
+    #: metres; the depth of the drawn camera frustum
     frustum_scale: float = 0.15
+    #: after the last frame, keep serving the page until Ctrl-C or SIGTERM
     keep_serving: bool = False
+    #: frames between renders of the map from the current pose (0: never)
     render_every: int = 10
+    #: frames between splat refreshes besides the ones above (0: none)
     map_every: int = 0
+    #: at most this many Gaussians sent as splats (an even subsample of the map)
     map_max_points: int = 100_000
 
     def validate(self) -> None:

@@ -16,6 +16,12 @@ which runs with `mapper=gaussian_splatting` write. Needs the optional extra `mes
 
 Only pixels whose rendered opacity reaches `--min-alpha` are fused, with their expected depth
 (depth / alpha) and colour (colour / alpha), so half-transparent edges do not smear the surface.
+
+A Gaussian with a non-finite parameter (a diverged map) is left out of both, and the count said.
+`--out` must be a file name: never a folder, never a map checkpoint (slamkit-export does not
+write over a file it did not make), never in the folder of a run still going. Exit status: 0;
+2 a bad source or --out, one line; 1 the output could not be written (a read-only place, a full
+disk), one line.
 """
 
 from __future__ import annotations
@@ -30,7 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
-from slamkit.errors import DataError, SlamkitError
+from slamkit.cli import streams
+from slamkit.errors import DataError, OutputError, SlamkitError
 from slamkit.geometry.registration import import_open3d
 from slamkit.types import Camera
 
@@ -49,6 +56,7 @@ class MeshResult:
     num_triangles: int
     num_views: int
     seconds: float
+    dropped: int = 0  # Gaussians left out: a non-finite parameter
 
 
 def _positive_float(text: str) -> float:
@@ -145,8 +153,10 @@ def export_mesh(run_dir: Path, out: Path | None = None, voxel: float = 0.01, sdf
         camera, run_depth_trunc = read_camera(source / "camera.json")
         poses = read_keyframe_poses(source / "keyframes.txt")[::every]
         gaussian_map, run_dir = load_ply(map_ply), source
+    gaussian_map, dropped = finite_map(gaussian_map)
     o3d = import_open3d()
     out = Path(out) if out is not None else run_dir / "mesh.ply"
+    check_out(out)
     depth_trunc = depth_trunc or run_depth_trunc or FALLBACK_DEPTH_TRUNC
     camera = camera if scale == 1.0 else camera.scaled(scale)
     backend = create_rasterizer(rasterizer)
@@ -163,10 +173,50 @@ def export_mesh(run_dir: Path, out: Path | None = None, voxel: float = 0.01, sdf
         raise DataError(f"{source}: no surface to mesh: no rendered pixel reached --min-alpha {min_alpha} (an "
                         "untrained map, mapper=none, is faint: try --min-alpha 0.2)")
     mesh.compute_vertex_normals()
-    out.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"cannot write {out}: {exc.strerror or exc}") from None
     if not o3d.io.write_triangle_mesh(str(out), mesh):
-        raise DataError(f"cannot write the mesh to {out}")
-    return MeshResult(out, len(mesh.vertices), len(mesh.triangles), len(poses), time.perf_counter() - start)
+        raise OutputError(f"cannot write the mesh to {out} (open3d could not write it there)")
+    return MeshResult(out, len(mesh.vertices), len(mesh.triangles), len(poses), time.perf_counter() - start, dropped)
+
+
+def finite_map(gaussian_map):
+    """(`gaussian_map` without its Gaussians that have a non-finite parameter, how many those were)."""
+    from slamkit.formats.ply import finite_rows
+    from slamkit.map.gaussian_map import GaussianMap
+
+    keep = finite_rows(gaussian_map)
+    if keep.all():
+        return gaussian_map, 0
+    finite = GaussianMap(gaussian_map.device)
+    finite.append(gaussian_map.rows().select(keep))
+    return finite, int((~keep).sum())
+
+
+def check_out(out: Path, source: Path | None = None) -> None:
+    """DataError unless `out` names a file slamkit-export may write: not a folder, not a map
+    checkpoint (nor the `source` read), not in the folder of a run that is still going."""
+    from slamkit.formats.checkpoint import CHECKPOINT_NAME, CheckpointError, read_meta
+    from slamkit.run.ownership import in_use_by
+
+    if out.is_dir():
+        raise DataError(f"--out {out} is a folder (expected a file name, e.g. {out / 'map.ply'})")
+    checkpoint = out.name == CHECKPOINT_NAME or (source is not None and out.absolute() == source.absolute())
+    if not checkpoint and out.is_file():
+        try:
+            read_meta(out)
+            checkpoint = True
+        except CheckpointError:
+            pass
+    if checkpoint:
+        raise DataError(f"--out {out} is a map checkpoint; slamkit-export never writes over one (choose another "
+                        "file)")
+    holder = in_use_by(out.parent)
+    if holder is not None:
+        raise DataError(f"--out {out}: its folder belongs to a run that is still going ({holder}); wait for it to "
+                        "end, or choose another folder")
 
 
 def _is_checkpoint(source: Path) -> bool:
@@ -178,9 +228,10 @@ def _is_checkpoint(source: Path) -> bool:
     return source.is_file() or source.suffix == ".zip"
 
 
-def export_ply(source: Path, out: Path | None = None) -> tuple[Path, int]:
+def export_ply(source: Path, out: Path | None = None) -> tuple[Path, int, int]:
     """Write a checkpoint's map (SOURCE: the file or its run folder) as a 3DGS PLY (default:
-    map.ply beside the checkpoint); returns (the file, its Gaussians)."""
+    map.ply beside the checkpoint); returns (the file, the Gaussians written, those left out for
+    a non-finite parameter)."""
     from slamkit.formats.checkpoint import checkpoint_path
     from slamkit.formats.ply import save_ply
     from slamkit.run import checkpoint
@@ -188,8 +239,12 @@ def export_ply(source: Path, out: Path | None = None) -> tuple[Path, int]:
     path = checkpoint_path(source)
     gaussian_map, _ = checkpoint.load_map(path)
     out = Path(out) if out is not None else path.parent / "map.ply"
-    save_ply(out, gaussian_map)
-    return out, len(gaussian_map)
+    check_out(out, path)
+    try:
+        dropped = save_ply(out, gaussian_map)
+    except OSError as exc:
+        raise OutputError(f"cannot write {out}: {exc.strerror or exc}") from None
+    return out, len(gaussian_map) - dropped, dropped
 
 
 def _world_to_camera(pose: np.ndarray) -> np.ndarray:
@@ -237,12 +292,17 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _dropped(n: int) -> str:
+    return f" (dropped {n} non-finite Gaussian{'s' if n != 1 else ''})" if n else ""
+
+
 def main(argv: list[str] | None = None) -> int:
+    streams.guard()  # a closed, broken or full stdout / stderr never stops the command
     args = _parser().parse_args(argv)
     try:
         if args.command == "ply":
-            path, n = export_ply(args.source, args.out)
-            print(f"slamkit-export: {n} Gaussians: {path}")
+            path, n, dropped = export_ply(args.source, args.out)
+            print(f"slamkit-export: {n} Gaussians: {path}{_dropped(dropped)}")
             return 0
         result = export_mesh(args.run_dir, args.out, args.voxel, args.sdf_trunc, args.depth_trunc, args.min_alpha,
                              args.scale, args.every, args.rasterizer)
@@ -250,9 +310,9 @@ def main(argv: list[str] | None = None) -> int:
         if os.environ.get("SLAMKIT_DEBUG"):
             raise
         print(f"slamkit-export: error: {exc}", file=sys.stderr)
-        return 2
+        return exc.exit_status
     print(f"slamkit-export: mesh with {result.num_vertices} vertices, {result.num_triangles} triangles from "
-          f"{result.num_views} keyframe views in {result.seconds:.1f} s: {result.path}")
+          f"{result.num_views} keyframe views in {result.seconds:.1f} s: {result.path}{_dropped(result.dropped)}")
     return 0
 
 

@@ -8,9 +8,10 @@ read with Hydra's own parser; a key spelled as before 0.3 fails with one line na
 Exit status (docs/architecture.md, "Run outputs"): 0 completed; 2 a user error (a bad file, a
 bad value, an output folder that cannot be made), one line, SLAMKIT_DEBUG=1 for the traceback;
 1 an environment failure (a full disk: what the run kept is named); 3 tracking failed (no frame
-tracked, or more than `eval.max_lost_fraction` lost: no ATE is reported); 130 interrupted
-(SIGINT or SIGTERM, at any point from start-up: one line, the outputs so far are kept).
-Heavy modules (torch, Hydra, the plugins) are imported only once SIGTERM and SIGINT are handled.
+tracked, or more than `eval.max_lost_fraction` lost: no ATE is reported); 128 + N stopped by
+signal N (130 SIGINT, 143 SIGTERM, 129 SIGHUP, ...: `slamkit.run.lifecycle.SIGNALS`, at any point
+from start-up: one line, the outputs so far are kept).
+Heavy modules (torch, Hydra, the plugins) are imported only once those signals are handled.
 """
 
 from __future__ import annotations
@@ -24,13 +25,15 @@ import warnings
 from pathlib import Path
 from typing import Sequence
 
+from slamkit.cli import streams
 from slamkit.errors import ConfigError, SlamkitError
-from slamkit.run.lifecycle import StopSignals, pause_point
+from slamkit.run.lifecycle import StopSignals, exit_status, pause_point
+from slamkit.run.ownership import release_all
 
 log = logging.getLogger("slamkit")
 
-#: Exit status of a run whose tracking failed, and of an interrupted run.
-TRACKING_FAILED, INTERRUPTED = 3, 130
+#: Exit status of a run whose tracking failed (an interrupted run's: `exit_status`, 128 + the signal).
+TRACKING_FAILED = 3
 
 
 def _fail(message: str, status: int = 2) -> None:
@@ -67,6 +70,7 @@ class Command:
 
     def main(self, argv: list[str]) -> None:
         """Run the command with `argv` (its arguments); exits with the run's status."""
+        streams.guard()  # a closed, broken or full stdout / stderr never stops the command
         try:
             with self.startup.installed():
                 self._start(argv)
@@ -74,7 +78,9 @@ class Command:
             phase = self.stop.phase.value if self.stop else "startup"
             print(f"slamkit: interrupted ({str(exc) or 'SIGINT'}) during {phase.replace('startup', 'start-up')}",
                   file=sys.stderr)
-            sys.exit(INTERRUPTED)
+            sys.exit(exit_status(str(exc) or "SIGINT"))
+        finally:
+            release_all()  # the run folders this command claimed (slamkit.cli.hydra_hooks), however it ends
         if self.failed_runs:
             _fail(f"tracking failed in {len(self.failed_runs)} of the sweep's runs: {', '.join(self.failed_runs)}",
                   TRACKING_FAILED)
@@ -89,9 +95,12 @@ class Command:
 
         _escape_unencodable_output()
         flags = [a for a in argv if a.startswith("-")]
+        # --help, --cfg job, --info ...: Hydra's own options (some take a value), no run to check
+        run = all(f in ("-m", "--multirun") for f in flags)
         try:
-            argv = resume_arguments(argv)
-            check_spellings([a for a in argv if not a.startswith("-")])
+            if run:
+                argv = resume_arguments(argv)
+                check_spellings([a for a in argv if not a.startswith("-")])
         except SlamkitError as exc:
             if os.environ.get("SLAMKIT_DEBUG"):
                 raise
@@ -107,7 +116,7 @@ class Command:
         self.startup.hold()  # Hydra and OmegaConf cut by a KeyboardInterrupt report another error: hold it
         try:
             overrides = [a for a in argv if not a.startswith("-")]
-            if not any(f not in ("-m", "--multirun") for f in flags):  # --help, --cfg: no run
+            if run:
                 _check_output_dir(overrides, multirun=bool(flags))
                 _check_plugin_choices(self.registry, overrides)
                 if not flags and not _is_sweep(overrides):  # a single run: its config checked before any work
@@ -160,8 +169,8 @@ class Command:
             return float(failed_value)
         print(f"slamkit: {program.summary(metrics)}")
         print(f"slamkit: outputs in {out_dir}")
-        if metrics["status"] == STOPPED:  # interrupted (Ctrl-C, SIGTERM): stop, also a search
-            sys.exit(INTERRUPTED)
+        if metrics["status"] == STOPPED:  # interrupted (Ctrl-C, SIGTERM, ...): stop, also a search
+            sys.exit(exit_status(self.stop.signal))
         if metrics["status"] == FAILED:  # tracking failed: a sweep goes on, and exits with it at the end
             if hydra_cfg.mode == RunMode.MULTIRUN:
                 self.failed_runs.append(str(out_dir))

@@ -7,6 +7,11 @@ column says what became of the runs (metrics.json's `status`: completed, interru
 running for a run still going or killed): only completed runs are aggregated and plotted, each
 unfinished run is a row of its own with its error (`--include-unfinished` aggregates them too),
 and a run whose metrics.json cannot be read is a row (status unreadable) with the reason.
+
+Every job of a sweep is a row: a job folder (Hydra's `.hydra/`) without metrics.json is running
+while a process holds it (`slamkit.run.ownership`), else failed, with the last error of its log
+(a bad value in one job stops a sweep there); a job of the sweep's own record (multirun.yaml,
+Hydra's basic sweeper) that has no folder is `not run`, with its overrides.
 """
 
 from __future__ import annotations
@@ -21,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from slamkit.cli import streams
 from slamkit.errors import DataError, SlamkitError
 from slamkit.formats.atomic import atomic_open, write_atomic
 from slamkit.formats.plots import save_figure
@@ -31,28 +37,95 @@ METRICS = ["ate_rmse_m", "ate_mean_m", "rpe_trans_rmse_m", "fps", "tracking_fps"
            "psnr_train", "psnr_test", "depth_l1_cm", "num_keyframes", "num_gaussians", "lost_frames", "peak_memory_mb",
            "mapping_train_time_s", "mapping_train_cpu_s", "wall_time_s", "num_frames"]
 STATUSES = ("completed", "interrupted", "failed", "running")
+#: A sweep's job that never started (no folder).
+NOT_RUN = "not run"
+#: Hydra's default basic sweeper and job folder name: the jobs a sweep record stands for.
+BASIC_SWEEPER = "hydra._internal.core_plugins.basic_sweeper.BasicSweeper"
+JOB_NUMBER_SUBDIR = "${hydra.job.num}"
 
 
 def find_runs(dirs: list[Path]) -> list[Path]:
-    """Run directories (holding metrics.json) under the given folders, sorted."""
-    runs = sorted({p.parent for d in dirs for p in Path(d).rglob("metrics.json")})
+    """Run directories under the given folders, sorted: those holding metrics.json, and job
+    folders (Hydra's .hydra/) that have none yet."""
+    for d in dirs:
+        if not Path(d).is_dir():
+            raise DataError(f"{d} not found (expected a run folder, or a folder of runs or sweeps)")
+    runs = sorted({p.parent for d in dirs for p in Path(d).rglob("metrics.json")}
+                  | {p.parent for d in dirs for p in Path(d).rglob(".hydra") if p.is_dir()})
     if not runs:
         raise DataError(f"no runs (metrics.json) found under {', '.join(map(str, dirs))}")
     return runs
 
 
+def not_run(dirs: list[Path], runs: list[Path]) -> list[dict]:
+    """Entries (status `not run`) of the jobs that the sweeps under `dirs` recorded
+    (multirun.yaml) and that have no folder among `runs`."""
+    found = {r.resolve() for r in runs}
+    entries = []
+    for record in sorted({p for d in dirs for p in Path(d).rglob("multirun.yaml")}):
+        for folder, overrides in sweep_jobs(record):
+            if folder.resolve() not in found:
+                entries.append({"run": folder, "settings": _parse_overrides(overrides), "metrics": {},
+                                "status": NOT_RUN, "error": "the sweep ended before this job started"})
+    return entries
+
+
+def sweep_jobs(record: Path) -> list[tuple[Path, list[str]]]:
+    """(folder, overrides) of every job of the sweep recorded in `record` (its multirun.yaml), in
+    job order, as Hydra's basic sweeper makes them; none for another sweeper (an optimising one
+    decides its jobs as it goes) or job folders not named by job number."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+
+    try:
+        hydra = (yaml.safe_load(record.read_text()) or {}).get("hydra", {})
+        sweeper, subdir = hydra["sweeper"], hydra["sweep"]["subdir"]
+        if sweeper.get("_target_") != BASIC_SWEEPER or subdir != JOB_NUMBER_SUBDIR:
+            return []
+        params = [f"{k}={v}" for k, v in (sweeper.get("params") or {}).items()]
+        parsed = OverridesParser.create().parse_overrides(overrides=params + list(hydra["overrides"]["task"]))
+        (jobs,) = BasicSweeper.split_arguments(parsed, None)
+    except Exception as exc:  # not a record this reader understands: its jobs are the folders found
+        print(f"slamkit-report: {record}: the sweep's jobs cannot be listed from it ({type(exc).__name__}: {exc}); "
+              "reporting its job folders", file=sys.stderr)
+        return []
+    return [(record.parent / str(i), overrides) for i, overrides in enumerate(jobs)]
+
+
 def load_run(run: Path) -> dict:
     """A run's settings (its overrides), metrics, `status` and `error`; a metrics.json (or
-    overrides.yaml) that cannot be read gives status "unreadable", no metrics and the reason."""
+    overrides.yaml) that cannot be read gives status "unreadable", no metrics and the reason; a
+    job folder without metrics.json is running (its folder is held) or failed (`_ended_early`)."""
     entry = {"run": run, "settings": {}, "metrics": {}, "status": "unreadable", "error": None}
     try:
         entry["settings"] = _settings(run / ".hydra" / "overrides.yaml")
+        if not (run / "metrics.json").exists():
+            entry["status"], entry["error"] = _ended_early(run)
+            return entry
         entry["metrics"] = _metrics(run / "metrics.json")
     except DataError as exc:
         entry["error"] = str(exc)
         return entry
     entry["status"], entry["error"] = _status(entry["metrics"])
     return entry
+
+
+def _ended_early(run: Path) -> tuple[str, str]:
+    """(status, why) of a job folder without metrics.json: running while a process holds it,
+    else failed with the last error its log recorded."""
+    from slamkit.run.ownership import in_use_by
+
+    holder = in_use_by(run)
+    if holder is not None:
+        return "running", f"no metrics.json yet: running ({holder})"
+    try:
+        lines = (run / "slamkit.log").read_text(errors="replace").splitlines()
+    except OSError:
+        lines = []
+    errors = [line.partition("][ERROR] - ")[2] for line in lines if "][ERROR] - " in line]
+    if errors:
+        return "failed", errors[-1]
+    return "failed", "no metrics.json and no error in its log: the job was killed before its stream ended"
 
 
 def _settings(path: Path) -> dict[str, str]:
@@ -62,8 +135,12 @@ def _settings(path: Path) -> dict[str, str]:
         raise DataError(f"{path}: not readable as YAML ({str(exc).splitlines()[0]})") from None
     if not isinstance(overrides, (list, type(None))):
         raise DataError(f"{path}: a YAML {type(overrides).__name__}, expected a list of overrides")
+    return _parse_overrides(overrides or [])
+
+
+def _parse_overrides(overrides: list) -> dict[str, str]:
     settings = {}
-    for item in overrides or []:
+    for item in overrides:
         key, _, value = str(item).lstrip("+~").partition("=")
         if not key.startswith("hydra"):
             settings[key] = value
@@ -105,7 +182,8 @@ def aggregate(runs: list[dict], include_unfinished: bool = False) -> tuple[list[
     runs (all readable runs with `include_unfinished`) of each configuration in one row, then
     each other run in a row of its own (its metrics as they stand, its error)."""
     keys = [k for k in swept_keys([r for r in runs if r["status"] != "unreadable"]) if k != "seed"]
-    pooled = [r for r in runs if r["status"] == "completed" or (include_unfinished and r["status"] != "unreadable")]
+    pooled = [r for r in runs if r["status"] == "completed"
+              or (include_unfinished and r["status"] not in ("unreadable", NOT_RUN))]
     groups: dict[tuple, list[dict]] = defaultdict(list)
     for r in pooled:
         groups[tuple(r["settings"].get(k, "") for k in keys)].append(r)
@@ -226,19 +304,25 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=None, help="where to write (default: the first DIR)")
     parser.add_argument("--include-unfinished", action="store_true",
                         help="aggregate interrupted, failed and running runs with the completed ones")
+    streams.guard()  # a closed, broken or full stdout / stderr never stops the command
     args = parser.parse_args(argv)
+    out = args.out or args.dirs[0]
     try:
-        runs = [load_run(r) for r in find_runs(args.dirs)]
+        folders = find_runs(args.dirs)
+        runs = [load_run(r) for r in folders] + not_run(args.dirs, folders)
         keys, rows = aggregate(runs, args.include_unfinished)
-        out = args.out or args.dirs[0]
         out.mkdir(parents=True, exist_ok=True)
         write_tables(out, keys, rows)
         write_plots(out, rows)
     except SlamkitError as exc:
         print(f"slamkit-report: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # a read-only or full place
+        print(f"slamkit-report: error: cannot write the report into {out}: {exc.strerror or exc} (--out names another "
+              "folder)", file=sys.stderr)
+        return 1
     print((out / "report.md").read_text(), end="")
-    counts = ", ".join(f"{sum(r['status'] == s for r in runs)} {s}" for s in (*STATUSES, "unreadable")
+    counts = ", ".join(f"{sum(r['status'] == s for r in runs)} {s}" for s in (*STATUSES, "unreadable", NOT_RUN)
                        if any(r["status"] == s for r in runs))
     print(f"slamkit-report: {len(runs)} runs ({counts}), {len(rows)} rows; wrote report.csv, report.md and plots "
           f"into {out}", file=sys.stderr)

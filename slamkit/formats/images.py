@@ -113,12 +113,24 @@ def read_rgb(path: str | Path) -> np.ndarray:
     return np.asarray(im, dtype=np.uint8).copy()
 
 
-def read_depth(path: str | Path, scale: float, invalid_values: Iterable[float] = ()) -> np.ndarray:
-    """HxW float32 depth in metres: raw / `scale` (e.g. 5000 for TUM, 1000 for millimetres).
+#: The depth a sensor sees: an image whose median valid depth lies outside this range (metres)
+#: was read in the wrong unit (a depth scale that is not the file's, metres cast to uint16).
+PLAUSIBLE_DEPTH_M = (0.05, 100.0)
+#: Valid pixels an image needs for its unit to be judged (fewer: a blank view, not judged).
+MIN_JUDGED_PIXELS = 100
 
-    Raw 0 stays 0 (invalid); raw values listed in `invalid_values` (e.g. 65535 in 7-Scenes),
-    negative values and non-finite values also become 0. Accepts 16-bit PNGs (modes I;16 / I)
-    and 32-bit float images (mode F)."""
+
+def read_depth(path: str | Path, scale: float, invalid_values: Iterable[float] = (),
+               size: tuple[int, int] | None = None) -> np.ndarray:
+    """HxW float32 depth in metres. A 16-bit PNG (modes I;16 / I) holds raw units: raw / `scale`
+    (e.g. 5000 for TUM, 1000 for millimetres); a 32-bit float image (mode F) holds metres, its
+    own unit whatever `scale` is (as ROS's 32FC1 and float depth files do).
+
+    Raw 0 stays 0 (invalid); raw values listed in `invalid_values` (e.g. 65535 in 7-Scenes, for
+    integer images), negative values and non-finite values also become 0. An image whose depth
+    is implausible in that unit (`PLAUSIBLE_DEPTH_M`: a scale that is not the file's, metres cast
+    to integers, millimetres in a float file) is a one-line DataError naming the file, as is one
+    that is not `size` (width, height: its colour image's), when given."""
     path = Path(path)
     raw = _decoded(path, 0, np.uint16)
     if raw is None:
@@ -126,13 +138,34 @@ def read_depth(path: str | Path, scale: float, invalid_values: Iterable[float] =
         if im.mode not in _DEPTH_MODES:
             raise DataError(f"cannot read depth image {path}: pixel mode {im.mode} (expected a 16-bit PNG)")
         raw = np.asarray(im)
+    if size is not None:
+        check_same_size(size, raw, path)
+    floating = raw.dtype.kind == "f"
     depth = raw.astype(np.float32)
-    np.divide(depth, np.float32(scale), out=depth)  # (raw 0 is 0 m: invalid)
-    if raw.dtype.kind != "u":
-        depth[(raw <= 0) if raw.dtype.kind != "f" else ~np.isfinite(raw) | (raw <= 0)] = 0.0
-    for v in invalid_values:
-        depth[raw == v] = 0.0
+    if floating:
+        depth[~np.isfinite(raw) | (raw <= 0)] = 0.0
+    else:
+        np.divide(depth, np.float32(scale), out=depth)  # raw 0 is 0 m (invalid)
+        if raw.dtype.kind != "u":
+            depth[raw <= 0] = 0.0
+        for v in invalid_values:
+            depth[raw == v] = 0.0
+    _check_plausible(path, depth, "a float image, read as metres" if floating else
+                     f"{raw.dtype.itemsize * 8}-bit raw units / depth scale {scale:g}")
     return depth
+
+
+def _check_plausible(path: Path, depth: np.ndarray, unit: str) -> None:
+    """DataError when the median valid depth (of every 4th pixel) is outside PLAUSIBLE_DEPTH_M."""
+    sample = depth[::4, ::4]
+    valid = sample[sample > 0]
+    if valid.size < MIN_JUDGED_PIXELS:
+        return
+    median = float(np.median(valid))
+    low, high = PLAUSIBLE_DEPTH_M
+    if not low <= median <= high:
+        raise DataError(f"depth image {path}: median depth {median:.4g} m ({unit}), expected {low:g} to {high:g} m "
+                        "(check dataset.depth_scale, or the unit the images were written in)")
 
 
 def _size(image_or_size: np.ndarray | tuple[int, int]) -> tuple[int, int]:
@@ -167,8 +200,7 @@ def read_rgbd(rgb_path, depth_path, depth_scale: float, camera, invalid_values: 
     camera's size; every problem is a one-line DataError naming the file."""
     size, rgb = checked_rgb(rgb_path)
     check_camera_size(size, camera, rgb_path)
-    depth = read_depth(depth_path, depth_scale, invalid_values)
-    check_same_size(size, depth, depth_path)
+    depth = read_depth(depth_path, depth_scale, invalid_values, size)
     return rgb, depth
 
 

@@ -13,10 +13,14 @@ necessarily normalised (as 3DGS stores it).
 numeric property type, extra properties (e.g. 3DGS's f_rest_* higher-order SH, which are
 ignored: slamkit's colours are SH degree 0) and other elements without list properties before
 the vertices. Anything else raises `slamkit.errors.DataError` naming the file and the problem.
+
+`save_ply` leaves out a Gaussian with a non-finite parameter (a diverged map; `finite_rows`):
+viewers cannot draw it, some refuse the whole file, and a mesh made from it is garbage.
 """
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +29,8 @@ import torch
 from slamkit.errors import DataError
 from slamkit.formats.atomic import atomic_open
 from slamkit.map.gaussian_map import GaussianMap, GaussianRows
+
+log = logging.getLogger(__name__)
 
 #: The degree-0 real spherical harmonic, 1 / (2 sqrt(pi)).
 C0 = 0.28209479177387814
@@ -45,17 +51,31 @@ _TYPES = {
 _FORMATS = {"binary_little_endian": "<", "binary_big_endian": ">", "ascii": None}
 
 
-def save_ply(path: str | Path, gaussian_map: GaussianMap) -> None:
-    """Write `gaussian_map` to `path` (binary little endian 3DGS layout; written to a temporary
-    file first, then renamed, so a reader never sees half a file)."""
-    path = Path(path)
+def finite_rows(gaussian_map: GaussianMap) -> np.ndarray:
+    """(N,) bool: the Gaussians whose every parameter (mean, rotation, scales, opacity, colour) is
+    finite."""
     with gaussian_map.lock:
-        means = gaussian_map.means.detach().cpu().numpy()
-        colors = gaussian_map.colors.detach().cpu().numpy()
-        opacity = gaussian_map.opacity_logits.detach().cpu().numpy()
-        log_scales = gaussian_map.log_scales.detach().cpu().numpy()
-        quats = gaussian_map.quats.detach().cpu().numpy()
+        columns = [gaussian_map.means, gaussian_map.quats, gaussian_map.log_scales,
+                   gaussian_map.opacity_logits.reshape(-1, 1), gaussian_map.colors]
+        return torch.cat([c.detach() for c in columns], dim=1).isfinite().all(dim=1).cpu().numpy()
+
+
+def save_ply(path: str | Path, gaussian_map: GaussianMap) -> int:
+    """Write `gaussian_map` to `path` (binary little endian 3DGS layout; written to a temporary
+    file first, then renamed, so a reader never sees half a file), but its Gaussians with a
+    non-finite parameter; returns how many were left out (logged as a warning)."""
+    path = Path(path)
+    with gaussian_map.lock:  # re-entrant: finite_rows takes it too
+        keep = finite_rows(gaussian_map)
+        means = gaussian_map.means.detach().cpu().numpy()[keep]
+        colors = gaussian_map.colors.detach().cpu().numpy()[keep]
+        opacity = gaussian_map.opacity_logits.detach().cpu().numpy()[keep]
+        log_scales = gaussian_map.log_scales.detach().cpu().numpy()[keep]
+        quats = gaussian_map.quats.detach().cpu().numpy()[keep]
     n = len(means)
+    dropped = len(keep) - n
+    if dropped:
+        log.warning("%s: %d of %d Gaussians have a non-finite parameter and are left out", path, dropped, len(keep))
     data = np.zeros(n, dtype=[(p, "<f4") for p in PROPERTIES])
     for i, axis in enumerate("xyz"):
         data[axis] = means[:, i]
@@ -70,6 +90,7 @@ def save_ply(path: str | Path, gaussian_map: GaussianMap) -> None:
     with atomic_open(path, "wb") as f:
         f.write(header.encode("ascii"))
         f.write(data.tobytes())
+    return dropped
 
 
 def _parse_header(path: Path, raw: bytes):

@@ -28,6 +28,14 @@ from slamkit.scheduling import ThreadPriority
 SWITCH_INTERVAL_S = 5e-4
 
 
+class ExistingOutputs(str, enum.Enum):
+    """What a new run does with a folder that holds an earlier run's outputs
+    (`slamkit.run.ownership`): refuse (one line, nothing touched) or clean (delete them first)."""
+
+    refuse = "refuse"
+    clean = "clean"
+
+
 class Mode(enum.Enum):
     """sequential and realtime build a map (SLAM); localize tracks in a saved map (`map`)."""
 
@@ -81,15 +89,21 @@ class LocalizeConfig(PluginConfig):
     """`mode=localize`: tracking in a saved map, which stays as it is (docs/checkpoints.md). The
     first frame, and any frame where tracking is lost, is placed by global registration of its
     points against the map's trackable Gaussians (FPFH + RANSAC, then G-ICP, with open3d) and
-    tracked by the run's tracker from there (the map: `map=RUN_DIR`). voxel: metres, both clouds are downsampled to this for
-    global registration. min_inlier_fraction: a frame is localised when at least this fraction of
-    its trackable points has a map Gaussian within the tracker's correspondence distance.
+    tracked by the run's tracker from there (the map: `map=RUN_DIR`); it is localised when it
+    reaches the three min_* figures (slamkit.run.localization). voxel: metres, both clouds are
+    downsampled to this for global registration. min_inlier_fraction: a localised frame's least
+    fraction of trackable points with a map Gaussian within the tracker's correspondence distance.
+    min_surface_agreement: a localised frame's least fraction of the image cells where the map is
+    in view whose nearest map Gaussian centre lies on the frame's depth. min_color_correlation: a
+    localised frame's least correlation of the map's colours with its own in those cells.
     ransac_iterations: RANSAC's iteration limit. ransac_confidence: RANSAC's stopping confidence.
     attempts: RANSAC runs (other seeds) per global registration before the frame counts as not
     localised."""
 
     voxel: float = 0.05
     min_inlier_fraction: float = 0.3
+    min_surface_agreement: float = 0.7
+    min_color_correlation: float = 0.5
     ransac_iterations: int = 100000
     ransac_confidence: float = 0.999
     attempts: int = 3
@@ -98,6 +112,10 @@ class LocalizeConfig(PluginConfig):
         require(self.voxel > 0, "localize.voxel", "> 0 metres", self.voxel)
         require(0 <= self.min_inlier_fraction <= 1, "localize.min_inlier_fraction", "in [0, 1]",
                 self.min_inlier_fraction)
+        require(0 <= self.min_surface_agreement <= 1, "localize.min_surface_agreement", "in [0, 1]",
+                self.min_surface_agreement)
+        require(0 <= self.min_color_correlation <= 1, "localize.min_color_correlation", "in [0, 1]",
+                self.min_color_correlation)
         require(self.ransac_iterations >= 1, "localize.ransac_iterations", "an integer >= 1", self.ransac_iterations)
         require(0 < self.ransac_confidence < 1, "localize.ransac_confidence", "in (0, 1)", self.ransac_confidence)
         require(self.attempts >= 1, "localize.attempts", "an integer >= 1", self.attempts)
@@ -140,7 +158,9 @@ class RunConfig(PluginConfig):
     (or checkpoint file) whose run this one continues (`slamkit resume=RUN_DIR`). localize:
     `mode=localize`'s settings (LocalizeConfig). growth: how keyframes grow the map
     (MapGrowthConfig). map: with mode=localize, the run folder or checkpoint file of the saved
-    map to localise in."""
+    map to localise in. existing_outputs: refuse | clean: a new run into a folder holding an
+    earlier run's outputs stops in one line, or deletes them first (clean;
+    `slamkit.run.ownership`)."""
 
     growth: MapGrowthConfig = field(default_factory=MapGrowthConfig)
     map: str | None = None
@@ -161,6 +181,7 @@ class RunConfig(PluginConfig):
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
     resume: str | None = None
     localize: LocalizeConfig = field(default_factory=LocalizeConfig)
+    existing_outputs: ExistingOutputs = ExistingOutputs.refuse
 
     def device(self) -> str:
         """The torch device the map lives on ("cpu" or "cuda"); ConfigError when cuda is asked

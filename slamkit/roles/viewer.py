@@ -19,18 +19,15 @@ from slamkit.types import Camera, Frame, KeyframeKind
 
 @dataclass
 class ViewerConfig(PluginConfig):
-    """Options every viewer takes (a viewer's config may derive from this one).
+    """Options every viewer takes (a viewer's config may derive from this one)."""
 
-    render_every: frames between renders of the map from the current pose (0 = never; a
-    render costs about one mapping step). render_scale: resolution of those renders relative
-    to the frame's, in (0, 1]. map_every: frames between logs of the Gaussian centres (0 =
-    only after the last frame). map_max_points: at most this many Gaussian centres per log
-    (an even subsample of the map).
-    """
-
+    #: frames between renders of the map from the current pose (0: never; a render costs about a mapping step)
     render_every: int = 10
+    #: resolution of those renders relative to the frame's, in (0, 1]
     render_scale: float = 0.5
+    #: frames between logs of the Gaussian centres (0: only after the last frame)
     map_every: int = 10
+    #: at most this many Gaussian centres a log (an even subsample of the map)
     map_max_points: int = 200_000
 
     def validate(self) -> None:

@@ -7,7 +7,9 @@ A checkpoint (`RUN_DIR/checkpoint.zip`, the file format is `slamkit.formats.chec
 - `slam`: the keyframe count and the last pose; `tracker`, `keyframe`, `mapper`: each role's
   `state_dict()` (G-ICP: its target and motion model; the 3DGS mapper: its keyframes with their
   training images, the optimiser's moments, the strategy's statistics, the sampler's random state);
-- `run`: the trajectory so far (timestamps, poses, ground truth), keyframe rows and counters;
+- `run`: the trajectory so far (timestamps, poses, ground truth), keyframe rows and counters,
+  and what its sessions measured of themselves in all (`sessions`: count, CPU seconds, peak
+  memory; `slamkit.run.state.EarlierSessions`);
 - in meta.json: the resolved config, the command-line overrides and plugins of the run, the
   camera, the dataset selection, the last frame index and why it was written (`end`,
   `keyframes`, `interrupted`).
@@ -15,8 +17,11 @@ A checkpoint (`RUN_DIR/checkpoint.zip`, the file format is `slamkit.formats.chec
 `CheckpointWriter` writes it every `checkpoint.every_keyframes` keyframes during the stream
 (`slamkit.run.pipeline`), and where the run saves its map (`RunOutputs.save_map`): after the
 refinement, and when a signal stops the run at a safe point; `restore` puts a run back where
-its checkpoint left it (`slamkit resume=RUN_DIR`, see `resume_arguments`); `load_map` reads the
-map alone (`mode=localize`, slamkit-export).
+its checkpoint left it (`slamkit resume=RUN_DIR`, see `resume_arguments`), once it has checked
+that the dataset's frames up to there are the checkpoint's (their timestamps: a frame list that
+changed would otherwise shift every frame after the change without a word); `finished` says when
+there is nothing to resume (the run completed every frame: its files stay as they are);
+`load_map` reads the map alone (`mode=localize`, slamkit-export).
 """
 
 from __future__ import annotations
@@ -36,6 +41,8 @@ import torch
 from slamkit.formats.checkpoint import (CHECKPOINT_NAME, CheckpointError, checkpoint_path, read_checkpoint,
                                         read_meta, write_checkpoint)
 from slamkit.map.gaussian_map import ROW_WIDTHS, GaussianMap
+from slamkit.run.metrics import peak_memory_mb
+from slamkit.run.state import SESSION_FIGURES, EarlierSessions
 from slamkit.types import Camera
 
 log = logging.getLogger(__name__)
@@ -45,6 +52,8 @@ RUN_COUNTERS = ("num_keyframes", "lost_frames", "dropped_frames", "mapping_itera
                 "mapping_time_s", "stream_time_s", "refine_iterations", "refine_time_s")
 #: The dataset settings a resumed run must share with the run it continues.
 SAME_SELECTION = ("path", "start", "stride", "passes")
+#: Seconds two timestamps of one frame may differ by (the checkpoint's and the dataset's).
+TIMESTAMP_TOLERANCE_S = 1e-6
 
 
 class CheckpointWriter:
@@ -104,9 +113,13 @@ def _run_state(s, wall_s: float) -> dict[str, Any]:
     has_gt = np.array([p is not None for p in s.gt_poses], dtype=bool)
     for i in np.flatnonzero(has_gt):
         gt[i] = s.gt_poses[i]
+    earlier_peak = s.earlier.peak_memory_mb
+    sessions = {"count": s.sessions, "frames": n, **{k: s.whole_run(k) for k in SESSION_FIGURES},
+                "peak_memory_mb": None if earlier_peak is None else max(earlier_peak, peak_memory_mb())}
     return {"timestamps": np.asarray(s.timestamps, dtype=np.float64), "poses": np.array(s.poses).reshape(n, 4, 4),
             "gt_poses": gt, "has_gt": has_gt, "keyframe_rows": np.asarray(s.keyframe_rows, dtype=np.int64),
-            "wall_time_s": s.previous_wall_s + wall_s, **{k: getattr(s, k) for k in RUN_COUNTERS}}
+            "wall_time_s": s.previous_wall_s + wall_s, "sessions": sessions,
+            **{k: getattr(s, k) for k in RUN_COUNTERS}}
 
 
 def load(source: str | Path) -> dict[str, Any]:
@@ -151,13 +164,16 @@ def _check(path: Path, checkpoint: dict[str, Any]) -> None:
         fail("its camera is not width, height, fx, fy, cx, cy")
 
 
-def resume(cfg, names: dict[str, str], slam, run_state) -> int:
+def resume(cfg, names: dict[str, str], slam, run_state, dataset=None) -> int:
     """With `resume=` set, restore its checkpoint into `slam` and `run_state` and return the
-    first frame still to process; 0 (nothing done) otherwise."""
+    first frame still to process; 0 (nothing done) otherwise. With `dataset`, its frames up to
+    the checkpoint's must be the checkpoint's (`check_frames`)."""
     if not cfg.resume:
         return 0
     checkpoint = load(cfg.resume)
     check_resumable(checkpoint, cfg, names, cfg.resume)
+    if dataset is not None:
+        check_frames(checkpoint, dataset, cfg.resume)
     first = restore(checkpoint, slam, run_state)
     log.info("resumed from %s (%s after frame %d): %d Gaussians, %d keyframes", checkpoint_path(cfg.resume),
              checkpoint.get("reason"), first - 1, len(slam.gaussian_map), slam.num_keyframes)
@@ -182,13 +198,62 @@ def restore(checkpoint: dict[str, Any], slam, run_state) -> int:
     for key in RUN_COUNTERS:
         setattr(run_state, key, type(getattr(run_state, key))(run[key]))
     run_state.previous_wall_s = float(run["wall_time_s"])
-    return int(checkpoint["last_frame_index"]) + 1
+    first = int(checkpoint["last_frame_index"]) + 1
+    sessions = run.get("sessions")
+    if isinstance(sessions, dict):
+        run_state.earlier = EarlierSessions(int(sessions["count"]), first,
+                                            {k: sessions.get(k) for k in SESSION_FIGURES},
+                                            sessions.get("peak_memory_mb"))
+    else:  # written before sessions were counted: at least one, its own figures unknown
+        run_state.earlier = EarlierSessions(1, first, {k: None for k in SESSION_FIGURES}, None)
+    return first
+
+
+def check_frames(checkpoint: dict[str, Any], dataset, source: str | Path) -> None:
+    """CheckpointError when the dataset's frames up to the checkpoint's last are not the ones
+    the checkpoint's run processed (their timestamps differ: a frame added, removed or moved in
+    the dataset's list since), or the dataset now has fewer frames."""
+    saved = np.asarray(checkpoint["state"]["run"]["timestamps"], dtype=np.float64)
+    if len(dataset) < len(saved):
+        raise CheckpointError(f"resume={source}: the dataset selects {len(dataset)} frames, fewer than the "
+                              f"{len(saved)} the checkpoint's run processed (a resumed run continues the same frames)")
+    now = np.array([dataset.timestamp(i) for i in range(len(saved))], dtype=np.float64)
+    moved = np.flatnonzero(~(np.abs(now - saved) <= TIMESTAMP_TOLERANCE_S))
+    if len(moved):
+        i = int(moved[0])
+        raise CheckpointError(f"resume={source}: frame {i} of the dataset is at {now[i]:.6f} s, the checkpoint's "
+                              f"frame {i} at {saved[i]:.6f} s: the dataset's frame list changed since that run (a "
+                              "resumed run continues the same frames)")
+
+
+def finished(cfg, names: dict[str, str], frames: int) -> dict[str, Any] | None:
+    """With `resume=`: the metrics of the run it names when that run completed every one of the
+    `frames` frames this run selects (its refinement and evaluation included): there is nothing
+    to resume, and its files stay as they are. None otherwise (also without resume=).
+    CheckpointError when this run could not resume it (`check_resumable`)."""
+    if not cfg.resume:
+        return None
+    path = checkpoint_path(cfg.resume)
+    meta = read_meta(path)
+    check_resumable(meta, cfg, names, cfg.resume)
+    metrics_path = path.parent / "metrics.json"
+    try:
+        metrics = json.loads(metrics_path.read_text())
+    except (OSError, ValueError):
+        return None  # its metrics are missing or damaged: resuming writes them again
+    if not (meta.get("completed") and isinstance(metrics, dict) and metrics.get("status") == "completed"
+            and meta.get("num_frames") == frames == metrics.get("num_frames")):
+        return None
+    log.warning("resume=%s: the run completed all %d frames of this selection; nothing to resume (its files are left "
+                "as they are; raise dataset.max_frames to go further)", cfg.resume, frames)
+    return metrics
 
 
 def check_resumable(checkpoint: dict[str, Any], cfg, names: dict[str, str], source: str | Path) -> None:
     """ConfigError-like CheckpointError when this run cannot continue the checkpoint's: other
     plugins, or another frame selection of the dataset (its max_frames may differ)."""
-    for role, name in checkpoint["plugins"].items():
+    for role, name in (checkpoint.get("plugins") or {}).items():
+        role = current_path(role)  # a checkpoint before 0.3 names a mapper part by its key alone
         if names.get(role) != name:
             raise CheckpointError(f"resume={source}: the checkpoint was made with {role}={name}, this run has "
                                   f"{role}={names.get(role)} (a resumed run keeps its plugins)")
@@ -212,26 +277,37 @@ def keyframe_poses(checkpoint: dict[str, Any]) -> np.ndarray:
     return np.asarray(run["poses"], dtype=np.float64)[np.asarray(run["keyframe_rows"], dtype=np.int64)]
 
 
+def current_path(role: str) -> str:
+    """A role's path in a checkpoint's plugin list as 0.3 spells it (`rasterizer` ->
+    `mapper.rasterizer`)."""
+    from slamkit.roles import PARTS
+
+    return next((part.path for part in PARTS if part.key == role), role)
+
+
 def resume_arguments(argv: list[str]) -> list[str]:
     """The command line of `slamkit resume=RUN_DIR [overrides]`: the overrides of the run that
-    wrote the checkpoint, then the new ones (which replace those of the same key), and
-    `hydra.run.dir=RUN_DIR` so that the run's files are extended in place. `argv` unchanged
-    without resume=. CheckpointError when the checkpoint cannot be read."""
-    resume = [a for a in argv if a.startswith("resume=")]
-    if not resume:
+    wrote the checkpoint (respelled where slamkit 0.3 renamed their keys), then the new ones
+    (which replace those of the same key), and `hydra.run.dir=RUN_DIR` so that the run's files
+    are extended in place. `argv` unchanged without resume=. CheckpointError when the checkpoint
+    cannot be read."""
+    from slamkit.registry.compose import parse_overrides, renamed_key
+
+    given = {o.key_or_group: o for o in parse_overrides([a for a in argv if not a.startswith("-")])}
+    if "resume" not in given:
         return argv
-    source = Path(resume[-1].partition("=")[2])
+    source = Path(str(given["resume"].value()))
     meta = read_meta(checkpoint_path(source))
     overrides = meta.get("overrides")
     if not isinstance(overrides, list):
         raise CheckpointError(f"resume={source}: the checkpoint has no command line to resume (it was written "
                               "outside the slamkit command)")
-
-    def key(override: str) -> str:
-        return override.lstrip("+~").partition("=")[0]
-
-    given = {key(a) for a in argv if "=" in a}
-    kept = [o for o in overrides if key(o) not in given and not key(o).startswith("hydra")]
+    kept = []
+    for saved in parse_overrides(overrides):
+        key = saved.key_or_group
+        new = renamed_key(key)
+        if (new or key) not in given and not key.startswith(("hydra.", "hydra/")):
+            kept.append(saved.input_line.replace(key, new, 1) if new else saved.input_line)
     out_dir = source if source.is_dir() else source.parent
     run_dir = [] if "hydra.run.dir" in given else [f"hydra.run.dir={out_dir}"]
     return kept + argv + run_dir

@@ -1,12 +1,16 @@
-"""A run's phases, and stopping it on SIGINT / SIGTERM at a point where its state is whole.
+"""A run's phases, and stopping it on a signal at a point where its state is whole.
 
 A run goes through `Phase`s in order: start-up (plugins, config, building the roles), the
 stream (the frames), the refinement (`final_iterations` mapping steps and the mapper's
 `finish`), the map (writing it) and the evaluation. Each phase's outputs are written as soon as
 it ends (`slamkit.run.pipeline`), so a run cut in any phase keeps those of the phases before it.
 
-`StopSignals` handles SIGINT and SIGTERM alike for the run. In the phases that change the map or
-the trajectory (stream, refine, map) the first signal is only noted, and the run stops at the
+`StopSignals` handles alike every catchable signal whose default is to end the process
+(`SIGNALS`: SIGINT, Ctrl-C; SIGTERM, what `kill`, SLURM and submitit send; SIGHUP, a closed
+terminal or SSH session; SIGQUIT, Ctrl-\\; SIGUSR1 and SIGUSR2, a batch system's notice before it
+pre-empts a job). The command exits with 128 + the signal's number (`exit_status`: 130 for
+SIGINT, 143 for SIGTERM, 129 for SIGHUP), the shells' convention. In the phases that change the
+map or the trajectory (stream, refine, map) the first signal is only noted, and the run stops at the
 next safe point (`check()`: between frames, between mapping steps), so that what is written is a
 whole map and a whole trajectory; a second signal stops it at once. In start-up and the
 evaluation, which change nothing that is kept, a signal stops the run at once (held only while
@@ -37,7 +41,19 @@ log = logging.getLogger(__name__)
 #: The environment variable of the test hook (see the module docstring).
 PAUSE_ENV = "SLAMKIT_PAUSE_AT"
 PAUSE_TIMEOUT_S = 60.0
-SIGNALS = (signal.SIGINT, signal.SIGTERM)
+#: The signals a run handles: every catchable one whose default action ends the process and
+#: that a user, a terminal or a batch system sends to stop it (those this platform has).
+SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT", "SIGUSR1", "SIGUSR2")
+                if hasattr(signal, name))
+
+
+def exit_status(signal_name: str | None) -> int:
+    """The exit status of a command stopped by the signal named `signal_name` ("SIGTERM"):
+    128 + its number, as a shell reports a process the signal ended (SIGINT's 130 when unknown)."""
+    try:
+        return 128 + int(signal.Signals[signal_name or "SIGINT"])
+    except KeyError:
+        return 128 + int(signal.SIGINT)
 
 
 class Phase(str, enum.Enum):
@@ -56,7 +72,7 @@ DEFERRED = {Phase.stream, Phase.refine, Phase.map}
 
 
 class StopSignals:
-    """SIGINT and SIGTERM for one run (see the module docstring). `signal` is the name of the
+    """The `SIGNALS` for one run (see the module docstring). `signal` is the name of the
     first signal received (None while there was none)."""
 
     def __init__(self) -> None:

@@ -1,5 +1,11 @@
 """metrics.json's content for a run as it stands (`run_metrics`), the one-line summary the
-terminal prints (`summary`), and the process's memory figures they report."""
+terminal prints (`summary`), and the process's memory figures they report.
+
+Every figure covers the whole run, over all its sessions (a resumed run's: `sessions`), but
+those named in `last_session_only` (the process's thread setting, the mapper's per-phase step
+times); `session` gives the last session's own figures (its frames, wall time, CPU seconds, peak
+memory). Where no ATE is reported, `ate_unavailable` says why.
+"""
 
 from __future__ import annotations
 
@@ -9,9 +15,13 @@ from typing import Any
 import torch
 
 from slamkit.metrics import trajectory as evaluation
+from slamkit.metrics.trajectory import MIN_ATE_POSES
 from slamkit.registry.schema import RunConfig
 from slamkit.run.slam import SLAM
-from slamkit.run.state import COMPLETED, INTERRUPTED, RunState
+from slamkit.run.state import COMPLETED, INTERRUPTED, SESSION_FIGURES, RunState
+
+#: metrics.json's figures that cover the last session only (`last_session_only`).
+LAST_SESSION_ONLY = ("mapping_threads", "mapping_step_ms")
 
 
 def run_metrics(cfg: RunConfig, slam: SLAM, state: RunState, wall_s: float) -> dict[str, Any]:
@@ -23,7 +33,8 @@ def run_metrics(cfg: RunConfig, slam: SLAM, state: RunState, wall_s: float) -> d
     failure = state.tracking_failure(cfg.eval.max_lost_fraction) if n else None
     ate = evaluation.ate(poses, state.gt_poses) if n and not failure else None
     rpe = evaluation.rpe(poses, state.gt_poses) if n > 1 and not failure else None
-    slam_s = (state.slam_time_s if state.slam_time_s is not None else wall_s) + state.previous_wall_s
+    session_s = state.slam_time_s if state.slam_time_s is not None else wall_s
+    slam_s = session_s + state.previous_wall_s
     metrics: dict[str, Any] = {
         "num_frames": n,
         "num_keyframes": state.num_keyframes,
@@ -33,11 +44,8 @@ def run_metrics(cfg: RunConfig, slam: SLAM, state: RunState, wall_s: float) -> d
         "stream_time_s": state.stream_time_s,
         "tracking_time_s": state.tracking_time_s,
         "mapping_time_s": state.mapping_time_s,
-        "tracking_cpu_s": state.tracking_cpu_s,
-        "mapping_cpu_s": state.mapping_cpu_s,
-        "loading_cpu_s": state.loading_cpu_s,
-        "stream_cpu_s": state.stream_cpu_s,
-        "tracking_cpu_wait_s": state.tracking_cpu_wait_s,
+        **{figure: state.whole_run(figure) for figure in SESSION_FIGURES},
+        "tracking_cpu_wait_s": state.tracking_cpu_wait_s,  # this session's, as the throttle's
         **_throttle(state),
         "wall_time_s": slam_s,
         "mapping_iterations": state.mapping_iterations,
@@ -53,6 +61,7 @@ def run_metrics(cfg: RunConfig, slam: SLAM, state: RunState, wall_s: float) -> d
         "status": state.status,
         "phase": state.phase.value,
         "error": state.error,
+        "ate_unavailable": _ate_unavailable(n, failure, ate),
         "ate_rmse_m": ate.rmse_m if ate else None,
         "ate_mean_m": ate.mean_m if ate else None,
         "ate_frames": ate.num if ate else 0,
@@ -61,7 +70,13 @@ def run_metrics(cfg: RunConfig, slam: SLAM, state: RunState, wall_s: float) -> d
         "num_gaussians": len(slam.gaussian_map),
     }
     metrics.update(state.evaluation)
-    metrics["peak_memory_mb"] = _peak_memory_mb()  # so far: after the evaluation in the last write
+    peak = peak_memory_mb()  # so far: after the evaluation in the last write
+    earlier_peak = state.earlier.peak_memory_mb
+    metrics["peak_memory_mb"] = None if earlier_peak is None and state.earlier.count else max(peak, earlier_peak or 0)
+    metrics["sessions"] = state.sessions
+    metrics["session"] = {"num_frames": n - state.earlier.frames, "wall_time_s": session_s,
+                          **{figure: getattr(state, figure) for figure in SESSION_FIGURES}, "peak_memory_mb": peak}
+    metrics["last_session_only"] = list(LAST_SESSION_ONLY)
     return metrics
 
 
@@ -70,6 +85,19 @@ def _throttle(state: RunState) -> dict[str, Any]:
     t = state.mapping_throttle
     return {"mapping_priority": t and t.priority, "mapping_cpu_wait_s": t and t.cpu_wait_s,
             "mapping_no_keyframe_s": t and t.no_keyframe_s, "mapping_blocked_s": t and t.blocked_s}
+
+
+def _ate_unavailable(frames: int, failure: str | None, ate) -> str | None:
+    """Why no ATE is reported (None when one is)."""
+    if ate is not None and ate.rmse_m is not None:
+        return None
+    if failure:
+        return failure
+    if not frames:
+        return "no frames"
+    if ate is None or ate.num == 0:
+        return "no ground truth"
+    return f"too few frames: {ate.num} with ground truth, the ATE needs {MIN_ATE_POSES}"
 
 
 def rss_mb() -> float:
@@ -81,7 +109,8 @@ def rss_mb() -> float:
         return 0.0
 
 
-def _peak_memory_mb() -> float:
+def peak_memory_mb() -> float:
+    """This process's peak resident memory so far, MB."""
     import resource
 
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # kilobytes on Linux
@@ -94,7 +123,9 @@ def headline(m: dict[str, Any]) -> str:
         ate = f"{100 * m['ate_rmse_m']:.2f} cm"
     elif m.get("tracking_failure"):
         ate = "not reported"
-    else:
+    elif m.get("ate_unavailable"):
+        ate = f"n/a ({m['ate_unavailable']})"
+    else:  # metrics written before ate_unavailable
         ate = "n/a (no frames)" if not m["num_frames"] else "n/a (no ground truth)"
     realtime = m.get("mode") == "realtime"
     fps = m["stream_fps"] if realtime else m["fps"]

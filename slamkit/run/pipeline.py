@@ -64,8 +64,10 @@ def _run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Pat
     viewer = ViewerFeed(built.viewer, names["viewer"], slam.gaussian_map, slam.mapper)
     log.info("%s: %d frames, camera %s; tracker %s, mapper %s, keyframes %s", names["dataset"], len(dataset),
              dataset.camera, names["tracker"], names["mapper"], names["keyframe"])
+    if (done := checkpoint.finished(cfg, names, len(dataset))) is not None:  # resume= of a completed run: nothing to do
+        return done
     state = RunState()
-    first = checkpoint.resume(cfg, names, slam, state)  # checkpoint: continue a saved run (resume=RUN_DIR)
+    first = checkpoint.resume(cfg, names, slam, state, dataset)  # checkpoint: continue a saved run (resume=RUN_DIR)
     checkpoints = checkpoint.CheckpointWriter(cfg, names, slam, state, dataset, out_dir)
     outputs = RunOutputs(cfg, slam, state, out_dir, checkpoints, stop)
     try:

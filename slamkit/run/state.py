@@ -1,6 +1,12 @@
 """What a run has produced so far (`RunState`: poses, keyframes, lost and dropped frames, times,
 its status and phase), kept in memory as the stream goes and written out by `slamkit.run.outputs`
-even when the run stops early."""
+even when the run stops early.
+
+A resumed run is made of sessions (one per process: the first run, then each `resume=`). Most
+figures are the whole run's, carried by the checkpoint; those that a process measures of itself
+(`SESSION_FIGURES`: CPU seconds, peak memory) are kept for this session and summed (the peak:
+the largest) with the earlier sessions' (`EarlierSessions`) for the whole run.
+"""
 
 from __future__ import annotations
 
@@ -15,6 +21,20 @@ from slamkit.types import Frame
 
 #: metrics.json's `status`: what became of the run.
 COMPLETED, INTERRUPTED, FAILED, RUNNING = "completed", "interrupted", "failed", "running"
+#: The CPU seconds a process counts of itself (RunState fields), summed over a run's sessions.
+SESSION_FIGURES = ("tracking_cpu_s", "mapping_cpu_s", "loading_cpu_s", "stream_cpu_s")
+
+
+@dataclass
+class EarlierSessions:
+    """What the sessions before this one (a resumed run's) measured of themselves, in all:
+    `count` sessions, their CPU seconds (sums; None where one did not record them, e.g. a
+    checkpoint written before sessions were counted) and their peak memory (the largest, MB)."""
+
+    count: int = 0
+    frames: int = 0
+    cpu_s: dict[str, float | None] = field(default_factory=dict)
+    peak_memory_mb: float | None = 0.0
 
 
 @dataclass
@@ -49,6 +69,24 @@ class RunState:
     error: str | None = None
     evaluation: dict[str, Any] = field(default_factory=dict)  # the mapper's rendering metrics
     previous_wall_s: float = 0.0  # wall time of the runs this one resumes (slamkit.run.checkpoint)
+    earlier: EarlierSessions = field(default_factory=EarlierSessions)  # the sessions this one resumes
+
+    @property
+    def sessions(self) -> int:
+        """Sessions of the run so far, this one included."""
+        return self.earlier.count + 1
+
+    def whole_run(self, figure: str) -> float | None:
+        """A `SESSION_FIGURES` figure over every session: this one's plus the earlier ones' (None
+        where an earlier session's is unknown; mapping_cpu_s None when no session had a mapping
+        thread)."""
+        mine = getattr(self, figure)
+        if self.earlier.count == 0:
+            return mine
+        if figure not in self.earlier.cpu_s:
+            return None
+        before = self.earlier.cpu_s[figure]
+        return None if before is None and mine is None else (before or 0.0) + (mine or 0.0)
 
     @property
     def completed(self) -> bool:

@@ -9,12 +9,15 @@ memory does not grow with the bag. A reader is opened per thread (the SQLite3 st
 be used from the thread that opened it): the run reads frames in a prefetch thread.
 
 Every failure to open or read (a missing or truncated file, an unknown storage, a message that
-does not deserialise) is a `slamkit.errors.DataError` naming the bag.
+does not deserialise) is a `slamkit.errors.DataError` naming the bag. The bag, or each file of a
+bag folder, must be a regular file: a FIFO or a device (`mkfifo bag.mcap`) would block the
+reader forever, waiting for a writer.
 """
 
 from __future__ import annotations
 
 import logging
+import stat
 import threading
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -61,6 +64,19 @@ class TopicIndex:
         return len(self.record_ns)
 
 
+def _check_regular_files(path: Path) -> None:
+    """DataError naming the first of `path` (a file) or of its files (a bag folder) that is not
+    a regular file: reading a FIFO, a socket or a device would block or never end."""
+    for item in sorted(path.iterdir()) if path.is_dir() else [path]:
+        try:
+            mode = item.stat().st_mode
+        except OSError as exc:  # a link to nowhere, a loop of links
+            raise DataError(f"ROS bag {item}: {exc.strerror or exc} (expected {BAG_EXPECTED})") from None
+        if not stat.S_ISREG(mode) and not stat.S_ISDIR(mode):
+            kind = "a FIFO" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode) else "a device"
+            raise DataError(f"ROS bag {item} is not a regular file ({kind}; expected {BAG_EXPECTED})")
+
+
 class BagIndex:
     """A bag's topics (`topics`: name -> msgtype) and, after `scan`, per-topic message indices."""
 
@@ -70,6 +86,7 @@ class BagIndex:
             raise DataError(f"dataset.path is empty (expected {BAG_EXPECTED})")
         if not self.path.exists():
             raise DataError(f"ROS bag {self.path} not found (expected {BAG_EXPECTED})")
+        _check_regular_files(self.path)
         self._local = threading.local()
         self._readers: list = []
         self._lock = threading.Lock()

@@ -2,8 +2,9 @@
 
 The sequence is generated once (a few seconds for the default 120 frames at 320x240) and
 cached as one compressed .npz per parameter set (rgb uint8, depth uint16 at 0.2 mm) in
-`cache_dir` (null = $SLAMKIT_CACHE/synthetic, else ~/.cache/slamkit/synthetic); later
-constructions open the cache and decode frames on demand. Depth noise and dropout are applied
+`cache_dir` (null = $SLAMKIT_CACHE/synthetic, else ~/.cache/slamkit/synthetic), recorded with its
+size and hash (`slamkit.cache.record`); later constructions open the cache if it matches its
+record (else it is generated again, with a warning) and decode frames on demand. Depth noise and dropout are applied
 at load time (deterministic per seed and frame), so they share the noise-free cache.
 """
 
@@ -24,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from slamkit.cache import cache_dir
+from slamkit.cache import cache_dir, damage, record
 from slamkit.errors import DataError
 from slamkit.roles import Dataset, DatasetConfig, RunContext, DatasetTuning, require
 from slamkit.types import Camera, Frame
@@ -150,6 +151,7 @@ class SyntheticDataset(Dataset):
             fd, tmp = tempfile.mkstemp(dir=self.cache_path.parent, prefix=self.cache_path.stem + ".", suffix=".tmp")
             with os.fdopen(fd, "wb") as f:
                 _write_npz(f, self._generate(meta))
+            record(self.cache_path, content=Path(tmp))
             os.replace(tmp, self.cache_path)  # atomic: readers never see a partial file
             tmp = None
         except OSError as e:
@@ -172,8 +174,12 @@ class SyntheticDataset(Dataset):
             raise DataError(f"{self.cache_path}: the synthetic sequence just written cannot be read back")
 
     def _open_cache(self, meta: str) -> bool:
-        """Open the cache file if it exists and holds this parameter set."""
-        if not self.cache_path.is_file():
+        """Open the cache file if it exists, matches its record and holds this parameter set."""
+        why = damage(self.cache_path)
+        if why == "missing":
+            return False
+        if why is not None:
+            log.warning("synthetic cache %s is damaged (%s); regenerating", self.cache_path, why)
             return False
         try:
             store = np.load(self.cache_path)
@@ -231,9 +237,13 @@ class SyntheticDataset(Dataset):
     def load(self, raw_index: int) -> Frame:
         if not 0 <= raw_index < self.cfg.num_frames:
             raise IndexError(f"synthetic frame {raw_index} out of range [0, {self.cfg.num_frames})")
-        with self._lock:
-            rgb = np.array(self._store[f"rgb_{raw_index:05d}"])
-            depth_raw = self._store[f"depth_{raw_index:05d}"]
+        try:
+            with self._lock:
+                rgb = np.array(self._store[f"rgb_{raw_index:05d}"])
+                depth_raw = self._store[f"depth_{raw_index:05d}"]
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:  # changed since it was opened
+            raise DataError(f"synthetic cache {self.cache_path}: frame {raw_index} is unreadable ({exc}); delete the "
+                            "file to generate it again") from None
         depth = depth_raw.astype(np.float32) / np.float32(DEPTH_SCALE)
         c = self.cfg
         if c.depth_noise > 0 or c.depth_dropout > 0:

@@ -31,6 +31,7 @@ from typing import Callable
 import numpy as np
 from pykdtree.kdtree import KDTree
 
+from slamkit.errors import ConfigError
 from slamkit.geometry.gaussians import Regularization, knn_covariances, regularize, whitening_sym3
 from slamkit.native import NativeLibrary, available_threads
 
@@ -281,7 +282,7 @@ def _rotate_rows(R: np.ndarray, cov_rows: np.ndarray, m: int) -> np.ndarray:
 def create_kernels(choice: Kernels, num_threads: int = 0) -> NumpyKernels:
     """The kernels `choice` asks for, with `num_threads` threads (0: `available_threads()`).
     `auto` without a working compiler warns once and gives numpy; `compiled` without one raises
-    RuntimeError with the reason."""
+    ConfigError (one line, exit status 2) with the reason."""
     choice = Kernels(choice)
     num_threads = num_threads or available_threads()
     if choice is Kernels.numpy:
@@ -290,7 +291,7 @@ def create_kernels(choice: Kernels, num_threads: int = 0) -> NumpyKernels:
     if lib is not None:
         return CompiledKernels(lib, num_threads)
     if choice is Kernels.compiled:
-        raise RuntimeError(f"tracker.kernels=compiled: the G-ICP kernels are not available ({LIBRARY.error})")
+        raise ConfigError(f"tracker.kernels=compiled: the G-ICP kernels are not available ({LIBRARY.error})")
     _warn_once(f"slamkit: G-ICP kernels not compiled ({LIBRARY.error}); using the numpy kernels (slower)")
     return NumpyKernels(num_threads)
 
