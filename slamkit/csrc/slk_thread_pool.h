@@ -1,6 +1,6 @@
-// The persistent thread pool shared by slamkit's compiled CPU kernels (rasteriser, fused loss).
+// The persistent thread pools shared by slamkit's compiled CPU kernels (rasteriser, fused loss).
 // A header in slamkit/csrc, which slamkit.native puts on every library's include path (and in its
-// build hash); each library gets its own pool (anonymous namespace).
+// build hash); each library gets its own pools (anonymous namespace).
 #pragma once
 
 #include <algorithm>
@@ -12,28 +12,74 @@
 #include <thread>
 #include <vector>
 
+#include <cerrno>
+#include <utility>
+
+#include <sched.h>
+#include <sys/resource.h>
 #include <unistd.h>
 
 namespace {
+
+// A thread's scheduling class on Linux: its policy (SCHED_OTHER, SCHED_BATCH, SCHED_IDLE) and
+// nice value, both per thread there. A pool's workers keep the class of the threads they serve.
+struct SchedClass {
+  int policy = 0, nice = 0;
+
+  static SchedClass of_calling_thread() {
+    SchedClass c;
+#ifdef __linux__
+    c.policy = ::sched_getscheduler(0);
+    errno = 0;
+    const int nice = ::getpriority(PRIO_PROCESS, 0);  // Linux: the calling thread's
+    c.nice = errno == 0 ? nice : 0;
+#endif
+    return c;
+  }
+
+  // Give the calling thread this class (a worker, once, when it starts; it already inherited it
+  // from the caller that started it, unless that caller asked for SCHED_RESET_ON_FORK).
+  void apply() const {
+#ifdef __linux__
+    if (policy == SCHED_OTHER || policy == SCHED_BATCH || policy == SCHED_IDLE) {
+      sched_param param{};
+      ::sched_setscheduler(0, policy, &param);
+    }
+    ::setpriority(PRIO_PROCESS, 0, nice);
+#endif
+  }
+
+  bool operator==(const SchedClass& o) const { return policy == o.policy && nice == o.nice; }
+};
 
 // A persistent pool of worker threads. A job is a number of chunks handed out dynamically; the
 // caller works too and waits only for chunks that were taken, never for a worker to start: on
 // a busy machine (tracking beside mapping, other processes) a worker that is not scheduled in
 // time is simply not waited for. One job at a time; a caller that finds the pool busy (renders
 // from several Python threads) does its job alone.
+//
+// There is one pool per scheduling class of the calling threads: a job runs only on workers of
+// its caller's priority, so a real-time mapping thread at a lower priority (slamkit.scheduling)
+// has its renders done by workers at that priority too, whoever started a pool first, and the
+// tracking side's jobs never wait for a worker of the mapper's lower priority.
 class Pool {
  public:
   static Pool& instance() {
     static std::mutex m;
-    static Pool* pool = nullptr;
+    static std::vector<std::pair<SchedClass, Pool*>> pools;
     static int64_t pid = -1;
+    const SchedClass cls = SchedClass::of_calling_thread();
     std::lock_guard<std::mutex> lock(m);
     const int64_t now = (int64_t)::getpid();
-    if (pool == nullptr || pid != now) {  // a forked child has none of the parent's threads
-      pool = new Pool();  // never destroyed: its detached threads live as long as the process
+    if (pid != now) {  // a forked child has none of the parent's threads
+      pools.clear();  // (their memory is lost: never destroyed, as below)
       pid = now;
     }
-    return *pool;
+    for (auto& entry : pools)
+      if (entry.first == cls) return *entry.second;
+    // never destroyed: its detached threads live as long as the process
+    pools.emplace_back(cls, new Pool(cls));
+    return *pools.back().second;
   }
 
   // f(chunk, worker) for every chunk in [0, chunks), worker in [0, nthreads) (0 = the caller)
@@ -89,6 +135,8 @@ class Pool {
     }
   }
 
+  explicit Pool(SchedClass cls) : class_(cls) {}
+
   void ensure_workers(int n) {
     std::lock_guard<std::mutex> lock(mutex_);
     while (num_workers_ < n) {
@@ -102,6 +150,7 @@ class Pool {
   }
 
   void worker_loop() {
+    class_.apply();
     int64_t seen = 0;
     for (;;) {
       Job* job;
@@ -124,6 +173,7 @@ class Pool {
     }
   }
 
+  const SchedClass class_;
   std::mutex run_mutex_, mutex_, done_mutex_;
   std::condition_variable wake_, done_;
   Job* job_ = nullptr;

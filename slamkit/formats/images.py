@@ -1,7 +1,10 @@
-"""Reading colour and depth images (Pillow + numpy) and locating files, for dataset loaders.
+"""Reading colour and depth images and locating files, for dataset loaders.
 
-Every failure (missing file, truncated or corrupt data, wrong pixel format) raises
-`slamkit.errors.DataError` with one line naming the file and what was expected.
+PNG and JPEG files are decoded by imagecodecs (libpng, libjpeg-turbo: the fastest well-kept
+decoder measured on the sequences' images, docs/dependencies.md), every other format, and any
+file imagecodecs does not decode to the pixels expected, by Pillow. Every failure (missing file,
+truncated or corrupt data, wrong pixel format) raises `slamkit.errors.DataError` with one line
+naming the file and what was expected (Pillow's reading names it).
 """
 
 from __future__ import annotations
@@ -15,7 +18,32 @@ from PIL import Image
 
 from slamkit.errors import DataError
 
+try:
+    import imagecodecs
+except ImportError:  # Python 3.10 (imagecodecs 2026 needs 3.11): Pillow decodes everything
+    imagecodecs = None
+
 _DEPTH_MODES = ("I;16", "I;16B", "I;16L", "I", "F")
+_JPEG_END = b"\xff\xd9"  # the end-of-image marker
+
+
+def _decoded(path: Path, channels: int, dtype: type) -> np.ndarray | None:
+    """The PNG or JPEG at `path` decoded by imagecodecs when it gives an HxW (channels 0) or
+    HxWxchannels array of `dtype`; None otherwise (not installed, another format, an image of
+    other pixels, or a file it cannot decode), and Pillow's reading then converts it or names
+    the problem."""
+    suffix = path.suffix.lower()
+    if imagecodecs is None or suffix not in (".png", ".jpg", ".jpeg"):
+        return None
+    try:
+        data = path.read_bytes()
+        if suffix != ".png" and not data.endswith(_JPEG_END):
+            return None  # libjpeg-turbo pads a truncated JPEG with grey where Pillow refuses it
+        image = imagecodecs.png_decode(data) if suffix == ".png" else imagecodecs.jpeg8_decode(data)
+    except (OSError, RuntimeError, ValueError):
+        return None
+    shape_ok = image.ndim == 2 if channels == 0 else image.ndim == 3 and image.shape[2] == channels
+    return image if shape_ok and image.dtype == dtype else None
 
 
 def _reason(exc: BaseException) -> str:
@@ -74,6 +102,9 @@ def image_size(path: str | Path) -> tuple[int, int]:
 def read_rgb(path: str | Path) -> np.ndarray:
     """HxWx3 uint8 RGB image. Grey, palette and RGBA images are converted to RGB."""
     path = Path(path)
+    rgb = _decoded(path, 3, np.uint8)
+    if rgb is not None:
+        return rgb
     im = _open(path, "colour", "an 8-bit colour image")
     if im.mode in _DEPTH_MODES:
         raise DataError(f"cannot read colour image {path}: pixel mode {im.mode} (expected an 8-bit colour image)")
@@ -101,19 +132,24 @@ def read_depth(path: str | Path, scale: float, invalid_values: Iterable[float] =
     to integers, millimetres in a float file) is a one-line DataError naming the file, as is one
     that is not `size` (width, height: its colour image's), when given."""
     path = Path(path)
-    im = _open(path, "depth", "a 16-bit PNG")
-    if im.mode not in _DEPTH_MODES:
-        raise DataError(f"cannot read depth image {path}: pixel mode {im.mode} (expected a 16-bit PNG)")
-    raw = np.asarray(im)
+    raw = _decoded(path, 0, np.uint16)
+    if raw is None:
+        im = _open(path, "depth", "a 16-bit PNG")
+        if im.mode not in _DEPTH_MODES:
+            raise DataError(f"cannot read depth image {path}: pixel mode {im.mode} (expected a 16-bit PNG)")
+        raw = np.asarray(im)
     if size is not None:
         check_same_size(size, raw, path)
     floating = raw.dtype.kind == "f"
-    invalid = ~np.isfinite(raw) | (raw <= 0) if floating else raw <= 0
-    if not floating:
+    depth = raw.astype(np.float32)
+    if floating:
+        depth[~np.isfinite(raw) | (raw <= 0)] = 0.0
+    else:
+        np.divide(depth, np.float32(scale), out=depth)  # raw 0 is 0 m (invalid)
+        if raw.dtype.kind != "u":
+            depth[raw <= 0] = 0.0
         for v in invalid_values:
-            invalid |= raw == v
-    depth = raw.astype(np.float32) if floating else raw.astype(np.float32) / np.float32(scale)
-    depth[invalid] = 0.0
+            depth[raw == v] = 0.0
     _check_plausible(path, depth, "a float image, read as metres" if floating else
                      f"{raw.dtype.itemsize * 8}-bit raw units / depth scale {scale:g}")
     return depth

@@ -19,6 +19,7 @@ from slamkit.config import PluginConfig, check_values, require, thread_count
 from slamkit.errors import ConfigError
 from slamkit.map.growth import MapGrowthConfig
 from slamkit.roles import RUN_ROLES
+from slamkit.scheduling import ThreadPriority
 
 #: Seconds: Python's thread switch interval while real-time mapping runs. Python's default,
 #: 5 ms, makes each of a mapping step's torch calls (each releases the GIL and takes it back)
@@ -173,6 +174,8 @@ class RunConfig(PluginConfig):
     progress: bool = True
     mapping_threads: int = thread_count(0)
     switch_interval: float = SWITCH_INTERVAL_S
+    #: realtime: mapping's priority (its threads' too) below tracking's: idle (only CPU left over), low (5 nice levels), same
+    mapping_priority: ThreadPriority = ThreadPriority.idle
     final_iterations: int | None = None
     mapping_device: Device = Device.auto
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)

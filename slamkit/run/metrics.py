@@ -45,6 +45,8 @@ def run_metrics(cfg: RunConfig, slam: SLAM, state: RunState, wall_s: float) -> d
         "tracking_time_s": state.tracking_time_s,
         "mapping_time_s": state.mapping_time_s,
         **{figure: state.whole_run(figure) for figure in SESSION_FIGURES},
+        "tracking_cpu_wait_s": state.tracking_cpu_wait_s,  # this session's, as the throttle's
+        **_throttle(state),
         "wall_time_s": slam_s,
         "mapping_iterations": state.mapping_iterations,
         "refine_iterations": state.refine_iterations,
@@ -76,6 +78,13 @@ def run_metrics(cfg: RunConfig, slam: SLAM, state: RunState, wall_s: float) -> d
                           **{figure: getattr(state, figure) for figure in SESSION_FIGURES}, "peak_memory_mb": peak}
     metrics["last_session_only"] = list(LAST_SESSION_ONLY)
     return metrics
+
+
+def _throttle(state: RunState) -> dict[str, Any]:
+    """The real-time mapping thread's priority and what held it back (None in sequential mode)."""
+    t = state.mapping_throttle
+    return {"mapping_priority": t and t.priority, "mapping_cpu_wait_s": t and t.cpu_wait_s,
+            "mapping_no_keyframe_s": t and t.no_keyframe_s, "mapping_blocked_s": t and t.blocked_s}
 
 
 def _ate_unavailable(frames: int, failure: str | None, ate) -> str | None:
@@ -129,6 +138,10 @@ def summary(m: dict[str, Any]) -> str:
     text = headline(m) + f", {m['num_keyframes']} keyframes, {m['lost_frames']} lost"
     if m.get("psnr") is not None:
         text += f", PSNR {m['psnr']:.2f} dB"
+    if m.get("mapping_priority"):  # real time: the steps mapping got beside tracking, and what held it back
+        waited = m.get("mapping_cpu_wait_s")
+        text += (f", {m['mapping_iterations']} mapping steps in the stream ({m['mapping_priority']} priority"
+                 + ("" if waited is None else f", {waited:.1f} s waiting for a CPU") + ")")
     if m.get("refine_iterations"):
         text += f" after {m['refine_iterations']} refinement steps ({m['refine_time_s']:.1f} s)"
     status = m.get("status", COMPLETED if m["completed"] else INTERRUPTED)

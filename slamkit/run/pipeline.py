@@ -31,6 +31,7 @@ from slamkit.run.build import build
 from slamkit.run.slam import SLAM, MappingThread
 from slamkit.run.state import COMPLETED, FAILED, INTERRUPTED, RunState
 from slamkit.run.viewing import ViewerFeed
+from slamkit.scheduling import thread_schedule
 from slamkit.types import Frame
 
 __all__ = ["run", "summary", "mapping_threads", "InputClock"]
@@ -195,11 +196,12 @@ def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, frames_log: Fram
 
     realtime = cfg.mode is Mode.realtime
     clock = InputClock(cfg.fps_limit if realtime else None)
-    mapping = MappingThread(slam, cfg.switch_interval) if realtime else None
+    mapping = MappingThread(slam, cfg.switch_interval, cfg.mapping_priority) if realtime else None
     bar = tqdm(total=len(dataset), initial=first, unit="frame", disable=None if cfg.progress else True,
                dynamic_ncols=True)
     start, cpu_start, loading = time.perf_counter(), time.thread_time(), LoadCost()
     process_cpu_start = time.process_time()  # every thread: the kernels' workers too
+    schedule_start = thread_schedule()
     try:
         if mapping:
             mapping.start()
@@ -226,6 +228,10 @@ def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, frames_log: Fram
         state.stream_time_s += time.perf_counter() - start
         state.tracking_cpu_s += time.thread_time() - cpu_start
         state.stream_cpu_s += time.process_time() - process_cpu_start
+        schedule_end = thread_schedule()
+        if schedule_start is not None and schedule_end is not None:
+            waited = schedule_end.cpu_wait_s - schedule_start.cpu_wait_s
+            state.tracking_cpu_wait_s = (state.tracking_cpu_wait_s or 0.0) + waited
         bar.close()
         if mapping:
             _stop_mapping(mapping, state)
@@ -253,6 +259,7 @@ def _stop_mapping(mapping: MappingThread, state: RunState) -> None:
         state.mapping_iterations += mapping.iterations
         state.mapping_time_s += mapping.busy_time_s
         state.mapping_cpu_s = (state.mapping_cpu_s or 0.0) + mapping.cpu_time_s
+        state.mapping_throttle = mapping.throttle
 
 
 def _running_ate(state: RunState) -> str:

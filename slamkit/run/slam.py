@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import sys
 import threading
 import time
@@ -15,6 +14,7 @@ from slamkit.map.growth import MapGrowthConfig, new_gaussians
 from slamkit.roles import KeyframeDecision, KeyframePolicy, Mapper, Tracker
 from slamkit.run.boundary import PluginBoundary
 from slamkit.run.heap import release_free_memory
+from slamkit.scheduling import ThreadPriority, lower_calling_thread, thread_schedule
 from slamkit.types import Frame, KeyframeKind, TrackingResult
 
 
@@ -151,23 +151,24 @@ class SLAM:
         return gm.append(entering)
 
 
-#: How much lower the mapping thread's scheduling priority is than tracking's (Linux nice
-#: steps): where the two compete for a core, the tracker that paces the system goes first.
-MAPPING_NICE = 5
+@dataclass
+class MappingThrottle:
+    """What held the real-time mapping thread back, in seconds of the stream: `cpu_wait_s`
+    runnable but waiting for a CPU (threads of higher priority, tracking and reading, or other
+    processes went first), `no_keyframe_s` waiting for a first keyframe to train on, `blocked_s`
+    the rest of its steps' time not on a CPU (the GIL, the map's lock, the kernels' workers).
+    `priority` is what it ran at ("same" where the OS refused a lower one)."""
 
-
-def _lower_priority(steps: int) -> None:
-    """Lower the calling thread's priority by `steps` nice levels (Linux: per thread; elsewhere,
-    or without permission, nothing)."""
-    try:
-        tid = threading.get_native_id()
-        os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + steps)
-    except (AttributeError, OSError):
-        pass
+    priority: str
+    cpu_wait_s: float | None = None
+    no_keyframe_s: float = 0.0
+    blocked_s: float | None = None
 
 
 class MappingThread(threading.Thread):
-    """Runs `slam.optimize(1)` in a loop beside tracking (real-time mode).
+    """Runs `slam.optimize(1)` in a loop beside tracking (real-time mode), at `priority`
+    (`slamkit.scheduling`; the threads and the compiled kernels' pools it uses run at it too),
+    so that the tracker and the frame reader get the CPU first and mapping takes what is left.
 
     The mapper changes the shared map only under `gaussian_map.lock` and the tracker reads it
     only through `tracking_target()` copies, so no copy of the whole map is made per frame.
@@ -176,14 +177,16 @@ class MappingThread(threading.Thread):
     waiting for the GIL may wait; restored by `stop()`).
     """
 
-    def __init__(self, slam: SLAM, switch_interval_s: float):
+    def __init__(self, slam: SLAM, switch_interval_s: float, priority: ThreadPriority = ThreadPriority.idle):
         super().__init__(name="slamkit-mapping", daemon=True)
         self.slam = slam
         self.switch_interval_s = switch_interval_s
+        self.priority = ThreadPriority(priority)
         self._saved_switch_interval: float | None = None
         self.iterations = 0
         self.busy_time_s = 0.0
         self.cpu_time_s = 0.0  # the thread's CPU seconds (steps, waits' overhead), when it ends
+        self.throttle = MappingThrottle(self.priority.value)  # complete when it ends
         self.error: BaseException | None = None
         self._stop_event = threading.Event()
 
@@ -193,20 +196,32 @@ class MappingThread(threading.Thread):
         super().start()
 
     def run(self) -> None:
-        _lower_priority(MAPPING_NICE)
-        cpu_start = time.thread_time()
+        lowered = lower_calling_thread(self.priority)
+        schedule_start = thread_schedule()
+        wall_start, cpu_start = time.perf_counter(), time.thread_time()
         try:
             while not self._stop_event.is_set():
                 start = time.perf_counter()
                 done = self.slam.optimize(1)
                 self.iterations += done
-                self.busy_time_s += time.perf_counter() - start
-                if not done:  # nothing to train on yet
+                if done:
+                    self.busy_time_s += time.perf_counter() - start
+                else:  # nothing to train on yet
                     self._stop_event.wait(0.005)
+                    self.throttle.no_keyframe_s += time.perf_counter() - start
         except BaseException as exc:  # handed to the tracking thread
             self.error = exc
         finally:
             self.cpu_time_s = time.thread_time() - cpu_start
+            self._account(lowered, schedule_start, time.perf_counter() - wall_start)
+
+    def _account(self, lowered: bool, schedule_start, wall_s: float) -> None:
+        throttle = self.throttle
+        throttle.priority = self.priority.value if lowered else ThreadPriority.same.value
+        schedule_end = thread_schedule()
+        if schedule_start is not None and schedule_end is not None:
+            throttle.cpu_wait_s = schedule_end.cpu_wait_s - schedule_start.cpu_wait_s
+            throttle.blocked_s = max(0.0, wall_s - throttle.no_keyframe_s - self.cpu_time_s - throttle.cpu_wait_s)
 
     def check(self) -> None:
         """Re-raise a mapper failure in the calling (tracking) thread."""

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from slamkit.run.lifecycle import Phase
-from slamkit.run.slam import StepResult
+from slamkit.run.slam import MappingThrottle, StepResult
 from slamkit.types import Frame
 
 #: metrics.json's `status`: what became of the run.
@@ -59,6 +59,8 @@ class RunState:
     mapping_cpu_s: float | None = None
     loading_cpu_s: float = 0.0
     stream_cpu_s: float = 0.0
+    tracking_cpu_wait_s: float | None = None  # the frame loop runnable but waiting for a CPU (Linux)
+    mapping_throttle: MappingThrottle | None = None  # what held real-time mapping back
     refine_iterations: int = 0  # mapping steps after the stream
     refine_time_s: float = 0.0
     slam_time_s: float | None = None  # from the first frame to the end of the refinement

@@ -25,28 +25,28 @@
 #include <thread>
 #include <vector>
 
+#include "slk_thread_pool.h"  // (slamkit/csrc) Pool, parallel_for
+
 namespace {
 
 // Sums are accumulated per block of this many points and the block sums added in block order, so
 // results do not depend on the number of threads (the tracker is sensitive to rounding).
 constexpr int kBlock = 1024;
 
-// f(thread, lo, hi) on [0, n) split over up to nthreads threads, in chunks that are multiples of
-// grain.
+// f(worker, lo, hi) on [0, n) split over up to nthreads threads, in chunks that are multiples of
+// grain handed out by slamkit's persistent pool (slamkit/csrc/slk_thread_pool.h): no thread is
+// started per call (a start and a join cost more than a short call's work on 2 cores), the
+// caller works too and never waits for a worker that is not scheduled, and the workers run at
+// the caller's priority. About four chunks a thread, so that a descheduled worker holds up little.
 template <class F>
-void parallel_for(int n, int nthreads, F f, int grain = 1) {
+void parallel_ranges(int n, int nthreads, F f, int grain = 1) {
   nthreads = std::max(1, std::min(nthreads, (n + grain - 1) / grain));
   if (nthreads == 1) {
     f(0, 0, n);
     return;
   }
-  std::vector<std::thread> pool;
-  const int chunk = ((n + nthreads - 1) / nthreads + grain - 1) / grain * grain;
-  for (int t = 0; t < nthreads; ++t) {
-    const int lo = t * chunk, hi = std::min(n, lo + chunk);
-    if (lo < hi) pool.emplace_back(f, t, lo, hi);
-  }
-  for (auto& th : pool) th.join();
+  const int64_t per_chunk = ((n + 4 * nthreads - 1) / (4 * nthreads) + grain - 1) / grain * grain;
+  parallel_for(nthreads, n, per_chunk, [&](int64_t lo, int64_t hi, int worker) { f(worker, int(lo), int(hi)); });
 }
 
 // Eigen-decomposition of a symmetric 3x3 matrix by cyclic Jacobi rotations: a = V diag(w) V^T.
@@ -349,7 +349,7 @@ void slk_grid_nearest(const void* handle, int m, const float* queries, float max
                       uint32_t* out_idx, float* out_d2, int nthreads) {
   const CellGrid& grid = *static_cast<const CellGrid*>(handle);
   const int n = grid.n;
-  parallel_for(m, nthreads, [&](int, int lo, int hi) {
+  parallel_ranges(m, nthreads, [&](int, int lo, int hi) {
     for (int j = lo; j < hi; ++j) {
       const float* q = queries + 3 * size_t(j);
       // at the bound with an index above any: a mean exactly at the bound is accepted
@@ -375,7 +375,7 @@ int slk_abi_version() { return 6; }
 void slk_grid_knn_covariances(int n, const float* points, const int32_t* cell, const int32_t* grid, int gh, int gw,
                               int k, int half, double fx, double fy, double stride, double* cov, uint8_t* exact,
                               int nthreads) {
-  parallel_for(n, nthreads, [&](int, int lo, int hi) {
+  parallel_ranges(n, nthreads, [&](int, int lo, int hi) {
     std::vector<double> best_d(k + 1);
     std::vector<int> best_i(k + 1);
     for (int i = lo; i < hi; ++i) {
@@ -455,7 +455,7 @@ void slk_grid_knn_covariances(int n, const float* points, const int32_t* cell, c
 // repeated pair) or that are not finite are flagged in redo (1) and left for the caller.
 void slk_regularize_ellipse(int n, const double* cov, double min_median, double* out, uint8_t* redo, int nthreads) {
   const double third_turn = 2.0 * 3.141592653589793 / 3.0;
-  parallel_for(n, nthreads, [&](int, int lo, int hi) {
+  parallel_ranges(n, nthreads, [&](int, int lo, int hi) {
     for (int i = lo; i < hi; ++i) {
       const double* A = cov + 9 * size_t(i);
       double* C = out + 9 * size_t(i);
@@ -516,7 +516,7 @@ int slk_gicp_linearize(int n, const double* src, int n_target, const double* tgt
   const int m = offsets[n];
   const int nblocks = (n + kBlock - 1) / kBlock;
   std::vector<double> acc(size_t(nblocks) * 29, 0.0);  // per block: H (21 upper), g (6), cost, singular
-  parallel_for(n, nthreads, [&](int, int lo, int hi) {  // lo, hi: multiples of kBlock (or n): one writer per block
+  parallel_ranges(n, nthreads, [&](int, int lo, int hi) {  // lo, hi: multiples of kBlock (or n): one writer per block
     for (int i = lo; i < hi; ++i) {
       if (nn[i] >= uint32_t(n_target)) continue;
       const int slot = offsets[i];
@@ -545,7 +545,7 @@ double slk_gicp_cost(int m, const double* src, const int32_t* sel, const double*
                      const double* b, int nthreads) {
   const int nblocks = (m + kBlock - 1) / kBlock;
   std::vector<double> acc(nblocks, 0.0);
-  parallel_for(nblocks, nthreads, [&](int, int block_lo, int block_hi) {
+  parallel_ranges(nblocks, nthreads, [&](int, int block_lo, int block_hi) {
     for (int block = block_lo; block < block_hi; ++block) {
       double sum = 0.0;
       for (int k = block * kBlock; k < std::min(m, (block + 1) * kBlock); ++k) {
