@@ -28,7 +28,6 @@ from typing import Sequence
 from slamkit.cli import streams
 from slamkit.errors import ConfigError, SlamkitError
 from slamkit.run.lifecycle import StopSignals, exit_status, pause_point
-from slamkit.run.ownership import release_all
 
 log = logging.getLogger("slamkit")
 
@@ -80,7 +79,11 @@ class Command:
                   file=sys.stderr)
             sys.exit(exit_status(str(exc) or "SIGINT"))
         finally:
-            release_all()  # the run folders this command claimed (slamkit.cli.hydra_hooks), however it ends
+            # the run folders this command claimed (slamkit.cli.hydra_hooks), however it ends; the
+            # module is imported only once a folder was claimed (it imports the heavy run schema)
+            ownership = sys.modules.get("slamkit.run.ownership")
+            if ownership is not None:
+                ownership.release_all()
         if self.failed_runs:
             _fail(f"tracking failed in {len(self.failed_runs)} of the sweep's runs: {', '.join(self.failed_runs)}",
                   TRACKING_FAILED)
