@@ -65,7 +65,7 @@ class TorchAdam(MapOptimizer):
 
     def __init__(self, cfg: AdamConfig, context: RunContext = RunContext()):
         self.cfg = cfg
-        # torch's first Adam imports torch._dynamo (~1.3 s, holding the GIL): at start-up here,
+        # torch's first Adam imports torch._dynamo (seconds, holding the GIL): at start-up here,
         # not in the first mapping step (in real time that is during the stream, and it stalled
         # the tracking thread as well)
         torch.optim.Adam([torch.zeros(1, requires_grad=True)], fused=cfg.fused)
