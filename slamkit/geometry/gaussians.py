@@ -223,7 +223,7 @@ def regularize(
     ellipse: C = U diag(l1 >= l2 >= l3) U^T becomes U diag(l1/l2, 1, l3/l2) U^T, dividing by
       the median (sorted) eigenvalue. With `min_median` (m^2) set, a covariance whose median
       eigenvalue is below it becomes min_median * I instead (the reference code's rule for map
-      Gaussians; not applied to frame covariances, whose median is ~1e-5..1e-4 m^2). A
+      Gaussians; not applied to frame covariances, whose median is far below it). A
       covariance with a zero median eigenvalue (collinear or coincident neighbours) becomes I.
     plane: eigenvalues become (1, 1, eps), eps on the smallest axis.
     none: returned unchanged (a float64 copy).
