@@ -5,9 +5,9 @@ moments: the "sparse" or "visible" Adam of the 3DGS literature (gsplat's Selecti
 follows the rows seen, not the map. The moments are bias-corrected with the optimiser's step
 count (`bias_correction=global`, as torch.optim.Adam) or with each row's own count of the steps it
 was seen in (`row`: a late row starts like a fresh Adam). `only_visible=false` updates every row.
-With every row seen at every step and the same age, every setting equals torch.optim.Adam
-(tests/test_optimizers.py); the learning rates are `mapper/optimizer=adam`'s. How the settings
-compare: docs/results.md, "The mapper's parts: optimisers and strategies".
+With every row seen at every step and the same age, every setting equals torch.optim.Adam; the
+learning rates are `mapper/optimizer=adam`'s (docs/results.md, "The mapper's parts: optimisers
+and strategies").
 
 On CPU the update is one pass of compiled code over the rows (csrc/visible_adam.cpp, built on
 first use by `slamkit.native`); `kernels=torch` is the reference it is tested against, and the

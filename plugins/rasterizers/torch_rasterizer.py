@@ -1,10 +1,9 @@
 """`mapper/rasterizer=torch`: our pure-PyTorch differentiable 3DGS rasteriser (CPU and CUDA).
 
-The reference for correctness that the other backends are checked against, and the fallback
-where neither gsplat (CUDA) nor a compiled CPU backend is available. It computes exactly the
-conventions of `slamkit.splatting.rendering.Rasterizer` (docs/cpu_rasterizer.md, "What it
-computes"). The projection is ordinary autograd; the compositing is one
-`torch.autograd.Function` with 3DGS's analytic backward, reaching means, quats, scales,
+The reference the other backends are checked against, and the fallback where neither gsplat
+(CUDA) nor a compiled CPU backend is available: exactly the conventions of
+`slamkit.splatting.rendering.Rasterizer`. The projection is ordinary autograd; the compositing
+is one `torch.autograd.Function` with 3DGS's analytic backward, reaching means, quats, scales,
 opacities, colors and the background.
 
 Vectorised and memory-bounded: each Gaussian's image rows and, per row, its exact interval of

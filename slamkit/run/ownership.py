@@ -10,8 +10,7 @@
 - `check_localization_folder`: localisation never writes into its map's folder.
 - `unique_suffix`: default folders (`${slamkit.run:}` in slamkit/conf/config.yaml) are unique per
   run, even for runs started in the same second.
-The slamkit command applies these through Hydra's callbacks (`slamkit.cli.hydra_hooks`), before
-Hydra writes `.hydra/` into the folder.
+Hydra's callbacks (`slamkit.cli.hydra_hooks`) apply these before Hydra writes `.hydra/`.
 """
 
 from __future__ import annotations

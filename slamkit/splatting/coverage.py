@@ -9,9 +9,8 @@ a surface in front of or behind the map is not taken for the map:
 - `occupied_by_centres`: some map Gaussian's centre projects within cell / sqrt(2) pixels of the
   point's pixel at its depth (`cell`: the keyframe's sampling stride). It reads only the means, so
   a map that admits no occupied point holds about `min_centres` Gaussians per cell and depth of
-  any view: its size is bounded by the scene's surface, not by how often the camera sees it. A
-  disc, not a square cell, so that a view rotated against the keyframes that built the map finds
-  their centres (docs/results.md, "Bounded maps on loops").
+  any view: its size is bounded by the scene's surface, not by how often the camera sees it (a
+  disc, not a square: docs/results.md, "Bounded maps on loops").
 """
 
 from __future__ import annotations
