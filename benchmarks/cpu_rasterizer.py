@@ -1,4 +1,4 @@
-"""Profile of the compiled CPU rasteriser (`rasterizer=cpu`) on the fixed scenes of
+"""Profile of the compiled CPU rasteriser (`mapper/rasterizer=cpu`) on the fixed scenes of
 benchmarks/rasterizer.py: CPU time per phase, cycles per (pixel, Gaussian) pair, vector-lane use,
 and thread scaling. The comparison with the torch backend is benchmarks/rasterizer.py's job
 (`--backends torch,cpu`); this one explains where the cpu backend's time goes.

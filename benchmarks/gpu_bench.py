@@ -11,7 +11,7 @@ run cut off by its time limit keeps what it had):
 Sequences: TUM fr1/rpy and Replica room0 from `--data` (default $SLAMKIT_DATA, else
 ../shared/data), every frame their folders hold. Backend variants are named BACKEND@DEVICE:
 the rasteriser and where the map lives (`mapping_device`); `cpu@cpu` is the CPU path,
-`cpu@cuda` what `rasterizer=auto` gives on a GPU machine without gsplat. `--no-gsplat` leaves
+`cpu@cuda` what `mapper/rasterizer=auto` gives on a GPU machine without gsplat. `--no-gsplat` leaves
 gsplat out (the script passes it when gsplat's extension did not build).
 
 - tracking: G-ICP with the mapper off (`mapper=none`), frames read into memory first, every CPU

@@ -7,13 +7,13 @@ writes JSON (`benchmarks/plot_long_run.py` plots it).
     OMP_NUM_THREADS=1 python benchmarks/long_run.py --frames 2000 --mapper --max-gaussians none,200000 \\
         --time-limit 1500 --out benchmarks/results/long_run_mapper.json
     OMP_NUM_THREADS=1 python benchmarks/long_run.py --dataset tum --path ../shared/data/tum_fr1_rpy_first150 \\
-        --passes 4 --mapper --variant before=strategy.skip_covered=false --variant after= --out looped.json
+        --passes 4 --mapper --variant before=mapper.admission.skip_covered=false --variant after= --out looped.json
 
 `--mapper` runs the 3DGS mapper with settings cheap enough for a CPU (`--iterations` steps per
-frame, no final iterations, evaluation of every `--eval-every`-th frame); `--max-gaussians`
-runs one variant per value (`none` = no memory guard). `--time-limit` stops a run that is still
-going after that many seconds (SIGTERM: slamkit writes what it has; the run is reported as
-incomplete, up to the frame it reached). `--set KEY=VALUE` passes any other slamkit override;
+frame, no final iterations, evaluation of every `--eval-every`-th frame); `--max-gaussians` runs
+one variant per `mapper.memory_cap.max_gaussians` (`none` = no cap). `--time-limit` stops a run
+that is still going after that many seconds (SIGTERM: slamkit writes what it has; the run is
+reported as incomplete, up to the frame it reached). `--set KEY=VALUE` passes any other slamkit override;
 `--variant LABEL="OVERRIDES"` (repeatable, space-separated overrides) runs one variant per label
 instead of one per memory cap.
 """

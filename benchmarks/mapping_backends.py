@@ -1,7 +1,7 @@
 """End-to-end training time of the 3DGS mapper along each compute path: the same `slamkit` run
-(sequential GS-ICP SLAM) with the compiled CPU path (`rasterizer=cpu`, the fused loss: the
-defaults on a CPU) and the torch path (`rasterizer=torch loss.backend=torch`: the torch
-rasteriser, pytorch-msssim and autograd), on each shared sequence. Prints a table (whole-run wall
+(sequential GS-ICP SLAM) with the compiled CPU path (`mapper/rasterizer=cpu`, the fused loss: the
+defaults on a CPU) and the torch path (`mapper/rasterizer=torch mapper.loss.backend=torch`: the
+torch rasteriser, pytorch-msssim and autograd), on each shared sequence. Prints a table (whole-run wall
 time, training time = mapping steps during the stream and the refinement after it, PSNR, ATE,
 and the speed-up of the cpu path measured in the same invocation) and writes JSON.
 

@@ -1,5 +1,5 @@
-"""The map optimisers' step time: torch.optim.Adam (`optimizer=adam`) against the per-row
-visible Adam (`optimizer=visible_adam`, torch and compiled paths), on map-sized parameter sets
+"""The map optimisers' step time: torch.optim.Adam (`mapper/optimizer=adam`) against the per-row
+visible Adam (`mapper/optimizer=visible_adam`, torch and compiled paths), on map-sized parameter sets
 with a given fraction of the rows seen by the step (non-zero gradient).
 
     OMP_NUM_THREADS=1 python benchmarks/optimizer.py --rows 50000,200000 --seen 0.3,1.0

@@ -13,7 +13,7 @@ import os as _os
 import sys as _sys
 
 # Tracking (numpy, pykdtree) and mapping (torch) each use OpenMP; with the default spin-waiting
-# their thread pools fight over the cores (measured: G-ICP 36 -> 86 ms per frame on 2 cores).
+# their thread pools fight over the cores (docs/results.md, "Tracking per frame").
 # Must be set before either runtime starts, hence here. A user's own setting wins.
 _os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 

@@ -1,19 +1,16 @@
 """Compiled helpers built on first use: one C++17 source file behind a C ABI (plus the shared
 headers of slamkit/csrc and the headers beside it), loaded with ctypes.
 
-A library is compiled with the system C++ compiler (`$CXX`, else `c++`; a few seconds) and
-cached by a hash of the source and its headers, the flags, the compiler version and (for
--march=native) the CPU under `$SLAMKIT_CACHE/extensions/` (else `~/.cache/slamkit/extensions/`),
-never in the source tree. It is built under a temporary name, recorded (size and SHA-256,
-`slamkit.cache.record`) and renamed into place; a cached library is loaded only once it matches
-its record (`slamkit.cache.damage`): one cut short, changed or without a record is rebuilt, with
-one line on stderr saying why, so that a damaged file is never mapped into the process (a
-truncated library kills it with SIGBUS). Without a compiler, or if the build fails,
-`NativeLibrary.get()` returns None and `error` says why in one line; the caller falls back to its
-numpy / torch path.
-
-We use ctypes rather than `torch.utils.cpp_extension`: the same code serves numpy callers, and
-the build takes seconds instead of about a minute (docs/cpu_rasterizer.md).
+A library is compiled with the system C++ compiler (`$CXX`, else `c++`) and cached under
+`$SLAMKIT_CACHE/extensions/` (else `~/.cache/slamkit/extensions/`), never in the source tree, by a
+hash of the source and its headers, the flags, the compiler version and (for -march=native) the
+CPU. It is built under a temporary name, recorded (size and SHA-256, `slamkit.cache.record`) and
+renamed into place; a cached library is loaded only when it matches its record, else rebuilt
+with one line on stderr (a truncated library mapped into the process kills it with SIGBUS).
+Without a compiler, or if the build fails, `NativeLibrary.get()` returns None and `error` says why
+in one line; the caller falls back to its numpy / torch path. ctypes rather than
+`torch.utils.cpp_extension`: the same code serves numpy callers and builds much faster
+(docs/cpu_rasterizer.md, "Build: a plain C++ library loaded with ctypes").
 """
 
 from __future__ import annotations

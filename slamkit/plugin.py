@@ -32,8 +32,9 @@ class PluginSpec:
     """One implementation of a role.
 
     name: what users select it by (``tracker=NAME``). cls: a subclass of exactly one role's
-    base class (`slamkit.roles.ROLES`), constructed as ``cls(config)`` (a mapper also gets the
-    parts it names in `Mapper.parts` as keyword arguments). config: a dataclass (ideally a
+    base class (`slamkit.roles.ROLES`), constructed as ``cls(config, context)`` with the run's
+    `slamkit.config.RunContext` (a mapper also gets the parts it names in `Mapper.parts` as
+    keyword arguments). config: a dataclass (ideally a
     `slamkit.roles.PluginConfig` subclass) whose fields all have defaults; it becomes the
     role's structured config group entry, so its fields are type-checked overrides.
     """

@@ -83,22 +83,21 @@ INTEGRAL_POINTS = 97
 
 @dataclass
 class MCMCConfig(StrategyConfig):
-    """refine_every: training steps between relocations (and growth). min_opacity: a Gaussian
-    less opaque than this is dead: relocated onto a live one (pruned after the last step).
-    grow_fraction: each refinement adds this fraction of the map's size as new Gaussians
-    sampled like the relocated ones (0 = relocation only). cap_max: no growth beyond this many
-    Gaussians in the map (keyframes still add theirs; `max_gaussians` bounds the map).
-    jitter: place each copy at a point drawn from its source's Gaussian instead of on its mean.
-    max_scale: metres; prune Gaussians whose largest standard deviation exceeds it (null = the
-    dataset's `DatasetTuning.max_gaussian_scale`: 0.25 Replica, 1.0 TUM). seed: the sampling's
-    random generator."""
+    """Options of ``mapper/strategy=mcmc``: relocation of dead Gaussians and growth by sampling."""
 
+    #: training steps between relocations (and growth)
     refine_every: int = 100
+    #: a less opaque Gaussian is dead: relocated onto a live one (pruned after the last step)
     min_opacity: float = 0.005
+    #: each refinement adds this fraction of the map's size, sampled like relocations (0: relocation only)
     grow_fraction: float = 0.05
+    #: no growth beyond this many Gaussians (keyframes still add theirs; mapper.memory_cap bounds the map)
     cap_max: int = 300_000
+    #: place each copy at a point drawn from its source's Gaussian instead of on its mean
     jitter: bool = True
+    #: metres; prune Gaussians whose largest standard deviation exceeds it (null: the dataset's max_gaussian_scale)
     max_scale: float | None = None
+    #: seed of the sampling's random generator
     seed: int = 0
 
     def validate(self) -> None:

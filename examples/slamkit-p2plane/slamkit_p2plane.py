@@ -66,32 +66,29 @@ from slamkit.types import Frame, TrackingResult
 
 @dataclass
 class P2PlaneConfig(PluginConfig):
-    """Options of ``tracker=p2plane`` (lengths in metres).
+    """Options of ``tracker=p2plane``, point-to-plane ICP against a voxelised model."""
 
-    pixel_stride: back-project every n-th pixel in x and y (null = the dataset's
-      `DatasetTuning.tracking_pixel_stride`).
-    max_correspondence_distance: farther matches are ignored (null = the tuning's
-      `correspondence_distance`).
-    voxel_size: the model's downsampling grid. knn: neighbours of each model normal.
-    huber: residuals beyond this are down-weighted (Huber loss; 0 = plain least squares).
-    max_iterations, tolerance: Gauss-Newton stops after max_iterations steps, or when the norm
-      of an update (radians and metres) is below tolerance.
-    keyframe_translation, keyframe_rotation_deg: motion since the last keyframe beyond which a
-      frame is added to the model.
-    max_range: farther points are not used (null = the dataset's depth_trunc).
-    min_correspondences: fewer matches -> the frame is lost and keeps the predicted pose.
-    """
-
+    #: back-project every n-th pixel in x and y (null: the dataset's tracking_pixel_stride)
     pixel_stride: int | None = None
+    #: metres; farther matches are ignored (null: the dataset's correspondence_distance)
     max_correspondence_distance: float | None = None
+    #: metres, the model's downsampling grid
     voxel_size: float = 0.02
+    #: neighbours of each model normal
     knn: int = 10
+    #: metres; residuals beyond are down-weighted (Huber loss; 0: plain least squares)
     huber: float = 0.005
+    #: Gauss-Newton steps per frame, at most
     max_iterations: int = 20
+    #: converged when an update's norm (radians and metres) is below this
     tolerance: float = 3e-4
+    #: metres moved since the last keyframe beyond which a frame is added to the model
     keyframe_translation: float = 0.05
+    #: degrees turned since the last keyframe beyond which a frame is added to the model
     keyframe_rotation_deg: float = 10.0
+    #: metres; farther points are not used (null: the dataset's depth_trunc)
     max_range: float | None = None
+    #: fewer matches: the frame is lost and keeps the predicted pose
     min_correspondences: int = 100
 
     def validate(self) -> None:

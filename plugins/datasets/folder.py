@@ -1,30 +1,9 @@
-"""`dataset=folder`: your own RGB-D recording, as a folder of colour and depth images.
+"""`dataset=folder`: your own RGB-D recording, as a folder of colour and depth images with an
+intrinsics file (docs/datasets.md, "`folder`: your own recording", gives the layout).
 
-Layout (the names in brackets are options)::
-
-    my_scene/                  dataset.path
-      intrinsics.yaml          [dataset.intrinsics] YAML or JSON (by suffix .json): fx, fy, cx, cy
-                               (pixels), width, height, depth_scale (raw depth units per metre),
-                               optionally depth_trunc (metres)
-      color/ (or rgb/)         [dataset.color_dir] colour images, .png / .jpg / .jpeg
-      depth/                   [dataset.depth_dir] depth images of the same size: 16-bit PNG
-                               (metres = raw / depth_scale, 0 = invalid) or 32-bit float TIFF
-                               (metres)
-      timestamps.txt           optional: one timestamp (seconds) per line, line k = frame k
-      trajectory.txt           [dataset.trajectory] optional ground truth
-
-Frames: a colour and a depth image belong together when their file stems are equal
-(``color/000123.png`` with ``depth/000123.png``); frames are in sorted stem order (numeric when
-every stem is a number). An image without its partner is an error that lists a few.
-Timestamps come from timestamps.txt if present, else from the stems when every stem is a number
-(e.g. TUM-style ``1305031229.528748``), else they are the frame indices.
-
-Ground truth (camera-to-world, OpenCV axes: x right, y down, z forward; metres), its format
-told by the number of fields per line:
-- 8: TUM ``timestamp tx ty tz qx qy qz qw``, interpolated at the frame timestamps (frames more
-  than `gt_tolerance` seconds from a pose have none);
-- 16: one row-major 4x4 pose per line, line k = frame k.
-`trajectory: null` uses ``trajectory.txt`` in the folder when there is one.
+A colour and a depth image with the same file stem form a frame, in sorted stem order; the
+ground truth (camera-to-world, OpenCV axes, metres) is a TUM-format file (8 fields per line,
+interpolated at the frame timestamps) or one row-major 4x4 pose per line (16 fields).
 """
 
 from __future__ import annotations
@@ -58,19 +37,19 @@ TRAJECTORY_EXPECTED = "8 fields 'timestamp tx ty tz qx qy qz qw' or 16 numbers, 
 
 @dataclass
 class FolderConfig(DatasetConfig):
-    """intrinsics: the intrinsics file, relative to `path` (or absolute); without the default
-    intrinsics.yaml, intrinsics.yml or intrinsics.json is used.
-    trajectory: ground-truth file, relative to `path` first, then the working directory (null =
-    trajectory.txt in `path` if present; a given file that does not exist is an error).
-    color_dir: colour subfolder (null = color/, else rgb/). depth_dir: depth subfolder.
-    depth_scale: raw depth units per metre, overrides the intrinsics file's (null = the file's).
-    gt_tolerance: seconds between a frame and the nearest pose of a TUM-format trajectory."""
+    """Options of a folder recording."""
 
+    #: the intrinsics file, relative to `path` or absolute (intrinsics.yml / .json are found too)
     intrinsics: str = "intrinsics.yaml"
+    #: ground-truth file, relative to `path`, then the working directory (null: trajectory.txt if present)
     trajectory: str | None = None
+    #: colour subfolder (null: color/, else rgb/)
     color_dir: str | None = None
+    #: depth subfolder
     depth_dir: str = "depth"
+    #: raw depth units per metre of 16-bit depth images (null: the intrinsics file's)
     depth_scale: float | None = None
+    #: seconds between a frame and the nearest pose of a TUM-format trajectory
     gt_tolerance: float = 0.02
 
     def validate(self) -> None:

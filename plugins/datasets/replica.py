@@ -34,11 +34,11 @@ DEFAULT_CAMERA = Camera(1200, 680, 600.0, 600.0, 599.5, 339.5)
 
 @dataclass
 class ReplicaConfig(DatasetConfig):
-    """depth_scale: raw depth units per metre (cam_params.json's camera.scale wins when
-    present). gt_path: pose file (null = traj.txt in `path`, optional; relative paths are
-    looked up in `path` first)."""
+    """Options of a Replica sequence in the NICE-SLAM layout."""
 
+    #: raw depth units per metre (cam_params.json's camera.scale wins when present)
     depth_scale: float = 6553.5
+    #: pose file, relative paths looked up in `path` first (null: traj.txt if present)
     gt_path: str | None = None
 
     def validate(self) -> None:

@@ -37,8 +37,9 @@ INVALID_DEPTH = (65535,)
 
 @dataclass
 class SevenScenesConfig(DatasetConfig):
-    """depth_scale: raw depth units per metre (1000 = millimetres)."""
+    """Options of a 7-Scenes / 3DMatch sequence."""
 
+    #: raw depth units per metre (1000: millimetres)
     depth_scale: float = 1000.0
 
     def validate(self) -> None:

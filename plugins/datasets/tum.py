@@ -38,16 +38,17 @@ CAMERAS = {
 
 @dataclass
 class TUMConfig(DatasetConfig):
-    """association_tolerance: seconds allowed between a colour and its depth frame.
-    gt_tolerance: seconds allowed between a colour frame and its nearest ground-truth sample.
-    gt_path: trajectory file (null = groundtruth.txt in `path`, optional; relative paths are
-    looked up in `path` first). depth_scale: raw depth units per metre. camera: fr1 | fr2 |
-    fr3 (null = from the folder name, e.g. rgbd_dataset_freiburg2_xyz; fr1 if none)."""
+    """Options of a TUM RGB-D sequence."""
 
+    #: seconds allowed between a colour frame and its depth frame
     association_tolerance: float = 0.02
+    #: seconds allowed between a colour frame and its nearest ground-truth pose
     gt_tolerance: float = 0.02
+    #: ground-truth file, relative paths looked up in `path` first (null: groundtruth.txt if present)
     gt_path: str | None = None
+    #: raw depth units per metre of the 16-bit depth images
     depth_scale: float = 5000.0
+    #: fr1 | fr2 | fr3 intrinsics (null: from the folder name, e.g. rgbd_dataset_freiburg2_xyz; fr1 if none)
     camera: str | None = None
 
     def validate(self) -> None:

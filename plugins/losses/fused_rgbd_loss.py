@@ -3,8 +3,8 @@
     loss = w_l1 L1(colour) + w_ssim (1 - SSIM) + w_depth L1(depth) / depth_unit
 
 over the pixels with observed depth (all pixels for the colour terms, and no depth term, when no
-pixel has depth): the loss of `slamkit_plugins.mappers.gaussian_splatting`, defined once, in
-torch, by `torch_rgbd_loss` below (SSIM is pytorch_msssim's: 11-tap Gaussian window, sigma 1.5,
+pixel has depth): the loss of `mapper/loss=l1_ssim_depth`, defined once, in torch, by
+`torch_rgbd_loss` below (SSIM is pytorch_msssim's: 11-tap Gaussian window, sigma 1.5,
 data range 1, valid filtering, pixels outside the mask set to 0 in both images).
 
 `fused_rgbd_loss` computes the same value with `csrc/rgbd_loss.cpp` (C++17 behind a C ABI,

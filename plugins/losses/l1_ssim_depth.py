@@ -1,4 +1,4 @@
-"""`loss=l1_ssim_depth`: GS-ICP SLAM's mapping loss (paper Eq. 9, as the reference code).
+"""`mapper/loss=l1_ssim_depth`: GS-ICP SLAM's mapping loss (paper Eq. 9, as the reference code).
 
     loss = w_l1 L1(colour) + w_ssim (1 - SSIM(colour)) + w_depth L1(depth / 10 m)
 

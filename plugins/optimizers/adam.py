@@ -1,4 +1,4 @@
-"""`optimizer=adam`: torch.optim.Adam over the map's parameters, one learning rate each.
+"""`mapper/optimizer=adam`: torch.optim.Adam over the map's parameters, one learning rate each.
 
 The learning rates are the reference code's (GS-ICP SLAM, as 3DGS): means 4e-6 (constant),
 colours 0.0025, opacity logits 0.05, log scales 0.005, quaternions 0.001; eps 1e-15. The map's
@@ -7,7 +7,7 @@ row operations edit Adam's moments through `edit_rows` (new rows start at zero, 
 strategy ops do), and a parameter tensor the map replaced takes over its predecessor's state at
 the next step. Adam's step count is one per parameter tensor (torch's), so a row that joins late
 is bias-corrected as if it had been there from the start: its first updates are up to ~3x
-larger than a fresh Adam's (`optimizer=visible_adam` counts steps per row).
+larger than a fresh Adam's (`mapper/optimizer=visible_adam` counts steps per row).
 """
 
 from __future__ import annotations
@@ -65,7 +65,7 @@ class TorchAdam(MapOptimizer):
 
     def __init__(self, cfg: AdamConfig, context: RunContext = RunContext()):
         self.cfg = cfg
-        # torch's first Adam imports torch._dynamo (~1.3 s, holding the GIL): at start-up here,
+        # torch's first Adam imports torch._dynamo (seconds, holding the GIL): at start-up here,
         # not in the first mapping step (in real time that is during the stream, and it stalled
         # the tracking thread as well)
         torch.optim.Adam([torch.zeros(1, requires_grad=True)], fused=cfg.fused)

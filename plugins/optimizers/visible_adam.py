@@ -1,21 +1,17 @@
-"""`optimizer=visible_adam`: Adam updating only the rows a training step saw.
+"""`mapper/optimizer=visible_adam`: Adam updating only the rows a training step saw.
 
 A row the step did not render (zero gradient for every parameter) keeps its parameters and
-moments: the "sparse" or "visible" Adam of the 3DGS literature (gsplat's SelectiveAdam); its
-cost follows the rows seen, not the map. The moments are bias-corrected with the optimiser's
-step count (`bias_correction=global`, as torch.optim.Adam) or with each row's own count of the
-steps it was seen in (`row`: a late row starts like a fresh Adam). `only_visible=false` updates
-every row, moments decaying where the gradient is zero; with `bias_correction=row` that is the
-mapper's Adam before the mapper was split into parts. With every row seen at every step and
-the same age, every setting equals torch.optim.Adam (tests/test_optimizers.py). The same
-learning rates as `optimizer=adam`. Measured on Replica room0 (20 frames, 600 steps,
-docs/results.md): PSNR 27.54 dB with torch.optim.Adam, 27.10 visible/global, 27.13
-dense/row, 25.60 visible/row.
+moments: the "sparse" or "visible" Adam of the 3DGS literature (gsplat's SelectiveAdam); its cost
+follows the rows seen, not the map. The moments are bias-corrected with the optimiser's step
+count (`bias_correction=global`, as torch.optim.Adam) or with each row's own count of the steps it
+was seen in (`row`: a late row starts like a fresh Adam). `only_visible=false` updates every row.
+With every row seen at every step and the same age, every setting equals torch.optim.Adam; the
+learning rates are `mapper/optimizer=adam`'s (docs/results.md, "The mapper's parts: optimisers
+and strategies").
 
 On CPU the update is one pass of compiled code over the rows (csrc/visible_adam.cpp, built on
-first use by `slamkit.native`; `kernels=torch` is the reference it is tested against, and the
-path for GPU tensors or without a compiler): the torch path gathers and scatters the visible
-rows of every tensor.
+first use by `slamkit.native`); `kernels=torch` is the reference it is tested against, and the
+path for GPU tensors or without a compiler.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""`rasterizer=auto` (the default): the first backend of `prefer` that can be built here.
+"""`mapper/rasterizer=auto` (the default): the first backend of `prefer` that can be built here.
 
 gsplat needs CUDA, the gsplat package and its compiled extension; cpu needs a C++ compiler
 (the library is built on first use); torch always works. A backend that cannot be built is

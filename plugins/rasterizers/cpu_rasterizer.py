@@ -1,19 +1,12 @@
-"""`rasterizer=cpu`: a tile-based, multi-threaded, compiled CPU rasteriser (forward + backward).
+"""`mapper/rasterizer=cpu`: a tile-based, multi-threaded, compiled CPU rasteriser (forward + backward).
 
-The same conventions as `slamkit.splatting.rendering.Rasterizer` and the `torch` reference backend (see
-`slamkit_plugins.rasterizers.torch_rasterizer`), reproduced to float precision: projection with
-the EWA covariance + 0.3 px^2, near-plane culling at z <= 0.01 m, the torch backend's exact
-per-row pixel coverage (alpha >= 1/255 ellipse), alpha = min(0.99, o exp(-q/2)), front-to-back
-compositing that stops before the transmittance drops below 1e-4, colour over the background,
-depth = sum w z, alpha = sum w. Gradients reach means, quats, scales, opacities, colors and the
-background.
-
-The work is done by `csrc/cpu_rasterizer.cpp`: plain C++17 behind a C ABI, loaded with ctypes.
-It is compiled when the backend is built (first use; cached outside the source tree by
-`slamkit.native`; the exact pixel-coverage arithmetic relies on its -ffp-contract=off).
-Without a compiler, or if the build fails, building the backend raises a one-line ConfigError
-(`rasterizer=auto` then takes the `torch` backend). See docs/cpu_rasterizer.md for the design
-and the measurements.
+The conventions of `slamkit.splatting.rendering.Rasterizer`, reproduced to float precision with
+the `torch` reference backend's exact per-row pixel coverage; gradients reach means, quats,
+scales, opacities, colors and the background. The work is done by `csrc/cpu_rasterizer.cpp`
+(C++17 behind a C ABI, loaded with ctypes), compiled when the backend is first built and cached
+by `slamkit.native` (the coverage arithmetic relies on its -ffp-contract=off). Without a
+compiler, or if the build fails, building the backend is a one-line ConfigError
+(`mapper/rasterizer=auto` then takes `torch`). docs/cpu_rasterizer.md has the design.
 """
 
 from __future__ import annotations
@@ -191,7 +184,7 @@ class CPURasterizer(Rasterizer):
         self.lib = self.library.get()
         if self.lib is None:
             raise ConfigError(f"rasterizer cpu: the compiled library is not available ({self.library.error}); "
-                              "rasterizer=torch needs no compiler")
+                              "mapper/rasterizer=torch needs no compiler")
         self.last_num_pairs = 0  # (pixel, Gaussian) pairs composited by the last render
         self.last_num_visible = 0  # Gaussians that cover at least one pixel row span
         self.last_num_entries = 0  # (tile, Gaussian) entries

@@ -1,28 +1,16 @@
-"""`rasterizer=gsplat`: gsplat's fused CUDA rasteriser (gsplat 1.5.3), in slamkit's conventions.
+"""`mapper/rasterizer=gsplat`: gsplat's fused CUDA rasteriser (gsplat 1.5.3), in slamkit's conventions.
 
-Needs CUDA and the gsplat package (``pip install 'slamkit[cuda]'``). It is registered
-everywhere; building it where either is missing raises a one-line ConfigError. gsplat is
-imported only when the backend is built, so this module imports on any machine. gsplat's CUDA
-extension is compiled (or loaded from its cache, `TORCH_EXTENSIONS_DIR`) at its first call, not
-at import: building the backend renders one Gaussian (`probe`) so that a missing or unbuildable
-extension is a ConfigError here, not an exception deep in a run (`rasterizer=auto` then falls
-back to the cpu backend).
+Needs CUDA and gsplat (``pip install 'slamkit[cuda]'``), imported only when the backend is built;
+building it renders one Gaussian (`probe`), so that a missing or unbuildable CUDA extension is a
+one-line ConfigError here (docs/gpu.md), not an exception deep in a run.
 
-How slamkit's conventions map onto `gsplat.rasterization`:
-- gsplat puts pixel centres at (j + 0.5, i + 0.5); slamkit at (j, i). The principal point is
-  therefore passed shifted by +0.5 px, which makes the two agree exactly (the Jacobian clamp of
-  both is then the same too);
-- ``render_mode="RGB+D"`` gives the accumulated depth sum_i w_i z_i (slamkit's depth; "RGB+ED"
-  would divide it by alpha); gsplat pads the background with 0 for the depth channel;
-- ``near_plane=0.01``, ``eps2d=0.3``, ``rasterize_mode="classic"`` (no opacity compensation),
-  ``packed=False``; gsplat 1.5.3 bounds each Gaussian by its opacity-aware ellipse
-  (alpha >= 1/255), as the torch backend does;
-- gsplat computes in float32 on CUDA: inputs are converted (and moved to the GPU if they are
-  not there); outputs come back in the inputs' dtype and device, gradients flow through.
-
-Known difference from the torch reference: gsplat clamps alpha at 0.999 instead of 0.99 (and
-zeroes the gradient above it), so renders agree only where o_i exp(-q/2) <= 0.99, i.e. wherever
-the Gaussians' opacities are <= 0.99.
+slamkit's conventions on `gsplat.rasterization`: gsplat's pixel centres are at (j + 0.5, i + 0.5),
+slamkit's at (j, i), so the principal point is passed shifted by +0.5 px (the two then agree
+exactly, Jacobian clamp included); ``render_mode="RGB+D"`` gives slamkit's depth sum_i w_i z_i;
+``near_plane=0.01``, ``eps2d=0.3``, ``rasterize_mode="classic"``, ``packed=False``, each
+Gaussian bounded by its alpha >= 1/255 ellipse. gsplat computes in float32 on CUDA; outputs come
+back in the inputs' dtype and device. gsplat clamps alpha at 0.999, not 0.99, so renders agree
+with the torch reference wherever the Gaussians' opacities are <= 0.99.
 """
 
 from __future__ import annotations

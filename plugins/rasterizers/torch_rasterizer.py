@@ -1,37 +1,16 @@
-"""`rasterizer=torch`: our pure-PyTorch differentiable 3DGS rasteriser (CPU and CUDA).
+"""`mapper/rasterizer=torch`: our pure-PyTorch differentiable 3DGS rasteriser (CPU and CUDA).
 
-It is the reference for correctness that the other backends are checked against, and the
-fallback where neither gsplat (CUDA) nor a compiled CPU backend is available.
+The reference the other backends are checked against, and the fallback where neither gsplat
+(CUDA) nor a compiled CPU backend is available: exactly the conventions of
+`slamkit.splatting.rendering.Rasterizer`. The projection is ordinary autograd; the compositing
+is one `torch.autograd.Function` with 3DGS's analytic backward, reaching means, quats, scales,
+opacities, colors and the background.
 
-Conventions (those of `slamkit.splatting.rendering.Rasterizer`, stated exactly):
-- camera-frame mean p = R m + t; Gaussians with p_z <= 0.01 m are culled;
-- u = fx p_x / p_z + cx, v = fy p_y / p_z + cy; pixel (row i, column j) has its centre at
-  (u, v) = (j, i);
-- 2D covariance J W Sigma W^T J^T + 0.3 I (px^2). As in 3DGS and gsplat, the Jacobian J is
-  evaluated with p_x / p_z (p_y / p_z) clamped to the image extended by 15 % of its width
-  (height) on each side, which only matters for Gaussians centred far off-screen;
-- alpha_i = min(0.99, o_i exp(-d^T Sigma2D^-1 d / 2)); a Gaussian covers exactly the pixels where
-  o_i exp(-q/2) >= 1/255 (its opacity-aware ellipse: no pair with a smaller alpha is ever made,
-  so a Gaussian whose ellipse misses the image is culled);
-- per pixel, front to back by camera z; a Gaussian is composited only if the transmittance
-  after it stays >= 1e-4 (T_before (1 - alpha_i) >= 1e-4), and compositing stops at the first
-  one that does not (as 3DGS's CUDA kernel does);
-- colour = sum w_i c_i + (1 - sum w_i) background, depth = sum w_i z_i, alpha = sum w_i, with
-  w_i = alpha_i T_i.
-
-Gradients: the projection (means, quats, scales -> 2D means and conics) is ordinary autograd;
-the compositing is one `torch.autograd.Function` with the analytic backward of 3DGS (the pair
-selection and the transmittance cut-off are non-differentiable; alpha's clamp at 0.99 has zero
-derivative, as in gsplat). Gradients reach means, quats, scales, opacities, colors and the
-background.
-
-How it stays vectorised and memory-bounded: for every Gaussian, the image rows its ellipse
-crosses, and for every such row the exact interval of covered columns (a quadratic), are
-computed in closed form; (pixel, Gaussian) pairs are generated row by row in depth order, then
-stably sorted by pixel (a 16-bit radix sort on CPU), so each pixel's Gaussians are contiguous
-and front-to-back. The transmittance is a segmented cumulative sum of log(1 - alpha) (in
-float64), the per-pixel sums are segment reductions, and the backward pass uses a segmented
-suffix sum. The image is processed in bands of rows holding at most `max_pairs_per_chunk` pairs.
+Vectorised and memory-bounded: each Gaussian's image rows and, per row, its exact interval of
+covered columns are computed in closed form; (pixel, Gaussian) pairs are made row by row in depth
+order and stably sorted by pixel, so that each pixel's Gaussians are contiguous and front to back.
+The transmittance is a segmented cumulative sum of log(1 - alpha) (float64), the backward a
+segmented suffix sum, over bands of rows of at most `max_pairs_per_chunk` pairs.
 """
 
 from __future__ import annotations
@@ -73,7 +52,7 @@ class TorchRasterizerConfig(PluginConfig):
 
 
 class TorchRasterizer(Rasterizer):
-    """Pure-PyTorch 3DGS rasteriser; see the module docstring for the exact conventions."""
+    """Pure-PyTorch 3DGS rasteriser (the conventions of `Rasterizer`)."""
 
     def __init__(self, cfg: TorchRasterizerConfig | None = None, context: RunContext = RunContext()):
         self.cfg = cfg or TorchRasterizerConfig()

@@ -1,13 +1,13 @@
 """Keyframe samplers: which keyframe the mapper trains on next (paper Table 8a).
 
-- `random` (the paper's choice, 38.83 dB on Replica): uniform over all keyframes so far, so the
+- `random` (the paper's choice, its best in Table 8a): uniform over all keyframes so far, so the
   whole map keeps being trained and no view's local minimum dominates; optionally a share of the
   draws on the newest keyframe (`newest_share`).
-- `covisible` (31.34 dB in the paper): uniform among the `top_k` keyframes whose view overlaps
+- `covisible`: uniform among the `top_k` keyframes whose view overlaps
   the current one most. Overlap is the fraction of a fixed set of points inside the current
   camera's viewing frustum (a grid over a `fov_deg` cone at depths up to `max_depth` metres) that
   also lie inside the keyframe's frustum, so it needs the keyframes' poses.
-- `recent` (26.85 dB in the paper): always the newest keyframe.
+- `recent`: always the newest keyframe (the paper's worst).
 
 A sampler is a part of the 3DGS mapper, selected with ``mapper/sampler=covisible mapper.sampler.top_k=3``.
 """

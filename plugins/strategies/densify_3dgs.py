@@ -1,5 +1,5 @@
-"""`strategy=3dgs`: 3D Gaussian Splatting's adaptive density control (Kerbl et al. 2023), the
-paper's Table 8b ablation (GS-ICP SLAM itself does not densify: `strategy=gsicp`).
+"""`mapper/strategy=3dgs`: 3D Gaussian Splatting's adaptive density control (Kerbl et al. 2023), the
+paper's Table 8b ablation (GS-ICP SLAM itself does not densify: `mapper/strategy=gsicp`).
 
 Every training step accumulates, for each Gaussian the step saw, the norm of the loss's
 gradient with respect to its projected mean in 3DGS's NDC units, approximated from the 3D

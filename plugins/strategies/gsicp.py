@@ -1,4 +1,4 @@
-"""`strategy=gsicp`: GS-ICP SLAM's map upkeep (paper Sec. 3.2, Table 8b): no densification
+"""`mapper/strategy=gsicp`: GS-ICP SLAM's map upkeep (paper Sec. 3.2, Table 8b): no densification
 (keyframes add the Gaussians), only pruning: every `prune_every` training steps and after the
 last one, the Gaussians that are nearly transparent, larger than the scene allows, or have a
 non-finite parameter are removed."""

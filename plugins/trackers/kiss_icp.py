@@ -23,24 +23,23 @@ from slamkit.types import Frame, TrackingResult
 
 @dataclass
 class KissICPConfig(PluginConfig):
-    """Defaults suited to indoor RGB-D (ranges of a few metres, millimetre depth noise).
+    """Options of `tracker=kiss_icp`, with defaults for indoor RGB-D (a few metres, millimetre noise)."""
 
-    pixel_stride: back-project every n-th pixel (dense; KISS-ICP voxelises itself).
-    voxel_size: metres, KISS-ICP's map voxel (it registers on a 1.5x coarser grid).
-    max_range / min_range: metres; max_range null = the dataset's depth_trunc.
-    initial_threshold: metres, the adaptive correspondence threshold before motion is seen
-    (KISS-ICP's LiDAR default is 2 m, far too loose indoors).
-    min_motion: metres, the motion below which the adaptive threshold is not updated.
-    max_points_per_voxel: map points kept per voxel.
-    """
-
+    #: back-project every n-th pixel in x and y (dense: KISS-ICP voxelises itself)
     pixel_stride: int = 2
+    #: metres, KISS-ICP's map voxel (it registers on a 1.5x coarser grid)
     voxel_size: float = 0.05
+    #: metres; farther points are not used (null: the dataset's depth_trunc, at most 100)
     max_range: float | None = None
+    #: metres; nearer points are not used
     min_range: float = 0.1
+    #: metres, the adaptive correspondence threshold before motion is seen (KISS-ICP's LiDAR default: 2)
     initial_threshold: float = 0.1
+    #: metres; a smaller motion does not update the adaptive threshold
     min_motion: float = 0.005
+    #: map points kept per voxel
     max_points_per_voxel: int = 20
+    #: fewer valid depth points: the frame is lost
     min_points: int = 100
 
     def validate(self) -> None:

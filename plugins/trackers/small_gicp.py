@@ -23,20 +23,27 @@ from slamkit.types import Frame, TrackingResult
 
 @dataclass
 class SmallGICPConfig(PluginConfig):
-    """pixel_stride: back-project every n-th pixel. voxel_size: metres, downsampling of frame
-    and model. max_correspondence_distance: metres. knn: neighbours for covariances.
-    keyframe_translation (m) / keyframe_rotation_deg: motion since the last keyframe that adds
-    the frame to the model. max_range: metres, null = the dataset's depth_trunc."""
+    """Options of `tracker=small_gicp`, frame-to-model GICP with small_gicp."""
 
+    #: back-project every n-th pixel in x and y
     pixel_stride: int = 2
+    #: metres, the voxel that downsamples the frame and the model
     voxel_size: float = 0.02
+    #: metres
     max_correspondence_distance: float = 0.05
+    #: neighbours of each point's covariance
     knn: int = 10
+    #: GICP iterations per frame, at most
     max_iterations: int = 20
+    #: metres moved since the last keyframe that make the frame a keyframe (added to the model)
     keyframe_translation: float = 0.05
+    #: degrees turned since the last keyframe that make the frame a keyframe
     keyframe_rotation_deg: float = 5.0
+    #: metres; farther points are not used (null: the dataset's depth_trunc)
     max_range: float | None = None
+    #: small_gicp's threads
     num_threads: int = thread_count(2)
+    #: fewer valid depth points: the frame is lost
     min_points: int = 100
 
     def validate(self) -> None:

@@ -1,21 +1,14 @@
 """`slamkit-data`: fetch the public sequences GS-ICP SLAM's paper evaluates on.
 
-`slamkit-data download NAME... --root DIR` downloads each sequence's archive into DIR (a
-progress bar on a terminal; a cut transfer resumes, within the run up to `--retries` times and
-on running the same command again), checks its size against the server's and its SHA-256
-against `--sha256` or the one recorded when it was first downloaded into DIR, extracts it with
-its integrity checked into the layout the dataset plugins read, and deletes the archive (unless
-`--keep-archive`). `DIR/slamkit-data.json` records each archive's URL, size and SHA-256. A
-sequence whose folders are already complete under DIR is not downloaded again.
-
-NAME: `replica` (NICE-SLAM's Replica.zip, eight scenes, ~12 GB), any TUM RGB-D sequence
-(`rgbd_dataset_freiburg1_desk`, or `fr1/desk`; the paper's are fr1/desk, fr2/xyz and
-fr3/office), or `paper` for all four archives. `slamkit-data list` prints them.
-`--base-url URL` (or SLAMKIT_DATA_BASE_URL) fetches every archive from under URL instead
-(`URL/Replica.zip`, `URL/freiburg1/rgbd_dataset_freiburg1_desk.tgz`): a mirror.
-
-Exit status: 0 done, 1 a download failed (what it had is kept), 2 a bad name, checksum or
-archive (one line each), 130 interrupted.
+`slamkit-data download NAME... --root DIR` downloads each archive into DIR (a cut transfer
+resumes), checks its size and SHA-256 (recorded in `DIR/slamkit-data.json` at the first
+download), extracts it into the layout the dataset plugins read and deletes it (unless
+`--keep-archive`); a sequence already complete under DIR is not downloaded again. NAME:
+`replica` (NICE-SLAM's Replica.zip, eight scenes), a TUM RGB-D sequence
+(`rgbd_dataset_freiburg1_desk` or `fr1/desk`), or `paper` for all four archives;
+`slamkit-data list` prints them. `--base-url URL` (or SLAMKIT_DATA_BASE_URL) reads a mirror.
+docs/datasets.md, "Downloading the paper's sequences". Exit status: 0 done, 1 a download failed
+(what it had is kept), 2 a bad name, checksum or archive (one line each), 130 interrupted.
 """
 
 from __future__ import annotations

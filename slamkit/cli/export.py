@@ -1,27 +1,16 @@
 """`slamkit-export`: turn a run's outputs or its map checkpoint into other formats.
 
-`SOURCE` is a run folder or a map checkpoint file (`RUN_DIR/checkpoint.zip`, written by every
-run: see `slamkit.run.checkpoint`); a run folder's map is its map.ply, or its checkpoint when it
-has no map.ply (`mapper=none`). `slamkit-export ply SOURCE [--out FILE]` writes the map in the
-3DGS PLY layout that splat viewers open (default: map.ply beside the checkpoint).
+`SOURCE` is a run folder (its map.ply, or its checkpoint.zip when it has none: `mapper=none`) or a
+map checkpoint file. `slamkit-export ply SOURCE [--out FILE]` writes the map in the 3DGS PLY
+layout that splat viewers open. `slamkit-export mesh SOURCE [--voxel 0.01]` renders expected depth
+and colour (where the opacity reaches `--min-alpha`, so that half-transparent edges do not smear
+the surface) at every keyframe pose (`keyframes.txt`, camera-to-world) with the run's camera and
+the `auto` rasteriser, fuses them into open3d's ScalableTSDFVolume (voxel in metres; extra
+`mesh`) and writes the marching-cubes mesh (world metres, vertex colours and normals).
 
-`slamkit-export mesh RUN_DIR [--voxel 0.01] [--out RUN_DIR/mesh.ply]` makes a triangle mesh of
-the Gaussian map: it renders depth and colour from every keyframe pose (`keyframes.txt`,
-camera-to-world) with the run's camera (`camera.json`) and a rasteriser backend (`auto`: the
-compiled CPU one, else the torch reference), fuses the renders into a TSDF volume
-(open3d's ScalableTSDFVolume, voxel size in metres) and writes the marching-cubes mesh as PLY
-(vertex positions in world metres, vertex colours and normals). The map comes from `map.ply`,
-which runs with `mapper=gaussian_splatting` write. Needs the optional extra `mesh`
-(`pip install -e '.[mesh]'`, open3d).
-
-Only pixels whose rendered opacity reaches `--min-alpha` are fused, with their expected depth
-(depth / alpha) and colour (colour / alpha), so half-transparent edges do not smear the surface.
-
-A Gaussian with a non-finite parameter (a diverged map) is left out of both, and the count said.
-`--out` must be a file name: never a folder, never a map checkpoint (slamkit-export does not
-write over a file it did not make), never in the folder of a run still going. Exit status: 0;
-2 a bad source or --out, one line; 1 the output could not be written (a read-only place, a full
-disk), one line.
+Gaussians with a non-finite parameter are left out, with their count. `--out` is never a folder,
+a map checkpoint or in the folder of a run still going (docs/checkpoints.md, "Export"). Exit
+status: 0; 2 a bad source or --out, one line; 1 the output could not be written, one line.
 """
 
 from __future__ import annotations

@@ -2,16 +2,12 @@
 
 `slamkit` alone runs the default pipeline on the built-in synthetic sequence; any config value
 is an override (`slamkit dataset=tum dataset.path=... tracker=kiss_icp`), `-m` runs sweeps.
-`slamkit resume=RUN_DIR [overrides]` continues a run from its checkpoint (in RUN_DIR);
-`slamkit mode=localize map=RUN_DIR dataset=...` tracks a sequence in a saved map. Overrides are
-read with Hydra's own parser; a key spelled as before 0.3 fails with one line naming the new one.
-Exit status (docs/architecture.md, "Run outputs"): 0 completed; 2 a user error (a bad file, a
-bad value, an output folder that cannot be made), one line, SLAMKIT_DEBUG=1 for the traceback;
-1 an environment failure (a full disk: what the run kept is named); 3 tracking failed (no frame
-tracked, or more than `eval.max_lost_fraction` lost: no ATE is reported); 128 + N stopped by
-signal N (130 SIGINT, 143 SIGTERM, 129 SIGHUP, ...: `slamkit.run.lifecycle.SIGNALS`, at any point
-from start-up: one line, the outputs so far are kept).
-Heavy modules (torch, Hydra, the plugins) are imported only once those signals are handled.
+`slamkit resume=RUN_DIR [overrides]` continues a run from its checkpoint; `slamkit mode=localize
+map=RUN_DIR dataset=...` tracks a sequence in a saved map. Overrides are read with Hydra's own
+parser; a key spelled as before 0.3 fails with one line naming the new one. Exit status
+(docs/architecture.md, "Run outputs"): 0 completed; 2 a user error, one line (SLAMKIT_DEBUG=1 for
+the traceback); 1 an environment failure; 3 tracking failed; 128 + N stopped by signal N, from
+start-up on: heavy modules (torch, Hydra, the plugins) are imported only once signals are handled.
 """
 
 from __future__ import annotations

@@ -1,19 +1,13 @@
 """The commands' standard output and error, made so that they can never stop a run.
 
-A command's output may go where it cannot be written: a reader that has quit (`slamkit ... |
-head -1`, `| true`: EPIPE), a full disk (`> /dev/full`: ENOSPC), a terminal that went away
-with its SSH session (EIO), a stream closed before the start (`2>&-`). None of that is the
-run's business: its results are its files. `guard()`, called first thing by each command,
-
-- gives a closed standard descriptor (0, 1 or 2) /dev/null, so that no file the run opens
-  later takes its number (a log file or an output that got descriptor 2 would receive every
-  message, warning and traceback meant for stderr), and
-- replaces `sys.stdout` and `sys.stderr` by `GuardedStream`s: a write or flush that fails is
-  dropped, once said in the log (`slamkit.streams`, which the run's log file keeps), and the
-  stream's descriptor is pointed at /dev/null, so that later writes, by Python, by compiled
-  code or at the interpreter's exit, go nowhere instead of failing again.
-
-The command then goes on and exits with its normal status.
+A command's output may go where it cannot be written: a reader that has quit (`| head -1`:
+EPIPE), a full disk (ENOSPC), a terminal gone with its SSH session (EIO), a stream closed before
+the start (`2>&-`). None of that is the run's business: its results are its files. `guard()`,
+called first thing by each command, gives a closed standard descriptor (0, 1 or 2) /dev/null, so
+that no file the run opens later takes its number, and replaces `sys.stdout` and `sys.stderr` by
+`GuardedStream`s: a write or flush that fails is dropped, said once in the log
+(`slamkit.streams`), and the descriptor pointed at /dev/null, so that later writes (Python's,
+compiled code's, at exit) go nowhere. The command then exits with its normal status.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Reading colour and depth images and locating files, for dataset loaders.
 
-PNG and JPEG files are decoded by imagecodecs (libpng, libjpeg-turbo: the fastest well-kept
-decoder measured on the sequences' images, docs/dependencies.md), every other format, and any
+PNG and JPEG files are decoded by imagecodecs (libpng, libjpeg-turbo: docs/dependencies.md,
+"Image decoding", says why), every other format, and any
 file imagecodecs does not decode to the pixels expected, by Pillow. Every failure (missing file,
 truncated or corrupt data, wrong pixel format) raises `slamkit.errors.DataError` with one line
 naming the file and what was expected (Pillow's reading names it).
@@ -69,8 +69,8 @@ def _open(path: Path, what: str, expected: str, decode: bool = True) -> Image.Im
 def checked_rgb(path: str | Path) -> tuple[tuple[int, int], np.ndarray | Callable[[], np.ndarray]]:
     """((width, height), the HxWx3 uint8 image or a function that decodes it) of the colour
     image at `path`. A PNG is checked here without decoding its pixels (header, pixel mode and
-    every chunk's checksum, up to IEND: a missing, truncated or corrupted file fails here, in
-    ~0.5-1 ms against ~8-10 ms to decode 640x480) and decoded by the function (`read_rgb`), so
+    every chunk's checksum, up to IEND: a missing, truncated or corrupted file fails here, for a
+    fraction of a decode's cost) and decoded by the function (`read_rgb`), so
     a frame whose colour nothing reads (a non-keyframe in real time) costs no decoding; other
     formats are decoded here."""
     path = Path(path)

@@ -4,18 +4,13 @@ One ``vertex`` element, binary little endian, float32 properties in this order:
 
     x y z  nx ny nz  f_dc_0 f_dc_1 f_dc_2  opacity  scale_0 scale_1 scale_2  rot_0 rot_1 rot_2 rot_3
 
-x y z: mean in metres (world); nx ny nz: zeros (unused, kept for the layout); f_dc: SH degree-0
-coefficients, f_dc = (rgb - 0.5) / C0 with C0 = 0.28209479177387814; opacity: logit of the
-opacity; scale: log of the standard deviations in metres; rot: quaternion (w, x, y, z), not
-necessarily normalised (as 3DGS stores it).
-
-`load_ply` reads that layout and its usual variants: ascii or either binary byte order, any
-numeric property type, extra properties (e.g. 3DGS's f_rest_* higher-order SH, which are
-ignored: slamkit's colours are SH degree 0) and other elements without list properties before
-the vertices. Anything else raises `slamkit.errors.DataError` naming the file and the problem.
-
-`save_ply` leaves out a Gaussian with a non-finite parameter (a diverged map; `finite_rows`):
-viewers cannot draw it, some refuse the whole file, and a mesh made from it is garbage.
+x y z: world mean, metres; nx ny nz: zeros; f_dc = (rgb - 0.5) / C0, SH degree 0 (C0 =
+0.28209479177387814); opacity: its logit; scale: log standard deviations in metres; rot:
+quaternion (w, x, y, z), not necessarily normalised. `load_ply` also reads ascii and big-endian
+files, any numeric property type, extra properties (f_rest_* are ignored: slamkit's colours are
+SH degree 0) and other elements before the vertices; anything else is a DataError naming the file.
+`save_ply` leaves out a Gaussian with a non-finite parameter (`finite_rows`): viewers cannot draw
+it and some refuse the whole file.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Gaussian geometry shared by tracking and mapping: k-NN covariances, closed-form batched
-3x3 symmetric eigenvalues / eigenvectors (~5-10x faster than ``np.linalg.eigh`` on many small
-matrices), covariance regularisation (paper Sec. 3.1), batched 3x3 inverses and whitening
+3x3 symmetric eigenvalues / eigenvectors (faster than ``np.linalg.eigh`` on many small matrices:
+docs/dependencies.md, "Written here, and why"), covariance regularisation (paper Sec. 3.1), batched 3x3 inverses and whitening
 (inverse Cholesky) with a pseudo-inverse fallback, and covariance rotation.
 
 All functions are vectorised numpy (no Python loop over points). Covariances are (N,3,3) in
@@ -143,7 +143,7 @@ def _orthonormal_complement(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def sym3_eigh(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Eigen-decomposition of (N,3,3) symmetric matrices, like ``np.linalg.eigh`` (eigenvalues
-    ascending, eigenvectors as columns) but ~10x faster for many small matrices.
+    ascending, eigenvectors as columns), in closed form for many small matrices.
 
     Closed form: eigenvalues by the trigonometric formula; the eigenvector of the best isolated
     eigenvalue from cross products of rows of (A - lambda I); the other two from the 2x2
@@ -223,7 +223,7 @@ def regularize(
     ellipse: C = U diag(l1 >= l2 >= l3) U^T becomes U diag(l1/l2, 1, l3/l2) U^T, dividing by
       the median (sorted) eigenvalue. With `min_median` (m^2) set, a covariance whose median
       eigenvalue is below it becomes min_median * I instead (the reference code's rule for map
-      Gaussians; not applied to frame covariances, whose median is ~1e-5..1e-4 m^2). A
+      Gaussians; not applied to frame covariances, whose median is far below it). A
       covariance with a zero median eigenvalue (collinear or coincident neighbours) becomes I.
     plane: eigenvalues become (1, 1, eps), eps on the smallest axis.
     none: returned unchanged (a float64 copy).

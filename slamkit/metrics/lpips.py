@@ -1,28 +1,17 @@
-"""LPIPS, the learned perceptual image distance (Zhang et al. 2018), version 0.1 with the AlexNet
-trunk: the third map-quality metric of GS-ICP SLAM's evaluation, beside PSNR and SSIM.
+"""LPIPS v0.1 with the AlexNet trunk (Zhang et al. 2018), GS-ICP SLAM's third map-quality metric.
 
-The `lpips` package cannot be imported wherever torchvision cannot (it builds its trunk with
-torchvision), so the network is written here and only its two weight files are read:
-- AlexNet's ImageNet weights as torchvision publishes them (`ALEXNET_FILE`, from `ALEXNET_URL`),
-  found in torch's hub cache (`torch.hub.get_dir()/checkpoints/`, where torchvision itself puts
-  it) or at a path given (`eval.lpips_backbone=PATH`); only the five convolutions of its
-  `features` are used.
-- the v0.1 linear layers (`lin0..lin4`, one 1x1 convolution without bias per trunk layer), read
-  as data from the installed `lpips` wheel (`LINEAR_MEMBER`), or a path given.
+The network is written here (docs/dependencies.md, "Written here, and why") and reads two weight
+files: AlexNet's ImageNet weights as torchvision publishes them (`ALEXNET_FILE`, in torch's hub
+cache or `eval.lpips_backbone=PATH`; the five convolutions of `features`), and the v0.1 linear
+layers (`lin0..lin4`) from the installed `lpips` wheel (`LINEAR_MEMBER`). For RGB images x0, x1
+in [0, 1], as lpips computes it (`normalize=True`): x <- (2 x - 1 - shift) / scale (lpips'
+ScalingLayer); f_l the l-th ReLU output of the features; n_l = f_l / (||f_l||_channels + 1e-10);
+LPIPS = sum_l mean_pixels(sum_c w_lc (n0_lc - n1_lc)^2). A mask sets the pixels outside it to 0
+in both images first, as GS-ICP SLAM's reference code does.
 
-For two RGB images x0, x1 in [0, 1], as lpips v0.1 computes it (`normalize=True`):
-  x <- (2 x - 1 - shift) / scale, with lpips' ScalingLayer shift (-.030, -.088, -.188) and scale
-       (.458, .448, .450) per channel;
-  f_l = the l-th ReLU output of AlexNet's features (conv1..conv5, l = 1..5);
-  n_l = f_l / (||f_l||_channels + 1e-10) at every pixel;
-  LPIPS = sum_l mean_pixels( sum_c w_lc (n0_lc - n1_lc)^2 ).
-A mask is applied the way GS-ICP SLAM's reference code applies it: the pixels outside it are set
-to 0 in both images first.
-
-`lpips_for_evaluation(mode, backbone)` is what a run uses: `mode` off gives None; auto gives None
-without the backbone file (logging once where to put it); on raises a one-line DataError then.
-A file that is there but is not what is expected (unreadable, a key missing, a wrong shape) is
-always a one-line DataError naming the file and the key.
+`lpips_for_evaluation(mode, backbone)`: off gives None; auto gives None without the backbone file
+(logging where to put it); on raises a one-line DataError then. A file that is not what is
+expected is a one-line DataError naming the file and the key.
 """
 
 from __future__ import annotations

@@ -2,9 +2,9 @@
 
 There is one hook. It returns the plugin module's implementations; the role each fills is the
 role whose base class its class subclasses (`slamkit.roles.ROLES`: Dataset, Tracker,
-KeyframePolicy, Mapper, Rasterizer, KeyframeSampler, DensifyStrategy, MapOptimizer,
-MappingLoss, Viewer), and the user selects it by name with ``ROLE=NAME`` (``tracker=gicp``,
-``strategy=3dgs``).
+KeyframePolicy, Mapper, LoopClosure, Viewer, and the mapper's parts Rasterizer, KeyframeSampler,
+Strategy, MapOptimizer, MappingLoss), and the user selects it by name with ``ROLE=NAME``
+(``tracker=gicp``), a part with ``mapper/PART=NAME`` (``mapper/strategy=3dgs``).
 """
 
 from __future__ import annotations

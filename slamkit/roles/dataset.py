@@ -22,31 +22,31 @@ OnError = enum.Enum("OnError", {"raise": "raise", "skip": "skip"}, module=__name
 
 @dataclass
 class DatasetConfig(PluginConfig):
-    """Options every dataset takes.
+    """Options every dataset takes."""
 
-    path: folder of the sequence. start, stride, max_frames: which frames are used (frame i of
-    the run is raw frame start + i * stride); max_frames null = all. passes: play those frames
-    this many times, back and forth (forward, backward, forward, ...), so the camera path stays
-    continuous: a short sequence becomes a longer stream that revisits the scene (timestamps
-    keep running at the sequence's mean frame rate); max_frames counts the frames of all passes. depth_trunc: metres,
-    points beyond are not used for tracking (null = the dataset's default). fx, fy, cx, cy:
-    override the intrinsics in pixels (null = from the dataset). prefetch: frames read ahead
-    in a background thread. on_error: raise (default) stops the run at a frame that cannot be
-    read, with a one-line error naming the file; skip logs a warning, marks the frame lost
-    (it keeps the previous pose) and counts it in lost_frames.
-    """
-
+    #: folder of the sequence
     path: str = ""
+    #: the first raw frame used (frame i of the run is raw frame start + i * stride)
     start: int = 0
+    #: use every stride-th raw frame
     stride: int = 1
+    #: frames of the run, counting all passes (null: all)
     max_frames: int | None = None
+    #: play the frames this many times, back and forth (a continuous path that revisits the scene)
     passes: int = 1
+    #: metres; depth beyond is not used for tracking (null: the dataset's default)
     depth_trunc: float | None = unlimited(None)
+    #: pixels; focal length override (null: the dataset's)
     fx: float | None = None
+    #: pixels; focal length override (null: the dataset's)
     fy: float | None = None
+    #: pixels; principal point override (null: the dataset's)
     cx: float | None = None
+    #: pixels; principal point override (null: the dataset's)
     cy: float | None = None
+    #: frames read ahead in a background thread (0: none)
     prefetch: int = 8
+    #: a frame that cannot be read: raise stops the run naming the file; skip makes it a lost frame
     on_error: OnError = OnError["raise"]
 
     def validate(self) -> None:

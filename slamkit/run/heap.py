@@ -1,13 +1,10 @@
 """Returning freed C-heap memory to the operating system during long runs.
 
 torch's CPU tensors and numpy arrays come from malloc. A mapping step allocates and frees many
-tensors of 0.1-10 MB whose sizes change with the map; glibc raises its mmap threshold after such
-frees, so later ones come from the heap, and the freed holes stay resident. Measured on the
-2000-frame synthetic sequence with the map capped at 200,000 Gaussians (docs/results.md, issue
-9; benchmarks/heap.py): live tensors stay at ~38 MB while the heap's free bytes grow from 60 to
-150 MB over 500-800 frames. `malloc_trim(0)` (~5 ms) gives free pages back: called once per
-keyframe it left 47-66 MB less resident at frame 500, with run times within the shared machine's
-noise (a fixed mmap threshold saved more but made mapping 40-100% slower).
+tensors of a few megabytes whose sizes change with the map; glibc raises its mmap threshold after
+such frees, so later ones come from the heap, and the freed holes stay resident while the live
+tensors do not grow. `malloc_trim(0)` once per keyframe gives the free pages back; a fixed mmap
+threshold would save more but slows mapping (docs/results.md, "The memory guard").
 """
 
 from __future__ import annotations

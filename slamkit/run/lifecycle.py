@@ -1,28 +1,16 @@
 """A run's phases, and stopping it on a signal at a point where its state is whole.
 
-A run goes through `Phase`s in order: start-up (plugins, config, building the roles), the
-stream (the frames), the refinement (`final_iterations` mapping steps and the mapper's
-`finish`), the map (writing it) and the evaluation. Each phase's outputs are written as soon as
-it ends (`slamkit.run.pipeline`), so a run cut in any phase keeps those of the phases before it.
-
-`StopSignals` handles alike every catchable signal whose default is to end the process
-(`SIGNALS`: SIGINT, Ctrl-C; SIGTERM, what `kill`, SLURM and submitit send; SIGHUP, a closed
-terminal or SSH session; SIGQUIT, Ctrl-\\; SIGUSR1 and SIGUSR2, a batch system's notice before it
-pre-empts a job). The command exits with 128 + the signal's number (`exit_status`: 130 for
-SIGINT, 143 for SIGTERM, 129 for SIGHUP), the shells' convention. In the phases that change the
-map or the trajectory (stream, refine, map) the first signal is only noted, and the run stops at the
-next safe point (`check()`: between frames, between mapping steps), so that what is written is a
-whole map and a whole trajectory; a second signal stops it at once. In start-up and the
-evaluation, which change nothing that is kept, a signal stops the run at once (held only while
-Hydra composes the config, `hold()`: cut there, Hydra reports another error). While the outputs
-are being written, signals are noted and never interrupt the writing (SIGKILL still can, and the
-files are written atomically for that). A run stopped at a safe point writes its checkpoint
-(`slamkit.run.checkpoint`); one cut in the middle of a step by a second signal keeps the last
-checkpoint written before (`cut_short`).
+A run goes through `Phase`s in order (start-up, stream, refine, map, evaluate); each phase's
+outputs are written as it ends (`slamkit.run.pipeline`), so a run cut in any phase keeps those of
+the phases before. `StopSignals` handles alike every catchable signal whose default is to end the
+process (`SIGNALS`); the command exits with 128 + its number (`exit_status`). In the phases that
+change the map or the trajectory the first signal is only noted and the run stops at the next safe
+point (`check()`: between frames, between mapping steps); a second stops it at once. Start-up and
+the evaluation stop at once (`hold()` defers a signal while Hydra composes the config); writing
+the outputs is never interrupted. docs/architecture.md, "Phases, and nothing lost on any exit".
 
 Test hook: `SLAMKIT_PAUSE_AT=PHASE` (or `stream@N`: after N frames) makes the run print
-``slamkit: paused at PHASE`` on stderr when it reaches that point and wait there (up to 60 s) for
-a signal, so that a test interrupts a chosen phase without sleeping.
+``slamkit: paused at PHASE`` on stderr and wait there (up to 60 s) for a signal.
 """
 
 from __future__ import annotations

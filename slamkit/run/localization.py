@@ -1,26 +1,16 @@
 """`slamkit mode=localize map=RUN_DIR dataset=... [dataset.start=N]`: tracking in a saved map.
 
-The map (a run's checkpoint, `slamkit.run.checkpoint`) is read once and never changed: no
-Gaussian is added or trained. The run's tracker aligns each frame to the map's trackable
-Gaussians (its target is taken once). The first frame's pose is unknown: it is found by global
-registration of the frame's points against the map's trackable Gaussian centres
-(`slamkit.geometry.registration`: FPFH + RANSAC, then G-ICP), from which the tracker aligns the
-frame. A frame is localised when the pose found explains it: at least
-`localize.min_inlier_fraction` of its trackable points have a map Gaussian within the tracker's
-correspondence distance (the frame lies on the map), and at least
-`localize.min_surface_agreement` of the image cells where the map is in view see the map's
-nearest Gaussian on the frame's observed surface, where the map's colours correlate with the
-frame's by at least `localize.min_color_correlation` (the map lies on the frame: `MapFit`). The
-first alone is met by a frame of another scene aligned to any wall of a map; the others are
-not. When a frame is not localised, it is registered globally again (up to `localize.attempts`
-RANSAC seeds), as is every frame until one is. A run in which no frame is localised has failed
-(`status: failed`, exit status 3), with the best figures reached and, where they differ, the
-map's camera and dataset beside the run's. Outputs in the run folder (never the map's):
-trajectory.txt (the localised frames' poses, TUM format), frames.csv (per frame: localised,
-relocalised, inlier fraction, surface agreement, colour correlation, times), metrics.json (localised frames,
-relocalisations, ATE over the localised frames SE(3)-aligned and in the map's own frame,
-frames/s, `status`); trajectory.txt and metrics.json are written atomically, also when a signal
-(`slamkit.run.lifecycle.SIGNALS`: between two frames) or an error stops the run.
+The map (a run's checkpoint) is read once and never changed. The first frame's pose is found by
+global registration of its points against the map's trackable Gaussian centres
+(`slamkit.geometry.registration`: FPFH + RANSAC, then G-ICP); the run's tracker aligns each frame
+from there. A frame is localised when the map explains it (`MapFit`): enough of its trackable
+points lie on the map (`localize.min_inlier_fraction`), and the map lies on the frame's observed
+surface (`localize.min_surface_agreement`) with correlated colours
+(`localize.min_color_correlation`); the first alone is met by a frame of another scene aligned to
+a wall. A frame not localised is registered again (up to `localize.attempts` RANSAC seeds), as is
+every frame until one is; a run with no localised frame has failed (exit status 3). Outputs
+(trajectory.txt, frames.csv, metrics.json) go to the run's own folder, written atomically also
+when a signal or an error stops it: docs/checkpoints.md, "Localisation".
 """
 
 from __future__ import annotations

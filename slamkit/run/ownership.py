@@ -1,25 +1,16 @@
-"""A run folder belongs to one run.
+"""A run folder belongs to one run (docs/architecture.md, "A run folder belongs to one run").
 
-- **A lock** (`RunFolderLock`): a run takes `RUN_DIR/.slamkit.lock` (an exclusive `flock`) before
-  anything is written into its folder and holds it until the command ends; the file names the
-  holder (pid, host, start time). A second run, or a resume, into a folder whose lock is held
-  stops in one line naming the holder (`RunFolderInUse`). The operating system drops the lock
-  when its process ends, however it ends, so a killed run leaves no stale lock.
-- **Used folders** (`check_new_run_folder`): a new run into a folder that holds another run's
-  outputs, or files of another program, stops in one line: nothing of an older run is ever
-  left beside a new run's (an old map.ply that slamkit-export would mesh, renders, a checkpoint)
-  and nothing of another program is overwritten. `existing_outputs=clean` empties a slamkit
-  run folder first; a folder holding only what a run refused before its first frame leaves
-  (`.hydra/`, `slamkit.log`) counts as new. A resumed run (`resume=RUN_DIR`) continues in its
-  own folder.
-- **Localisation** (`check_localization_folder`) never writes into the folder of the map it
-  localises in.
-- **Default folders** are unique per run (`unique_suffix`, the `${slamkit.run:}` of
-  conf/config.yaml's `hydra.run.dir` and `hydra.sweep.dir`): runs started in the same second,
-  in several processes or one, get folders of their own.
-
-The slamkit command applies these through Hydra's callbacks (`slamkit.cli.hydra_hooks`), before
-Hydra writes `.hydra/` into the folder.
+- `RunFolderLock`: a run holds `RUN_DIR/.slamkit.lock` (an exclusive `flock`, naming its holder)
+  from before it writes into its folder until the command ends; a second run or a resume into it
+  stops in one line naming the holder (`RunFolderInUse`). The lock dies with its process, however
+  it ends, so a killed run leaves no stale lock.
+- `check_new_run_folder`: a new run into a folder holding another run's outputs, or another
+  program's files, stops in one line (`existing_outputs=clean` empties a slamkit run folder
+  first); a folder holding only what a refused run left (`.hydra/`, `slamkit.log`) counts as new.
+- `check_localization_folder`: localisation never writes into its map's folder.
+- `unique_suffix`: default folders (`${slamkit.run:}` in slamkit/conf/config.yaml) are unique per
+  run, even for runs started in the same second.
+Hydra's callbacks (`slamkit.cli.hydra_hooks`) apply these before Hydra writes `.hydra/`.
 """
 
 from __future__ import annotations

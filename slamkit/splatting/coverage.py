@@ -1,23 +1,16 @@
-"""Where the map already explains a keyframe's view: the tests a strategy's `admit` uses to leave
-out new Gaussians the map does not need (`StrategyConfig.skip_covered`).
+"""Where the map already explains a keyframe's view: the tests `slamkit.splatting.admission` uses
+to leave out new Gaussians the map does not need (`mapper.admission.skip_covered`).
 
-Two tests, both on the keyframe's image plane, both with a depth tolerance (metres, growing
-with the square of the depth: `DepthTolerance`) so that a surface in front of or behind the map
-is not taken for the map:
+Both tests are on the keyframe's image plane, with a depth tolerance (`DepthTolerance`) so that
+a surface in front of or behind the map is not taken for the map:
 
-- `covered_by_render`: the map rendered from the keyframe is opaque at the point's pixel and
-  its expected depth agrees. It needs a trained map: untrained Gaussians are faint (3DGS starts
-  them at opacity 0.1), so a view is "covered" only after training made them opaque.
-- `occupied_by_centres`: some map Gaussian's centre projects near the point's pixel (within
-  cell / sqrt(2) pixels at the point's depth, `cell` being the keyframe's sampling stride; less
-  the farther off in depth, up to the tolerance). It reads only the map's means (no render, no
-  training needed), so a map that admits no occupied point holds about `min_centres` Gaussians
-  (1 by default) per cell and depth of any view of the scene: its size is bounded by the scene's
-  surface, not by how often the camera sees it. The disc, not the square cell of earlier
-  versions, makes the test indifferent to how a view is rotated against the keyframes that built
-  the map (at equal depth; a surface seen very obliquely can still leave gaps): the
-  square left ~3 % of a revisited view's cells empty where the map's grid of centres, seen at
-  another angle, skipped them, and each revisit added Gaussians there (docs/results.md).
+- `covered_by_render`: the map rendered from the keyframe is opaque at the point's pixel and its
+  expected depth agrees; it needs a trained map (untrained Gaussians are faint).
+- `occupied_by_centres`: some map Gaussian's centre projects within cell / sqrt(2) pixels of the
+  point's pixel at its depth (`cell`: the keyframe's sampling stride). It reads only the means, so
+  a map that admits no occupied point holds about `min_centres` Gaussians per cell and depth of
+  any view: its size is bounded by the scene's surface, not by how often the camera sees it (a
+  disc, not a square: docs/results.md, "Bounded maps on loops").
 """
 
 from __future__ import annotations
@@ -37,8 +30,7 @@ from slamkit.types import Camera
 class DepthTolerance:
     """How far apart two camera depths may be and still be one surface: max(absolute,
     quadratic z^2) metres at camera depth z (metres); quadratic in 1/metres, 0 for a constant
-    tolerance (a structured-light sensor's depth error grows with the square of the range:
-    Kinect v1 ~4 cm quantisation at 3.7 m)."""
+    tolerance (a structured-light sensor's depth error grows with the square of the range)."""
 
     absolute: float
     quadratic: float = 0.0

@@ -116,7 +116,7 @@ def quantize(image: torch.Tensor, depth: torch.Tensor) -> tuple[np.ndarray, np.n
 class ViewCache:
     """Training views kept between steps, least recently used dropped first beyond `max_bytes`
     of image data: a step on a kept view skips converting its keyframe's uint8 / uint16 images
-    (~1 ms at 320x240, ~2 ms at 600x340 on one core). Views are read-only to training. Safe to
+    (docs/results.md, "One mapping step"). Views are read-only to training. Safe to
     use from several threads (a lock; uncontended in practice: the mapping thread uses it)."""
 
     def __init__(self, max_bytes: int):

@@ -18,7 +18,7 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class MemoryCapConfig(PluginConfig):
-    """A bound on the map's size (a Gaussian costs up to ~1 kB of resident memory while mapping)."""
+    """A bound on the map's size (what a Gaussian costs: docs/results.md, "The memory guard")."""
 
     #: the most Gaussians the map may hold (null: unlimited, the paper's behaviour)
     max_gaussians: int | None = None

@@ -1,7 +1,7 @@
 """The rasteriser role: render Gaussians to colour, depth and alpha, differentiably.
 
-Backends (plugins) implement `Rasterizer.render`. `rasterizer=NAME` selects one for the mapper
-(a mapper part), or `auto`: gsplat when CUDA is available, else the compiled CPU backend, else the
+Backends (plugins) implement `Rasterizer.render`. `mapper/rasterizer=NAME` selects one for the
+mapper (a mapper part), or `auto`: gsplat when CUDA is available, else the compiled CPU backend, else the
 pure-PyTorch reference (`torch`).
 """
 
@@ -45,19 +45,15 @@ class Rasterizer(ABC):
     """Differentiable 3DGS rasterisation for a pinhole camera (principal point honoured).
 
     Conventions shared by every backend so that they agree to float precision:
-    - projection of the mean, EWA 2D covariance J W Sigma W^T J^T plus 0.3 px^2 on the diagonal
-      (the usual low-pass term), with x/z and y/z in the Jacobian clamped to the image plus 15%
-      on each side (as 3DGS and gsplat); Gaussians with camera z <= 0.01 m are culled;
-    - a Gaussian covers exactly the pixels where its alpha >= 1/255 (no 3-sigma box);
-    - pixel centres at integer coordinates (u, v) = (column, row), as in the intrinsics;
-    - per pixel, Gaussians sorted by camera z, front to back; alpha_i = min(0.99, o_i exp(-q/2));
-      pairs with alpha_i < 1/255 are skipped (gsplat clamps at 0.999, not 0.99: the backends agree
-      where opacity <= 0.99); compositing stops before a Gaussian that would
+    - EWA 2D covariance J W Sigma W^T J^T + 0.3 px^2 I, x/z and y/z in J clamped to the image
+      plus 15 % on each side (as 3DGS and gsplat); camera z <= 0.01 m is culled;
+    - a Gaussian covers exactly the pixels where its alpha >= 1/255 (no 3-sigma box); pixel
+      centres at integer coordinates (u, v) = (column, row), as in the intrinsics;
+    - per pixel, front to back by camera z, alpha_i = min(0.99, o_i exp(-q/2)) (gsplat's 0.999:
+      the backends agree where opacity <= 0.99); compositing stops before a Gaussian that would
       bring the transmittance below 1e-4;
-    - colour = sum_i w_i c_i + (1 - alpha) * background, w_i = alpha_i T_i.
-
-    Outputs are on the inputs' device and gradients flow back to it, whatever device a backend
-    computes on.
+    - colour = sum_i w_i c_i + (1 - alpha) background, w_i = alpha_i T_i.
+    Outputs are on the inputs' device, gradients flow back to it, whatever device a backend uses.
     """
 
     @abstractmethod

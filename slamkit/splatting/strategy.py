@@ -1,17 +1,13 @@
-"""The densification-strategy part (gsplat's Strategy): how the map's rows change besides the
-optimiser's updates.
+"""The strategy part (gsplat's Strategy): how the map's rows change besides the optimiser's
+updates.
 
 The trainer owns the parameters and the optimiser state; a strategy gets hooks at fixed points
 of training and edits the map only through the `MapEdit` it is handed (append, remove,
 duplicate, split, reset opacity, update), which keeps every per-row state aligned:
-
-- `step_post_backward(edit, info)`: after each training step's backward pass and optimiser
-  update (gradients in `info`), e.g. accumulate statistics, densify or prune on a schedule;
-- `finish(edit)`: after the last training step.
-
-Which of a keyframe's Gaussians enter the map (`slamkit.splatting.admission`) and the memory
-cap (`slamkit.splatting.memory_cap`) are the trainer's, not a strategy's: they apply whatever
-the strategy.
+`step_post_backward(edit, info)` after each step's backward pass and optimiser update
+(gradients in `info`: accumulate statistics, densify or prune on a schedule), `finish(edit)`
+after the last step. Which of a keyframe's Gaussians enter the map (`slamkit.splatting.admission`)
+and the memory cap (`slamkit.splatting.memory_cap`) are the trainer's, whatever the strategy.
 """
 
 from __future__ import annotations

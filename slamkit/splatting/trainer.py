@@ -1,18 +1,16 @@
-"""3D Gaussian Splatting training of the shared map from keyframes: the loop, and the parts it
-is composed of (rasteriser, training-view sampler, loss, optimiser, densification strategy).
+"""3D Gaussian Splatting training of the shared map from keyframes: the loop, composed of its
+parts (rasteriser, training-view sampler, loss, optimiser, strategy).
 
 The parameters are the GaussianMap's own leaf tensors, so the tracker's next target is taken
-from the values the optimiser moved (that exchange is GS-ICP SLAM's method); the optimiser owns
-its per-row state and the strategy edits rows only through `MapEdit`, which keeps every per-row
-state aligned. A training step, as in 3DGS: take a keyframe (the ones not yet trained on first,
-once each, then the sampler's choice), render it, the loss, its gradient, the optimiser's
-update, then the strategy's post-backward hook.
+from the values the optimiser moved (GS-ICP SLAM's exchange); the optimiser owns its per-row
+state and the strategy edits rows only through `MapEdit`, which keeps every per-row state
+aligned. A step, as in 3DGS: take a keyframe (the untrained ones first, once each, then the
+sampler's choice), render it, the loss, its gradient, the optimiser's update, the strategy's hook.
 
-Threads (real-time mode): `admit` and `add_keyframe` (tracking thread) may run beside `train`
-(mapping thread). A step holds the map's lock only to take the parameters and to apply its
-update, not while rendering and differentiating, so a keyframe's Gaussians can be appended
-meanwhile (the step then gives them no gradient); a step during which rows were removed or
-overwritten is dropped (`stale_steps`).
+Threads (real time): `admit` and `add_keyframe` (tracking thread) may run beside `train` (mapping
+thread). A step holds the map's lock only to take the parameters and to apply its update, so a
+keyframe's Gaussians can be appended meanwhile (the step gives them no gradient); a step during
+which rows were removed or overwritten is dropped (`stale_steps`).
 """
 
 from __future__ import annotations

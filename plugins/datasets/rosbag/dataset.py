@@ -31,24 +31,21 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class RosbagConfig(DatasetConfig):
-    """path: the bag (a ROS1 .bag, a ROS2 bag folder, or a ROS2 .db3 / .mcap file).
-    color_topic, depth_topic: the image topics (sensor_msgs/Image or CompressedImage; null =
-    the bag's one colour and one depth topic, told apart by encoding). camera_info_topic: the
-    sensor_msgs/CameraInfo with the colour camera's intrinsics (null = the bag's one, or the
-    one sharing the colour topic's namespace; with none, give dataset.fx/fy/cx/cy).
-    sync_tolerance: seconds allowed between a colour and its depth header stamp (each colour
-    frame takes the nearest free depth frame, as TUM's associate.py; colour frames without one
-    are dropped). depth_scale: raw units per metre of 16-bit depth (16UC1 millimetres: 1000;
-    32FC1 is metres). groundtruth: a TUM-format trajectory file (timestamp tx ty tz qx qy qz qw,
-    camera-to-world, metres) interpolated at the colour stamps (null = none). gt_tolerance:
-    seconds between a colour stamp and the nearest ground-truth pose."""
+    """Options of a ROS1 / ROS2 bag (`path`: a .bag, a ROS2 bag folder, or a .db3 / .mcap file)."""
 
+    #: the colour image topic (null: the bag's one colour topic, told apart from depth by encoding)
     color_topic: str | None = None
+    #: the depth image topic (null: the bag's one depth topic: 16UC1, mono16, 32FC1 or compressedDepth)
     depth_topic: str | None = None
+    #: the colour intrinsics topic, a CameraInfo (null: the bag's one, or the one in the colour topic's namespace)
     camera_info_topic: str | None = None
+    #: seconds allowed between a colour and its depth header stamp (unpaired colour frames are dropped)
     sync_tolerance: float = 0.02
+    #: raw units per metre of 16-bit depth (1000: millimetres, the ROS convention; 32FC1 is metres)
     depth_scale: float = 1000.0
+    #: TUM-format ground truth (camera-to-world, metres), interpolated at the colour stamps (null: none)
     groundtruth: str | None = None
+    #: seconds between a colour stamp and the nearest ground-truth pose
     gt_tolerance: float = 0.02
 
     def validate(self) -> None:

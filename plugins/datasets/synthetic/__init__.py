@@ -1,20 +1,14 @@
 """`dataset=synthetic`: the built-in synthetic RGB-D sequence, a furnished room rendered along a
 hand-held path.
 
-Nothing is downloaded: the scene is analytic (a 6 x 5 x 3 m room seen from inside, with a sofa,
-a table, a cabinet, a bookshelf, a floor lamp, a stool, balls, a rug, a door, a window, pictures,
-a clock, a ceiling beam and lamp), rendered by vectorised numpy ray casting against boxes,
-spheres and cylinders. Every surface has its own procedural texture (planks, tiles, checkers,
-stripes, value noise, gradients) computed from the hit point, shaded by a fixed directional
-light. Depth is exact (the camera-frame z of the hit, no holes) and ground truth is the
-rendering pose. `seed` draws the camera path; the scene itself never changes.
-
-World frame: metres, z up, the floor at z = 0, the room spans x in [-3, 3], y in [-2.5, 2.5].
-Poses are camera-to-world with OpenCV camera axes (x right, y down, z forward).
-
-Modules: `textures` (noise and box-filtered patterns), `primitives` (shapes, ray tests, the hit
-a material sees), `materials` (each surface's colours), `scene` (the room's primitives),
-`raycast` (`render`), `path` (`camera_path`), `dataset` (the plugin: config, dataset, cache).
+Nothing is downloaded: the scene is analytic (a 6 x 5 x 3 m room seen from inside, with
+furniture, a door, a window and pictures), rendered by vectorised numpy ray casting against
+boxes, spheres and cylinders, each surface with its own procedural texture shaded by a fixed
+directional light. Depth is exact (the camera-frame z of the hit, no holes) and ground truth is
+the rendering pose. `seed` draws the camera path; the scene itself never changes. World frame:
+metres, z up, the floor at z = 0, x in [-3, 3], y in [-2.5, 2.5]; poses camera-to-world, OpenCV
+camera axes. Modules: `textures`, `primitives` (shapes, ray tests), `materials` (each surface's
+colours), `scene` (the room), `raycast` (`render`), `path` (`camera_path`), `dataset` (the plugin).
 """
 
 from slamkit.plugin import PluginSpec, hookimpl

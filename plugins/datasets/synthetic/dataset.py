@@ -1,11 +1,10 @@
 """`dataset=synthetic`: the generated sequence as a dataset, and its cache.
 
-The sequence is generated once (a few seconds for the default 120 frames at 320x240) and
-cached as one compressed .npz per parameter set (rgb uint8, depth uint16 at 0.2 mm) in
-`cache_dir` (null = $SLAMKIT_CACHE/synthetic, else ~/.cache/slamkit/synthetic), recorded with its
-size and hash (`slamkit.cache.record`); later constructions open the cache if it matches its
-record (else it is generated again, with a warning) and decode frames on demand. Depth noise and dropout are applied
-at load time (deterministic per seed and frame), so they share the noise-free cache.
+The sequence is generated once and cached as one compressed .npz per parameter set (rgb uint8,
+depth uint16 at 0.2 mm) in `cache_dir`, recorded with its size and hash (`slamkit.cache.record`);
+later constructions open the cache if it matches its record (else it is generated again, with a
+warning) and decode frames on demand. Depth noise and dropout are applied at load time
+(deterministic per seed and frame), so they share the noise-free cache.
 """
 
 from __future__ import annotations
@@ -44,33 +43,26 @@ DEPTH_SCALE = 5000.0
 
 @dataclass
 class SyntheticConfig(DatasetConfig):
-    """The generated sequence.
+    """The generated sequence (`path` is unused; `fx`, `fy`, `cx`, `cy` change the intrinsics
+    reported with each frame, not what is rendered)."""
 
-    num_frames: frames in the sequence (30 per second of motion). width, height: image size in
-    pixels. fov_deg: horizontal field of view in degrees; the rendering camera has square
-    pixels, fx = fy = (width / 2) / tan(fov_deg / 2) (64 deg gives fx ~ 256 at 320 wide) and
-    the principal point at the image centre, cx = (width - 1) / 2, cy = (height - 1) / 2.
-    seed: draws the camera path (the scene is fixed). speed: multiplies the camera's linear and
-    angular speeds (the same path, traversed faster). depth_noise: metres of Gaussian depth
-    noise at 1 m, growing with z^2 as a Kinect's does (0 = exact depth; the default 1.5 mm is
-    a Kinect v1's, so that the default run is not a noiseless toy). depth_dropout:
-    fraction of pixels whose depth is set to 0 (invalid) at random. cache_dir: folder of the
-    cached sequences (null = $SLAMKIT_CACHE/synthetic, else ~/.cache/slamkit/synthetic).
-
-    `path` is not used (the sequence is generated, not read); `fx`, `fy`, `cx`, `cy` override
-    the intrinsics *reported* with each frame, as for every dataset, without changing what is
-    rendered (e.g. to study calibration errors): to render another camera use `fov_deg`,
-    `width` and `height`.
-    """
-
+    #: frames in the sequence, 30 per second of motion
     num_frames: int = 120
+    #: pixels
     width: int = 320
+    #: pixels
     height: int = 240
+    #: degrees, horizontal field of view; square pixels, fx = fy = (width / 2) / tan(fov_deg / 2)
     fov_deg: float = 64.0
+    #: draws the camera path (the scene is fixed)
     seed: int = 0
+    #: multiplies the camera's linear and angular speeds (the same path, traversed faster)
     speed: float = 1.0
+    #: metres of Gaussian depth noise at 1 m, growing with z^2 (0: exact; 1.5 mm is a Kinect v1's)
     depth_noise: float = 0.0015
+    #: fraction of pixels whose depth is set invalid (0) at random
     depth_dropout: float = 0.0
+    #: folder of the cached sequences (null: $SLAMKIT_CACHE/synthetic, else ~/.cache/slamkit/synthetic)
     cache_dir: str | None = None
 
     def validate(self) -> None:

@@ -1,4 +1,12 @@
-"""The G-ICP tracker's options (`tracker=gicp tracker.FIELD=VALUE`) and where its optimisation starts."""
+"""The G-ICP tracker's options (`tracker=gicp tracker.FIELD=VALUE`) and where its optimisation starts.
+
+Two defaults differ from the reference code on purpose. `target_min_median` is off: map shapes
+come from raw k-NN covariances whose median eigenvalue is far below the reference's 1e-3 m^2, so
+that floor would make every target isotropic (docs/results.md, "Regularisation").
+`target_geometry` is `entry`: the mapper reshapes and turns the millimetre-sized trackable
+Gaussians for rendering, which moved the trajectory; aligning to the geometry they entered the
+map with keeps it the tracking-only one (docs/tracking_under_mapping.md).
+"""
 
 from __future__ import annotations
 
@@ -28,73 +36,49 @@ class InitialGuess(enum.Enum):
 
 @dataclass
 class GICPConfig(PluginConfig):
-    """G-ICP tracker options. pixel_stride and max_correspondence_distance left null take the
-    dataset's tuning (`DatasetTuning`: (tracking_pixel_stride, correspondence_distance).
+    """Options of `tracker=gicp`, the paper's G-ICP tracking against the map's trackable Gaussians."""
 
-    pixel_stride: back-project every n-th pixel in x and y (reference: 5 TUM, 10 Replica).
-    knn: neighbours (the point included) of each point's covariance.
-    regularization: ellipse | plane | none (paper Table 5).
-    plane_eps: the smallest eigenvalue of `plane` regularisation.
-    target_min_median: m^2; with ellipse, a map covariance whose median eigenvalue is below
-      this becomes target_min_median * I (the reference code uses 1e-3). Off by default: map
-      shapes come from raw k-NN covariances scale-aligned by 1/max(c z^1.5, 1) (c = 2 in the
-      reference code, 1 here), whose median eigenvalue is ~1e-6..1e-5 m^2 (with c = 2; up to 4x
-      that with c = 1), so the reference's 1e-3 makes every target isotropic (TUM fr1/rpy, c =
-      2: 6.57 cm ATE RMSE against 4.91 cm off; docs/results.md).
-    max_correspondence_distance: metres (reference: 0.03 TUM, 0.02 Replica).
-    max_iterations: Levenberg-Marquardt iterations (each re-finds correspondences).
-    rotation_tolerance, translation_tolerance: converged when every |dR - I| entry and every
-      |dt| entry (metres) of the last update is below these.
-    min_target_opacity: map Gaussians at or below this opacity are not aligned to (0: every
-      trackable Gaussian pruning left; the reference code used 0.09 TUM / 0.05 Replica with the
-      optimised geometry, new Gaussians entering at 0.1).
-    target_geometry: entry | optimised: the target takes the trackable Gaussians' means and
-      shapes as they entered the map (the default), or as the mapper has optimised them (the
-      reference code). The mapper reshapes and turns these 1-3 mm Gaussians for rendering (TUM
-      fr1/rpy: normals turned by 7-14 degrees median), which cost 28% mean ATE over four start
-      frames; with `entry` the trajectory is the tracking-only run's, whatever mapping does
-      (docs/tracking_under_mapping.md).
-    initial_guess: previous | constant_velocity.
-    fallback_to_previous: when G-ICP from a constant-velocity start does not converge, loses
-      the frame, or ends farther than fallback_slide * max_correspondence_distance (RMS
-      displacement of the points) from its start (it slid, e.g. after a sudden stop), run it
-      again from the previous pose and keep the result with more correspondences.
-    fallback_slide: that distance, in units of max_correspondence_distance.
-    coarse_factor: then also try coarse to fine: align from the prediction with this times the
-      correspondence distance, then with the distance itself (1 disables).
-    min_points: fewer valid trackable depth points -> the frame is lost.
-    min_correspondences: fewer matched points in an iteration -> the frame is lost.
-    lm_lambda: initial damping relative to the largest diagonal entry of the normal matrix.
-    lm_max_tries: damped steps tried per iteration before giving up on a cost decrease.
-    kernels: auto | compiled | numpy: the covariance and linearisation loops compiled from
-      csrc/gicp_kernels.cpp (built on first use; auto falls back to numpy without a compiler)
-      or the numpy reference. Same results either way.
-    num_threads: threads of the compiled kernels (results do not depend on it). Null: the run's
-      choice (`Tracker.use_threads`), one in real-time mode (the mapper has the other CPUs:
-      waiting for a thread it has descheduled costs more than the thread saves) and every CPU
-      otherwise; 0: every CPU.
-    """
-
+    #: back-project every n-th pixel in x and y (null: the dataset's; reference 5 TUM, 10 Replica)
     pixel_stride: int | None = None
+    #: neighbours (the point included) of each point's covariance
     knn: int = 10
+    #: the covariances' regularisation: ellipse | plane | none (paper Table 5)
     regularization: Regularization = Regularization.ellipse
+    #: the smallest eigenvalue of `plane` regularisation
     plane_eps: float = 1e-3
+    #: m^2; with ellipse, a map covariance of smaller median eigenvalue becomes this x I (null: off; reference 1e-3)
     target_min_median: float | None = None
+    #: metres (null: the dataset's; reference 0.03 TUM, 0.02 Replica)
     max_correspondence_distance: float | None = None
+    #: Levenberg-Marquardt iterations, each finding the correspondences again
     max_iterations: int = 64
+    #: converged when every entry of the last update's |dR - I| is below this
     rotation_tolerance: float = 2e-3
+    #: metres; converged when every entry of the last update's |dt| is below this
     translation_tolerance: float = 5e-4
+    #: map Gaussians at or below this opacity are not aligned to (0: all; reference 0.09 TUM, 0.05 Replica)
     min_target_opacity: float = 0.0
+    #: the target's means and shapes: entry (as they entered the map) | optimised (the mapper's; reference)
     target_geometry: TargetGeometry = TargetGeometry.entry
+    #: where the optimisation starts: previous (pose) | constant_velocity (the last motion applied again)
     initial_guess: InitialGuess = InitialGuess.constant_velocity
+    #: fewer valid trackable depth points: the frame is lost
     min_points: int = 100
+    #: fewer matched points in an iteration: the frame is lost
     min_correspondences: int = 50
+    #: a first alignment that fails or slides is run again from the previous pose (more matched points wins)
     fallback_to_previous: bool = True
+    #: an alignment slides when it ends farther than this x max_correspondence_distance (RMS) from its start
     fallback_slide: float = 2.0
+    #: a first alignment that fails or slides is also tried coarse to fine, from this x the distance (1: off)
     coarse_factor: float = 3.0
+    #: Levenberg-Marquardt's initial damping, relative to the normal matrix's largest diagonal entry
     lm_lambda: float = 1e-9
+    #: damped steps tried per iteration before giving up on a cost decrease
     lm_max_tries: int = 10
+    #: covariance and linearisation loops: auto | compiled (csrc/gicp_kernels.cpp) | numpy; same results
     kernels: Kernels = Kernels.auto
+    #: threads of the compiled kernels, no effect on results (null: the run's, 1 in real time; 0: every CPU)
     num_threads: int | None = thread_count(None)
 
     def validate(self) -> None:

@@ -1,22 +1,16 @@
-"""The G-ICP tracker's two hot loops, in numpy (the reference) and compiled (csrc/gicp_kernels.cpp):
+"""The G-ICP tracker's hot loops, in numpy (the reference) and compiled (csrc/gicp_kernels.cpp),
+giving the same results (tests/test_gicp_kernels.py checks them against each other):
 
-- `frame_covariances`: each back-projected point's k-NN covariance (slamkit.geometry.gaussians's
-  `knn_covariances`). The compiled version searches a window of the pixel grid first and proves
-  the result exact by a projection bound; the few points it cannot prove (depth edges, holes)
-  search all points. Same neighbours, so the same covariances.
-- `nearest_index`: the target means' search structure (built once per tracking keyframe) for the
-  per-iteration nearest neighbour within the correspondence distance: pykdtree, or a compiled
-  uniform grid of cells (edge: twice the correspondence distance) that starts each search from
-  the last iteration's match (else the previous query's) and scans only the cells within reach
-  (same results: float32 distances as pykdtree's, ties to the lower index).
-- `regularize`: slamkit.geometry.gaussians's `regularize` (the reference); the compiled version
-  does the ellipse rule (the default) in one pass and leaves the rare covariances with a nearly
-  repeated eigenvalue pair, which the reference decomposes otherwise, to it.
-- `linearize`: one Levenberg-Marquardt step's normal equations H, g and cost at a pose, plus the
-  cost of trial poses with the same correspondences and weights.
-
-Both are checked against each other in tests/test_gicp_kernels.py. See docs/results.md for what
-the compiled kernels buy (tracking benchmark).
+- `frame_covariances`: each back-projected point's k-NN covariance; the compiled version searches
+  a window of the pixel grid and proves the result exact by a projection bound, else searches
+  all points.
+- `nearest_index`: the target means' nearest-neighbour search within the correspondence distance,
+  built once per tracking keyframe: pykdtree, or a compiled uniform grid that starts from the last
+  match (float32 distances as pykdtree's, ties to the lower index).
+- `regularize`: the compiled version does the ellipse rule in one pass and leaves the covariances
+  with a nearly repeated eigenvalue pair to the numpy reference.
+- `linearize`: one Levenberg-Marquardt step's normal equations H, g and cost at a pose, and the
+  cost of trial poses with the same correspondences.
 """
 
 from __future__ import annotations
@@ -38,7 +32,7 @@ from slamkit.native import NativeLibrary, available_threads
 SOURCE = Path(__file__).resolve().parent / "csrc" / "gicp_kernels.cpp"
 ABI_VERSION = 6
 #: Window half-width (grid cells) of the compiled k-NN search: up to 25x25 cells around each point
-#: (most stop within 5x5; the ~0.05% it cannot prove on TUM search every point).
+#: (a point it cannot prove exact there searches every point; docs/results.md, "Tracking per frame").
 GRID_HALF_WINDOW = 12
 #: Points per pykdtree leaf (the numpy kernels' nearest-neighbour index).
 KDTREE_LEAF_SIZE = 16

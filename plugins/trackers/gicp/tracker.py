@@ -1,33 +1,17 @@
 """G-ICP tracking against the shared Gaussian map (paper Sec. 3.1; Segal et al. 2009).
 
-Each frame's depth is back-projected on a fixed pixel grid (every `pixel_stride`-th pixel,
-no voxel filter); every point gets a covariance from its `knn` nearest neighbours (the source
-Gaussians), regularised (`ellipse` by default). The target is the map's trackable Gaussians
-(with opacity above `min_target_opacity`, 0 by default) with the geometry they entered the map
-with (`target_geometry=entry`; the mapper's optimised one with `optimised`, as the reference
-code), their covariances R diag(s^2) R^T regularised the same way (the reference code's rule that a map covariance with a median eigenvalue below 1e-3
-becomes 1e-3 I is `target_min_median`, off by default: see GICPConfig). The pose minimises
+Source: the frame's depth back-projected every `pixel_stride`-th pixel, each point with a
+covariance from its `knn` nearest neighbours, regularised; the trackable ones (depth <=
+depth_trunc) are aligned. Target: the map's trackable Gaussians with the geometry they entered
+the map with (`target_geometry`), their covariances R diag(s^2) R^T regularised the same way,
+indexed once per tracking keyframe (`update_target`). The camera-to-world pose minimises
 
     sum_i d_i^T (C_t,i + R C_s,i R^T)^-1 d_i,   d_i = mu_t,i - (R p_i + t)
 
-by Levenberg-Marquardt on SE(3) (right perturbation T <- T exp(xi)), re-finding each source
-point's nearest target mean within `max_correspondence_distance` at every iteration. The
-target's nearest-neighbour index is built once per tracking keyframe, in `update_target`, never
-per frame.
-Only trackable points (depth <= the frame's depth_trunc) are aligned; all get covariances.
-
-The optimisation starts from a constant-velocity prediction (measured better than the
-reference code's previous pose on TUM fr1/rpy: 4.5 vs 6.2 cm mean ATE over seven start
-frames; equal on Replica). If it slides away or fails from there, it is run again from the
-previous pose (a sudden stop) and coarse to fine from the prediction (a motion the prediction
-missed by more than the correspondence distance), and the result matching more points is kept.
-
-The loops over points (k-NN covariances, nearest-neighbour search, normal equations) run in
-compiled kernels or their numpy reference (`.kernels`); both give the same trajectory.
-
-The frame's Gaussians (world means at the final pose, regularised covariances rotated to the
-world, colours, depths, squared distance to the nearest target mean from the last
-correspondence search) are returned for the keyframe policy and for map growth.
+by Levenberg-Marquardt on SE(3) (T <- T exp(xi)), matching each point to its nearest target mean
+within `max_correspondence_distance` at every iteration, from a constant-velocity prediction
+(docs/results.md, "Robustness of a single run") with the fallbacks of `.fallbacks`. The frame's
+Gaussians (world frame) are returned for the keyframe policy and map growth.
 """
 
 from __future__ import annotations
