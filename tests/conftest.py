@@ -1,27 +1,29 @@
-"""Shared fixtures: the real data folder beside the repository (or $SLAMKIT_DATA), temporary
-plugins, and the `cuda` marker's skip where there is no GPU."""
+"""Fixtures and collection rules shared by every layer: the real data folders (skipped with the
+reason where they are absent), one per-session cache for generated data, every test under
+tests/e2e marked `slow`, and the `cuda` marker's skip where there is no GPU. Helpers that test
+modules import live in tests/support (a test module never imports another, conftest included)."""
 
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
-import textwrap
 from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
-#: The shared data folder; SLAMKIT_DATA names another holding the same sub-folders (on a GPU
-#: machine the data travels inside the repository: docs/gpu.md).
-DATA = Path(os.environ.get("SLAMKIT_DATA") or REPO.parent / "shared" / "data")
-TUM = DATA / "tum_fr1_rpy_first150"
-REPLICA = DATA / "replica_room0_first20"
-SEVENSCENES = DATA / "7scenes_redkitchen_300to999"
+from support.data import REPLICA, TUM, require_data
+from support.plugins import third_party_plugins
+
+E2E = Path(__file__).resolve().parent / "e2e"
 
 
+@pytest.hookimpl(tryfirst=True)  # before `-m` deselects by marker
 def pytest_collection_modifyitems(config, items):
-    """Tests marked `cuda` are skipped, with the reason, where torch sees no CUDA device."""
+    """Tests under tests/e2e (console scripts, processes, whole sequences) are marked `slow`,
+    so `pytest -m "not slow"` is the quick loop; tests marked `cuda` are skipped, with the
+    reason, where torch sees no CUDA device."""
+    for item in items:
+        if item.path.resolve().is_relative_to(E2E):
+            item.add_marker(pytest.mark.slow)
     cuda_tests = [item for item in items if item.get_closest_marker("cuda")]
     if not cuda_tests:
         return
@@ -31,12 +33,6 @@ def pytest_collection_modifyitems(config, items):
         skip = pytest.mark.skip(reason="CUDA not available")
         for item in cuda_tests:
             item.add_marker(skip)
-
-
-def require_data(path: Path) -> Path:
-    if not path.is_dir():
-        pytest.skip(f"shared data not found at {path} (it ships beside the repository in CI)")
-    return path
 
 
 @pytest.fixture
@@ -56,20 +52,10 @@ def _cache_dir(tmp_path_factory, monkeypatch):
         monkeypatch.setenv("SLAMKIT_CACHE", str(tmp_path_factory.getbasetemp() / "slamkit_cache"))
 
 
-def make_plugin_dist(root: Path, dist: str, modules: dict[str, str], entry_points: dict[str, str]) -> Path:
-    """Write an importable 'installed' distribution into `root` (add `root` to sys.path)."""
-    info = root / f"{dist.replace('-', '_')}-0.1.dist-info"  # the folder name is parsed at the first "-"
-    info.mkdir(parents=True)
-    (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {dist}\nVersion: 0.1\n")
-    lines = "\n".join(f"{name} = {target}" for name, target in entry_points.items())
-    (info / "entry_points.txt").write_text(f"[slamkit]\n{lines}\n")
-    for name, source in modules.items():
-        (root / f"{name}.py").write_text(textwrap.dedent(source))
+@pytest.fixture
+def plugin_dir(tmp_path, monkeypatch) -> Path:
+    """support.plugins.third_party_plugins installed for this test (on sys.path; give it to a
+    `slamkit` process as PYTHONPATH)."""
+    root = third_party_plugins(tmp_path / "site")
+    monkeypatch.syspath_prepend(str(root))
     return root
-
-
-def run_slamkit(*args: str, cwd: Path, env_extra: dict[str, str] | None = None, timeout: float = 600):
-    """Run the `slamkit` console script; returns the CompletedProcess (text)."""
-    env = dict(os.environ, **(env_extra or {}))
-    exe = Path(sys.executable).with_name("slamkit")
-    return subprocess.run([str(exe), *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)

@@ -12,7 +12,6 @@ from pathlib import Path
 
 import pytest
 
-from conftest import REPO, run_slamkit
 from slamkit.errors import ConfigError, SlamkitError
 from slamkit.registry import default_registry
 from slamkit.registry.compose import compose_run
@@ -20,7 +19,8 @@ from slamkit.run.build import build_run
 from slamkit.run.build import build
 from slamkit.roles import PARTS as PART_ROLES
 
-REFERENCE = REPO / "docs" / "configuration.md"
+from support.config_reference import BAD, TOP_SECTIONS, config_class, reference_keys
+
 PARTS = {r.key for r in PART_ROLES}
 
 #: Values for the keys whose type alone does not give a valid one (files, folders, addresses).
@@ -37,24 +37,6 @@ EXPLICIT = {
     "dataset.camera_info_topic": "/camera/rgb/camera_info", "dataset.groundtruth": "{data}/groundtruth.txt",
     "objective.metric": "psnr", "viewer.host": "0.0.0.0", "viewer.map_as": "ellipsoids",
 }
-#: Top-level sections of keys that are not a role's (section -> the RunConfig field holding them).
-TOP_SECTIONS = ("growth", "eval", "objective", "checkpoint", "localize")
-
-
-def reference_keys() -> list[tuple[str, str, str, str]]:
-    """(section, key, type, default) of every row of docs/configuration.md; section is "" for the
-    top level, "growth" / "eval" / ..., or "group=name" (`tracker=gicp`, `mapper/rasterizer=cpu`)."""
-    rows, section = [], ""
-    for line in REFERENCE.read_text().splitlines():
-        heading = re.match(r"#+ `([\w/]+)(?:=(\w+|\.\.\.)|\.\*)`", line)
-        if heading:
-            section = f"{heading.group(1)}={heading.group(2)}" if heading.group(2) else heading.group(1)
-            if heading.group(2) == "...":
-                section = ""  # the role's heading before its plugins
-        cells = [c.strip().replace("\\|", "|") for c in re.split(r"(?<!\\)\|", line)[1:-1]]
-        if len(cells) == 4 and re.fullmatch(r"`[\w.]+`", cells[0]):
-            rows.append((section, cells[0].strip("`"), cells[1], cells[2].strip("`")))
-    return rows
 
 
 def candidates(key: str, type_: str, default: str, tmp: Path, data: Path | None = None, section: str = "") -> list:
@@ -138,11 +120,11 @@ def data(tmp_path_factory) -> dict[str, Path]:
 
     import yaml
 
-    from conftest import REPLICA, TUM, require_data
     from slamkit_plugins.datasets.tum import TUMConfig, TUMDataset
-    from test_datasets import make_sevenscenes
-    from test_folder_dataset import make_folder
-    from rosbag_writer import write_tum_bag
+
+    from support.data import REPLICA, TUM, require_data
+    from support.folders import make_folder, make_sevenscenes
+    from support.rosbag_writer import write_tum_bag
 
     root = tmp_path_factory.mktemp("datasets")
     folder = make_folder(root / "folder", TUMDataset(TUMConfig(path=str(require_data(TUM)), max_frames=10)))
@@ -154,24 +136,6 @@ def data(tmp_path_factory) -> dict[str, Path]:
     shutil.copy(TUM / "groundtruth.txt", bag / "groundtruth.txt")
     return {"tum": require_data(TUM), "replica": require_data(REPLICA), "folder": folder,
             "sevenscenes": root / "chess" / "seq-01", "rosbag": bag}
-
-
-def config_class(section: str, key: str) -> type:
-    """The dataclass that holds `key` of a section (a config nested in the section's: its class)."""
-    import dataclasses
-
-    from slamkit.map.growth import MapGrowthConfig
-    from slamkit.registry.schema import CheckpointConfig, EvalConfig, LocalizeConfig, ObjectiveConfig, RunConfig
-
-    if section in ("", *TOP_SECTIONS):
-        return {"": RunConfig, "growth": MapGrowthConfig, "eval": EvalConfig, "objective": ObjectiveConfig,
-                "checkpoint": CheckpointConfig, "localize": LocalizeConfig}[section]
-    group, name = section.split("=")
-    cls = default_registry().get(group.split("/")[-1], name).config
-    depth = len(group.split("/"))  # the key segments that name the section (mapper.rasterizer.)
-    for field_name in key.split(".")[depth:-1]:  # e.g. mapper.admission.skip_covered
-        cls = type(next(f for f in dataclasses.fields(cls) if f.name == field_name).default_factory())
-    return cls
 
 
 def valid_value(section: str, key: str, type_: str, default: str, tmp: Path, data: dict[str, Path]):
@@ -223,31 +187,8 @@ def test_every_key_in_the_reference_reaches_the_object_the_run_builds(data, tmp_
     assert not missed, "\n".join(missed)
 
 
-BAD = [
-    ("mapper/sampler=covisible", "mapper.sampler.top_k=-1", "mapper.sampler.top_k"),
-    ("mapper/rasterizer=gsplat", "mapper.rasterizer.tile_size=0", "mapper.rasterizer.tile_size"),
-    ("mapper/rasterizer=torch", "mapper.rasterizer.max_pairs_per_chunk=10", "mapper.rasterizer.max_pairs_per_chunk"),
-    ("mapper/rasterizer=cpu", "mapper.rasterizer.num_threads=-2", "mapper.rasterizer.num_threads"),
-    ("mapper/strategy=3dgs", "mapper.strategy.grad_threshold=0", "mapper.strategy.grad_threshold"),
-    ("mapper/optimizer=adam", "mapper.optimizer.lr_means=-1", "mapper.optimizer.lr_means"),
-    ("mapper/loss=l1_ssim_depth", "mapper.loss.weight_ssim=-0.2", "mapper.loss.weight_ssim"),
-    ("mapper/strategy=gsicp", "mapper.strategy.prune_evry=100", "prune_evry"),
-    ("mapper/sampler=covisible", "mapper.sampler.topk=3", "topk"),
-    ("mapper/optimizer=visible_adam", "mapper.optimizer.only_visible=maybe", "mapper.optimizer.only_visible"),
-]
-
-
 @pytest.mark.parametrize("select, bad, named", BAD, ids=[b for _, b, _ in BAD])
 def test_a_bad_value_or_a_misspelt_key_of_a_part_is_one_line_naming_it(select, bad, named):
     with pytest.raises(ConfigError, match=re.escape(named)) as err:
         build_run(["mapper=gaussian_splatting", select, bad])
     assert "\n" not in str(err.value)
-
-
-@pytest.mark.slow
-def test_the_command_exits_2_with_one_line_for_each(tmp_path):
-    for select, bad, named in BAD[::3]:
-        proc = run_slamkit("mapper=gaussian_splatting", select, bad, f"hydra.run.dir={tmp_path / 'x'}", cwd=tmp_path)
-        assert proc.returncode == 2, (bad, proc.stderr[-500:])
-        last = proc.stderr.strip().splitlines()[-1]
-        assert last.startswith("slamkit: error: ") and named in last and "Traceback" not in proc.stderr

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from conftest import DATA, require_data
+from support.data import DATA, require_data
 from slamkit.errors import DataError
 from slamkit.formats import images
 from slamkit.formats.images import read_depth, read_rgb

@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from mapping_scenes import N, plane_scene, rows, start_map
+from support.mapping_scenes import N, plane_scene, rows, start_map
 from slamkit.map.gaussian_map import PARAMETERS
 from slamkit.splatting.ops import MapEdit
 from slamkit_plugins.optimizers.adam import AdamConfig, TorchAdam

@@ -1,5 +1,6 @@
 """The memory cap the trainer applies whatever the strategy (`mapper.memory_cap.max_gaussians`) and the 3DGS mapper's keyframe
-image storage (issue 9)."""
+image storage (issue 9). Heap release in a process of its own, and the command with the cap:
+tests/e2e/test_memory_guard_runs.py."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from mapping_scenes import N, add, make_map, make_mapper, plane_scene, render_frame, rows, start_map, state_follows_map
+from support.mapping_scenes import N, add, make_map, make_mapper, plane_scene, render_frame, rows, start_map, state_follows_map
 from slamkit.metrics import trajectory as evaluation
 from slamkit.run.build import build_run
 from slamkit.errors import ConfigError
@@ -220,43 +221,10 @@ def test_guarded_replica_run_stays_under_the_cap_keeps_the_most_opaque_and_track
     assert metrics["keyframe_memory_mb"] > 0
 
 
-
-FRAGMENTED_HEAP = """
-import os, numpy as np
-from slamkit.run.heap import release_free_memory
-def rss():
-    return int(open("/proc/self/statm").read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
-a = np.ones(1 << 20); del a         # freeing an mmapped 8 MB chunk raises glibc's mmap threshold
-big, small = [], []
-for _ in range(200):
-    big.append(np.ones(1 << 17))     # 1 MB each, now from the heap
-    small.append(np.ones(16))        # pinning the heap between them
-top = np.ones(4096)                  # and above them
-big.clear()
-freed = rss()
-print(release_free_memory(), freed, rss())
-"""
-
-
-@pytest.mark.slow
-def test_release_free_memory_returns_a_fragmented_heap_to_the_os():
-    """200 MB freed inside the heap stay resident until `release_free_memory`."""
-    import subprocess
-    import sys
-
-    if not Path("/proc/self/statm").exists():
-        pytest.skip("needs Linux /proc")
-    out = subprocess.run([sys.executable, "-c", FRAGMENTED_HEAP], capture_output=True, text=True, check=True).stdout
-    available, freed, after = out.split()
-    if available != "True":
-        pytest.skip("not glibc: malloc_trim is not available")
-    assert float(freed) > 200 and float(freed) - float(after) > 150
-
-
 def test_slam_releases_free_memory_at_each_keyframe(monkeypatch, rasterizer):
     import slamkit.run.slam
     from slamkit_plugins.keyframes.every_n import EveryNKeyframeConfig, EveryNKeyframePolicy
-    from mapping_scenes import GroundTruthTracker
+    from support.mapping_scenes import GroundTruthTracker
 
     calls = []
     monkeypatch.setattr(slamkit.run.slam, "release_free_memory", lambda: calls.append(1) or True)
@@ -269,30 +237,3 @@ def test_slam_releases_free_memory_at_each_keyframe(monkeypatch, rasterizer):
         slam.step(frame.__class__(i, float(i), frame.rgb, frame.depth, frame.camera, frame.gt_pose))
         assert len(slam.gaussian_map) <= 100
     assert slam.num_keyframes == 3 and len(calls) == 3
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("mode", ["sequential", "realtime"])
-def test_cli_run_with_the_guard_reports_pruning_and_stays_under_the_cap(tmp_path, mode):
-    """End to end: frames.csv never shows more Gaussians than the cap after a frame, and
-    metrics.json counts what the guard pruned (real-time mode: the guard prunes in the tracking
-    thread while the mapping thread trains)."""
-    import csv
-    import json
-
-    from conftest import run_slamkit
-
-    out = tmp_path / "run"
-    proc = run_slamkit(
-        "dataset=synthetic", "dataset.num_frames=12", "dataset.width=64", "dataset.height=48", "tracker=gicp",
-        "keyframe=every_n", "keyframe.tracking_every=2", "mapper=gaussian_splatting", "mapper.memory_cap.max_gaussians=1000",
-        "mapper.admission.skip_covered=false",
-        "final_iterations=2", "mapper.save_images=0", "iterations_per_frame=2", f"mode={mode}",
-        "progress=false", "eval.plot=false", f"hydra.run.dir={out}", cwd=tmp_path, timeout=300,
-    )
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    metrics = json.loads((out / "metrics.json").read_text())
-    assert metrics["completed"] and metrics["num_keyframes"] == 6
-    assert metrics["pruned_by_memory_guard"] > 0 and metrics["num_gaussians"] <= 1000
-    sizes = [int(r["num_gaussians"]) for r in csv.DictReader(open(out / "frames.csv"))]
-    assert len(sizes) == 12 and max(sizes) <= 1000 and metrics["ate_rmse_m"] < 0.05

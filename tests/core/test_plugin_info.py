@@ -1,4 +1,5 @@
-"""`slamkit-plugins` and the generated configuration reference."""
+"""The generated configuration reference and its one-line field docs (the `slamkit-plugins`
+listing itself: tests/e2e/test_plugin_info_runs.py)."""
 
 from __future__ import annotations
 
@@ -13,17 +14,7 @@ from slamkit.cli.plugins import markdown_reference
 from slamkit.config import field_docs
 from slamkit.registry.discovery import discover
 
-from conftest import REPO
-
-
-@pytest.mark.slow
-def test_listing_shows_every_builtin_with_its_fields():
-    exe = Path(sys.executable).with_name("slamkit-plugins")
-    out = subprocess.run([str(exe)], capture_output=True, text=True, check=True).stdout
-    for role, name in [("dataset", "tum"), ("tracker", "gicp"), ("tracker", "kiss_icp"), ("keyframe", "overlap"),
-                       ("mapper", "none")]:
-        assert f"{role}:" in out and f"  {name}  [" in out
-    assert "voxel_size: float = 0.05  # metres" in out  # kiss_icp: type, default and doc
+from support.data import REPO
 
 
 def test_configuration_reference_is_current():

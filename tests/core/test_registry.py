@@ -1,4 +1,5 @@
-"""The plugin registry: entry-point discovery, type checks, failures reported by name."""
+"""The plugin registry: entry-point discovery, type checks, failures reported by name (the same
+third-party plugins run from the command line: tests/e2e/test_registry_runs.py)."""
 
 from __future__ import annotations
 
@@ -8,87 +9,6 @@ import pytest
 
 from slamkit.errors import ConfigError, PluginError
 from slamkit.registry.discovery import discover
-
-from conftest import make_plugin_dist, run_slamkit
-
-FAKE_TRACKER = """
-    from dataclasses import dataclass
-    import numpy as np
-    from slamkit.plugin import PluginSpec, hookimpl
-    from slamkit.roles import PluginConfig, Tracker, require
-    from slamkit.types import TrackingResult
-
-    @dataclass
-    class StillConfig(PluginConfig):
-        '''offset: metres added to x of every pose.'''
-        offset: float = 0.0
-        fail_at: int = -1
-        def validate(self):
-            require(self.offset >= 0, "tracker.offset", ">= 0", self.offset)
-
-    class StillTracker(Tracker):
-        '''Reports the first pose for every frame, shifted by cfg.offset along x.'''
-        def __init__(self, cfg, context=None):
-            self.cfg = cfg
-        def initialize(self, first_pose):
-            self.pose = first_pose.copy()
-            self.pose[0, 3] += self.cfg.offset
-        def track(self, frame):
-            if frame.index == self.cfg.fail_at:
-                raise ValueError("simulated failure")
-            return TrackingResult(pose=self.pose)
-
-    @hookimpl
-    def slamkit_plugins():
-        return [PluginSpec("still", StillTracker, StillConfig)]
-"""
-
-NOT_A_TRACKER = """
-    from dataclasses import dataclass
-    from slamkit.plugin import PluginSpec, hookimpl
-
-    @dataclass
-    class Cfg:
-        x: int = 1
-
-    @hookimpl
-    def slamkit_plugins():
-        return [PluginSpec("wrong", dict, Cfg)]
-"""
-
-ODD_CONFIG = """
-    from dataclasses import dataclass, field
-    import numpy as np
-    from slamkit.plugin import PluginSpec, hookimpl
-    from slamkit.roles import Tracker
-
-    @dataclass
-    class OddConfig:
-        weights: np.ndarray = field(default_factory=lambda: np.ones(3))
-
-    class OddTracker(Tracker):
-        def __init__(self, cfg, context=None):
-            self.cfg = cfg
-        def track(self, frame):
-            raise NotImplementedError
-
-    @hookimpl
-    def slamkit_plugins():
-        return [PluginSpec("odd", OddTracker, OddConfig)]
-"""
-
-
-@pytest.fixture
-def plugin_dir(tmp_path, monkeypatch):
-    root = make_plugin_dist(
-        tmp_path / "site",
-        "slamkit-test-plugins",
-        {"still_tracker": FAKE_TRACKER, "broken_plugin": "raise ImportError('needs libfoo')\n",
-         "wrong_plugin": NOT_A_TRACKER, "odd_plugin": ODD_CONFIG},
-        {"still": "still_tracker", "broken": "broken_plugin", "wrong": "wrong_plugin", "odd": "odd_plugin"},
-    )
-    monkeypatch.syspath_prepend(str(root))
-    return root
 
 
 def test_builtin_plugins_are_found_through_entry_points():
@@ -120,45 +40,6 @@ def test_unknown_plugin_lists_available(plugin_dir):
     message = str(err.value)
     assert "unknown tracker 'gicpp'" in message and "kiss_icp" in message and "still" in message
     assert "\n" not in message
-
-
-@pytest.mark.slow
-def test_third_party_plugin_runs_from_the_cli_with_its_config(plugin_dir, tmp_path):
-    out = tmp_path / "run"
-    env = {"PYTHONPATH": str(plugin_dir)}
-    proc = run_slamkit("tracker=still", "tracker.offset=0.5", "dataset.num_frames=8", "progress=false",
-                       f"hydra.run.dir={out}", cwd=tmp_path, env_extra=env)
-    assert proc.returncode == 0, proc.stderr
-    lines = (out / "trajectory.txt").read_text().splitlines()
-    assert len(lines) == 8
-    metrics = json.loads((out / "metrics.json").read_text())
-    assert metrics["num_frames"] == 8 and metrics["ate_rmse_m"] > 0
-
-
-@pytest.mark.slow
-def test_third_party_config_validation_and_unknown_name_from_the_cli(plugin_dir, tmp_path):
-    env = {"PYTHONPATH": str(plugin_dir)}
-    bad = run_slamkit("tracker=still", "tracker.offset=-1", f"hydra.run.dir={tmp_path / 'x'}", cwd=tmp_path, env_extra=env)
-    assert bad.returncode == 2
-    assert bad.stderr.strip().splitlines()[-1] == "slamkit: error: tracker.offset: expected >= 0, got -1.0"
-    assert "Traceback" not in bad.stderr
-    unknown = run_slamkit("tracker=nope", cwd=tmp_path, env_extra=env)
-    assert unknown.returncode == 2
-    assert "unknown tracker 'nope'; available:" in unknown.stderr and "still" in unknown.stderr
-
-
-@pytest.mark.slow
-def test_a_plugin_that_raises_stops_the_run_cleanly_naming_it(plugin_dir, tmp_path):
-    out = tmp_path / "run"
-    proc = run_slamkit("tracker=still", "tracker.fail_at=3", "dataset.num_frames=8", f"hydra.run.dir={out}",
-                       cwd=tmp_path, env_extra={"PYTHONPATH": str(plugin_dir)})
-    assert proc.returncode == 2 and "Traceback" not in proc.stderr
-    assert proc.stderr.strip().splitlines()[-1] == (
-        "slamkit: error: tracker plugin 'still' failed in track(): ValueError: simulated failure")
-    assert len((out / "trajectory.txt").read_text().splitlines()) == 3
-    metrics = json.loads((out / "metrics.json").read_text())
-    assert metrics["completed"] is False and "simulated failure" in metrics["error"]
-    assert "Traceback" in (out / "slamkit.log").read_text()  # the log keeps the details
 
 
 def test_the_mappers_parts_are_groups_nested_under_it():

@@ -10,7 +10,9 @@ import pytest
 
 from slamkit.formats.tum import read_tum_trajectory
 
-from conftest import run_slamkit
+from support.commands import run_slamkit
+from support.config_reference import BAD
+from support.folders import tiny_tum
 
 pytestmark = pytest.mark.slow  # every test here starts the slamkit command
 
@@ -59,22 +61,8 @@ def test_kiss_icp_on_real_data_writes_poses_and_finite_ate(dataset, fixture, fra
     assert metrics["ate_mean_m"] <= metrics["ate_rmse_m"]
 
 
-def _tiny_tum_copy(src, dst, frames=12):
-    """A TUM folder with the first `frames` frames of the shared sequence (files copied)."""
-    (dst / "rgb").mkdir(parents=True)
-    (dst / "depth").mkdir()
-    for name in ("rgb", "depth"):
-        lines = [l for l in (src / f"{name}.txt").read_text().splitlines() if not l.startswith("#")][:frames]
-        (dst / f"{name}.txt").write_text("\n".join(lines) + "\n")
-        for line in lines:
-            rel = line.split()[1]
-            shutil.copy(src / rel, dst / rel)
-    shutil.copy(src / "groundtruth.txt", dst / "groundtruth.txt")
-    return dst
-
-
 def test_sequence_without_ground_truth_runs_with_null_ate(tum_path, tmp_path):
-    seq = _tiny_tum_copy(tum_path, tmp_path / "rgbd_dataset_freiburg1_x")
+    seq = tiny_tum(tmp_path / "rgbd_dataset_freiburg1_x", frames=12)
     (seq / "groundtruth.txt").unlink()
     out = tmp_path / "run"
     proc = _ok(run_slamkit("dataset=tum", f"dataset.path={seq}", f"hydra.run.dir={out}", cwd=tmp_path))
@@ -89,7 +77,7 @@ def test_bad_input_gives_one_line_errors(tum_path, tmp_path):
     empty = tmp_path / "empty"
     empty.mkdir()
     _one_line_error(run_slamkit("dataset=replica", f"dataset.path={empty}", cwd=tmp_path), str(empty))
-    seq = _tiny_tum_copy(tum_path, tmp_path / "corrupt")
+    seq = tiny_tum(tmp_path / "corrupt", frames=12)
     victim = sorted((seq / "depth").iterdir())[5]
     victim.write_bytes(victim.read_bytes()[:200])
     _one_line_error(run_slamkit("dataset=tum", f"dataset.path={seq}", f"hydra.run.dir={tmp_path / 'r'}", cwd=tmp_path),
@@ -125,7 +113,7 @@ def test_the_mappers_parts_are_chosen_under_it_and_an_old_spelling_is_one_line(t
 
 
 def test_on_error_skip_marks_an_unreadable_frame_lost_and_goes_on(tum_path, tmp_path):
-    seq = _tiny_tum_copy(tum_path, tmp_path / "rgbd_dataset_freiburg1_y")
+    seq = tiny_tum(tmp_path / "rgbd_dataset_freiburg1_y", frames=12)
     victim = sorted((seq / "rgb").iterdir())[4]
     victim.write_bytes(b"not a png")
     out = tmp_path / "run"
@@ -137,3 +125,11 @@ def test_on_error_skip_marks_an_unreadable_frame_lost_and_goes_on(tum_path, tmp_
     timestamps, poses = read_tum_trajectory(out / "trajectory.txt")
     assert len(timestamps) == 12 and np.allclose(poses[4], poses[3])
     assert "unreadable" in (out / "frames.csv").read_text() and victim.name in (out / "slamkit.log").read_text()
+
+
+def test_the_command_exits_2_with_one_line_for_each(tmp_path):
+    for select, bad, named in BAD[::3]:
+        proc = run_slamkit("mapper=gaussian_splatting", select, bad, f"hydra.run.dir={tmp_path / 'x'}", cwd=tmp_path)
+        assert proc.returncode == 2, (bad, proc.stderr[-500:])
+        last = proc.stderr.strip().splitlines()[-1]
+        assert last.startswith("slamkit: error: ") and named in last and "Traceback" not in proc.stderr

@@ -36,13 +36,13 @@ from slamkit.types import Camera
 from slamkit.splatting.keyframes import resize_rgbd
 from slamkit_plugins.rasterizers.torch_rasterizer import TorchRasterizer
 
-from test_rasterizers import a_pose, as_tuple, random_scene, random_weights, weighted_loss
+from support.data import REPLICA, REPO, require_data
+from support.render_scenes import F64, a_pose, as_tuple, random_scene, random_weights, weighted_loss
 
 pytestmark = pytest.mark.cuda
 
-F64 = torch.float64
 _spec = importlib.util.spec_from_file_location(
-    "step_phases", Path(__file__).resolve().parents[1] / "benchmarks" / "step_phases.py")
+    "step_phases", REPO / "benchmarks" / "step_phases.py")
 step_phases = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(step_phases)
 
@@ -182,8 +182,6 @@ def cpu_run(replica_path_module, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def replica_path_module():
-    from conftest import REPLICA, require_data
-
     return require_data(REPLICA)
 
 

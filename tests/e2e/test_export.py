@@ -20,7 +20,7 @@ from slamkit.formats.ply import save_ply
 from slamkit.formats.tum import read_tum_trajectory, write_tum_trajectory
 from slamkit.types import Camera
 
-from conftest import run_slamkit
+from support.commands import run_slamkit
 
 EXPORT = Path(sys.executable).with_name("slamkit-export")
 PLANE_Z = 2.0  # metres, world frame

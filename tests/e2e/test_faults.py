@@ -1,7 +1,7 @@
 """The fault suite (issue 19, no traceback anywhere): bad inputs and faults, each run through a
 console script's real entry point (`slamkit` = `slamkit.cli.main:main`, as installed) in this
 process, asserting the exit status, the one-line message and what the run folder kept; then the
-rules every config key shares, key by key, and the checks themselves.
+rules every config key shares, key by key (the checks themselves: tests/core/test_value_checks.py).
 
 One row of `FAULTS` per case; to add one, append a `Fault`:
 - argv: the command's arguments; `{out}` is the run folder (`hydra.run.dir={out}` is added to
@@ -48,8 +48,8 @@ from typing import Any, Callable
 import numpy as np
 import pytest
 
-from conftest import REPLICA, require_data
-from fault_inputs import (FRAMES, INTRINSICS, drop_frame, duplicate_timestamp, fifo_bag, flip_bytes,
+from support.data import REPLICA, require_data
+from support.fault_inputs import (FRAMES, INTRINSICS, drop_frame, duplicate_timestamp, fifo_bag, flip_bytes,
                           float_depth_in_metres, folder_with, install, make_read_only, non_utf8_name, tiny_tum,
                           truncate_depth, truncate_half, tum_with, uint16_cast_metres)
 
@@ -772,9 +772,9 @@ def _numeric_keys():
     declared a thread count (`thread_count`)."""
     import dataclasses
 
-    from test_config_reference import config_class, reference_keys
-
     from slamkit.config import THREADS
+
+    from support.config_reference import config_class, reference_keys
 
     cases = []
     for section, key, type_, _ in reference_keys():
@@ -823,43 +823,3 @@ def test_every_numeric_key_has_a_range_and_every_thread_count_is_bounded_by_the_
                 node = getattr(node, name)
             assert node == machine_threads()
     assert not failures, "\n".join(failures)
-
-
-# --- the checks themselves, quickly --------------------------------------------------------------
-
-def test_camera_plausibility_bounds_follow_the_image_size():
-    from slamkit.types import Camera
-
-    tum = Camera(640, 480, 517.3, 516.5, 318.6, 255.3)
-    assert tum.implausible() == []
-    assert [n for n, _ in Camera(640, 480, 517.3, 516.5, 1e30, float("nan")).implausible()] == ["cx", "cy"]
-    # fx for a 1 and a 170 degree field of view across 640 pixels: 36667 and 28.0; fy across 480: 21.0 at 170
-    assert Camera(640, 480, 36000.0, 516.5, 320, 240).implausible() == []
-    assert [n for n, _ in Camera(640, 480, 37000.0, 20.0, 320, 240).implausible()] == ["fx", "fy"]
-    assert [n for n, _ in Camera(0, 480, 517.3, 516.5, 318.6, 255.3).implausible()] == ["width"]
-
-
-def test_check_values_names_the_key_of_a_nan_and_of_too_many_threads():
-    from dataclasses import dataclass, field
-
-    from slamkit.errors import ConfigError
-    from slamkit.roles import PluginConfig, check_values, thread_count, unlimited
-    from slamkit.config import machine_threads
-
-    @dataclass
-    class Inner(PluginConfig):
-        weights: list = field(default_factory=lambda: [1.0, 2.0])
-        num_threads: int = thread_count(0)
-        far: float = unlimited(float("inf"))
-
-    @dataclass
-    class Outer(PluginConfig):
-        inner: Inner = field(default_factory=Inner)
-        step: float = 0.5
-
-    check_values(Outer())
-    for bad, key in [(Outer(step=float("nan")), "step"), (Outer(Inner(weights=[1.0, float("inf")])), "inner.weights"),
-                     (Outer(Inner(num_threads=machine_threads() + 1)), "inner.num_threads"),
-                     (Outer(Inner(far=float("-inf"))), "inner.far")]:
-        with pytest.raises(ConfigError, match=f"^{key}: expected"):
-            check_values(bad)

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import REPLICA, REPO, TUM, require_data
+from support.data import REPLICA, REPO, TUM, require_data
 
 
 def _load(name: str):

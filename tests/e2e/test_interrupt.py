@@ -59,7 +59,8 @@ def test_realtime_mapping_run_interrupted_keeps_the_map_trained_so_far(tmp_path)
     """SIGINT once 4 frames are in (the run says so and waits: SLAMKIT_PAUSE_AT): the mapping
     thread is stopped, then the map it trained is written (map.ply) with the trajectory."""
     from slamkit.formats.ply import load_ply
-    from test_run_lifecycle import Slamkit, tiny
+
+    from support.commands import Slamkit, tiny
 
     out = tmp_path / "run"
     run = Slamkit(*tiny(mode="realtime", dataset__num_frames=12), f"hydra.run.dir={out}", cwd=tmp_path,

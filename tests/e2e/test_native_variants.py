@@ -1,7 +1,7 @@
 """The compiled kernels' vector code has one variant per instruction set (slamkit/csrc/slk_vec16.h:
 AVX-512 registers, or pairs of AVX2 / portable vectors); a machine runs only the variant its CPU
 selects, so every variant is compiled here with the flags slamkit builds with, and those this CPU
-can run are checked lane by lane (tests/vec16_probe.cpp)."""
+can run are checked lane by lane (tests/e2e/vec16_probe.cpp)."""
 
 from __future__ import annotations
 
@@ -51,7 +51,7 @@ CPU_NEEDS = {"avx512": {"avx512f"}, "avx2": {"avx2", "fma"}, "avx": {"avx"}, "po
 
 
 def _probe(tmp_path, variant: str) -> dict[str, np.ndarray]:
-    """tests/vec16_probe.cpp built for `variant` and run: its lines as arrays."""
+    """tests/e2e/vec16_probe.cpp built for `variant` and run: its lines as arrays."""
     exe = tmp_path / f"probe_{variant}"
     flags = [f for f in BASE_FLAGS if f not in ("-shared", "-fPIC")]
     proc = subprocess.run([COMPILER, *flags, *VARIANTS[variant], f"-I{INCLUDE_DIR}", str(PROBE), "-o", str(exe)],
@@ -133,8 +133,9 @@ def test_clang_builds_every_kernel_and_computes_what_the_default_build_does(monk
     import slamkit_plugins.optimizers.visible_adam as adam_module
     import slamkit_plugins.rasterizers.cpu_rasterizer as raster_module
     import slamkit_plugins.trackers.gicp.kernels as gicp_module
-    from test_cpu_rasterizer import CAM, hard_scene, rel_err, render_and_grads
-    from test_fused_loss import loss_and_grads, random_inputs
+
+    from support.hard_scenes import CAM, hard_scene, rel_err, render_and_grads
+    from support.loss_inputs import loss_and_grads, random_inputs
 
     scene, background = hard_scene(300, seed=5), torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64)
     loss_inputs = random_inputs(40, 52, seed=3)

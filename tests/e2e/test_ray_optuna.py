@@ -17,7 +17,7 @@ import yaml
 
 from slamkit.cli.report import main as report_main
 
-from conftest import run_slamkit
+from support.commands import run_slamkit
 
 pytestmark = pytest.mark.slow  # every test here starts the slamkit command
 

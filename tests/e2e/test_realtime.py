@@ -7,7 +7,7 @@ import json
 
 import pytest
 
-from conftest import run_slamkit
+from support.commands import run_slamkit
 from slamkit.registry.schema import Mode, RunConfig
 
 pytestmark = pytest.mark.slow  # every test here starts the slamkit command

@@ -1,8 +1,9 @@
 """Nothing lost on any exit (issue 20) and the run's failure paths (issue 19), through the real
 commands: a signal in each phase of a run (sent once the run says it has reached that phase,
-`SLAMKIT_PAUSE_AT`), a signal during start-up, a run whose tracking failed, slamkit-report on
-unfinished and unreadable runs, an output folder that cannot be made, a full disk, peak memory
-taken after the evaluation, and kill -9 at random moments."""
+`SLAMKIT_PAUSE_AT`), a signal during start-up, a run whose tracking failed, a full disk, peak
+memory taken after the evaluation, and kill -9 at random moments. The parts that need no run
+(StopSignals, slamkit-report on unfinished runs, an output folder that cannot be made):
+tests/core/test_lifecycle.py."""
 
 from __future__ import annotations
 
@@ -32,106 +33,17 @@ from slamkit.formats.tum import read_tum_trajectory
 from slamkit.run.lifecycle import Phase, StopSignals
 from slamkit.run.ownership import LOCK_NAME
 
-from conftest import make_plugin_dist, run_slamkit
-
-#: A short run with every phase and output: 6 synthetic frames mapped by 3DGS, refined, evaluated.
-TINY = {"dataset": "synthetic", "dataset.num_frames": 6, "dataset.width": 64, "dataset.height": 48,
-        "keyframe": "every_n", "keyframe.tracking_every": 3, "mapper": "gaussian_splatting", "final_iterations": 4,
-        "mapper.save_images": 2, "iterations_per_frame": 2, "progress": "false"}
-
-
-def tiny(**changes) -> list[str]:
-    """TINY's overrides with `changes` (keys with "__" for "."), e.g. tiny(mode="realtime")."""
-    values = dict(TINY, **{k.replace("__", "."): v for k, v in changes.items()})
-    return [f"{k}={v}" for k, v in values.items()]
-
+from support.commands import Slamkit, run_slamkit, slamkit_in_process, tiny
+from support.folders import tiny_tum
+from support.plugins import make_plugin_dist
 
 TINY_MAPPING = tuple(tiny())
 CONTRACT_KEYS = {"num_frames", "num_keyframes", "fps", "tracking_fps", "tracking_time_s", "mapping_time_s",
                  "lost_frames", "completed", "ate_rmse_m", "ate_mean_m", "status", "phase", "error"}
 
 
-class Slamkit:
-    """A `slamkit` process whose stderr is read line by line (to see where it has paused)."""
-
-    def __init__(self, *args: str, cwd: Path, pause_at: str | None = None, env: dict | None = None):
-        env = dict(os.environ, **(env or {}))
-        if pause_at:
-            env["SLAMKIT_PAUSE_AT"] = pause_at
-        exe = Path(sys.executable).with_name("slamkit")
-        self.proc = subprocess.Popen([str(exe), *args], cwd=cwd, env=env, stdout=subprocess.PIPE,
-                                     stderr=subprocess.PIPE, text=True)
-        self.lines: queue.Queue[str | None] = queue.Queue()
-        self.stderr: list[str] = []
-        self.reader = threading.Thread(target=self._read, daemon=True)
-        self.reader.start()
-
-    def _read(self) -> None:
-        for line in self.proc.stderr:
-            self.stderr.append(line)
-            self.lines.put(line)
-        self.lines.put(None)
-
-    def wait_for(self, text: str, timeout: float = 300) -> None:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            try:
-                line = self.lines.get(timeout=1)
-            except queue.Empty:
-                continue
-            if line is None:
-                pytest.fail(f"slamkit ended before {text!r}: {''.join(self.stderr)[-3000:]}")
-            if text in line:
-                return
-        self.proc.kill()
-        pytest.fail(f"slamkit never said {text!r}")
-
-    def send(self, sig: int) -> None:
-        self.proc.send_signal(sig)
-
-    def finish(self, timeout: float = 300) -> tuple[int, str, str]:
-        try:
-            stdout = self.proc.stdout.read()
-            self.proc.wait(timeout=timeout)
-        finally:
-            self.proc.kill()
-        self.reader.join(timeout=10)
-        return self.proc.returncode, stdout, "".join(self.stderr)
-
-
 def _metrics(out: Path) -> dict:
     return json.loads((out / "metrics.json").read_text())
-
-
-# -- the signal handling itself (StopSignals), in this process ----------------------------------
-
-def _raise_signal_and_settle(sig: int) -> None:
-    os.kill(os.getpid(), sig)
-    time.sleep(0.05)  # the handler runs in the main thread at the next bytecode
-
-
-def test_stop_signals_defer_in_phases_that_change_the_map_and_stop_at_once_elsewhere():
-    before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
-    stop = StopSignals()
-    with stop.installed():
-        stop.enter(Phase.stream)
-        _raise_signal_and_settle(signal.SIGTERM)  # noted: the frame in hand finishes
-        assert stop.signal == "SIGTERM"
-        with pytest.raises(KeyboardInterrupt, match="SIGTERM"):
-            stop.check()  # the next safe point
-        assert not stop.cut_short  # a whole state: the checkpoint is written from it
-        with pytest.raises(KeyboardInterrupt, match="SIGINT"):
-            _raise_signal_and_settle(signal.SIGINT)  # a second signal: at once
-        assert stop.cut_short  # maybe in the middle of a step: no checkpoint from it
-        with stop.writing():
-            _raise_signal_and_settle(signal.SIGINT)  # never while the outputs are written
-    fresh = StopSignals()
-    with fresh.installed():
-        fresh.enter(Phase.evaluate)
-        with pytest.raises(KeyboardInterrupt, match="SIGINT"):
-            _raise_signal_and_settle(signal.SIGINT)
-        assert not fresh.cut_short  # the evaluation changes nothing kept
-    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before  # handlers given back
 
 
 # -- issue 20 point 1: a signal in any phase keeps the outputs of the phases before it ----------
@@ -264,9 +176,7 @@ def test_a_run_that_tracks_no_frame_fails_with_no_ate(tmp_path):
 def test_losing_more_than_max_lost_fraction_fails_the_run(tum_path, tmp_path):
     """12 TUM frames of which 4 colour images are unreadable (dataset.on_error=skip): 4/12 lost
     fails with eval.max_lost_fraction=0.25, and is a result with the default 0.5."""
-    from test_cli import _tiny_tum_copy
-
-    seq = _tiny_tum_copy(tum_path, tmp_path / "rgbd_dataset_freiburg1_x", frames=12)
+    seq = tiny_tum(tmp_path / "rgbd_dataset_freiburg1_x", frames=12)
     rgb = [l.split()[1] for l in (seq / "rgb.txt").read_text().splitlines()]
     for i in (3, 5, 7, 9):
         (seq / rgb[i]).write_bytes(b"not a png")
@@ -298,88 +208,7 @@ def test_a_sweep_goes_on_past_a_failed_run_and_the_report_keeps_it_apart(tmp_pat
     assert rows["1e-06"]["error"].startswith("tracking failed: no frame tracked")
 
 
-# -- issue 20 point 3: slamkit-report on unfinished and unreadable runs ------------------------
-
-def _fake_run(root: Path, name: str, tracker: str, metrics: dict | str) -> Path:
-    run = root / name
-    (run / ".hydra").mkdir(parents=True)
-    (run / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump([f"tracker={tracker}"]))
-    (run / "metrics.json").write_text(metrics if isinstance(metrics, str) else json.dumps(metrics))
-    return run
-
-
-def _done(ate: float, **more) -> dict:
-    return {"num_frames": 20, "completed": True, "status": "completed", "error": None, "ate_rmse_m": ate, **more}
-
-
-def test_report_shows_status_keeps_unfinished_runs_apart_and_unreadable_runs_as_rows(tmp_path, capsys):
-    _fake_run(tmp_path, "0", "gicp", _done(0.02))
-    _fake_run(tmp_path, "1", "kiss_icp", _done(0.04))
-    _fake_run(tmp_path, "2", "gicp", {"num_frames": 5, "completed": False, "status": "interrupted",
-                                      "phase": "stream", "error": "interrupted (SIGINT) during stream", "ate_rmse_m": 0.001})
-    _fake_run(tmp_path, "3", "gicp", {"num_frames": 20, "completed": False, "error": "RuntimeError: boom"})  # before `status`
-    _fake_run(tmp_path, "4", "gicp", "[1, 2, 3]")
-    _fake_run(tmp_path, "5", "gicp", '{"num_frames": 3, "ate_')
-    assert report_main([str(tmp_path)]) == 0
-    rows = list(csv.DictReader(open(tmp_path / "report.csv")))
-    by_status = {r["status"]: r for r in rows}
-    assert [r["status"] for r in rows] == ["completed", "completed", "interrupted", "failed", "unreadable", "unreadable"]
-    gicp = next(r for r in rows if r["tracker"] == "gicp" and r["status"] == "completed")
-    assert gicp["n"] == "1" and float(gicp["ate_rmse_m"]) == 0.02  # the 5-frame run is not averaged in
-    assert by_status["interrupted"]["error"] == "interrupted (SIGINT) during stream"
-    assert float(by_status["interrupted"]["num_frames"]) == 5
-    assert by_status["failed"]["error"] == "RuntimeError: boom"
-    errors = sorted(r["error"] for r in rows if r["status"] == "unreadable")
-    assert errors[0] == f"{tmp_path / '4' / 'metrics.json'}: a JSON list, expected an object of metrics"
-    assert errors[1].startswith(f"{tmp_path / '5' / 'metrics.json'}: not valid JSON")
-    err = capsys.readouterr().err
-    assert "6 runs (2 completed, 1 interrupted, 1 failed, 2 unreadable), 6 rows" in err
-    assert "| gicp | interrupted | 1 |" in (tmp_path / "report.md").read_text()
-
-    assert report_main([str(tmp_path), "--include-unfinished"]) == 0
-    rows = list(csv.DictReader(open(tmp_path / "report.csv")))
-    gicp = next(r for r in rows if r["tracker"] == "gicp" and r["n"] == "3")
-    assert gicp["status"] == "1 completed, 1 failed, 1 interrupted"
-    assert float(gicp["ate_rmse_m"]) == pytest.approx((0.02 + 0.001) / 2)
-    assert [r["status"] for r in rows].count("unreadable") == 2
-
-
-# -- issue 19: the output folder, a full disk --------------------------------------------------
-
-def _slamkit_in_process(monkeypatch, capsys, *args: str) -> tuple[int, str, str]:
-    """The `slamkit` entry point in this process: (exit status, stdout, stderr)."""
-    monkeypatch.setattr(sys, "argv", ["slamkit", *args])
-    with pytest.raises(SystemExit) as exit_:
-        slamkit_cli.main()
-        sys.exit(0)
-    said = capsys.readouterr()
-    return exit_.value.code, said.out, said.err
-
-
-@pytest.mark.parametrize("where", ["a file", "under a file", "a multirun's file"])
-def test_an_output_folder_that_is_a_file_is_one_line(where, tmp_path, monkeypatch, capsys):
-    afile = tmp_path / "afile"
-    afile.write_text("x")
-    key, path, args = "hydra.run.dir", afile, ()
-    if where == "under a file":
-        path = afile / "run"
-    elif where == "a multirun's file":
-        key, args = "hydra.sweep.dir", ("-m", "seed=0,1")
-    code, out, err = _slamkit_in_process(monkeypatch, capsys, *args, f"{key}={path}")
-    assert code == 2
-    assert err.strip().splitlines() == [f"slamkit: error: {key}={path}: {afile} is a file, expected a folder (or a "
-                                        f"path that can be created) for the run's outputs"]
-    assert afile.read_text() == "x"
-
-
-def test_an_output_folder_that_cannot_be_created_is_one_line(monkeypatch, capsys):
-    """/proc takes no folders, root or not (no read-only mount can be made here)."""
-    code, out, err = _slamkit_in_process(monkeypatch, capsys, "hydra.run.dir=/proc/slamkit/run")
-    assert code == 2
-    line, = err.strip().splitlines()
-    assert line.startswith("slamkit: error: hydra.run.dir=/proc/slamkit/run: cannot create a folder in /proc (")
-    assert line.endswith("); expected a writable place for the run's outputs")
-
+# -- issue 19: a full disk -----------------------------------------------------------------------
 
 def _fail_fsync_of(monkeypatch, name: str | None) -> None:
     """os.fsync fails with ENOSPC (a full disk) for the atomic writes of `name` (None: of every
@@ -399,7 +228,7 @@ def _fail_fsync_of(monkeypatch, name: str | None) -> None:
 def test_a_full_disk_while_writing_the_map_keeps_the_rest_and_says_so(tmp_path, monkeypatch, capsys):
     out = tmp_path / "run"
     _fail_fsync_of(monkeypatch, "map.ply")
-    code, stdout, stderr = _slamkit_in_process(monkeypatch, capsys, *TINY_MAPPING, f"hydra.run.dir={out}")
+    code, stdout, stderr = slamkit_in_process(monkeypatch, capsys, *TINY_MAPPING, f"hydra.run.dir={out}")
     assert code == 1 and "Traceback" not in stderr
     assert stderr.strip().splitlines()[-1] == (
         f"slamkit: error: could not write {out / 'map.ply'}: No space left on device; kept in {out}: camera.json, "
@@ -415,7 +244,7 @@ def test_a_full_disk_while_writing_the_map_keeps_the_rest_and_says_so(tmp_path, 
 def test_a_full_disk_for_every_file_is_still_one_line(tmp_path, monkeypatch, capsys):
     out = tmp_path / "run"
     _fail_fsync_of(monkeypatch, None)
-    code, stdout, stderr = _slamkit_in_process(monkeypatch, capsys, "dataset.num_frames=5", "progress=false",
+    code, stdout, stderr = slamkit_in_process(monkeypatch, capsys, "dataset.num_frames=5", "progress=false",
                                                f"hydra.run.dir={out}")
     assert code == 1 and "Traceback" not in stderr
     assert stderr.strip().splitlines()[-1] == (f"slamkit: error: could not write {out / 'camera.json'} (and 3 more): "

@@ -22,9 +22,10 @@ from slamkit_plugins.datasets.replica import ReplicaConfig, ReplicaDataset
 from slamkit_plugins.datasets.sevenscenes import SevenScenesConfig, SevenScenesDataset
 from slamkit_plugins.datasets.tum import TUMConfig, TUMDataset
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-TUM_DIR = DATA / "tum_fr1_rpy_first150"
-REPLICA_DIR = DATA / "replica_room0_first20"
+from support.data import DATA
+from support.data import REPLICA as REPLICA_DIR
+from support.data import TUM as TUM_DIR
+from support.folders import make_sevenscenes, save_depth
 
 
 @pytest.fixture(scope="module")
@@ -132,11 +133,6 @@ H, W = 480, 640
 def save_rgb(path: Path, shape=(H, W)) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(np.full(shape + (3,), 128, np.uint8)).save(path)
-
-
-def save_depth(path: Path, raw: np.ndarray) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(raw.astype(np.uint16)).save(path)
 
 
 def make_tum(root: Path, rgb_ts, depth_ts, gt_lines: str | None = None, rgb_order=None) -> Path:
@@ -347,22 +343,6 @@ def test_replica_errors(tmp_path):
 
 
 # --- synthetic 7-Scenes -----------------------------------------------------------------------
-
-def make_sevenscenes(root: Path, n: int = 3, intrinsics: bool = True) -> tuple[Path, np.ndarray]:
-    root.mkdir(parents=True)
-    rng = np.random.default_rng(0)
-    poses = np.stack([make_pose(so3_exp(rng.normal(size=3)), rng.normal(size=3)) for _ in range(n)])
-    for i in range(n):
-        ext = "png" if i % 2 else "jpg"
-        Image.fromarray(np.zeros((48, 64, 3), np.uint8)).save(root / f"frame-{i:06d}.color.{ext}")
-        raw = np.full((48, 64), 1500, np.uint16)
-        raw[0, 0], raw[0, 1] = 0, 65535
-        save_depth(root / f"frame-{i:06d}.depth.png", raw)
-        np.savetxt(root / f"frame-{i:06d}.pose.txt", poses[i], delimiter="\t")
-    if intrinsics:
-        np.savetxt(root / "camera-intrinsics.txt", [[60.0, 0, 31.5], [0, 61.0, 23.5], [0, 0, 1]])
-    return root, poses
-
 
 def test_sevenscenes_synthetic(tmp_path):
     root, poses = make_sevenscenes(tmp_path / "chess" / "seq-01")

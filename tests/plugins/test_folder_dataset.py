@@ -18,29 +18,15 @@ from slamkit_plugins.datasets import folder
 from slamkit_plugins.datasets.folder import FolderConfig, FolderDataset
 from slamkit_plugins.datasets.tum import CAMERAS, TUMConfig, TUMDataset
 
-from conftest import TUM, require_data, run_slamkit
-
-FRAMES = 10
-INTRINSICS = "fx: 517.3\nfy: 516.5\ncx: 318.6\ncy: 255.3\nwidth: 640\nheight: 480\ndepth_scale: 5000\ndepth_trunc: 3.0\n"
+from support.data import TUM, require_data
+from support.folders import FOLDER_FRAMES as FRAMES
+from support.folders import FOLDER_INTRINSICS as INTRINSICS
+from support.folders import make_folder
 
 
 @pytest.fixture(scope="module")
 def tum_frames() -> TUMDataset:
     return TUMDataset(TUMConfig(path=str(require_data(TUM)), max_frames=FRAMES))
-
-
-def make_folder(root: Path, tum: TUMDataset, stems: list[str] | None = None) -> Path:
-    """color/ + depth/ (frame i saved under stems[i], default the colour timestamp), intrinsics.yaml
-    and the sequence's full groundtruth.txt (TUM format) as gt.txt."""
-    stems = stems or [p.stem for p in tum.rgb_files[:FRAMES]]
-    (root / "color").mkdir(parents=True)
-    (root / "depth").mkdir()
-    for stem, rgb, depth in zip(stems, tum.rgb_files, tum.depth_files):
-        shutil.copy(rgb, root / "color" / f"{stem}.png")
-        shutil.copy(depth, root / "depth" / f"{stem}.png")
-    (root / "intrinsics.yaml").write_text(INTRINSICS)
-    shutil.copy(tum.root / "groundtruth.txt", root / "gt.txt")
-    return root
 
 
 @pytest.fixture
@@ -103,29 +89,6 @@ def test_timestamps_file_and_depth_scale_override(scene):
     assert ds[0].gt_pose is None  # no trajectory.txt, none given
     ref = FolderDataset(FolderConfig(path=str(scene)))
     np.testing.assert_allclose(ds[0].depth, 2 * ref[0].depth)
-
-
-@pytest.mark.slow
-def test_slamkit_runs_on_a_folder(scene, tmp_path):
-    out = tmp_path / "run"
-    proc = run_slamkit("dataset=folder", f"dataset.path={scene}", "dataset.trajectory=gt.txt", "mapper=none",
-                       "progress=false", f"hydra.run.dir={out}", cwd=tmp_path)
-    assert proc.returncode == 0, proc.stdout + proc.stderr
-    timestamps, poses = read_tum_trajectory(out / "trajectory.txt")
-    assert len(timestamps) == FRAMES and np.isfinite(poses).all()
-    metrics = json.loads((out / "metrics.json").read_text())
-    assert metrics["ate_rmse_m"] is not None and metrics["ate_rmse_m"] < 0.1
-
-
-@pytest.mark.slow
-def test_missing_intrinsics_is_one_line_naming_the_file(scene, tmp_path):
-    (scene / "intrinsics.yaml").unlink()
-    with pytest.raises(DataError) as e:
-        FolderDataset(FolderConfig(path=str(scene)))
-    one_line(e, str(scene / "intrinsics.yaml"), "not found")
-    proc = run_slamkit("dataset=folder", f"dataset.path={scene}", f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
-    assert proc.returncode == 2 and "Traceback" not in proc.stderr
-    assert "intrinsics.yaml not found" in proc.stderr.strip().splitlines()[-1]
 
 
 @pytest.mark.parametrize("text, needles", [

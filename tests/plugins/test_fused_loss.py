@@ -18,7 +18,8 @@ from slamkit.formats.images import read_depth, read_rgb
 from slamkit.native import NativeLibrary
 from slamkit_plugins.losses.fused_rgbd_loss import fused_rgbd_loss, kernel_rgbd_loss, torch_rgbd_loss
 
-from conftest import REPLICA, TUM, require_data
+from support.data import REPLICA, TUM, require_data
+from support.loss_inputs import loss_and_grads, random_inputs
 
 LOSS_TOL = 1e-6   # relative error of the loss value
 GRAD_TOL = 1e-5   # ||fused - torch|| / ||torch|| for each gradient
@@ -53,17 +54,6 @@ def rel(a: torch.Tensor, b: torch.Tensor) -> float:
     return float((a - b).norm() / b.norm()) if float(b.norm()) > 0 else float(a.norm())
 
 
-def loss_and_grads(fn, inputs, dtype=torch.float32, **kw):
-    """fn's loss and its gradients w.r.t. colour and depth (zeros where the loss ignores one)."""
-    color, depth, image, observed = (t.to(dtype) for t in inputs)
-    color, depth = color.detach().requires_grad_(), depth.detach().requires_grad_()
-    loss = fn(color, depth, image, observed, **kw)
-    gc, gd = torch.autograd.grad(loss, [color, depth], allow_unused=True)
-    gc = torch.zeros_like(color) if gc is None else gc
-    gd = torch.zeros_like(depth) if gd is None else gd
-    return loss.detach(), gc, gd
-
-
 def assert_agrees(inputs, **kw):
     """The fused loss against the reference in float64 (the definition, computed exactly
     enough) and in float32 (what the mapper runs today). On real images torch's float32 result
@@ -79,17 +69,6 @@ def assert_agrees(inputs, **kw):
         assert rel(fused[k], exact[k]) < tol, k
         assert rel(fused[k], ref[k]) < tol + rel(ref[k], exact[k]), k
     return fused, ref, exact
-
-
-def random_inputs(H: int, W: int, seed: int, valid: float = 0.8):
-    """A rendered colour / depth near a keyframe's, with a random validity mask on the depth."""
-    g = torch.Generator().manual_seed(seed)
-    image = torch.rand(H, W, 3, generator=g)
-    color = (image + 0.1 * torch.randn(H, W, 3, generator=g)).clamp(0, 1)
-    observed = 0.5 + 4 * torch.rand(H, W, generator=g)
-    observed[torch.rand(H, W, generator=g) > valid] = 0
-    depth = observed + 0.05 * torch.randn(H, W, generator=g)
-    return color, depth, image, observed
 
 
 def area_down(rgb, depth, size):

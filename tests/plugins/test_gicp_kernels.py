@@ -31,7 +31,7 @@ def library():
 
 @pytest.fixture(scope="module")
 def tum_frames():
-    from conftest import TUM, require_data
+    from support.data import TUM, require_data
 
     dataset = TUMDataset(TUMConfig(path=str(require_data(TUM))))
     return [dataset[i] for i in (0, 40, 120)]
@@ -272,7 +272,7 @@ def test_compiled_tracking_equals_numpy_tracking_on_real_frames(tum_frames):
     from slamkit.map.growth import MapGrowthConfig
     from slamkit.registry.discovery import default_registry
     from slamkit.run.slam import SLAM
-    from conftest import TUM
+    from support.data import TUM
 
     dataset = TUMDataset(TUMConfig(path=str(TUM), max_frames=12))
     frames = [dataset[i] for i in range(len(dataset))]

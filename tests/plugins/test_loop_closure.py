@@ -9,7 +9,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from conftest import SEVENSCENES, require_data
+from support.data import SEVENSCENES, require_data
 from slamkit.formats.g2o import read_g2o, to_g2o
 from slamkit.geometry import backproject, make_pose, nearest_rotation, se3_exp, so3_exp
 from slamkit.registry import default_registry

@@ -1,6 +1,7 @@
 """The 3DGS mapper (`mapper=gaussian_splatting`) as a trainer composed of parts: keyframes,
 the training loop, its thread safety, evaluation. The parts have their own test files
-(test_strategies, test_optimizers, test_samplers, test_losses, test_map_editing)."""
+(test_strategies, test_optimizers, test_samplers, test_losses, core/test_map_editing); the command
+with it: tests/e2e/test_mapper_runs.py."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from mapping_scenes import (CAM, N, GroundTruthTracker, add, make_map, make_mapper, plane_scene, pose_x, render_frame, rows, start_map,
+from support.mapping_scenes import (CAM, N, GroundTruthTracker, add, make_map, make_mapper, plane_scene, pose_x, render_frame, rows, start_map,
                             state_follows_map)
 from slamkit.run.build import build_run
 from slamkit.errors import ConfigError
@@ -395,24 +396,3 @@ def test_evaluate_reports_train_and_test_views_and_writes_outputs(truth_frames, 
     assert len(load_ply(tmp_path / "map.ply")) == m["num_gaussians"] == len(mapper.gaussian_map)
     half = make_mapper(mapper.gaussian_map, mapper={"eval_resolution_scale": 0.5})
     assert half.evaluate(truth_frames, poses, None)["eval_frames"] == 2
-
-
-@pytest.mark.slow
-def test_cli_run_writes_rendering_metrics_images_and_map(tmp_path):
-    """`mapper=gaussian_splatting` end to end on a tiny synthetic sequence."""
-    from conftest import run_slamkit
-
-    out = tmp_path / "run"
-    proc = run_slamkit(
-        "dataset=synthetic", "dataset.num_frames=6", "dataset.width=64", "dataset.height=48",
-        "tracker=gicp", "keyframe=every_n", "keyframe.tracking_every=3", "mapper=gaussian_splatting",
-        "final_iterations=4", "mapper.save_images=2", "iterations_per_frame=2", "progress=false",
-        f"hydra.run.dir={out}", cwd=tmp_path, timeout=300,
-    )
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    metrics = json.loads((out / "metrics.json").read_text())
-    for key in ("psnr", "ssim", "psnr_train", "psnr_test", "depth_l1_cm"):
-        assert math.isfinite(metrics[key]), key
-    assert metrics["mapping_steps"] == 6 * 2 + 4 and metrics["eval_train_frames"] == 2
-    assert len(load_ply(out / "map.ply")) == metrics["num_gaussians"] > 0
-    assert len(list(out.glob("render_*.png"))) == 2

@@ -1,6 +1,6 @@
 """Rasteriser backends: the torch reference against analytic images, a dense brute-force
 renderer, finite differences and occlusion; backend selection. On CUDA (gsplat against torch,
-the torch backend on the GPU): tests/test_cuda.py."""
+the torch backend on the GPU): tests/e2e/test_cuda.py."""
 
 from __future__ import annotations
 
@@ -17,34 +17,7 @@ from slamkit.registry.discovery import Registry, create_rasterizer
 from slamkit.types import Camera
 from slamkit_plugins.rasterizers.torch_rasterizer import TorchRasterizer, TorchRasterizerConfig
 
-F64 = torch.float64
-
-
-def rotation_y(angle: float) -> torch.Tensor:
-    c, s = math.cos(angle), math.sin(angle)
-    return torch.tensor([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]], dtype=F64)
-
-
-def random_scene(n: int, seed: int, opacity=(0.1, 0.9), depth=(1.5, 3.5), spread=(1.0, 0.8), size=(0.03, 0.13)):
-    g = torch.Generator().manual_seed(seed)
-
-    def rand(*shape):
-        return torch.rand(*shape, generator=g, dtype=F64)
-
-    x, y = (rand(n) * 2 - 1) * spread[0], (rand(n) * 2 - 1) * spread[1]
-    means = torch.stack([x, y, depth[0] + rand(n) * (depth[1] - depth[0])], -1)
-    quats = torch.randn(n, 4, generator=g, dtype=F64)
-    scales = size[0] + (size[1] - size[0]) * rand(n, 3)
-    opacities = opacity[0] + (opacity[1] - opacity[0]) * rand(n)
-    colors = rand(n, 3)
-    return means, quats, scales, opacities, colors
-
-
-def a_pose() -> torch.Tensor:
-    w2c = torch.eye(4, dtype=F64)
-    w2c[:3, :3] = rotation_y(0.1)
-    w2c[:3, 3] = torch.tensor([0.05, -0.02, 0.1], dtype=F64)
-    return w2c
+from support.render_scenes import F64, a_pose, as_tuple, random_scene, random_weights, weighted_loss
 
 
 def brute_force_render(means, quats, scales, opacities, colors, w2c, cam, background):
@@ -77,21 +50,6 @@ def brute_force_render(means, quats, scales, opacities, colors, w2c, cam, backgr
         T = torch.where(~done & (a > 0), after, T)
     color = color + (1 - acc)[:, None] * background
     return color.view(cam.height, cam.width, 3), depth.view(cam.height, cam.width), acc.view(cam.height, cam.width)
-
-
-def weighted_loss(out, weights):
-    return sum((o * w).sum() for o, w in zip(out, weights))
-
-
-def random_weights(cam, seed=7):
-    g = torch.Generator().manual_seed(seed)
-    return (torch.randn(cam.height, cam.width, 3, generator=g, dtype=F64),
-            torch.randn(cam.height, cam.width, generator=g, dtype=F64),
-            torch.randn(cam.height, cam.width, generator=g, dtype=F64))
-
-
-def as_tuple(out):
-    return out.color, out.depth, out.alpha
 
 
 # ---------------------------------------------------------------------------------------------

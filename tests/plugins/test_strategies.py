@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from mapping_scenes import N, add, make_map, make_mapper, plane_scene, pose_x, render_frame, start_map, state_follows_map
+from support.mapping_scenes import N, add, make_map, make_mapper, plane_scene, pose_x, render_frame, start_map, state_follows_map
 from slamkit.errors import ConfigError
 from slamkit.registry.discovery import create_rasterizer
 from slamkit.splatting import AdmissionConfig

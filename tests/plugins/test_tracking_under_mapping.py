@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import TUM, require_data, run_slamkit
-from mapping_scenes import plane_scene
+from support.data import TUM, require_data
+from support.mapping_scenes import plane_scene
 from slamkit.map.gaussian_map import GaussianMap, GaussianRows
 from slamkit.run.build import build_run
 
@@ -89,25 +89,3 @@ def test_the_map_keeps_the_entry_geometry_through_training_and_pruning():
     np.testing.assert_allclose(target_var, np.sort(scales[kept] ** 2, axis=1), rtol=1e-4)
     np.testing.assert_allclose(gm.tracking_target(geometry="optimised").means, means[kept] + 0.01, rtol=1e-6)
     assert len(gm.tracking_target(min_opacity=0.6).means) == 0
-
-
-@pytest.mark.slow
-def test_realtime_mapping_run_tracks_as_tracking_only_through_the_cli(tmp_path):
-    """`mode=realtime fps_limit=30`: the mapping thread trains while frames are tracked; the
-    trajectory written is the tracking-only run's, whatever the machine let mapping do."""
-    # one scale alignment for both (real time defaults to none, sequential to z_pow): the tracking
-    # target is scale-free, but dividing by another median rounds differently (1e-9)
-    common = ["dataset=tum", f"dataset.path={require_data(TUM)}", "dataset.max_frames=30", "tracker=gicp",
-              "growth.scale_alignment=z_pow", "progress=false", "eval.plot=false"]
-    runs = {"none": ["mapper=none"],
-            # `low` priority: at `idle` (the default) a busy test machine may leave mapping no CPU
-            "realtime": ["mapper=gaussian_splatting", "mode=realtime", "mapping_priority=low", "fps_limit=30",
-                         "mapper.resolution_scale=0.25",
-                         "mapper.eval_every=100", "mapper.save_images=0"]}
-    for name, args in runs.items():
-        proc = run_slamkit(*common, *args, f"hydra.run.dir={tmp_path / name}", cwd=tmp_path, timeout=300)
-        assert proc.returncode == 0, proc.stderr[-2000:]
-    metrics = json.loads((tmp_path / "realtime" / "metrics.json").read_text())
-    assert metrics["mapping_iterations"] > 0
-    lines = [(tmp_path / name / "trajectory.txt").read_text() for name in runs]
-    assert lines[0] == lines[1]

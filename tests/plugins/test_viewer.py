@@ -1,5 +1,6 @@
-"""The viewer role: `viewer=none` (default), `viewer=rerun` recording a real run to .rrd, a broken
-viewer never stopping a run, and the mapper's render for viewers."""
+"""The viewer role: the built-in viewers' registration and config, the map as rerun logs it, and
+the mapper's render for viewers. Through the command (`viewer=rerun` recording a real run to
+.rrd, a broken viewer never stopping a run): tests/e2e/test_viewer_runs.py."""
 
 from __future__ import annotations
 
@@ -19,8 +20,6 @@ from slamkit.map.gaussian_map import GaussianMap, GaussianRows
 from slamkit.registry.discovery import discover
 from slamkit.roles import Mapper, PluginConfig, Viewer, ViewerConfig, ViewerFrame
 from slamkit.types import Camera, Frame, KeyframeKind
-
-from conftest import make_plugin_dist, run_slamkit
 
 CAMERA = Camera(width=32, height=24, fx=30.0, fy=30.0, cx=15.5, cy=11.5)
 
@@ -87,7 +86,7 @@ def test_map_points_is_an_even_subsample_within_the_limit():
 
 
 def test_render_view_is_none_by_default_and_the_3dgs_map_render_otherwise():
-    from mapping_scenes import make_mapper
+    from support.mapping_scenes import make_mapper
 
     gm = _small_map(50)
     assert _view(gm, _no_mapper(gm)).render() is None
@@ -153,112 +152,3 @@ def test_rerun_logs_the_map_as_gaussian_splats(tmp_path, style):
     rgba = np.array(cols[f"{prefix}:colors"], dtype=np.uint32)
     channels = np.stack([(rgba >> s) & 0xFF for s in (24, 16, 8, 0)], axis=1)  # packed 0xRRGGBBAA
     np.testing.assert_allclose(channels / 255, np.column_stack([colors, opacities]), atol=1 / 255 + 1e-3)
-
-
-def _rrd_rows(path: Path) -> tuple[Counter, dict[int, int]]:
-    """Rows logged per entity (non-static), and the number of map points logged at each frame."""
-    from rerun.chunk import RrdReader
-
-    rows: Counter = Counter()
-    map_sizes: dict[int, int] = {}
-    for chunk in RrdReader(str(path)).stream().to_chunks():
-        if chunk.is_static:
-            rows[chunk.entity_path + " (static)"] += chunk.num_rows
-            continue
-        rows[chunk.entity_path] += chunk.num_rows
-        if chunk.entity_path == "/world/map":
-            batch = chunk.to_record_batch()
-            frames = batch.column(batch.schema.names.index("frame")).to_pylist()
-            positions = batch.column(batch.schema.names.index("GaussianSplats3D:centers")).to_pylist()
-            map_sizes.update({f: len(p) for f, p in zip(frames, positions)})
-    return rows, map_sizes
-
-
-@pytest.mark.slow
-def test_rerun_records_a_tum_run_to_rrd(tmp_path, tum_path):
-    """viewer=rerun viewer.save=x.rrd on 8 real frames with 3DGS mapping, no display."""
-    pytest.importorskip("rerun", reason="rerun-sdk is the optional extra `viewer`")
-    rrd = tmp_path / "rec" / "x.rrd"
-    out = tmp_path / "run"
-    proc = run_slamkit(
-        "dataset=tum", f"dataset.path={tum_path}", "dataset.max_frames=8", "mapper=gaussian_splatting",
-        "iterations_per_frame=1", "final_iterations=0", "mapper.eval_every=100", "mapper.save_images=0",
-        "viewer=rerun", f"viewer.save={rrd}", "viewer.render_every=4", "viewer.map_every=4", "progress=false",
-        f"hydra.run.dir={out}", cwd=tmp_path, env_extra={"OMP_NUM_THREADS": "1"}, timeout=300,
-    )
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    assert rrd.is_file() and rrd.stat().st_size > 10_000
-    assert not (out / "recording.rrd").exists()
-    rows, map_sizes = _rrd_rows(rrd)
-    assert rows["/world/camera/image (static)"] == 1  # the pinhole
-    for entity in ("/world/camera", "/world/camera/image/rgb", "/world/camera/image/depth"):
-        assert rows[entity] == 8, entity
-    assert rows["/world/trajectory/estimate"] == rows["/world/trajectory/ground_truth"] == 7  # from frame 1 on
-    assert rows["/render/rgb"] == rows["/render/depth"] == 2  # frames 0 and 4
-    metrics = json.loads((out / "metrics.json").read_text())
-    assert rows["/world/keyframes"] == metrics["num_keyframes"] >= 1
-    assert sorted(map_sizes) == [0, 4, 7]  # every 4th frame, and the final map after the last
-    assert map_sizes[7] == metrics["num_gaussians"] > map_sizes[0] > 0
-
-
-@pytest.mark.slow
-def test_default_viewer_is_none_and_rerun_defaults_to_the_run_folder(tmp_path):
-    pytest.importorskip("rerun", reason="rerun-sdk is the optional extra `viewer`")
-    common = ["dataset=synthetic", "dataset.num_frames=4", "dataset.width=64", "dataset.height=48", "mapper=none",
-              "progress=false", "eval.plot=false"]
-    proc = run_slamkit(*common, f"hydra.run.dir={tmp_path}/plain", cwd=tmp_path)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    hydra_cfg = yaml.safe_load((tmp_path / "plain/.hydra/hydra.yaml").read_text())
-    assert hydra_cfg["hydra"]["runtime"]["choices"]["viewer"] == "none"
-    assert not list((tmp_path / "plain").rglob("*.rrd"))
-    proc = run_slamkit(*common, "viewer=rerun", f"hydra.run.dir={tmp_path}/rec", cwd=tmp_path)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    rows, _ = _rrd_rows(tmp_path / "rec" / "recording.rrd")
-    assert rows["/world/camera"] == 4 and "/render/rgb" not in rows  # mapper=none cannot render
-
-
-BROKEN_VIEWER = """
-from dataclasses import dataclass
-from pathlib import Path
-from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import PluginConfig, Viewer
-
-@dataclass
-class BrokenConfig(PluginConfig):
-    fail_at: int = 2
-
-class BrokenViewer(Viewer):
-    def __init__(self, cfg, context=None):
-        self.cfg, self.shown = cfg, []
-
-    def start(self, camera, out_dir):
-        self.out_dir = out_dir
-
-    def show(self, view):
-        if view.frame.index == self.cfg.fail_at:
-            raise RuntimeError("boom")
-        self.shown.append(view.frame.index)
-
-    def close(self, view):
-        (self.out_dir / "shown.txt").write_text(",".join(map(str, self.shown)))
-
-@hookimpl
-def slamkit_plugins():
-    return [PluginSpec("broken", BrokenViewer, BrokenConfig)]
-"""
-
-
-@pytest.mark.slow
-def test_a_failing_viewer_warns_and_the_run_goes_on(tmp_path):
-    site = make_plugin_dist(tmp_path / "site", "slamkit-broken-viewer", {"broken_viewer": BROKEN_VIEWER},
-                            {"broken": "broken_viewer"})
-    out = tmp_path / "run"
-    proc = run_slamkit("dataset=synthetic", "dataset.num_frames=5", "dataset.width=64", "dataset.height=48",
-                       "mapper=none", "viewer=broken", "progress=false", "eval.plot=false",
-                       f"hydra.run.dir={out}", cwd=tmp_path, env_extra={"PYTHONPATH": str(site)})
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    said = proc.stdout + proc.stderr
-    assert "viewer 'broken' failed in show(): RuntimeError: boom; it is switched off, the run goes on" in said
-    metrics = json.loads((out / "metrics.json").read_text())
-    assert metrics["completed"] and metrics["num_frames"] == 5
-    assert (out / "shown.txt").read_text() == "0,1"  # no frame after the failure; close still called

@@ -1,4 +1,4 @@
-"""The inputs of the fault suite (tests/test_faults.py): data folders made from the first frames
+"""The inputs of the fault suite (tests/e2e/test_faults.py): data folders made from the first frames
 of the shared TUM sequence, their damages, and throwaway third-party plugins installed as a
 distribution with entry points (a tmp dist-info on sys.path)."""
 
@@ -9,27 +9,13 @@ import sys
 from pathlib import Path
 from typing import Callable
 
-from conftest import TUM, make_plugin_dist, require_data
+from support.folders import TINY_TUM_FRAMES, tiny_tum
+from support.plugins import make_plugin_dist
 
-FRAMES = 8
+FRAMES = TINY_TUM_FRAMES
 
 
 # --- inputs a case starts from ------------------------------------------------------------------
-
-def tiny_tum(root: Path, frames: int = FRAMES) -> Path:
-    """A TUM folder holding the first `frames` frames of the shared sequence (files copied)."""
-    src = require_data(TUM)
-    (root / "rgb").mkdir(parents=True)
-    (root / "depth").mkdir()
-    for name in ("rgb", "depth"):
-        lines = [ln for ln in (src / f"{name}.txt").read_text().splitlines() if not ln.startswith("#")][:frames]
-        (root / f"{name}.txt").write_text("\n".join(lines) + "\n")
-        for line in lines:
-            rel = line.split()[1]
-            shutil.copy(src / rel, root / rel)
-    shutil.copy(src / "groundtruth.txt", root / "groundtruth.txt")
-    return root
-
 
 INTRINSICS = "fx: 517.3\nfy: 516.5\ncx: 318.6\ncy: 255.3\nwidth: 640\nheight: 480\ndepth_scale: 5000\n"
 

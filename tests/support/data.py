@@ -1,0 +1,23 @@
+"""The real RGB-D data the tests read in place: the shared folder beside the repository, or
+$SLAMKIT_DATA naming another holding the same sub-folders (on a GPU machine the data travels
+inside the repository: docs/gpu.md)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+DATA = Path(os.environ.get("SLAMKIT_DATA") or REPO.parent / "shared" / "data")
+TUM = DATA / "tum_fr1_rpy_first150"
+REPLICA = DATA / "replica_room0_first20"
+SEVENSCENES = DATA / "7scenes_redkitchen_300to999"
+
+
+def require_data(path: Path) -> Path:
+    """`path` if it is a folder, else the calling test is skipped, saying where the data was looked for."""
+    if not path.is_dir():
+        pytest.skip(f"shared data not found at {path} (it ships beside the repository in CI)")
+    return path
