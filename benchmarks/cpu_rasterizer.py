@@ -137,8 +137,8 @@ def main(argv: list[str] | None = None) -> int:
     results = {"machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(), "ghz": ghz,
                            "load_avg": os.getloadavg() if hasattr(os, "getloadavg") else None}, "runs": []}
     load = results["machine"]["load_avg"]
-    print(f"clock {ghz} GHz, {os.cpu_count()} CPUs, load average {' '.join(f'{x:.1f}' for x in load) if load else '?'}; "
-          "phase columns: CPU time")
+    averages = " ".join(f"{x:.1f}" for x in load) if load else "?"
+    print(f"clock {ghz} GHz, {os.cpu_count()} CPUs, load average {averages}; phase columns: CPU time")
     head = (f"{'scene':9} {'thr':>3} {'pairs':>9} {'lanes':>6} {'wall f+b':>9} {'CPU fwd':>8} {'CPU f+b':>8} "
             f"{'cyc/pair f':>10} {'cyc/pair f+b':>12}  "
             + " ".join(f"{k[:9]:>9}" for k in TIME_KEYS))
@@ -157,7 +157,8 @@ def main(argv: list[str] | None = None) -> int:
             cyc = (f"{res['cycles_per_pair_forward']:>10.1f} {res['cycles_per_pair']:>12.1f}" if ghz
                    else f"{'?':>10} {'?':>12}")
             print(f"{scene_name:9} {threads:>3} {res['pairs']:>9.0f} {res['lane_use']:>6.2f} "
-                  f"{res['wall_s'] * 1e3:>7.1f}ms {res['forward_cpu_s'] * 1e3:>6.1f}ms {res['cpu_s'] * 1e3:>6.1f}ms {cyc}  "
+                  f"{res['wall_s'] * 1e3:>7.1f}ms {res['forward_cpu_s'] * 1e3:>6.1f}ms "
+                  f"{res['cpu_s'] * 1e3:>6.1f}ms {cyc}  "
                   + " ".join(f"{res['phase_cpu_s'][k] * 1e3:>7.2f}ms" for k in TIME_KEYS), flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(results, indent=2))

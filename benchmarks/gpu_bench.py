@@ -15,10 +15,11 @@ the rasteriser and where the map lives (`mapping_device`); `cpu@cpu` is the CPU 
 gsplat out (the script passes it when gsplat's extension did not build).
 
 - tracking: G-ICP with the mapper off (`mapper=none`), frames read into memory first, every CPU
-  thread, after a 3-frame warm-up per device (compiled kernels, CUDA context); frames/s over the tracker's time, and the hand-over of Gaussians between the
-  CPU-side tracker and the map: `grow_map` (a keyframe's new Gaussians into the map, on its
-  device) and `tracking_target` (the map's trackable Gaussians copied back for the tracker),
-  milliseconds per keyframe, with the map on the CPU and on the GPU.
+  thread, after a 3-frame warm-up per device (compiled kernels, CUDA context); frames/s over the
+  tracker's time, and the hand-over of Gaussians between the CPU-side tracker and the map:
+  `grow_map` (a keyframe's new Gaussians into the map, on its device) and `tracking_target` (the
+  map's trackable Gaussians copied back for the tracker), milliseconds per keyframe, with the map
+  on the CPU and on the GPU.
 - phases: the map grown over the first PHASE_FRAMES frames (no training), then PHASE_WARMUP
   untimed and PHASE_STEPS timed steps of the mapper's own `optimize` (its PhaseTimer, with
   torch.cuda.synchronize around each phase: benchmarks/step_phases.py): view, render, loss,
@@ -126,7 +127,8 @@ def markdown(data: dict) -> str:
     if data.get("tracking"):
         lines += ["## Tracking (G-ICP, mapper off, frames in memory)", "",
                   "| sequence | map on | frames | keyframes | tracking fps | ATE cm | grow_map ms/kf | "
-                  "tracking_target ms/kf | Gaussians/kf | copy in / out ms (MB) |", "|---|---|---|---|---|---|---|---|---|---|"]
+                  "tracking_target ms/kf | Gaussians/kf | copy in / out ms (MB) |",
+                  "|---|---|---|---|---|---|---|---|---|---|"]
         lines += [f"| {r['sequence']} | {r['device']} | {r['frames']} | {r['keyframes']} | {_f(r['fps'])} | "
                   f"{_f(100 * r['ate_rmse_m'], 2)} | {_f(r['grow_map_ms'], 2)} | {_f(r['target_ms'], 2)} | "
                   f"{_f(r['rows_per_keyframe'], 0)} | {_f(r.get('copy_in_ms'), 2)} / {_f(r.get('copy_out_ms'), 2)} "
@@ -269,7 +271,8 @@ def phases(name: str, variant: str, data: Path) -> dict:
 def realtime(name: str, variant: str, data: Path, runs_dir: Path) -> dict:
     from slamkit.cli.bench import SYSTEMS, run_system
 
-    record = run_system(f"{name}_{variant.replace('@', '_at_')}", SYSTEMS["gsicp_realtime30"] + variant_overrides(variant),
+    record = run_system(f"{name}_{variant.replace('@', '_at_')}",
+                        SYSTEMS["gsicp_realtime30"] + variant_overrides(variant),
                         sequence_overrides(name, data), runs_dir, REALTIME_TIMEOUT_S)
     keep = ("command", "returncode", "process_s", "error", "num_frames", "ate_rmse_m", "tracking_fps", "stream_fps",
             "fps", "mapping_iterations", "mapping_steps", "psnr", "num_gaussians", "peak_memory_mb", "wall_time_s",
@@ -316,7 +319,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.stage == "note":
         step, status, seconds, *detail = args.rest
-        merge(args.out, "steps", {"step": step, "status": status, "seconds": float(seconds), "detail": " ".join(detail)})
+        merge(args.out, "steps",
+              {"step": step, "status": status, "seconds": float(seconds), "detail": " ".join(detail)})
         return 0
     data = data_root(args.data)
     merge(args.out, "machine", machine())
@@ -335,7 +339,8 @@ def main(argv: list[str] | None = None) -> int:
             jobs = [(v, lambda v=v: phases(name, v, data)) for v in selected(PHASE_VARIANTS, args.no_gsplat)]
         else:
             runs_dir = Path(tempfile.mkdtemp(prefix="gpu_bench_"))
-            jobs = [(v, lambda v=v: realtime(name, v, data, runs_dir)) for v in selected(REALTIME_VARIANTS, args.no_gsplat)]
+            jobs = [(v, lambda v=v: realtime(name, v, data, runs_dir))
+                    for v in selected(REALTIME_VARIANTS, args.no_gsplat)]
         for label, job in jobs:
             say(f"{args.stage} {name} {label} ...")
             start = time.perf_counter()

@@ -64,7 +64,8 @@ def main() -> None:
     mallinfo2.restype = MallInfo2
     dataset, slam = build(args.frames, args.max_gaussians, args.iterations)
     slam.initialize(dataset[0].gt_pose)
-    print("| frames | Gaussians | keyframes | RSS MB | live tensors MB | heap in use MB | heap free MB | mmapped MB | s |")
+    print("| frames | Gaussians | keyframes | RSS MB | live tensors MB | heap in use MB | heap free MB "
+          "| mmapped MB | s |")
     print("|---|---|---|---|---|---|---|---|---|")
     start = time.perf_counter()
     for i in range(len(dataset)):

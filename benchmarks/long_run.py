@@ -101,7 +101,8 @@ def variants(args) -> list[tuple[str, list[str]]]:
         overrides = dict(base)
         if cap is not None:
             overrides["mapper.memory_cap.max_gaussians"] = "null" if cap.lower() == "none" else cap
-        label = "tracking only" if not args.mapper else f"max_gaussians={overrides.get('mapper.memory_cap.max_gaussians', 'null')}"
+        cap_label = overrides.get("mapper.memory_cap.max_gaussians", "null")
+        label = "tracking only" if not args.mapper else f"max_gaussians={cap_label}"
         out.append((label, [f"{k}={v}" for k, v in overrides.items()]))
     return out
 
@@ -151,7 +152,8 @@ def table(rows: list[dict], every: int) -> list[dict]:
     print("| frames | keyframes | Gaussians | RSS MB | peak RSS MB so far | SLAM s so far | frames/s so far |")
     print("|---|---|---|---|---|---|---|")
     for c in out:
-        print(f"| {c['frame']} | {c['keyframes']} | {c['num_gaussians']:,} | {c['rss_mb']:.0f} | {c['peak_rss_mb']:.0f} "
+        print(f"| {c['frame']} | {c['keyframes']} | {c['num_gaussians']:,} | {c['rss_mb']:.0f} "
+              f"| {c['peak_rss_mb']:.0f} "
               f"| {c['slam_s']:.0f} | {c['fps']:.2f} |")
     return out
 

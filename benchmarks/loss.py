@@ -91,7 +91,8 @@ def run(sizes, threads_list, repeats: int) -> list[dict]:
             base = results["torch"]
             for name, r in results.items():
                 rows.append({"size": f"{width}x{height}", "threads": threads, "path": name, **r,
-                             "speedup": base["wall_s"] / r["wall_s"], "speedup_min": base["wall_min_s"] / r["wall_min_s"],
+                             "speedup": base["wall_s"] / r["wall_s"],
+                             "speedup_min": base["wall_min_s"] / r["wall_min_s"],
                              "speedup_cpu": base["cpu_s"] / r["cpu_s"]})
     return rows
 
@@ -101,7 +102,8 @@ def print_table(rows) -> None:
           f"{'wall':>6} {'min':>6} {'CPU':>6}")
     for r in rows:
         print(f"{r['size']:>8} {r['threads']:>3} {r['path']:>7} {1e3 * r['wall_s']:9.3f} {1e3 * r['wall_min_s']:8.3f} "
-              f"{1e3 * r['cpu_s']:8.3f}             {r['speedup']:5.1f}x {r['speedup_min']:5.1f}x {r['speedup_cpu']:5.1f}x")
+              f"{1e3 * r['cpu_s']:8.3f}             {r['speedup']:5.1f}x {r['speedup_min']:5.1f}x "
+              f"{r['speedup_cpu']:5.1f}x")
 
 
 def main(argv=None) -> int:

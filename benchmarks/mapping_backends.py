@@ -74,9 +74,11 @@ def main() -> None:
 def _line(r: dict) -> str:
     if "error" in r:
         return f"| {r['sequence']} | {r['backend']} | failed: {r['error']} |"
-    return (f"| {r['sequence']} | {r['backend']} | wall {r['wall_time_s']:.1f} s | training {r['training_time_s']:.1f} s "
+    return (f"| {r['sequence']} | {r['backend']} | wall {r['wall_time_s']:.1f} s "
+            f"| training {r['training_time_s']:.1f} s "
             f"({r['mapping_steps']} steps) | PSNR {r['psnr']:.2f} dB | ATE {100 * r['ate_rmse_m']:.2f} cm | "
-            f"{r['num_gaussians']} G | {r['peak_memory_mb']:.0f} MB | wall/cpu {r.get('wall_vs_cpu', float('nan')):.2f} "
+            f"{r['num_gaussians']} G | {r['peak_memory_mb']:.0f} MB "
+            f"| wall/cpu {r.get('wall_vs_cpu', float('nan')):.2f} "
             f"| training/cpu {r.get('training_vs_cpu', float('nan')):.2f} |")
 
 

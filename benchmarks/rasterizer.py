@@ -11,8 +11,8 @@ Times are the median of `--repeats` runs after one warm-up: wall-clock, and the 
 time beside it (all threads). On a machine shared with other work the wall-clock time of
 torch's multi-threaded CPU ops suffers badly: compare runs with `--threads 1` there. "pairs"
 are the (pixel, Gaussian) pairs composited by the torch backend (after the alpha >= 1/255 and
-transmittance cut-offs); the same count is used for every backend's pairs per second. A backend that cannot be built here
-(not installed, needs CUDA) is skipped with a message. gsplat runs on CUDA tensors, the others
+transmittance cut-offs); the same count is used for every backend's pairs per second. A backend
+that cannot be built here (not installed, needs CUDA) is skipped with a message. gsplat runs on CUDA tensors, the others
 on CPU tensors.
 """
 

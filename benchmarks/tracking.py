@@ -28,8 +28,8 @@ from pathlib import Path
 import numpy as np
 
 from slamkit.metrics import trajectory as evaluation
-from slamkit.run.build import build_run
 from slamkit.registry.discovery import default_registry
+from slamkit.run.build import build_run
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 SEQUENCES = {"tum": DATA / "tum_fr1_rpy_first150", "replica": DATA / "replica_room0_first20"}
@@ -45,7 +45,8 @@ SPLIT = ("covariance_s", "nn_search_s", "solve_s")
 
 def load_frames(sequence: str) -> list:
     registry = default_registry()
-    dataset = registry.create("dataset", sequence, registry.get("dataset", sequence).config(path=str(SEQUENCES[sequence])))
+    config = registry.get("dataset", sequence).config(path=str(SEQUENCES[sequence]))
+    dataset = registry.create("dataset", sequence, config)
     return [dataset[i] for i in range(len(dataset))]
 
 
@@ -94,10 +95,16 @@ def over_starts(system, sequence, frames, starts: list[int]) -> dict:
 
 
 def print_table(rows: list[dict]) -> None:
-    cols = ["dataset", "system", "ate_rmse_m", "ate_mean_m", "ate_rmse_starts_mean_m", "ate_rmse_starts_max_m", "fps", "ms_per_frame", "cpu_ms_per_frame", "ms_covariance", "ms_nn_search",
+    cols = ["dataset", "system", "ate_rmse_m", "ate_mean_m", "ate_rmse_starts_mean_m", "ate_rmse_starts_max_m", "fps",
+            "ms_per_frame", "cpu_ms_per_frame", "ms_covariance", "ms_nn_search",
             "ms_solve", "ms_keyframes_other", "fps_vs_kiss", "fps_vs_small_gicp", "ate_vs_small_gicp"]
-    fmt = lambda c, v: "-" if v is None else (f"{100 * v:.3f} cm" if c.startswith("ate_r") or c == "ate_mean_m"
-                                              else f"{v:.2f}" if isinstance(v, float) else str(v))
+
+    def fmt(c, v):
+        if v is None:
+            return "-"
+        if c.startswith("ate_r") or c == "ate_mean_m":
+            return f"{100 * v:.3f} cm"
+        return f"{v:.2f}" if isinstance(v, float) else str(v)
     table = [cols] + [[fmt(c, r.get(c)) for c in cols] for r in rows]
     widths = [max(len(row[i]) for row in table) for i in range(len(cols))]
     for j, row in enumerate(table):

@@ -58,7 +58,8 @@ def _cpu_id() -> str:
     """The CPU model and feature flags (what -march=native depends on)."""
     try:
         text = Path("/proc/cpuinfo").read_text()
-        keep = [ln for ln in text.splitlines() if ln.split(":")[0].strip() in ("model name", "flags", "Features", "CPU part")]
+        keys = ("model name", "flags", "Features", "CPU part")
+        keep = [ln for ln in text.splitlines() if ln.split(":")[0].strip() in keys]
         return "\n".join(sorted(set(keep)))
     except OSError:
         return platform.processor() or platform.machine()

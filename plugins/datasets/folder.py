@@ -9,7 +9,6 @@ interpolated at the frame timestamps) or one row-major 4x4 pose per line (16 fie
 from __future__ import annotations
 
 import dataclasses
-
 import json
 import logging
 import math
@@ -21,9 +20,9 @@ import numpy as np
 
 from slamkit.errors import DataError
 from slamkit.formats.images import dataset_folder, image_size, read_rgbd
-from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import Dataset, DatasetConfig, RunContext, DatasetTuning, require
 from slamkit.formats.tum import interpolate_poses, read_float_table, read_tum_trajectory
+from slamkit.plugin import PluginSpec, hookimpl
+from slamkit.roles import Dataset, DatasetConfig, DatasetTuning, RunContext, require
 from slamkit.types import Camera, Frame
 
 log = logging.getLogger(__name__)
@@ -204,19 +203,22 @@ class FolderDataset(Dataset):
             if not path.is_absolute() and (self.root / path).is_file():
                 path = self.root / path
             if not path.is_file():
-                raise DataError(f"dataset.trajectory: {path} not found (expected a trajectory file: {TRAJECTORY_EXPECTED})")
+                raise DataError(f"dataset.trajectory: {path} not found "
+                                f"(expected a trajectory file: {TRAJECTORY_EXPECTED})")
         fields = next((len(line.replace(",", " ").split()) for line in _read_lines(path)), 0)
         if fields == 8:
             gt_ts, gt = read_tum_trajectory(path)
             poses = interpolate_poses(gt_ts, gt, self.timestamps, self.cfg.gt_tolerance)
             if not np.isfinite(poses).all(axis=(1, 2)).any():
                 raise DataError(f"{path}: no pose within {self.cfg.gt_tolerance} s of any frame timestamp "
-                                f"({self.timestamps[0]:.6f} .. {self.timestamps[-1]:.6f}; expected the frames' timestamps)")
+                                f"({self.timestamps[0]:.6f} .. {self.timestamps[-1]:.6f}; "
+                                "expected the frames' timestamps)")
             return poses
         if fields == 16:
             poses = read_float_table(path, 16, "16 numbers: a row-major 4x4 camera-to-world pose").reshape(-1, 4, 4)
             if len(poses) != len(self.timestamps):
-                raise DataError(f"{path} has {len(poses)} poses for {len(self.timestamps)} frames (expected one line per frame)")
+                raise DataError(f"{path} has {len(poses)} poses for {len(self.timestamps)} frames "
+                                "(expected one line per frame)")
             bad = np.flatnonzero(np.abs(poses[:, 3] - [0, 0, 0, 1]).max(axis=1) > 1e-6)
             if len(bad):
                 raise DataError(f"{path} line {bad[0] + 1}: last row is not 0 0 0 1 (expected a 4x4 rigid pose)")

@@ -10,7 +10,6 @@ timestamps are the frame numbers.
 from __future__ import annotations
 
 import dataclasses
-
 import json
 import logging
 import math
@@ -22,9 +21,9 @@ import numpy as np
 
 from slamkit.errors import DataError
 from slamkit.formats.images import dataset_folder, find_ground_truth, read_rgbd
-from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import Dataset, DatasetConfig, RunContext, DatasetTuning, require
 from slamkit.formats.tum import read_float_table
+from slamkit.plugin import PluginSpec, hookimpl
+from slamkit.roles import Dataset, DatasetConfig, DatasetTuning, RunContext, require
 from slamkit.types import Camera, Frame
 
 log = logging.getLogger(__name__)
@@ -53,7 +52,8 @@ def read_cam_params(path: Path) -> tuple[Camera, float | None]:
         c = Camera(int(cam["w"]), int(cam["h"]), float(cam["fx"]), float(cam["fy"]), float(cam["cx"]), float(cam["cy"]))
         scale = float(cam["scale"]) if "scale" in cam else None
     except (OSError, ValueError, KeyError, TypeError, OverflowError) as exc:
-        reason = f"missing key {exc}" if isinstance(exc, KeyError) else (str(exc).splitlines() or [type(exc).__name__])[0]
+        first_line = (str(exc).splitlines() or [type(exc).__name__])[0]
+        reason = f"missing key {exc}" if isinstance(exc, KeyError) else first_line
         expected = '{"camera": {w, h, fx, fy, cx, cy, scale}}'
         raise DataError(f"cannot read {path}: {reason} (expected {expected})") from None
     for name, expected in c.implausible():
@@ -110,7 +110,8 @@ class ReplicaDataset(Dataset):
             bad = np.flatnonzero(np.abs(poses[:, 3] - [0, 0, 0, 1]).max(axis=1) > 1e-6)
             if len(bad):
                 raise DataError(
-                    f"{gt_file}: the pose of frame {bad[0]} has a last row other than 0 0 0 1 (expected a 4x4 rigid pose)"
+                    f"{gt_file}: the pose of frame {bad[0]} has a last row other than 0 0 0 1 "
+                    "(expected a 4x4 rigid pose)"
                 )
             self.gt_poses = poses[self.numbers]
 

@@ -14,7 +14,6 @@ Only the given folder is read: for a scene with several seq-NN subfolders, point
 from __future__ import annotations
 
 import dataclasses
-
 import logging
 import re
 from dataclasses import dataclass
@@ -24,9 +23,9 @@ import numpy as np
 
 from slamkit.errors import DataError
 from slamkit.formats.images import dataset_folder, image_size, read_rgbd
-from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import Dataset, DatasetConfig, RunContext, DatasetTuning, require
 from slamkit.formats.tum import read_float_table
+from slamkit.plugin import PluginSpec, hookimpl
+from slamkit.roles import Dataset, DatasetConfig, DatasetTuning, RunContext, require
 from slamkit.types import Camera, Frame
 
 log = logging.getLogger(__name__)
@@ -111,8 +110,8 @@ class SevenScenesDataset(Dataset):
         return float(raw_index)
 
     def load(self, raw_index: int) -> Frame:
-        rgb, depth = read_rgbd(self.rgb_files[raw_index], self.depth_files[raw_index], self.cfg.depth_scale, self._camera,
-                               INVALID_DEPTH)
+        rgb, depth = read_rgbd(self.rgb_files[raw_index], self.depth_files[raw_index], self.cfg.depth_scale,
+                               self._camera, INVALID_DEPTH)
         pose_file = self.pose_files[raw_index]
         gt = read_pose_file(pose_file) if pose_file.is_file() else None
         return Frame(raw_index, float(self.numbers[raw_index]), rgb, depth, self._camera, gt)

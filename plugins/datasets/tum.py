@@ -11,7 +11,6 @@ dropped. Ground truth is interpolated at the colour timestamp.
 from __future__ import annotations
 
 import dataclasses
-
 import logging
 import re
 from dataclasses import dataclass
@@ -21,9 +20,9 @@ import numpy as np
 
 from slamkit.errors import DataError
 from slamkit.formats.images import dataset_folder, find_ground_truth, read_rgbd
-from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import Dataset, DatasetConfig, RunContext, DatasetTuning, require
 from slamkit.formats.tum import associate, interpolate_poses, read_tum_list, read_tum_trajectory
+from slamkit.plugin import PluginSpec, hookimpl
+from slamkit.roles import Dataset, DatasetConfig, DatasetTuning, RunContext, require
 from slamkit.types import Camera, Frame
 
 log = logging.getLogger(__name__)
@@ -115,7 +114,8 @@ class TUMDataset(Dataset):
         return float(self.timestamps[raw_index])
 
     def load(self, raw_index: int) -> Frame:
-        rgb, depth = read_rgbd(self.rgb_files[raw_index], self.depth_files[raw_index], self.cfg.depth_scale, self._camera)
+        rgb, depth = read_rgbd(self.rgb_files[raw_index], self.depth_files[raw_index], self.cfg.depth_scale,
+                               self._camera)
         gt = None
         if self.gt_poses is not None and np.isfinite(self.gt_poses[raw_index]).all():
             gt = self.gt_poses[raw_index].copy()

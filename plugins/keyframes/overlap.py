@@ -19,6 +19,7 @@ from slamkit.plugin import PluginSpec, hookimpl
 from slamkit.roles import KeyframeDecision, KeyframeHistory, KeyframePolicy, PluginConfig, RunContext, require
 from slamkit.types import Frame, KeyframeKind, TrackingResult
 
+
 def correspondence_ratio(result: TrackingResult, overlap_threshold: float) -> float | None:
     """Fraction of the trackable frame points with a map Gaussian closer than
     sqrt(overlap_threshold) (squared distances in m^2, from the tracker's search). Falls back

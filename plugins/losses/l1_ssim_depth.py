@@ -17,9 +17,9 @@ from dataclasses import dataclass
 import torch
 
 from slamkit.errors import ConfigError
-from slamkit.splatting import RenderOutput
 from slamkit.plugin import PluginSpec, hookimpl
 from slamkit.roles import MappingLoss, PluginConfig, RunContext, TrainingView, require, thread_count
+from slamkit.splatting import RenderOutput
 from slamkit_plugins.losses import fused_rgbd_loss as rgbd
 
 

@@ -21,8 +21,8 @@ import torch
 from slamkit.errors import ConfigError
 from slamkit.native import NativeLibrary, available_threads
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.splatting import Rasterizer, RenderOutput
 from slamkit.roles import PluginConfig, RunContext, require, thread_count
+from slamkit.splatting import Rasterizer, RenderOutput
 from slamkit.types import Camera
 
 SOURCE = Path(__file__).resolve().parent / "csrc" / "cpu_rasterizer.cpp"

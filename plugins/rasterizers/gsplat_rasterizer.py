@@ -21,8 +21,8 @@ import torch
 
 from slamkit.errors import ConfigError
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.splatting import Rasterizer, RenderOutput
 from slamkit.roles import PluginConfig, RunContext, require
+from slamkit.splatting import Rasterizer, RenderOutput
 from slamkit.types import Camera
 
 NEAR_PLANE = 0.01

@@ -24,8 +24,8 @@ from torch.autograd.function import once_differentiable
 
 from slamkit.geometry.transforms import covariance_from_scales
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.splatting import Rasterizer, RenderOutput
 from slamkit.roles import PluginConfig, RunContext, require
+from slamkit.splatting import Rasterizer, RenderOutput
 from slamkit.types import Camera
 
 NEAR_PLANE = 0.01  # metres: Gaussians at camera z <= this are culled

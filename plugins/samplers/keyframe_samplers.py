@@ -23,6 +23,7 @@ import numpy as np
 from slamkit.plugin import PluginSpec, hookimpl
 from slamkit.roles import KeyframeSampler, PluginConfig, RunContext, require
 
+
 @dataclass
 class RandomSamplerConfig(PluginConfig):
     """Uniform draws over all keyframes."""

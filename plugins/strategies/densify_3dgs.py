@@ -17,9 +17,9 @@ from dataclasses import dataclass
 
 import torch
 
-from slamkit.splatting import MapEdit
 from slamkit.plugin import PluginSpec, hookimpl
 from slamkit.roles import RunContext, StepInfo, require
+from slamkit.splatting import MapEdit
 from slamkit_plugins.strategies.gsicp import PruneConfig, PruneStrategy
 
 #: A split Gaussian's children have its scales divided by this (3DGS).
@@ -54,7 +54,8 @@ class Densify3DGSConfig(PruneConfig):
                 self.densify_max_gaussians)
         require(self.reset_opacity_every >= 0, "mapper.strategy.reset_opacity_every", "an integer >= 0 (0 = never)",
                 self.reset_opacity_every)
-        require(0 <= self.seed < 2**64, "mapper.strategy.seed", "an integer from 0 to 2^64 - 1 (torch's seed range)", self.seed)
+        require(0 <= self.seed < 2**64, "mapper.strategy.seed", "an integer from 0 to 2^64 - 1 (torch's seed range)",
+                self.seed)
 
 
 class Densify3DGSStrategy(PruneStrategy):

@@ -9,9 +9,9 @@ from dataclasses import dataclass
 
 import torch
 
-from slamkit.splatting import MapEdit
 from slamkit.plugin import PluginSpec, hookimpl
 from slamkit.roles import RunContext, StepInfo, Strategy, StrategyConfig, require
+from slamkit.splatting import MapEdit
 
 
 @dataclass
@@ -28,7 +28,8 @@ class PruneConfig(StrategyConfig):
     def validate(self) -> None:
         super().validate()
         require(self.prune_every >= 0, "mapper.strategy.prune_every", "an integer >= 0 (0 = never)", self.prune_every)
-        require(0 <= self.prune_min_opacity < 1, "mapper.strategy.prune_min_opacity", "in [0, 1)", self.prune_min_opacity)
+        require(0 <= self.prune_min_opacity < 1, "mapper.strategy.prune_min_opacity", "in [0, 1)",
+                self.prune_min_opacity)
         require(self.max_scale is None or self.max_scale > 0, "mapper.strategy.max_scale", "null or > 0 metres",
                 self.max_scale)
 

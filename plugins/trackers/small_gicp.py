@@ -15,7 +15,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from slamkit.errors import ConfigError
-from slamkit.geometry.transforms import backproject, invert_pose, make_pose, nearest_rotation, rotation_angle_deg, transform_points
+from slamkit.geometry.transforms import (
+    backproject,
+    invert_pose,
+    make_pose,
+    nearest_rotation,
+    rotation_angle_deg,
+    transform_points,
+)
 from slamkit.plugin import PluginSpec, hookimpl
 from slamkit.roles import PluginConfig, RunContext, Tracker, require, thread_count
 from slamkit.types import Frame, TrackingResult
@@ -91,7 +98,8 @@ class SmallGICPTracker(Tracker):
         if self.model is None:
             return self._finish(predicted, start, keyframe_points=points)
         result = self.sg.align(self.model[0], source, self.model[1], init_T_target_source=predicted,
-                               registration_type="GICP", max_correspondence_distance=self.cfg.max_correspondence_distance,
+                               registration_type="GICP",
+                               max_correspondence_distance=self.cfg.max_correspondence_distance,
                                num_threads=self.cfg.num_threads, max_iterations=self.cfg.max_iterations)
         T = np.asarray(result.T_target_source)
         pose = make_pose(nearest_rotation(T[:3, :3]), T[:3, 3])  # copies; re-orthonormalised
@@ -120,7 +128,8 @@ class SmallGICPTracker(Tracker):
         world = np.concatenate([self.model_points, transform_points(pose, points)])
         cloud = self.sg.voxelgrid_sampling(world, self.cfg.voxel_size, self.cfg.num_threads)
         self.model_points = np.array(cloud.points()[:, :3], dtype=np.float64)
-        self.model = self.sg.preprocess_points(self.model_points, self.cfg.voxel_size, self.cfg.knn, self.cfg.num_threads)
+        self.model = self.sg.preprocess_points(self.model_points, self.cfg.voxel_size, self.cfg.knn,
+                                               self.cfg.num_threads)
         self.last_keyframe = pose.copy()
 
 

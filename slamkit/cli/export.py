@@ -87,7 +87,8 @@ def read_camera(path: Path) -> tuple[Camera, float | None]:
                         float(data["cx"]), float(data["cy"]))
         depth_trunc = None if data.get("depth_trunc") is None else float(data["depth_trunc"])
     except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
-        raise DataError(f"{path}: expected JSON with width, height, fx, fy, cx, cy ({type(exc).__name__}: {exc})") from None
+        raise DataError(f"{path}: expected JSON with width, height, fx, fy, cx, cy "
+                        f"({type(exc).__name__}: {exc})") from None
     if camera.width < 1 or camera.height < 1 or camera.fx <= 0 or camera.fy <= 0:
         raise DataError(f"{path}: expected a positive image size and focal lengths, got {data}")
     return camera, depth_trunc
@@ -125,7 +126,6 @@ def export_mesh(run_dir: Path, out: Path | None = None, voxel: float = 0.01, sdf
     run's camera. every: use every n-th keyframe."""
     from slamkit.formats.ply import load_ply
     from slamkit.registry.discovery import create_rasterizer
-
     from slamkit.run import checkpoint
 
     source = Path(run_dir)
@@ -258,7 +258,8 @@ def _render_rgbd(o3d, backend, gaussian_map, pose: np.ndarray, camera: Camera, m
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="slamkit-export", description=__doc__.split("\n")[0])
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    mesh = commands.add_parser("mesh", help="TSDF mesh of a run's Gaussian map (needs open3d: pip install -e '.[mesh]')",
+    mesh = commands.add_parser("mesh",
+                               help="TSDF mesh of a run's Gaussian map (needs open3d: pip install -e '.[mesh]')",
                                description="Fuse renders of RUN_DIR/map.ply at the keyframe poses into a TSDF mesh.")
     mesh.add_argument("run_dir", type=Path, metavar="SOURCE",
                       help="a slamkit run folder (mapper=gaussian_splatting) or its checkpoint.zip")

@@ -144,7 +144,8 @@ class Command:
         from slamkit.registry.discovery import default_registry
         from slamkit.registry.schema import Mode, validate_config
         from slamkit.run import localization, pipeline
-        from slamkit.run.state import FAILED, INTERRUPTED as STOPPED
+        from slamkit.run.state import FAILED
+        from slamkit.run.state import INTERRUPTED as STOPPED
 
         self.startup.release()  # Hydra has composed the config: a signal noted meanwhile stops the command here
         registry = self.registry or default_registry()  # a launcher's worker process

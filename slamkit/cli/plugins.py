@@ -14,6 +14,7 @@ from slamkit.config import field_docs
 from slamkit.registry.discovery import Registry, discover
 from slamkit.roles import PARTS, ROLES, RUN_ROLES
 
+
 def _type_name(tp) -> str:
     if isinstance(tp, str):
         return tp

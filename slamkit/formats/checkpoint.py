@@ -85,7 +85,8 @@ def _open(path: Path) -> zipfile.ZipFile:
     try:
         return zipfile.ZipFile(path)
     except (zipfile.BadZipFile, OSError, EOFError) as exc:
-        raise CheckpointError(f"checkpoint {path} is damaged or truncated (not a complete zip archive: {exc})") from None
+        raise CheckpointError(f"checkpoint {path} is damaged or truncated "
+                              f"(not a complete zip archive: {exc})") from None
 
 
 def _meta(path: Path, archive: zipfile.ZipFile) -> dict[str, Any]:

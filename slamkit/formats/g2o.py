@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from slamkit.errors import DataError
-from slamkit.geometry.transforms import make_pose, quat_to_rotmat, rotmat_to_quat
 from slamkit.geometry.pose_graph import PoseGraph, PoseGraphEdge
+from slamkit.geometry.transforms import make_pose, quat_to_rotmat, rotmat_to_quat
 
 VERTEX, EDGE = "VERTEX_SE3:QUAT", "EDGE_SE3:QUAT"
 #: slamkit's (rotation, translation) order to g2o's (translation, rotation), and back (its own inverse).
@@ -66,7 +66,8 @@ def read_g2o(path: Path) -> PoseGraph:
             continue
         expected = {VERTEX: 9, EDGE: 31}.get(fields[0])
         if expected is None or len(fields) != expected:
-            raise DataError(f"{path}:{no}: expected {VERTEX} with 8 fields or {EDGE} with 30, got {line.strip()[:60]!r}")
+            raise DataError(f"{path}:{no}: expected {VERTEX} with 8 fields or {EDGE} with 30, "
+                            f"got {line.strip()[:60]!r}")
         try:
             values = [float(v) for v in fields[1:]]
         except ValueError:

@@ -21,7 +21,6 @@ from slamkit.formats.atomic import write_atomic
 from slamkit.geometry.transforms import quat_to_rotmat, rotmat_to_quat
 
 
-
 def _data_lines(path: Path, commas: bool = True):
     """(line number, fields) of each non-empty, non-comment line of a text file; fields are
     separated by whitespace (and commas where `commas`)."""

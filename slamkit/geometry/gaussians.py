@@ -1,7 +1,8 @@
 """Gaussian geometry shared by tracking and mapping: k-NN covariances, closed-form batched
 3x3 symmetric eigenvalues / eigenvectors (faster than ``np.linalg.eigh`` on many small matrices:
-docs/dependencies.md, "Written here, and why"), covariance regularisation (paper Sec. 3.1), batched 3x3 inverses and whitening
-(inverse Cholesky) with a pseudo-inverse fallback, and covariance rotation.
+docs/dependencies.md, "Written here, and why"), covariance regularisation (paper Sec. 3.1), batched
+3x3 inverses and whitening (inverse Cholesky) with a pseudo-inverse fallback, and covariance
+rotation.
 
 All functions are vectorised numpy (no Python loop over points). Covariances are (N,3,3) in
 m^2; points (N,3) in metres.

@@ -71,7 +71,7 @@ def backbone_shapes() -> dict[str, tuple[int, ...]]:
 def linear_shapes() -> dict[str, tuple[int, ...]]:
     """The state-dict keys and shapes of lpips' linear layers (`lin{l}.model.1.weight`; index 1
     because lpips puts a dropout layer at 0)."""
-    return {f"lin{l}.model.1.weight": (1, conv[2], 1, 1) for l, conv in enumerate(ALEXNET_CONVS)}
+    return {f"lin{layer}.model.1.weight": (1, conv[2], 1, 1) for layer, conv in enumerate(ALEXNET_CONVS)}
 
 
 def min_image_side() -> int:
@@ -128,10 +128,10 @@ class LPIPS:
         x = torch.stack([zero_outside(a, mask), zero_outside(b, mask)]).to(self.device).permute(0, 3, 1, 2)
         x = (2 * x - 1 - self.shift) / self.scale
         total = torch.zeros((), dtype=torch.float64)
-        for l, f in enumerate(self.features(x)):
+        for layer, f in enumerate(self.features(x)):
             n = f / (f.norm(dim=1, keepdim=True) + NORM_EPS)
             diff = (n[0] - n[1]) ** 2  # (C,h,w)
-            w = self.lins[f"lin{l}.model.1.weight"].view(-1)
+            w = self.lins[f"lin{layer}.model.1.weight"].view(-1)
             total += float(torch.einsum("c,chw->hw", w, diff).mean())
         return float(total)
 

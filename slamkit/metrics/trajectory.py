@@ -141,8 +141,9 @@ def rpe(est_poses, gt_poses, delta: int = 1, all_pairs: bool = False) -> dict:
     """Relative pose error over frame pairs (i, i + delta), as evo_rpe with delta in frames.
 
     Like evo, the pairs are consecutive, i = 0, delta, 2 delta, ... (all_pairs=False, the
-    default), or start at every frame (all_pairs=True); the same for delta = 1. Per pair E = (gt_i^-1 gt_j)^-1 (est_i^-1 est_j); a pair is used only when all four poses
-    are present and finite. Returns trans_{rmse,mean,median,max,std}_m (norm of E's
+    default), or start at every frame (all_pairs=True); the same for delta = 1. Per pair
+    E = (gt_i^-1 gt_j)^-1 (est_i^-1 est_j); a pair is used only when all four poses are present
+    and finite. Returns trans_{rmse,mean,median,max,std}_m (norm of E's
     translation, metres), rot_{rmse,mean,median,max,std}_deg (angle of E's rotation, degrees),
     num (pairs used) and delta (frames). Statistics are None when no pair is usable.
     """

@@ -70,12 +70,12 @@ class Registry:
         except Exception as exc:  # a malformed hookimpl or spec: report, keep the others
             self._fail(source, exc)
             return
-        for role, spec in checked:
-            if spec.name in self.plugins[role]:
-                previous = self.plugins[role][spec.name].source
-                warnings.warn(f"slamkit: {role} {spec.name!r} from {source} replaces the one from {previous}",
+        for key, spec in checked:
+            if spec.name in self.plugins[key]:
+                previous = self.plugins[key][spec.name].source
+                warnings.warn(f"slamkit: {key} {spec.name!r} from {source} replaces the one from {previous}",
                               stacklevel=2)
-            self.plugins[role][spec.name] = Registered(spec, source)
+            self.plugins[key][spec.name] = Registered(spec, source)
 
     @staticmethod
     def _check(spec: PluginSpec) -> str:

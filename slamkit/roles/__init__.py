@@ -7,14 +7,31 @@ optimiser, loss) are the 3DGS trainer's contracts, in `slamkit.splatting`, re-ex
 
 from slamkit.config import PluginConfig, RunContext, check_values, require, thread_count, unlimited
 from slamkit.roles.dataset import Dataset, DatasetConfig, OnError
-from slamkit.roles.loop_closure import (LoopCheck, LoopClosure, LoopDecision, LoopKeyframe, PoseGraph,
-                                        PoseGraphEdge, follow_keyframes)
+from slamkit.roles.loop_closure import (
+                                        LoopCheck,
+                                        LoopClosure,
+                                        LoopDecision,
+                                        LoopKeyframe,
+                                        PoseGraph,
+                                        PoseGraphEdge,
+                                        follow_keyframes,
+)
 from slamkit.roles.mapping import Mapper
 from slamkit.roles.table import PARTS, ROLE_KEYS, ROLES, RUN_ROLES, Role, role, role_of
 from slamkit.roles.tracking import KeyframeDecision, KeyframeHistory, KeyframePolicy, Tracker
 from slamkit.roles.viewer import MapGaussians, MapPoints, Viewer, ViewerConfig, ViewerFrame
-from slamkit.splatting import (KeyframeSampler, KeyframeView, MapOptimizer, MappingLoss, Rasterizer, RenderOutput,
-                               StepInfo, Strategy, StrategyConfig, TrainingView)
+from slamkit.splatting import (
+                                        KeyframeSampler,
+                                        KeyframeView,
+                                        MapOptimizer,
+                                        MappingLoss,
+                                        Rasterizer,
+                                        RenderOutput,
+                                        StepInfo,
+                                        Strategy,
+                                        StrategyConfig,
+                                        TrainingView,
+)
 from slamkit.tuning import DatasetTuning
 
 #: Names of 0.2 kept for plugins written against it (docs/CHANGELOG.md): removed in 0.4.

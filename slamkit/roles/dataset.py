@@ -14,7 +14,6 @@ from slamkit.errors import DataError
 from slamkit.tuning import DatasetTuning
 from slamkit.types import Camera, Frame
 
-
 #: What a frame that fails to load does: stop the run (raise) or become a lost frame (skip).
 #: (Functional form: `raise` is a keyword, and Hydra matches enum members by name.)
 OnError = enum.Enum("OnError", {"raise": "raise", "skip": "skip"}, module=__name__)
@@ -54,7 +53,8 @@ class DatasetConfig(PluginConfig):
         require(self.stride >= 1, "dataset.stride", "an integer >= 1", self.stride)
         require(self.max_frames is None or self.max_frames >= 1, "dataset.max_frames", "null or >= 1", self.max_frames)
         require(self.passes >= 1, "dataset.passes", "an integer >= 1", self.passes)
-        require(self.depth_trunc is None or self.depth_trunc > 0, "dataset.depth_trunc", "null or > 0 metres", self.depth_trunc)
+        require(self.depth_trunc is None or self.depth_trunc > 0, "dataset.depth_trunc", "null or > 0 metres",
+                self.depth_trunc)
         require(self.prefetch >= 0, "dataset.prefetch", "an integer >= 0", self.prefetch)
         for name in ("fx", "fy"):
             v = getattr(self, name)

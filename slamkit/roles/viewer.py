@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from slamkit.config import PluginConfig, require
 from slamkit.geometry.transforms import covariance_from_scales
 from slamkit.map.gaussian_map import GaussianMap
-from slamkit.splatting.rendering import RenderOutput
-from slamkit.config import PluginConfig, require
 from slamkit.roles.mapping import Mapper
+from slamkit.splatting.rendering import RenderOutput
 from slamkit.types import Camera, Frame, KeyframeKind
 
 
@@ -101,7 +101,8 @@ class ViewerFrame:
             total = len(gm)
             step = max(1, -(-total // max_points))
             columns = (gm.means.detach()[::step], torch.nn.functional.normalize(gm.quats.detach()[::step], dim=1),
-                       gm.scales.detach()[::step], gm.opacities.detach()[::step], gm.colors.detach()[::step].clamp(0, 1))
+                       gm.scales.detach()[::step], gm.opacities.detach()[::step],
+                       gm.colors.detach()[::step].clamp(0, 1))
             means, quats, scales, opacities, colors = (c.float().cpu().numpy().copy() for c in columns)
         return MapGaussians(means, quats, scales, opacities, colors, total)
 

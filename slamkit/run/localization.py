@@ -37,9 +37,9 @@ from slamkit.native import available_threads
 from slamkit.registry.discovery import Registry
 from slamkit.registry.schema import RunConfig
 from slamkit.run import checkpoint
-from slamkit.run.prefetch import prefetched
 from slamkit.run.lifecycle import Phase, StopSignals, pause_point
 from slamkit.run.ownership import check_localization_folder
+from slamkit.run.prefetch import prefetched
 from slamkit.run.state import COMPLETED, FAILED, INTERRUPTED
 from slamkit.types import Camera, Frame, TrackingResult
 

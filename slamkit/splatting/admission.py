@@ -32,7 +32,7 @@ class CoverageTest(enum.Enum):
 class AdmissionConfig(PluginConfig):
     """Which of a keyframe's Gaussians enter the map."""
 
-    #: no new Gaussian where the map explains the view already, except trackable ones (off: the map grows on every revisit)
+    #: no new Gaussian where the map explains the view, except trackable ones (off: the map grows on every revisit)
     skip_covered: bool = True
     #: the test: centres (bounds the map in real time too), render, or either
     coverage: CoverageTest = CoverageTest.centres

@@ -13,8 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from slamkit.map.gaussian_map import GaussianMap
 from slamkit.geometry.transforms import invert_pose
+from slamkit.map.gaussian_map import GaussianMap
 from slamkit.types import Camera
 
 
@@ -83,7 +83,8 @@ def render_map(rasterizer: Rasterizer, gaussian_map: GaussianMap, pose: np.ndarr
     with gaussian_map.lock, torch.no_grad():
         if len(gaussian_map) == 0:
             zeros = torch.zeros((camera.height, camera.width), device=gaussian_map.device)
-            return RenderOutput(torch.zeros((camera.height, camera.width, 3), device=zeros.device), zeros, zeros.clone())
+            color = torch.zeros((camera.height, camera.width, 3), device=zeros.device)
+            return RenderOutput(color, zeros, zeros.clone())
         out = rasterizer.render(
             gaussian_map.means.detach(),
             gaussian_map.quats.detach(),

@@ -17,12 +17,12 @@ import pytest
 import torch
 import yaml
 
+from slamkit.config import RunContext
 from slamkit.errors import ConfigError
 from slamkit.map.gaussian_map import GaussianMap, GaussianRows
 from slamkit.registry.discovery import default_registry, discover
-from slamkit.config import RunContext
 from slamkit.tuning import DatasetTuning
-from slamkit.types import Camera, Frame, KeyframeKind, TrackingResult
+from slamkit.types import Camera, Frame, KeyframeKind
 from slamkit_mcmc import MCMCConfig, MCMCStrategy, scale_factor, shared_opacity
 
 # The shared real data beside the slamkit checkout (override with SLAMKIT_DATA).
@@ -223,7 +223,8 @@ def test_slamkit_runs_mcmc_on_replica(tmp_path):
     slamkit = Path(sys.executable).with_name("slamkit")
     proc = subprocess.run(
         [str(slamkit), "dataset=replica", f"dataset.path={REPLICA}", "dataset.max_frames=4",
-         "mapper=gaussian_splatting", "mapper/strategy=mcmc", "mapper.strategy.refine_every=10", "iterations_per_frame=5",
+         "mapper=gaussian_splatting", "mapper/strategy=mcmc", "mapper.strategy.refine_every=10",
+         "iterations_per_frame=5",
          "final_iterations=20", "mapper.resolution_scale=0.25", "mapper.eval_every=3",
          "mapper.save_images=0", "progress=false", f"hydra.run.dir={out}"],
         cwd=tmp_path, capture_output=True, text=True, timeout=600, env=dict(os.environ, OMP_NUM_THREADS="1"),

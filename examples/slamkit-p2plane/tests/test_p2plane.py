@@ -13,12 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from slamkit.config import RunContext
 from slamkit.errors import ConfigError
+from slamkit.formats.tum import read_tum_trajectory
 from slamkit.geometry.transforms import invert_pose, make_pose, rotation_angle_deg, so3_exp, transform_points
 from slamkit.registry.discovery import discover
-from slamkit.config import RunContext
 from slamkit.tuning import DatasetTuning
-from slamkit.formats.tum import read_tum_trajectory
 from slamkit_p2plane import Model, P2PlaneConfig, P2PlaneTracker, point_to_plane
 
 # The shared real data beside the slamkit checkout (override with SLAMKIT_DATA).

@@ -12,7 +12,7 @@ import numpy as np
 
 from slamkit.errors import DataError
 from slamkit.formats.tum import associate, interpolate_poses, read_tum_trajectory
-from slamkit.roles import Dataset, DatasetConfig, RunContext, DatasetTuning, require
+from slamkit.roles import Dataset, DatasetConfig, DatasetTuning, RunContext, require
 from slamkit.types import Camera, Frame
 from slamkit_plugins.datasets.rosbag.bag import BagIndex
 from slamkit_plugins.datasets.rosbag.images import (

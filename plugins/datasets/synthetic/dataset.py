@@ -26,7 +26,7 @@ import numpy as np
 
 from slamkit.cache import cache_dir, damage, record
 from slamkit.errors import DataError
-from slamkit.roles import Dataset, DatasetConfig, RunContext, DatasetTuning, require
+from slamkit.roles import Dataset, DatasetConfig, DatasetTuning, RunContext, require
 from slamkit.types import Camera, Frame
 from slamkit_plugins.datasets.synthetic.path import FPS, camera_path
 from slamkit_plugins.datasets.synthetic.raycast import render

@@ -145,7 +145,8 @@ def _table() -> list[Primitive]:
             "mug",
         )
     )
-    P.append(box((1.55, 0.30, 0.77), (1.85, 0.52, 0.82), mat_solid((0.1, 0.45, 0.2)), "book", Rt @ rotation_deg(20), piv))
+    P.append(box((1.55, 0.30, 0.77), (1.85, 0.52, 0.82), mat_solid((0.1, 0.45, 0.2)), "book", Rt @ rotation_deg(20),
+                 piv))
     return P
 
 
