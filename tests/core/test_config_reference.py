@@ -15,9 +15,8 @@ import pytest
 from slamkit.errors import ConfigError, SlamkitError
 from slamkit.registry import default_registry
 from slamkit.registry.compose import compose_run
-from slamkit.run.build import build_run
-from slamkit.run.build import build
 from slamkit.roles import PARTS as PART_ROLES
+from slamkit.run.build import build, build_run
 
 from support.config_reference import BAD, TOP_SECTIONS, config_class, reference_keys
 
@@ -167,8 +166,8 @@ def test_every_key_in_the_reference_reaches_the_object_the_run_builds(data, tmp_
     """Each section's keys are set together to non-default values its config accepts; where the
     built run rejects the combination, key by key, naming the key it rejects."""
     rows = reference_keys()
-    assert len(rows) > 150 and {"mapper.sampler.top_k", "mapper.rasterizer.num_threads", "mapper.memory_cap.max_gaussians"} <= {
-        k for _, k, _, _ in rows}
+    assert len(rows) > 150 and {"mapper.sampler.top_k", "mapper.rasterizer.num_threads",
+                                "mapper.memory_cap.max_gaussians"} <= {k for _, k, _, _ in rows}
     sections: dict[str, dict[str, object]] = {}
     for section, key, type_, default in rows:
         if section != "mapper/rasterizer=gsplat":  # needs CUDA: built against a stand-in gsplat in its own tests

@@ -5,8 +5,8 @@ import copy
 import numpy as np
 import pytest
 
-from slamkit.metrics.trajectory import ate, rpe, umeyama_alignment
 from slamkit.geometry.transforms import make_pose, so3_exp
+from slamkit.metrics.trajectory import ate, rpe, umeyama_alignment
 
 
 def random_rotation(rng):
@@ -28,7 +28,8 @@ def perturbed(gt, rng, drift=0.01):
     T = make_pose(random_rotation(rng), rng.normal(size=3))
     est = []
     for k, P in enumerate(gt):
-        noise = make_pose(so3_exp(0.01 * rng.normal(size=3)), 0.01 * rng.normal(size=3) + drift * k * np.array([1, 0.5, 0]))
+        noise = make_pose(so3_exp(0.01 * rng.normal(size=3)),
+                          0.01 * rng.normal(size=3) + drift * k * np.array([1, 0.5, 0]))
         est.append(T @ P @ noise)
     return np.stack(est)
 

@@ -9,10 +9,11 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from support.data import DATA, require_data
 from slamkit.errors import DataError
 from slamkit.formats import images
 from slamkit.formats.images import read_depth, read_rgb
+
+from support.data import DATA, require_data
 
 # (folder, colour glob, depth glob, depth scale, invalid raw values): the three layouts' images
 SEQUENCES = {

@@ -44,7 +44,8 @@ def test_psnr_over_all_pixels_zeroes_the_invalid_ones_as_the_reference_code():
     b = a + 0.1
     mask = torch.zeros(20, 24, dtype=torch.bool)
     mask[:, :12] = True
-    b[:, 12:] = torch.as_tensor(rng.uniform(size=(20, 12, 3)), dtype=torch.float32)  # outside the mask: zeroed, does not count
+    # outside the mask: zeroed, does not count
+    b[:, 12:] = torch.as_tensor(rng.uniform(size=(20, 12, 3)), dtype=torch.float32)
     assert image_metrics.psnr(a, b, mask) == pytest.approx(20.0, abs=1e-4)
     assert image_metrics.psnr(a, b, mask, pixels="all") == pytest.approx(20.0 + 10 * math.log10(2), abs=1e-4)
     assert image_metrics.psnr(a, b, mask, pixels=image_metrics.PsnrPixels.all) == pytest.approx(23.0103, abs=1e-4)

@@ -20,7 +20,6 @@ from slamkit.run.lifecycle import Phase, StopSignals
 
 from support.commands import slamkit_in_process
 
-
 # -- the signal handling itself (StopSignals), in this process ----------------------------------
 
 def _raise_signal_and_settle(sig: int) -> None:
@@ -70,15 +69,17 @@ def _done(ate: float, **more) -> dict:
 def test_report_shows_status_keeps_unfinished_runs_apart_and_unreadable_runs_as_rows(tmp_path, capsys):
     _fake_run(tmp_path, "0", "gicp", _done(0.02))
     _fake_run(tmp_path, "1", "kiss_icp", _done(0.04))
-    _fake_run(tmp_path, "2", "gicp", {"num_frames": 5, "completed": False, "status": "interrupted",
-                                      "phase": "stream", "error": "interrupted (SIGINT) during stream", "ate_rmse_m": 0.001})
-    _fake_run(tmp_path, "3", "gicp", {"num_frames": 20, "completed": False, "error": "RuntimeError: boom"})  # before `status`
+    _fake_run(tmp_path, "2", "gicp", {"num_frames": 5, "completed": False, "status": "interrupted", "phase": "stream",
+                                      "error": "interrupted (SIGINT) during stream", "ate_rmse_m": 0.001})
+    # a metrics.json from before `status`
+    _fake_run(tmp_path, "3", "gicp", {"num_frames": 20, "completed": False, "error": "RuntimeError: boom"})
     _fake_run(tmp_path, "4", "gicp", "[1, 2, 3]")
     _fake_run(tmp_path, "5", "gicp", '{"num_frames": 3, "ate_')
     assert report_main([str(tmp_path)]) == 0
     rows = list(csv.DictReader(open(tmp_path / "report.csv")))
     by_status = {r["status"]: r for r in rows}
-    assert [r["status"] for r in rows] == ["completed", "completed", "interrupted", "failed", "unreadable", "unreadable"]
+    assert [r["status"] for r in rows] == ["completed", "completed", "interrupted", "failed", "unreadable",
+                                           "unreadable"]
     gicp = next(r for r in rows if r["tracker"] == "gicp" and r["status"] == "completed")
     assert gicp["n"] == "1" and float(gicp["ate_rmse_m"]) == 0.02  # the 5-frame run is not averaged in
     assert by_status["interrupted"]["error"] == "interrupted (SIGINT) during stream"

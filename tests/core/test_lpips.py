@@ -19,7 +19,7 @@ SHAPES_BACKBONE = {f"features.{i}.weight": s for i, s in
                    ((0, (64, 3, 11, 11)), (3, (192, 64, 5, 5)), (6, (384, 192, 3, 3)), (8, (256, 384, 3, 3)),
                     (10, (256, 256, 3, 3)))}
 SHAPES_BACKBONE.update({k.replace("weight", "bias"): (s[0],) for k, s in list(SHAPES_BACKBONE.items())})
-SHAPES_LINEAR = {f"lin{l}.model.1.weight": (1, c, 1, 1) for l, c in enumerate((64, 192, 384, 256, 256))}
+SHAPES_LINEAR = {f"lin{layer}.model.1.weight": (1, c, 1, 1) for layer, c in enumerate((64, 192, 384, 256, 256))}
 
 
 def fabricated(shapes: dict, seed: int, positive: bool = False) -> dict[str, torch.Tensor]:
@@ -97,10 +97,10 @@ def np_lpips(a: np.ndarray, b: np.ndarray, bb: dict, lin: dict) -> float:
             layers.append(x)
         feats.append(layers)
     total = 0.0
-    for l, (f0, f1) in enumerate(zip(*feats)):
+    for layer, (f0, f1) in enumerate(zip(*feats)):
         n0 = f0 / (np.sqrt((f0**2).sum(axis=0)) + 1e-10)
         n1 = f1 / (np.sqrt((f1**2).sum(axis=0)) + 1e-10)
-        w = lin[f"lin{l}.model.1.weight"].reshape(-1)
+        w = lin[f"lin{layer}.model.1.weight"].reshape(-1)
         total += float(np.mean(np.einsum("c,chw->hw", w, (n0 - n1) ** 2)))
     return total
 

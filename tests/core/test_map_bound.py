@@ -4,29 +4,28 @@ sequence whose map stops growing after the first pass: tests/e2e/test_map_bound_
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import json
 
 import numpy as np
 import pytest
 import torch
 
-from support.mapping_scenes import CAM, N, make_map, make_mapper, plane_scene, render_frame
+from slamkit.config import RunContext
 from slamkit.errors import ConfigError
 from slamkit.geometry.transforms import invert_pose
-from slamkit.splatting.coverage import DepthTolerance, covered_by_render, occupied_by_centres
-from slamkit.splatting.rendering import RenderOutput
 from slamkit.map.gaussian_map import GaussianMap
 from slamkit.map.growth import MapGrowthConfig
 from slamkit.registry.discovery import create_rasterizer
-from slamkit.config import RunContext
 from slamkit.roles import Tracker
-from slamkit.splatting import AdmissionConfig, CoverageTest
-from slamkit.tuning import DatasetTuning
 from slamkit.run.slam import SLAM
+from slamkit.splatting import AdmissionConfig, CoverageTest
+from slamkit.splatting.coverage import DepthTolerance, covered_by_render, occupied_by_centres
+from slamkit.splatting.rendering import RenderOutput
+from slamkit.tuning import DatasetTuning
 from slamkit.types import FrameGaussians, TrackingResult
 from slamkit_plugins.keyframes.every_n import EveryNKeyframeConfig, EveryNKeyframePolicy
+
+from support.mapping_scenes import CAM, N, make_map, make_mapper, plane_scene, render_frame
 
 
 def at_pixel(u: float, v: float, z: float, pose: np.ndarray = np.eye(4)) -> np.ndarray:
@@ -43,7 +42,8 @@ def occupied(points, centres, pose=np.eye(4), cell=5.0, tolerance=0.05, min_cent
                                min_centres).tolist()
 
 
-@pytest.mark.parametrize("pose", [np.eye(4), np.array([[0.0, 0, 1, 0.3], [0, 1, 0, -0.2], [-1, 0, 0, 1.5], [0, 0, 0, 1]])])
+@pytest.mark.parametrize("pose", [np.eye(4),
+                                  np.array([[0.0, 0, 1, 0.3], [0, 1, 0, -0.2], [-1, 0, 0, 1.5], [0, 0, 0, 1]])])
 def test_a_point_is_occupied_by_a_centre_near_its_pixel_at_its_depth(pose):
     """Cell 5 px: a disc of radius 3.54 px (CAM: 40x30); depth tolerance 5 cm, the two combined as
     an ellipse (pixel distance / radius)^2 + (depth difference / tolerance)^2 < 1; any camera pose."""

@@ -8,11 +8,12 @@ import math
 import pytest
 import torch
 
-from support.mapping_scenes import N, plane_scene, rows, start_map
 from slamkit.map.gaussian_map import PARAMETERS
 from slamkit.splatting.ops import MapEdit
 from slamkit_plugins.optimizers.adam import AdamConfig, TorchAdam
 from slamkit_plugins.optimizers.visible_adam import VisibleAdam, VisibleAdamConfig
+
+from support.mapping_scenes import N, plane_scene, rows, start_map
 
 OPTIMIZERS = {"adam": lambda: TorchAdam(AdamConfig()), "visible_adam": lambda: VisibleAdam(VisibleAdamConfig())}
 

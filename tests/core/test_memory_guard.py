@@ -1,26 +1,35 @@
-"""The memory cap the trainer applies whatever the strategy (`mapper.memory_cap.max_gaussians`) and the 3DGS mapper's keyframe
-image storage (issue 9). Heap release in a process of its own, and the command with the cap:
-tests/e2e/test_memory_guard_runs.py."""
+"""The memory cap the trainer applies whatever the strategy (`mapper.memory_cap.max_gaussians`)
+and the 3DGS mapper's keyframe image storage (issue 9). Heap release in a process of its own,
+and the command with the cap: tests/e2e/test_memory_guard_runs.py."""
 
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from support.mapping_scenes import N, add, make_map, make_mapper, plane_scene, render_frame, rows, start_map, state_follows_map
-from slamkit.metrics import trajectory as evaluation
-from slamkit.run.build import build_run
 from slamkit.errors import ConfigError
-from slamkit.map.gaussian_map import GaussianMap
 from slamkit.map.growth import MapGrowthConfig
+from slamkit.metrics import trajectory as evaluation
 from slamkit.registry.discovery import create_rasterizer
+from slamkit.run.build import build_run
 from slamkit.run.slam import SLAM
 from slamkit.splatting import MemoryCapConfig
 from slamkit.splatting.keyframes import KEYFRAME_DEPTH_STEP, KeyframeStorage
+
+from support.mapping_scenes import (
+    N,
+    add,
+    make_map,
+    make_mapper,
+    plane_scene,
+    render_frame,
+    rows,
+    start_map,
+    state_follows_map,
+)
 
 
 @pytest.fixture(scope="module")
@@ -224,6 +233,7 @@ def test_guarded_replica_run_stays_under_the_cap_keeps_the_most_opaque_and_track
 def test_slam_releases_free_memory_at_each_keyframe(monkeypatch, rasterizer):
     import slamkit.run.slam
     from slamkit_plugins.keyframes.every_n import EveryNKeyframeConfig, EveryNKeyframePolicy
+
     from support.mapping_scenes import GroundTruthTracker
 
     calls = []

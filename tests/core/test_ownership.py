@@ -11,8 +11,18 @@ import socket
 import pytest
 
 from slamkit.cli.streams import GuardedStream
-from slamkit.run.ownership import (ExistingOutputs, RunFolderError, RunFolderInUse, RunFolderLock, check_new_run_folder,
-                                   check_localization_folder, claim, in_use_by, release, unique_suffix)
+from slamkit.run.ownership import (
+    ExistingOutputs,
+    RunFolderError,
+    RunFolderInUse,
+    RunFolderLock,
+    check_localization_folder,
+    check_new_run_folder,
+    claim,
+    in_use_by,
+    release,
+    unique_suffix,
+)
 
 
 def test_a_held_folder_is_refused_naming_its_holder_and_free_once_released(tmp_path):

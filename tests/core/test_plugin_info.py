@@ -3,12 +3,7 @@ listing itself: tests/e2e/test_plugin_info_runs.py)."""
 
 from __future__ import annotations
 
-import pytest
-
 import dataclasses
-import subprocess
-import sys
-from pathlib import Path
 
 from slamkit.cli.plugins import markdown_reference
 from slamkit.config import field_docs

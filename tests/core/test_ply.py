@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from slamkit.errors import DataError
-from slamkit.map.gaussian_map import GaussianMap, GaussianRows
 from slamkit.formats.ply import C0, PROPERTIES, load_ply, save_ply
+from slamkit.map.gaussian_map import GaussianMap, GaussianRows
 
 
 def random_map(n: int = 50, seed: int = 0) -> GaussianMap:

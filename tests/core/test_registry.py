@@ -3,8 +3,6 @@ third-party plugins run from the command line: tests/e2e/test_registry_runs.py).
 
 from __future__ import annotations
 
-import json
-
 import pytest
 
 from slamkit.errors import ConfigError, PluginError

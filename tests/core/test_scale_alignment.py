@@ -53,5 +53,6 @@ def test_z_pow_divides_the_raw_scales_by_max_c_z_to_the_p_and_one():
 def test_every_alignment_keeps_the_raw_orientation(kind):
     rows = new_gaussians(frame_gaussians(), 0, MapGrowthConfig(scale_alignment=kind))
     q = rows.quats.double().numpy()
-    ref = new_gaussians(frame_gaussians(), 0, MapGrowthConfig(scale_alignment=ScaleAlignment.none)).quats.double().numpy()
+    raw = new_gaussians(frame_gaussians(), 0, MapGrowthConfig(scale_alignment=ScaleAlignment.none))
+    ref = raw.quats.double().numpy()
     np.testing.assert_allclose(np.abs(np.sum(q * ref, axis=1)), 1.0, atol=1e-5)  # same rotation up to sign

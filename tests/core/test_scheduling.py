@@ -6,9 +6,6 @@ in a process of their own: tests/e2e/test_scheduling_runs.py."""
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
-import textwrap
 import threading
 
 import pytest

@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 
 from slamkit.errors import DataError
-from slamkit.geometry.transforms import make_pose, quat_to_rotmat, rotation_angle_deg, so3_exp
 from slamkit.formats.tum import (
     associate,
     interpolate_poses,
@@ -18,6 +17,7 @@ from slamkit.formats.tum import (
     read_tum_trajectory,
     write_tum_trajectory,
 )
+from slamkit.geometry.transforms import make_pose, quat_to_rotmat, rotation_angle_deg, so3_exp
 
 
 def one_line_error(excinfo, name: str) -> str:

@@ -22,9 +22,9 @@ def test_camera_plausibility_bounds_follow_the_image_size():
 def test_check_values_names_the_key_of_a_nan_and_of_too_many_threads():
     from dataclasses import dataclass, field
 
+    from slamkit.config import machine_threads
     from slamkit.errors import ConfigError
     from slamkit.roles import PluginConfig, check_values, thread_count, unlimited
-    from slamkit.config import machine_threads
 
     @dataclass
     class Inner(PluginConfig):

@@ -12,24 +12,23 @@ import signal
 import subprocess
 import sys
 import time
-import zipfile
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from slamkit.errors import SlamkitError
-from slamkit.formats.checkpoint import (CHECKPOINT_NAME, SCHEMA_VERSION, CheckpointError, read_checkpoint, read_meta,
-                                        write_checkpoint)
+from slamkit.formats.checkpoint import (
+    CHECKPOINT_NAME,
+    read_checkpoint,
+    read_meta,
+)
 from slamkit.formats.tum import read_tum_trajectory
 from slamkit.registry.compose import compose_run
 from slamkit.registry.discovery import default_registry
 from slamkit.run import checkpoint, pipeline
-from slamkit.run.frame_log import FrameLog
 
 from support.commands import run_slamkit
-
 
 SAVER = """
 import sys, numpy as np

@@ -29,11 +29,11 @@ import torch
 
 from slamkit.geometry.transforms import invert_pose
 from slamkit.registry.compose import compose_run
-from slamkit.run.build import build_run
 from slamkit.registry.discovery import create_rasterizer, default_registry
 from slamkit.run import pipeline
-from slamkit.types import Camera
+from slamkit.run.build import build_run
 from slamkit.splatting.keyframes import resize_rgbd
+from slamkit.types import Camera
 from slamkit_plugins.rasterizers.torch_rasterizer import TorchRasterizer
 
 from support.data import REPLICA, REPO, require_data
@@ -189,7 +189,8 @@ def replica_path_module():
 def test_pipeline_on_cuda_matches_the_cpu_path(backend, cpu_run, replica_path_module, tmp_path):
     if backend == "gsplat":
         gsplat_rasterizer()
-    metrics, trajectory = run_pipeline(replica_path_module, tmp_path, "mapping_device=cuda", f"mapper/rasterizer={backend}")
+    metrics, trajectory = run_pipeline(replica_path_module, tmp_path, "mapping_device=cuda",
+                                       f"mapper/rasterizer={backend}")
     ref_metrics, ref_trajectory = cpu_run
     assert metrics["mapping_steps"] == ref_metrics["mapping_steps"] > 0
     assert trajectory.shape == ref_trajectory.shape

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-import pytest
-
 import csv
+
+import pytest
 
 from slamkit.cli.report import main as report_main
 

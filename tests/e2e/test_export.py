@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 
 from slamkit.cli.export import main as export_main
-from slamkit.map.gaussian_map import GaussianMap, GaussianRows
-from slamkit.geometry.transforms import backproject, make_pose, so3_exp, transform_points
-from slamkit.run.outputs import write_camera
 from slamkit.formats.ply import save_ply
 from slamkit.formats.tum import read_tum_trajectory, write_tum_trajectory
+from slamkit.geometry.transforms import backproject, make_pose, so3_exp, transform_points
+from slamkit.map.gaussian_map import GaussianMap, GaussianRows
+from slamkit.run.outputs import write_camera
 from slamkit.types import Camera
 
 from support.commands import run_slamkit

@@ -49,9 +49,24 @@ import numpy as np
 import pytest
 
 from support.data import REPLICA, require_data
-from support.fault_inputs import (FRAMES, INTRINSICS, drop_frame, duplicate_timestamp, fifo_bag, flip_bytes,
-                          float_depth_in_metres, folder_with, install, make_read_only, non_utf8_name, tiny_tum,
-                          truncate_depth, truncate_half, tum_with, uint16_cast_metres)
+from support.fault_inputs import (
+    FRAMES,
+    INTRINSICS,
+    drop_frame,
+    duplicate_timestamp,
+    fifo_bag,
+    flip_bytes,
+    float_depth_in_metres,
+    folder_with,
+    install,
+    make_read_only,
+    non_utf8_name,
+    tiny_tum,
+    truncate_depth,
+    truncate_half,
+    tum_with,
+    uint16_cast_metres,
+)
 
 #: The run outputs whose presence each case states.
 OUTPUTS = ("trajectory.txt", "metrics.json", "frames.csv")
@@ -103,8 +118,9 @@ FAULTS = [
     Fault("kiss-min-points-0", ("tracker=kiss_icp", "tracker.min_points=0"), 2, "tracker.min_points: expected"),
     Fault("mapping-threads-huge", (f"mapping_threads={HUGE}",), 2, "mapping_threads: expected at most"),
     Fault("tracker-threads-huge", (f"tracker.num_threads={HUGE}",), 2, "tracker.num_threads: expected at most"),
-    Fault("rasterizer-threads-huge", ("mapper=gaussian_splatting", "mapper/rasterizer=cpu", f"mapper.rasterizer.num_threads={HUGE}"),
-          2, "mapper.rasterizer.num_threads: expected at most"),
+    Fault("rasterizer-threads-huge",
+          ("mapper=gaussian_splatting", "mapper/rasterizer=cpu", f"mapper.rasterizer.num_threads={HUGE}"), 2,
+          "mapper.rasterizer.num_threads: expected at most"),
     Fault("loss-threads-huge", ("mapper=gaussian_splatting", f"mapper.loss.num_threads={HUGE}"), 2,
           "mapper.loss.num_threads: expected at most"),
     # intrinsics against the image size: refused when the dataset is opened, before any frame
@@ -799,9 +815,9 @@ def test_every_numeric_key_has_a_range_and_every_thread_count_is_bounded_by_the_
     """Through the composition the command uses, a float key refuses nan and -inf, a numeric key
     -1 (unless NEGATIVE_OK), a thread count the machine's CPUs + 1: each with one ConfigError line
     naming the key; a thread count equal to the machine's CPUs is accepted."""
+    from slamkit.config import machine_threads
     from slamkit.errors import ConfigError
     from slamkit.registry.compose import compose_run
-    from slamkit.config import machine_threads
 
     cases = _numeric_keys()
     threads = [key for _, key, kind in cases if kind == "threads"]

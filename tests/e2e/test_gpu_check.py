@@ -73,7 +73,8 @@ def test_dry_run_prints_every_step_and_touches_nothing(tmp_path):
     assert "TORCH_EXTENSIONS_DIR=" + str(REPO / ".cache" / "torch_extensions") in text
     assert "-m pytest -m cuda" in step("cuda-tests") and "tests/test_cuda.py" in step("cuda-tests")
     for stage in ("tracking", "phases", "realtime"):
-        assert f"gpu_bench.py --out {tmp_path / 'out'}" in step(f"time-{stage}") and step(f"time-{stage}").endswith(stage)
+        command = step(f"time-{stage}")
+        assert f"gpu_bench.py --out {tmp_path / 'out'}" in command and command.endswith(stage)
     timings = [ln.strip() for ln in lines if ln.strip().startswith("would time:")]
     for sequence in ("tum", "replica"):
         for device in ("cpu", "cuda"):
@@ -108,7 +109,8 @@ def test_results_are_merged_and_tabled_as_they_come(tmp_path):
                                   "ate_rmse_m": 0.05, "grow_map_ms": 3.0, "target_ms": 2.0, "rows_per_keyframe": 2500.0,
                                   "copy_in_ms": 0.2, "copy_out_ms": 0.3, "copy_mb": 0.2})
     bench.merge(out, "phases", {"sequence": "tum", "variant": "gsplat@cuda", "gaussians": 26840,
-                                "resolution": "320x240", "ms": {"view": 0.2, "render": 1.0, "loss": 2.0, "backward": 3.0,
+                                "resolution": "320x240", "ms": {"view": 0.2, "render": 1.0, "loss": 2.0,
+                                                                "backward": 3.0,
                                                                 "lock": 0.0, "optimizer": 0.5, "strategy": 0.1,
                                                                 "step": 6.8}})
     bench.merge(out, "phases", {"sequence": "tum", "variant": "torch@cuda", "error": "RuntimeError: out of memory"})
@@ -142,7 +144,8 @@ def test_carried_frames_load_as_the_shared_sequences(tmp_path):
     gpu_data.copy_replica(REPLICA, tmp_path / REPLICA.name, 3)
     registry = default_registry()
     for plugin, folder, n in (("tum", TUM.name, 5), ("replica", REPLICA.name, 3)):
-        dataset = registry.create("dataset", plugin, registry.get("dataset", plugin).config(path=str(tmp_path / folder)))
+        config = registry.get("dataset", plugin).config(path=str(tmp_path / folder))
+        dataset = registry.create("dataset", plugin, config)
         assert len(dataset) == n
         frame = dataset[n - 1]
         assert frame.depth.max() > 0 and frame.gt_pose is not None

@@ -14,8 +14,6 @@ import pytest
 
 from slamkit.formats.checkpoint import CHECKPOINT_NAME
 from slamkit.formats.tum import read_tum_trajectory
-from slamkit.geometry.registration import GlobalRegistration
-from slamkit.geometry.transforms import backproject, make_pose, so3_exp, transform_points
 from slamkit.metrics.trajectory import ate
 from slamkit.registry.compose import compose_run
 from slamkit.registry.discovery import default_registry

@@ -12,7 +12,6 @@ import pytest
 
 from support.commands import run_slamkit
 
-
 FRAGMENTED_HEAP = """
 import os, numpy as np
 from slamkit.run.heap import release_free_memory
@@ -54,8 +53,8 @@ def test_cli_run_with_the_guard_reports_pruning_and_stays_under_the_cap(tmp_path
     out = tmp_path / "run"
     proc = run_slamkit(
         "dataset=synthetic", "dataset.num_frames=12", "dataset.width=64", "dataset.height=48", "tracker=gicp",
-        "keyframe=every_n", "keyframe.tracking_every=2", "mapper=gaussian_splatting", "mapper.memory_cap.max_gaussians=1000",
-        "mapper.admission.skip_covered=false",
+        "keyframe=every_n", "keyframe.tracking_every=2", "mapper=gaussian_splatting",
+        "mapper.memory_cap.max_gaussians=1000", "mapper.admission.skip_covered=false",
         "final_iterations=2", "mapper.save_images=0", "iterations_per_frame=2", f"mode={mode}",
         "progress=false", "eval.plot=false", f"hydra.run.dir={out}", cwd=tmp_path, timeout=300,
     )

@@ -7,8 +7,9 @@ import json
 
 import pytest
 
-from support.commands import run_slamkit
 from slamkit.registry.schema import Mode, RunConfig
+
+from support.commands import run_slamkit
 
 pytestmark = pytest.mark.slow  # every test here starts the slamkit command
 

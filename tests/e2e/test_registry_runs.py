@@ -27,7 +27,8 @@ def test_third_party_plugin_runs_from_the_cli_with_its_config(plugin_dir, tmp_pa
 @pytest.mark.slow
 def test_third_party_config_validation_and_unknown_name_from_the_cli(plugin_dir, tmp_path):
     env = {"PYTHONPATH": str(plugin_dir)}
-    bad = run_slamkit("tracker=still", "tracker.offset=-1", f"hydra.run.dir={tmp_path / 'x'}", cwd=tmp_path, env_extra=env)
+    bad = run_slamkit("tracker=still", "tracker.offset=-1", f"hydra.run.dir={tmp_path / 'x'}", cwd=tmp_path,
+                      env_extra=env)
     assert bad.returncode == 2
     assert bad.stderr.strip().splitlines()[-1] == "slamkit: error: tracker.offset: expected >= 0, got -1.0"
     assert "Traceback" not in bad.stderr

@@ -19,7 +19,7 @@ from slamkit.types import Camera
 from slamkit_plugins.rasterizers.cpu_rasterizer import CPURasterizer, CPURasterizerConfig
 from slamkit_plugins.rasterizers.torch_rasterizer import TorchRasterizer
 
-from support.hard_scenes import CAM, a_pose, hard_scene, rel_err, render_and_grads
+from support.hard_scenes import CAM, hard_scene, rel_err, render_and_grads
 
 F32, F64 = torch.float32, torch.float64
 NAMES = ("color", "depth", "alpha", "means", "quats", "scales", "opacities", "colors", "background")
@@ -272,7 +272,8 @@ def test_native_chooses_whether_the_library_is_built_for_this_cpu(monkeypatch, t
 
     _fresh_library(monkeypatch)
     monkeypatch.setenv("SLAMKIT_CACHE", str(tmp_path))
-    portable = build_run(["mapper=gaussian_splatting", "mapper/rasterizer=cpu", "mapper.rasterizer.native=false"])[1].mapper.trainer.rasterizer
+    portable = build_run(["mapper=gaussian_splatting", "mapper/rasterizer=cpu",
+                          "mapper.rasterizer.native=false"])[1].mapper.trainer.rasterizer
     native = build_run(["mapper=gaussian_splatting", "mapper/rasterizer=cpu"])[1].mapper.trainer.rasterizer
     assert "-march=native" not in portable.library.built_flags
     assert "-march=native" in native.library.built_flags

@@ -13,9 +13,9 @@ import pytest
 from PIL import Image
 
 from slamkit.errors import ConfigError, DataError
-from slamkit.geometry.transforms import make_pose, quat_to_rotmat, so3_exp
 from slamkit.formats.images import read_depth, read_rgb
 from slamkit.formats.tum import interpolate_poses, read_tum_list, read_tum_trajectory
+from slamkit.geometry.transforms import make_pose, quat_to_rotmat
 from slamkit.types import Frame
 from slamkit_plugins.datasets import replica, sevenscenes, tum
 from slamkit_plugins.datasets.replica import ReplicaConfig, ReplicaDataset

@@ -20,8 +20,8 @@ import torch
 import slamkit_plugins.rasterizers.gsplat_rasterizer as gsplat_module
 from slamkit.errors import ConfigError
 from slamkit.registry.compose import compose_run
-from slamkit.run.build import build_run
 from slamkit.registry.discovery import create_rasterizer
+from slamkit.run.build import build_run
 from slamkit.types import Camera
 from slamkit_plugins.rasterizers.cpu_rasterizer import CPURasterizer
 from slamkit_plugins.rasterizers.gsplat_rasterizer import GsplatRasterizer
@@ -71,7 +71,8 @@ def test_unbuildable_extension_fails_at_construction_in_one_line(fake_cuda):
     with pytest.raises(ConfigError) as info:
         create_rasterizer("gsplat")
     message = str(info.value)
-    assert message == f"rasterizer gsplat: its CUDA extension could not be built or loaded (RuntimeError: {BUILD_ERROR})"
+    assert message == ("rasterizer gsplat: its CUDA extension could not be built or loaded "
+                       f"(RuntimeError: {BUILD_ERROR})")
     # remembered: gsplat would retry its whole build at every call
     calls = []
     fake_cuda(fake_gsplat(calls))
@@ -126,7 +127,8 @@ def test_run_config_reaches_gsplat_as_documented(fake_cuda):
     fake_cuda(fake_gsplat(calls))
     dataset, slam, _ = build_run(["dataset.max_frames=2", "mapper=gaussian_splatting", "mapper/rasterizer=gsplat",
                                   "mapper.rasterizer.tile_size=8", "mapping_device=cpu", "iterations_per_frame=2"])
-    assert isinstance(slam.mapper.trainer.rasterizer, GsplatRasterizer) and slam.mapper.trainer.rasterizer.cfg.tile_size == 8
+    rasterizer = slam.mapper.trainer.rasterizer
+    assert isinstance(rasterizer, GsplatRasterizer) and rasterizer.cfg.tile_size == 8
     assert len(calls) == 1  # the probe, at construction
     slam.initialize(dataset[0].gt_pose)
     for i in range(len(dataset)):
@@ -151,7 +153,8 @@ def test_render_returns_the_inputs_dtype_and_passes_the_background(fake_cuda):
     means = torch.tensor([[0.1, 0.0, 2.0], [0.0, 0.2, 3.0]], dtype=torch.float64, requires_grad=True)
     quats = torch.tensor([[1.0, 0, 0, 0]] * 2, dtype=torch.float64)
     out = rast.render(means, quats, torch.full((2, 3), 0.1, dtype=torch.float64), torch.tensor([0.5, 0.7]).double(),
-                      torch.rand(2, 3, dtype=torch.float64), torch.eye(4, dtype=torch.float64), Camera(6, 4, 5.0, 5.0, 2.5, 1.5),
+                      torch.rand(2, 3, dtype=torch.float64), torch.eye(4, dtype=torch.float64),
+                      Camera(6, 4, 5.0, 5.0, 2.5, 1.5),
                       background=torch.tensor([0.1, 0.2, 0.3]))
     assert out.color.shape == (4, 6, 3) and out.depth.shape == out.alpha.shape == (4, 6)
     assert all(t.dtype == torch.float64 for t in (out.color, out.depth, out.alpha))
@@ -164,7 +167,8 @@ def test_render_returns_the_inputs_dtype_and_passes_the_background(fake_cuda):
 @pytest.mark.parametrize("tile_size", [0, 33, 64])
 def test_tile_size_is_bounded(tile_size):
     with pytest.raises(ConfigError, match=r"mapper.rasterizer.tile_size: expected an integer in \[1, 32\]"):
-        compose_run(["mapper=gaussian_splatting", "mapper/rasterizer=gsplat", f"mapper.rasterizer.tile_size={tile_size}"])
+        compose_run(["mapper=gaussian_splatting", "mapper/rasterizer=gsplat",
+                     f"mapper.rasterizer.tile_size={tile_size}"])
     compose_run(["mapper=gaussian_splatting", "mapper/rasterizer=gsplat", "mapper.rasterizer.tile_size=32"])
 
 

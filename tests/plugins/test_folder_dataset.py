@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from slamkit.errors import ConfigError, DataError
-from slamkit.formats.tum import read_tum_trajectory, write_tum_trajectory
+from slamkit.formats.tum import write_tum_trajectory
 from slamkit_plugins.datasets import folder
 from slamkit_plugins.datasets.folder import FolderConfig, FolderDataset
 from slamkit_plugins.datasets.tum import CAMERAS, TUMConfig, TUMDataset

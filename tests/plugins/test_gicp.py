@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from slamkit.config import RunContext
 from slamkit.errors import ConfigError, DataError
 from slamkit.geometry.gaussians import (
     Regularization,
@@ -17,7 +18,6 @@ from slamkit.geometry.gaussians import (
     sym3_eigh,
     sym3_eigvals,
 )
-from slamkit.map.gaussian_map import GaussianMap, GaussianRows
 from slamkit.geometry.transforms import (
     backproject,
     covariance_from_scales,
@@ -30,11 +30,11 @@ from slamkit.geometry.transforms import (
     so3_exp,
     transform_points,
 )
+from slamkit.map.gaussian_map import GaussianMap, GaussianRows
 from slamkit.map.growth import MapGrowthConfig, ScaleAlignment, new_gaussians, scale_alignment_factors
-from slamkit.config import RunContext
 from slamkit.tuning import DatasetTuning
-from slamkit_plugins.trackers.gicp import GICPConfig, GICPTracker, InitialGuess, slamkit_plugins
 from slamkit.types import Camera, Frame
+from slamkit_plugins.trackers.gicp import GICPConfig, GICPTracker, InitialGuess, slamkit_plugins
 
 CAMERA = Camera(160, 120, 120.0, 120.0, 79.5, 59.5)
 
@@ -86,8 +86,10 @@ def test_sym3_eigh_matches_numpy_including_degenerate_cases():
         vals, vecs = sym3_eigh(C)
         np.testing.assert_allclose(vals, np.linalg.eigvalsh(C), atol=1e-13 * max(lam.max(), 1e-300))
         np.testing.assert_allclose(sym3_eigvals(C), np.linalg.eigvalsh(C), atol=1e-13 * max(lam.max(), 1e-300))
-        np.testing.assert_allclose(np.einsum("nik,nk,njk->nij", vecs, vals, vecs), C, atol=1e-13 * max(lam.max(), 1e-300))
-        np.testing.assert_allclose(np.einsum("nki,nkj->nij", vecs, vecs), np.broadcast_to(np.eye(3), (n, 3, 3)), atol=1e-12)
+        np.testing.assert_allclose(np.einsum("nik,nk,njk->nij", vecs, vals, vecs), C,
+                                   atol=1e-13 * max(lam.max(), 1e-300))
+        np.testing.assert_allclose(np.einsum("nki,nkj->nij", vecs, vecs), np.broadcast_to(np.eye(3), (n, 3, 3)),
+                                   atol=1e-12)
 
 
 def test_covariance_round_trip_anisotropic_rotated():
@@ -288,7 +290,8 @@ def map_from_frame(frame: Frame, pose: np.ndarray, stride: int = 2, k: int = 10)
     world = transform_points(pose, pts.astype(np.float64))
     cov = knn_covariances(world, k)
     gmap = GaussianMap()
-    gmap.append(GaussianRows.from_covariances(world, cov, np.full((len(world), 3), 0.5), 0.5, np.ones(len(world), bool), 0))
+    gmap.append(GaussianRows.from_covariances(world, cov, np.full((len(world), 3), 0.5), 0.5,
+                                              np.ones(len(world), bool), 0))
     return gmap
 
 
@@ -364,7 +367,8 @@ def test_gicp_frame_gaussians_read_the_colour_only_when_asked():
 
 def test_gicp_tracks_a_moving_camera_with_map_growth():
     """Frame-to-model over a short synthetic trajectory through the slamkit map growth."""
-    poses = [POSE @ make_pose(so3_exp(np.array([0.0, 0.01 * k, 0.004 * k])), [0.01 * k, 0.0, 0.015 * k]) for k in range(6)]
+    poses = [POSE @ make_pose(so3_exp(np.array([0.0, 0.01 * k, 0.004 * k])), [0.01 * k, 0.0, 0.015 * k])
+             for k in range(6)]
     tracker = GICPTracker(GICPConfig(pixel_stride=2, max_correspondence_distance=0.05, min_target_opacity=0.05,
                                      initial_guess=InitialGuess.constant_velocity))
     tracker.initialize(poses[0])
@@ -510,8 +514,9 @@ def test_fallback_to_previous_pose_after_a_sudden_stop():
     frame = make_frame(POSE)
     gmap = map_from_frame(frame, POSE)
     for fallback in (True, False):
-        tracker = GICPTracker(tight_config(max_correspondence_distance=0.03, initial_guess=InitialGuess.constant_velocity,
-                                          fallback_to_previous=fallback, min_correspondences=4000))
+        tracker = GICPTracker(tight_config(max_correspondence_distance=0.03,
+                                           initial_guess=InitialGuess.constant_velocity,
+                                           fallback_to_previous=fallback, min_correspondences=4000))
         tracker.update_target(gmap)
         tracker.poses = [POSE @ make_pose(so3_exp(np.radians([0, -4.0, 0])), [-0.08, 0, 0]), POSE]
         result = tracker.track(frame)

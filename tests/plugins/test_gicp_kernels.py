@@ -107,7 +107,8 @@ def test_compiled_regularization_equals_the_reference(library, tum_frames):
             scale = np.maximum(np.nanmax(np.abs(ref), axis=(1, 2)), 1e-300)[:, None, None]
             assert np.nanmax(np.abs(got - ref) / scale) <= tolerance
     assert np.array_equal(compiled.regularize(odd, "ellipse", 1e-3)[2], np.eye(3))
-    same = np.all(compiled.regularize(real, "ellipse", 1e-3) == reference.regularize(real, "ellipse", 1e-3), axis=(1, 2))
+    same = np.all(compiled.regularize(real, "ellipse", 1e-3) == reference.regularize(real, "ellipse", 1e-3),
+                  axis=(1, 2))
     assert same.mean() > 0.5
 
 
@@ -272,6 +273,7 @@ def test_compiled_tracking_equals_numpy_tracking_on_real_frames(tum_frames):
     from slamkit.map.growth import MapGrowthConfig
     from slamkit.registry.discovery import default_registry
     from slamkit.run.slam import SLAM
+
     from support.data import TUM
 
     dataset = TUMDataset(TUMConfig(path=str(TUM), max_frames=12))

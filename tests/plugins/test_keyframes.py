@@ -57,7 +57,8 @@ def test_correspondence_ratio_counts_trackable_points_below_threshold():
 
 
 def test_overlap_policy_scripted_sequence():
-    policy = OverlapKeyframePolicy(OverlapKeyframeConfig(overlap_threshold=1e-3, keyframe_threshold=0.8, mapping_every=3))
+    policy = OverlapKeyframePolicy(OverlapKeyframeConfig(overlap_threshold=1e-3, keyframe_threshold=0.8,
+                                                         mapping_every=3))
     ratios = [0.0, 0.95, 0.9, 0.85, 0.82, 0.79, 0.9, 0.9, 0.9, 0.9, 0.5, 0.99]
     expected = [T, N, N, M, N, T, N, N, M, N, T, N]
     got = []
@@ -65,19 +66,22 @@ def test_overlap_policy_scripted_sequence():
         res = result_with_ratio(r)
         decision = policy.decide(frame(i), res)
         got.append(decision.kind)
-        assert decision.correspondence_ratio == pytest.approx(r) and res.correspondence_ratio is None  # not written into
+        # the ratio is the decision's, not written into the tracker's result
+        assert decision.correspondence_ratio == pytest.approx(r) and res.correspondence_ratio is None
     assert got == expected
 
 
 def test_overlap_policy_first_frame_always_tracking_and_mapping_disabled():
-    policy = OverlapKeyframePolicy(OverlapKeyframeConfig(overlap_threshold=1e-3, keyframe_threshold=0.5, mapping_every=0))
+    policy = OverlapKeyframePolicy(OverlapKeyframeConfig(overlap_threshold=1e-3, keyframe_threshold=0.5,
+                                                         mapping_every=0))
     got = [policy.decide(frame(i), result_with_ratio(1.0 if i else 0.99)).kind for i in range(25)]
     assert got == [T] + [N] * 24
 
 
 def test_overlap_policy_counts_lost_frames_by_index():
     """The pipeline skips decide() for lost frames; mapping-only spacing follows frame indices."""
-    policy = OverlapKeyframePolicy(OverlapKeyframeConfig(overlap_threshold=1e-3, keyframe_threshold=0.5, mapping_every=4))
+    policy = OverlapKeyframePolicy(OverlapKeyframeConfig(overlap_threshold=1e-3, keyframe_threshold=0.5,
+                                                         mapping_every=4))
     assert policy.decide(frame(0), result_with_ratio(0.0)).kind is T
     assert policy.decide(frame(1), result_with_ratio(0.9)).kind is N
     # frames 2..4 lost

@@ -9,14 +9,22 @@ import dataclasses
 import numpy as np
 import pytest
 
-from support.data import SEVENSCENES, require_data
 from slamkit.formats.g2o import read_g2o, to_g2o
 from slamkit.geometry import backproject, make_pose, nearest_rotation, se3_exp, so3_exp
 from slamkit.registry import default_registry
-from slamkit.roles.loop_closure import (LoopCheck, LoopKeyframe, PoseGraph, PoseGraphEdge, follow_keyframes,
-                                        pose_difference, relative_pose)
+from slamkit.roles.loop_closure import (
+    LoopCheck,
+    LoopKeyframe,
+    PoseGraph,
+    PoseGraphEdge,
+    follow_keyframes,
+    pose_difference,
+    relative_pose,
+)
 from slamkit_plugins.loop_closures.pose_graph import Backend, PoseGraphConfig, PoseGraphLoopClosure
 from slamkit_plugins.loop_closures.pose_graph.optimisation import optimise, whitened_residuals
+
+from support.data import SEVENSCENES, require_data
 
 BACKENDS = [Backend.gtsam, Backend.open3d]
 

@@ -7,8 +7,8 @@ import pytest
 import torch
 from pytorch_msssim import ssim
 
-from slamkit.splatting.rendering import RenderOutput
 from slamkit.roles import TrainingView
+from slamkit.splatting.rendering import RenderOutput
 from slamkit.types import Camera
 from slamkit_plugins.losses.l1_ssim_depth import L1SSIMDepthConfig, L1SSIMDepthLoss
 

@@ -5,7 +5,6 @@ with it: tests/e2e/test_mapper_runs.py."""
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 
@@ -13,21 +12,32 @@ import numpy as np
 import pytest
 import torch
 
-from support.mapping_scenes import (CAM, N, GroundTruthTracker, add, make_map, make_mapper, plane_scene, pose_x, render_frame, rows, start_map,
-                            state_follows_map)
-from slamkit.run.build import build_run
 from slamkit.errors import ConfigError
+from slamkit.formats.ply import load_ply
 from slamkit.map.gaussian_map import GaussianMap
 from slamkit.map.growth import MapGrowthConfig
-from slamkit.formats.ply import load_ply
 from slamkit.registry.discovery import create_rasterizer
-from slamkit.roles import Tracker
+from slamkit.run.build import build_run
 from slamkit.run.slam import SLAM
-from slamkit.types import Camera, Frame, FrameGaussians, KeyframeKind, TrackingResult
-from slamkit_plugins.keyframes.every_n import EveryNKeyframeConfig, EveryNKeyframePolicy
 from slamkit.splatting.keyframes import resize_rgbd
+from slamkit.types import Camera, Frame, KeyframeKind
+from slamkit_plugins.keyframes.every_n import EveryNKeyframeConfig, EveryNKeyframePolicy
 from slamkit_plugins.mappers.gaussian_splatting import GaussianSplattingConfig
 from slamkit_plugins.samplers.keyframe_samplers import CovisibleSampler
+
+from support.mapping_scenes import (
+    GroundTruthTracker,
+    N,
+    add,
+    make_map,
+    make_mapper,
+    plane_scene,
+    pose_x,
+    render_frame,
+    rows,
+    start_map,
+    state_follows_map,
+)
 
 
 @pytest.fixture(scope="module")
@@ -55,9 +65,9 @@ def test_resize_keeps_depth_validity():
 
 def test_the_mapper_is_composed_of_the_parts_the_config_names(replica_path):
     _, slam, _ = build_run(["dataset=replica", f"dataset.path={replica_path}", "mapper=gaussian_splatting",
-                            "mapper/rasterizer=torch", "mapper/sampler=covisible", "mapper.sampler.top_k=2", "mapper/strategy=3dgs",
-                            "mapper.strategy.densify_every=50", "mapper/optimizer=visible_adam", "mapper.optimizer.lr_colors=0.01",
-                            "mapper.loss.weight_ssim=0.3"])
+                            "mapper/rasterizer=torch", "mapper/sampler=covisible", "mapper.sampler.top_k=2",
+                            "mapper/strategy=3dgs", "mapper.strategy.densify_every=50", "mapper/optimizer=visible_adam",
+                            "mapper.optimizer.lr_colors=0.01", "mapper.loss.weight_ssim=0.3"])
     mapper = slam.mapper
     assert isinstance(mapper.trainer.sampler, CovisibleSampler) and mapper.trainer.sampler.cfg.top_k == 2
     assert type(mapper.trainer.rasterizer).__name__ == "TorchRasterizer"

@@ -4,13 +4,10 @@ bad bags failing in one line. From the command line: tests/e2e/test_rosbag_runs.
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pytest
 
 from slamkit.errors import DataError
-from slamkit.formats.tum import read_tum_trajectory
 from slamkit.registry.discovery import discover
 from slamkit.roles import Dataset
 
@@ -81,7 +78,8 @@ def test_topics_chosen_by_name_and_pairing_tolerance(tmp_path, tum_path):
     ds = RosbagDataset(RosbagConfig(path=str(bag), color_topic="/camera/rgb/image_color",
                                     depth_topic="/camera/depth/image", camera_info_topic="/camera/rgb/camera_info"))
     assert len(ds) == len(_tum(tum_path, max_frames=4))
-    with pytest.raises(DataError, match=r"dataset.depth_topic: /camera/rgb/camera_info is a sensor_msgs/msg/CameraInfo"):
+    with pytest.raises(DataError,
+                       match=r"dataset.depth_topic: /camera/rgb/camera_info is a sensor_msgs/msg/CameraInfo"):
         RosbagDataset(RosbagConfig(path=str(bag), depth_topic="/camera/rgb/camera_info"))
     with pytest.raises(DataError, match=r"none of \d+ colour frames .* within 1e-06 s"):
         RosbagDataset(RosbagConfig(path=str(bag), sync_tolerance=1e-6))

@@ -7,10 +7,14 @@ import math
 import numpy as np
 import pytest
 
-from slamkit.run.build import build_run
 from slamkit.errors import ConfigError
-from slamkit_plugins.samplers.keyframe_samplers import (CovisibleSampler, CovisibleSamplerConfig, RandomSampler,
-                                                        RecentSampler)
+from slamkit.run.build import build_run
+from slamkit_plugins.samplers.keyframe_samplers import (
+    CovisibleSampler,
+    CovisibleSamplerConfig,
+    RandomSampler,
+    RecentSampler,
+)
 
 
 def look(yaw_deg: float, x: float = 0.0, z: float = 0.0) -> np.ndarray:

@@ -8,12 +8,23 @@ import math
 import pytest
 import torch
 
-from support.mapping_scenes import N, add, make_map, make_mapper, plane_scene, pose_x, render_frame, start_map, state_follows_map
 from slamkit.errors import ConfigError
 from slamkit.registry.discovery import create_rasterizer
 from slamkit.splatting import AdmissionConfig
 from slamkit.tuning import DatasetTuning
 from slamkit_plugins.strategies.densify_3dgs import Densify3DGSConfig
+
+from support.mapping_scenes import (
+    N,
+    add,
+    make_map,
+    make_mapper,
+    plane_scene,
+    pose_x,
+    render_frame,
+    start_map,
+    state_follows_map,
+)
 
 
 @pytest.fixture(scope="module")

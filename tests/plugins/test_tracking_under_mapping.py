@@ -9,16 +9,15 @@ ATE over four start frames on this sequence (docs/tracking_under_mapping.md)."""
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pytest
 import torch
 
-from support.data import TUM, require_data
-from support.mapping_scenes import plane_scene
 from slamkit.map.gaussian_map import GaussianMap, GaussianRows
 from slamkit.run.build import build_run
+
+from support.data import TUM, require_data
+from support.mapping_scenes import plane_scene
 
 FRAMES = 16
 

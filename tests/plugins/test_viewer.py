@@ -4,15 +4,12 @@ the mapper's render for viewers. Through the command (`viewer=rerun` recording a
 
 from __future__ import annotations
 
-import json
 import sys
-from collections import Counter
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-import yaml
 
 from slamkit.config import RunContext
 from slamkit.errors import ConfigError
@@ -59,7 +56,8 @@ def _small_map(n: int) -> GaussianMap:
     rng = np.random.default_rng(0)
     means = np.column_stack([rng.uniform(-0.3, 0.3, (n, 2)), rng.uniform(1.5, 2.5, n)])
     quats = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
-    gm.append(GaussianRows.from_shapes(means, quats, np.full((n, 3), 0.05), rng.uniform(0, 1, (n, 3)), 0.8, np.ones(n, bool), 0))
+    gm.append(GaussianRows.from_shapes(means, quats, np.full((n, 3), 0.05), rng.uniform(0, 1, (n, 3)), 0.8,
+                                       np.ones(n, bool), 0))
     return gm
 
 

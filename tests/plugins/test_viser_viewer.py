@@ -8,7 +8,6 @@ import asyncio
 import json
 import time
 import urllib.request
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,7 +18,6 @@ from slamkit.map.gaussian_map import GaussianMap, GaussianRows
 from slamkit.registry.discovery import discover
 from slamkit.roles import Viewer, ViewerFrame
 from slamkit.types import Camera, Frame, KeyframeKind
-
 
 viser = pytest.importorskip("viser", reason="viser is the optional extra `web` (in `test`)")
 

@@ -10,8 +10,8 @@ import torch
 from slamkit.config import RunContext
 from slamkit.map.gaussian_map import GaussianMap, GaussianRows
 from slamkit.registry.discovery import default_registry
-from slamkit.tuning import DatasetTuning
 from slamkit.roles import Tracker
+from slamkit.tuning import DatasetTuning
 from slamkit.types import Camera, Frame, FrameGaussians, KeyframeKind, TrackingResult
 
 CAM = Camera(40, 30, 30.0, 30.0, 19.5, 14.5)

@@ -66,7 +66,8 @@ def _camera_info(typestore, t, w: int, h: int, ros1: bool, k=FR1_K):
     CameraInfo = typestore.types["sensor_msgs/msg/CameraInfo"]
     RegionOfInterest = typestore.types["sensor_msgs/msg/RegionOfInterest"]
     roi = RegionOfInterest(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
-    d, k_, r, p = np.zeros(5), np.array(k, float), np.eye(3).ravel(), np.c_[np.array(k).reshape(3, 3), np.zeros(3)].ravel()
+    d, k_, r = np.zeros(5), np.array(k, float), np.eye(3).ravel()
+    p = np.c_[np.array(k).reshape(3, 3), np.zeros(3)].ravel()
     fields = dict(header=_header(typestore, t, "camera", ros1), height=h, width=w, distortion_model="plumb_bob",
                   binning_x=0, binning_y=0, roi=roi)
     if ros1:
@@ -95,7 +96,8 @@ def depth_message(typestore, t, path: Path, depth: str, ros1: bool, size=None):
     assert depth == "compressedDepth"
     png = _encode(Image.fromarray(raw), "PNG")
     header = struct.pack("<iff", 0, 0.0, 0.0)
-    return "sensor_msgs/msg/CompressedImage", _compressed(typestore, t, header + png, "16UC1; compressedDepth png", ros1)
+    message = _compressed(typestore, t, header + png, "16UC1; compressedDepth png", ros1)
+    return "sensor_msgs/msg/CompressedImage", message
 
 
 def write_tum_bag(tum: Path, out: Path, n: int, storage: str = "ros1", color: str = "rgb8", depth: str = "16UC1",
@@ -115,8 +117,8 @@ def write_tum_bag(tum: Path, out: Path, n: int, storage: str = "ros1", color: st
         messages += [(t, "/camera/depth/image", *depth_message(typestore, t, p, depth, ros1, depth_size))
                      for t, p in depths]
     if camera_info:
-        messages += [(t, "/camera/rgb/camera_info", "sensor_msgs/msg/CameraInfo", _camera_info(typestore, t, w, h, ros1))
-                     for t, _ in colors]
+        messages += [(t, "/camera/rgb/camera_info", "sensor_msgs/msg/CameraInfo",
+                      _camera_info(typestore, t, w, h, ros1)) for t, _ in colors]
     messages.sort(key=lambda m: (m[0], m[1]))
     if ros1:
         from rosbags.rosbag1 import Writer
