@@ -51,16 +51,10 @@ from slamkit.geometry import invert_pose, nearest_rotation, se3_exp, transform_p
 from slamkit.geometry.registration import import_open3d
 from slamkit.metrics.trajectory import ate
 from slamkit.registry.compose import compose_run
-from slamkit.registry.discovery import default_registry
-from slamkit.roles.loop_closure import (
-    LoopKeyframe,
-    PoseGraph,
-    PoseGraphEdge,
-    follow_keyframes,
-    pose_difference,
-    relative_pose,
-)
 from slamkit.run.build import build_run
+from slamkit.registry.discovery import default_registry
+from slamkit.roles.loop_closure import (LoopKeyframe, PoseGraph, PoseGraphEdge, follow_keyframes, pose_difference,
+                                        relative_pose)
 from slamkit_plugins.loop_closures.pose_graph import closure as pose_graph_closure
 from slamkit_plugins.loop_closures.pose_graph import optimisation, verification
 
@@ -146,8 +140,7 @@ def track(dataset: str, path: Path, max_frames: int | None = None, extra: tuple[
             keep = np.asarray(g.trackable, dtype=bool)
             R = world_to_camera[:3, :3]
             kf_frames.append(i)
-            means = np.asarray(g.means, dtype=np.float64)[keep]
-            points.append(transform_points(world_to_camera, means).astype(np.float32))
+            points.append(transform_points(world_to_camera, np.asarray(g.means, dtype=np.float64)[keep]).astype(np.float32))
             covariances.append((R @ np.asarray(g.covariances, dtype=np.float64)[keep] @ R.T).astype(np.float32))
             images.append(block_average(np.asarray(frame.rgb), IMAGE_BLOCK))
     return TrackedSequence(np.array(poses), np.array(gts), np.array(kf_frames), points, covariances, images, overrides)
@@ -254,8 +247,7 @@ def agreement(seq: TrackedSequence, gt: np.ndarray, measure, pairs: list[tuple[i
         odometry = relative_pose(seq.poses[kf[m]], seq.poses[kf[q]])
         truth = relative_pose(gt[kf[m]], gt[kf[q]])
         gicp = measure(q, m, odometry)
-        rows.append([*pose_difference(odometry, truth), *pose_difference(gicp, truth),
-                     *pose_difference(odometry, gicp)])
+        rows.append([*pose_difference(odometry, truth), *pose_difference(gicp, truth), *pose_difference(odometry, gicp)])
     median = np.median(np.array(rows), axis=0) if rows else [None] * 6
     names = ("odometry_vs_gt_m", "odometry_vs_gt_deg", "gicp_vs_gt_m", "gicp_vs_gt_deg", "odometry_vs_gicp_m",
              "odometry_vs_gicp_deg")

@@ -21,8 +21,8 @@ import time
 import numpy as np
 
 from slamkit.geometry.gaussians import Regularization, rotate_covariances
-from slamkit.geometry.transforms import backproject, invert_pose
 from slamkit.map.gaussian_map import GaussianMap
+from slamkit.geometry.transforms import backproject, invert_pose
 from slamkit.roles import RunContext, Tracker, require
 from slamkit.types import Frame, FrameGaussians, TrackingResult
 from slamkit_plugins.trackers.gicp.alignment import Aligner, new_stats, orthonormalize
@@ -41,8 +41,7 @@ class GICPTracker(Tracker):
     def __init__(self, cfg: GICPConfig, context: RunContext = RunContext()):
         self.cfg = cfg
         for name in ("pixel_stride", "max_correspondence_distance"):
-            require(getattr(cfg, name) is not None, f"tracker.{name}",
-                    "a value (GICPConfig.resolve fills it from the dataset)", None)
+            require(getattr(cfg, name) is not None, f"tracker.{name}", "a value (GICPConfig.resolve fills it from the dataset)", None)
         self.pixel_stride = int(cfg.pixel_stride)
         self.max_corr = float(cfg.max_correspondence_distance)
         self.min_opacity = float(cfg.min_target_opacity)
