@@ -1,6 +1,9 @@
 # Two commands do everything on a fresh machine (Python >= 3.10 with venv):
 #   make run    set up .venv and run the default job (built-in synthetic sequence)
-#   make test   set up .venv (with test extras) and run the test suite
+#   make test   set up .venv (with test extras), lint with ruff and run the test suite
+# and the quick loop while working:
+#   make test-fast   the same set-up, then only the tests not marked slow (tests/core and
+#                    tests/plugins: no console script, no process; tests/README.md)
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
@@ -18,13 +21,17 @@ export SLAMKIT_CACHE ?= $(CURDIR)/.cache/slamkit
 MESH_DEBS ?= libusb-1.0-0 libgl1 libx11-6 libudev1 libgomp1
 TEST_DEBS ?= clang
 
-.PHONY: run test setup setup-test system-libs clean gpu-wheels gpu-data
+.PHONY: run test test-fast setup setup-test system-libs clean gpu-wheels gpu-data
 
 run: setup
 	$(VENV)/bin/slamkit $(ARGS)
 
 test: setup-test
+	$(PY) -m ruff check .
 	$(PY) -m pytest $(PYTEST_ARGS)
+
+test-fast: setup-test
+	$(PY) -m pytest -m "not slow" $(PYTEST_ARGS)
 
 setup: $(VENV)/.installed
 setup-test: system-libs $(VENV)/.installed-test
