@@ -127,9 +127,9 @@ run_steps() {
 
   if [ -n "$NO_GSPLAT" ]; then
     say "gsplat's extension is not ready: the gsplat tests and timings are left out"
-    step cuda-tests 150 bash -c "set -o pipefail; \"$PY\" -m pytest -m cuda -q -k 'not gsplat' tests/test_cuda.py 2>&1 | tee \"$OUT_DIR/pytest_cuda.log\""
+    step cuda-tests 150 bash -c "set -o pipefail; \"$PY\" -m pytest -m cuda -q -k 'not gsplat' tests/e2e/test_cuda.py 2>&1 | tee \"$OUT_DIR/pytest_cuda.log\""
   else
-    step cuda-tests 150 bash -c "set -o pipefail; \"$PY\" -m pytest -m cuda -q tests/test_cuda.py 2>&1 | tee \"$OUT_DIR/pytest_cuda.log\""
+    step cuda-tests 150 bash -c "set -o pipefail; \"$PY\" -m pytest -m cuda -q tests/e2e/test_cuda.py 2>&1 | tee \"$OUT_DIR/pytest_cuda.log\""
   fi
 
   BENCH=("$PY" benchmarks/gpu_bench.py --out "$OUT_DIR" --data "$DATA")

@@ -6,7 +6,7 @@ tree and the paths named in `carry`, never ../shared, and all of it within 64 Mi
     python benchmarks/gpu_data.py --tum-frames 40 --replica-frames 10
 
 The sub-folders keep the shared folder's names, so that SLAMKIT_DATA=.gpudata stands in for
-../shared/data (tests/conftest.py, benchmarks/gpu_bench.py); each holds fewer frames (a NOTE.txt
+../shared/data (tests/support/data.py, benchmarks/gpu_bench.py); each holds fewer frames (a NOTE.txt
 says how many). TUM: rgb.txt and depth.txt keep their header and the selected lines,
 groundtruth.txt is copied whole. Replica: frames, depths and traj.txt lines 0..N-1. Files are
 copied byte for byte. Prints each folder's size and what would travel in all (the tracked tree,

@@ -367,7 +367,7 @@ def print_table(rows: list[dict]) -> None:
 
 
 def square_drift() -> list[dict]:
-    """The backends on tests/test_loop_closure.py's synthetic square (20 keyframes, 0.3 degrees
+    """The backends on tests/plugins/test_loop_closure.py's synthetic square (20 keyframes, 0.3 degrees
     and 4 mm of drift on every odometry edge, one exact loop): the worst position error before
     and after optimising, per backend."""
     import sys

@@ -4,7 +4,7 @@ synchronisation before and after each phase, so that a phase is charged with the
 launched rather than with the launches alone (CUDA kernels run asynchronously: without it, the
 render's time shows up in whichever later phase first waits for a result).
 
-Used by benchmarks/gpu_bench.py and tests/test_cuda.py:
+Used by benchmarks/gpu_bench.py and tests/e2e/test_cuda.py:
 
     timer = time_steps(slam.mapper, 10, torch.cuda.synchronize)   # the mapper's own steps
     timer.per_step_ms()   # {"view": ..., "render": ..., ..., "step": ...}

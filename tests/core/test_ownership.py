@@ -1,6 +1,6 @@
 """A run folder belongs to one run (slamkit.run.ownership) and the standard streams never stop a
 command (slamkit.cli.streams), through their public functions; the commands themselves are
-exercised by the fault suite (tests/test_faults.py)."""
+exercised by the fault suite (tests/e2e/test_faults.py)."""
 
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """Property-based tests of the file parsers (TUM lists and trajectories, Replica and 7-Scenes
 files, 3DGS PLY headers, folder-dataset intrinsics files): any input gives either a valid result
 or slamkit's own one-line DataError naming the file (never another exception). Part of the
-fault suite of issue 19 (tests/test_faults.py); each test tries SETTINGS.max_examples inputs."""
+fault suite of issue 19 (tests/e2e/test_faults.py); each test tries SETTINGS.max_examples inputs."""
 
 from __future__ import annotations
 

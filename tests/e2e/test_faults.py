@@ -795,7 +795,7 @@ def _numeric_keys():
     cases = []
     for section, key, type_, _ in reference_keys():
         if section == "mapper/rasterizer=gsplat":
-            continue  # needs CUDA to build; its config is checked in tests/test_fake_cuda.py
+            continue  # needs CUDA to build; its config is checked in tests/plugins/test_fake_cuda.py
         base = [section] if "=" in section else []
         if section.startswith("mapper/"):
             base.insert(0, "mapper=gaussian_splatting")

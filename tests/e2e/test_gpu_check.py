@@ -71,7 +71,7 @@ def test_dry_run_prints_every_step_and_touches_nothing(tmp_path):
     assert "--no-index --no-deps --no-build-isolation -e" in step("install-slamkit")
     assert "benchmarks/build_gsplat.py" in step("build-gsplat")
     assert "TORCH_EXTENSIONS_DIR=" + str(REPO / ".cache" / "torch_extensions") in text
-    assert "-m pytest -m cuda" in step("cuda-tests") and "tests/test_cuda.py" in step("cuda-tests")
+    assert "-m pytest -m cuda" in step("cuda-tests") and "tests/e2e/test_cuda.py" in step("cuda-tests")
     for stage in ("tracking", "phases", "realtime"):
         command = step(f"time-{stage}")
         assert f"gpu_bench.py --out {tmp_path / 'out'}" in command and command.endswith(stage)

@@ -1,5 +1,5 @@
 // Runs slamkit/csrc/slk_vec16.h's operations on fixed inputs and prints each result lane by lane,
-// one "name: values" line each, as hexadecimal floats (exact; tests/test_native_variants.py
+// one "name: values" line each, as hexadecimal floats (exact; tests/e2e/test_native_variants.py
 // compares them with numpy).
 #include <cstdio>
 

@@ -1,5 +1,5 @@
 """The G-ICP tracker's hot loops, in numpy (the reference) and compiled (csrc/gicp_kernels.cpp),
-giving the same results (tests/test_gicp_kernels.py checks them against each other):
+giving the same results (tests/plugins/test_gicp_kernels.py checks them against each other):
 
 - `frame_covariances`: each back-projected point's k-NN covariance; the compiled version searches
   a window of the pixel grid and proves the result exact by a projection bound, else searches

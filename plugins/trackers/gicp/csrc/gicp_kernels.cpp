@@ -15,7 +15,7 @@
 //   the cost of a trial pose with the same correspondences and weights.
 //
 // The numpy code in slamkit/gaussian_geometry.py and plugins/trackers/gicp.py is the reference;
-// tests/test_gicp_kernels.py checks that both agree.
+// tests/plugins/test_gicp_kernels.py checks that both agree.
 
 #include <algorithm>
 #include <cmath>
