@@ -46,8 +46,9 @@ class GICPConfig(PluginConfig):
     rotation_tolerance, translation_tolerance: converged when every |dR - I| entry and every
       |dt| entry (metres) of the last update is below these.
     min_target_opacity: map Gaussians at or below this opacity are not aligned to (0: every
-      trackable Gaussian pruning left; the reference code used 0.09 TUM / 0.05 Replica with the
-      optimised geometry, new Gaussians entering at 0.1).
+      trackable Gaussian pruning left; null: the dataset's `DatasetTuning.target_min_opacity`,
+      the reference code's 0.09 TUM / 0.05 Replica with the optimised geometry, new Gaussians
+      entering at 0.1).
     target_geometry: entry | optimised: the target takes the trackable Gaussians' means and
       shapes as they entered the map (the default), or as the mapper has optimised them (the
       reference code). The mapper reshapes and turns these 1-3 mm Gaussians for rendering (TUM
@@ -84,7 +85,7 @@ class GICPConfig(PluginConfig):
     max_iterations: int = 64
     rotation_tolerance: float = 2e-3
     translation_tolerance: float = 5e-4
-    min_target_opacity: float = 0.0
+    min_target_opacity: float | None = 0.0
     target_geometry: TargetGeometry = TargetGeometry.entry
     initial_guess: InitialGuess = InitialGuess.constant_velocity
     min_points: int = 100
@@ -112,8 +113,8 @@ class GICPConfig(PluginConfig):
         require(self.rotation_tolerance > 0, "tracker.rotation_tolerance", "> 0", self.rotation_tolerance)
         require(self.translation_tolerance > 0,
                 "tracker.translation_tolerance", "> 0 metres", self.translation_tolerance)
-        require(0 <= self.min_target_opacity < 1, "tracker.min_target_opacity", "in [0, 1)",
-                self.min_target_opacity)
+        require(self.min_target_opacity is None or 0 <= self.min_target_opacity < 1, "tracker.min_target_opacity",
+                "null or in [0, 1)", self.min_target_opacity)
         require(self.min_points >= 1, "tracker.min_points", "an integer >= 1", self.min_points)
         require(self.min_correspondences >= 6,
                 "tracker.min_correspondences", "an integer >= 6", self.min_correspondences)
@@ -128,4 +129,5 @@ class GICPConfig(PluginConfig):
         tuning = context.tuning
         return self.fill_nulls(pixel_stride=tuning.tracking_pixel_stride,
                                max_correspondence_distance=tuning.correspondence_distance,
+                               min_target_opacity=tuning.target_min_opacity,
                                num_threads=context.tracking_threads)
