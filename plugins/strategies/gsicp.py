@@ -1,6 +1,6 @@
 """`strategy=gsicp`: GS-ICP SLAM's map upkeep (paper Sec. 3.2, Table 8b): no densification
 (keyframes add the Gaussians), only pruning: every `prune_every` training steps and after the
-last one, the Gaussians that are nearly transparent, larger than the scene allows, or have a
+last one (`prune_at_finish`; the reference code stops without it), the Gaussians that are nearly transparent, larger than the scene allows, or have a
 non-finite parameter are removed."""
 
 from __future__ import annotations
@@ -19,11 +19,13 @@ class PruneConfig(StrategyConfig):
     """prune_every: training steps between prunings (0 = never). prune_min_opacity: prune
     Gaussians less opaque than this. max_scale: metres; prune Gaussians whose largest standard
     deviation exceeds it (null = the dataset's `DatasetTuning.max_gaussian_scale`: 0.25 Replica,
-    1.0 TUM)."""
+    1.0 TUM). prune_at_finish: prune once more after the last training step (when pruning is on;
+    the reference code does not)."""
 
     prune_every: int = 200
     prune_min_opacity: float = 0.005
     max_scale: float | None = None
+    prune_at_finish: bool = True
 
     def validate(self) -> None:
         super().validate()
@@ -62,7 +64,7 @@ class PruneStrategy(Strategy):
             self.prune(edit)
 
     def finish(self, edit: MapEdit) -> None:
-        if self.cfg.prune_every:
+        if self.cfg.prune_every and self.cfg.prune_at_finish:
             self.prune(edit)
 
 
