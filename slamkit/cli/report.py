@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from slamkit.cli import paper_tables
 from slamkit.errors import DataError, SlamkitError
 from slamkit.formats.atomic import atomic_open, write_atomic
 from slamkit.formats.plots import save_figure
@@ -226,6 +227,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=None, help="where to write (default: the first DIR)")
     parser.add_argument("--include-unfinished", action="store_true",
                         help="aggregate interrupted, failed and running runs with the completed ones")
+    parser.add_argument("--paper", choices=paper_tables.NAMES, default=None, metavar="TABLE",
+                        help="also print the runs as the paper's TABLE with its figures beside ours, into "
+                             f"paper_TABLE.md ({', '.join(paper_tables.NAMES)})")
     args = parser.parse_args(argv)
     try:
         runs = [load_run(r) for r in find_runs(args.dirs)]
@@ -238,6 +242,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"slamkit-report: error: {exc}", file=sys.stderr)
         return 2
     print((out / "report.md").read_text(), end="")
+    if args.paper:
+        paper_tables.report(args.paper, runs, out)
     counts = ", ".join(f"{sum(r['status'] == s for r in runs)} {s}" for s in (*STATUSES, "unreadable")
                        if any(r["status"] == s for r in runs))
     print(f"slamkit-report: {len(runs)} runs ({counts}), {len(rows)} rows; wrote report.csv, report.md and plots "
