@@ -137,7 +137,7 @@ class SLAM:
             with self.boundary(key, "load_state_dict"):
                 plugin.load_state_dict(states.get(key, {}))
 
-    def grow_map(self, frame: Frame, result: TrackingResult, kind: KeyframeKind = KeyframeKind.TRACKING) -> slice:
+    def grow_map(self, frame: Frame, result: TrackingResult, kind: KeyframeKind) -> slice:
         """The keyframe's Gaussians (scale-aligned, paper Sec. 3.1) that the mapper admits enter
         the map (a mapping-only keyframe's trackable or not: `growth.mapping_only_trackable`);
         returns the rows they occupy."""

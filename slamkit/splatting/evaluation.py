@@ -10,6 +10,7 @@ ground-truth images go into the run folder (written atomically).
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from pathlib import Path
@@ -19,11 +20,13 @@ import numpy as np
 import torch
 
 from slamkit.metrics import images as image_metrics
-from slamkit.metrics.lpips import LPIPS
+from slamkit.metrics.lpips import LPIPS, min_image_side
 from slamkit.map.gaussian_map import GaussianMap
 from slamkit.splatting.rendering import RenderOutput
 from slamkit.types import Camera
 from slamkit.splatting.keyframes import resize_rgbd
+
+log = logging.getLogger(__name__)
 
 
 def evaluate_renders(render: Callable[[np.ndarray, Camera], RenderOutput], gaussian_map: GaussianMap, dataset,
@@ -36,6 +39,11 @@ def evaluate_renders(render: Callable[[np.ndarray, Camera], RenderOutput], gauss
     render | ground-truth images into `out_dir` (when given)."""
     n = min(len(dataset), len(poses))
     indices = list(range(0, n, every))
+    camera = dataset.camera if scale == 1.0 else dataset.camera.scaled(scale)
+    if lpips is not None and min(camera.width, camera.height) < min_image_side():
+        log.warning("evaluation renders at %g of the frame size are below LPIPS's %d pixels a side: LPIPS is null",
+                    scale, min_image_side())
+        lpips = None
     n_img = min(save_images, len(indices))
     save_at = set(np.linspace(0, len(indices) - 1, n_img).round().astype(int).tolist()) if n_img else set()
     rows: dict[str, list[tuple[float, float, float]]] = {"all": [], "train": [], "test": []}
