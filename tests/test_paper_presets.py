@@ -57,7 +57,7 @@ def test_the_default_preset_is_slamkits_defaults_and_a_later_override_wins(repli
     default, names = effective_settings(["dataset=replica", f"dataset.path={replica_path}"])
     assert default["preset"] == "slamkit" and names["mapper"] == "none"
     assert (default["mode"], default["tracker.target_geometry"], default["growth.mapping_only_trackable"]) == (
-        "sequential", "entry", True)
+        "sequential", "entry", False)
     paper, _ = effective_settings(["preset=paper", "tracker.target_geometry=entry", "mode=sequential",
                                    "dataset=replica", f"dataset.path={replica_path}"])
     assert (paper["tracker.target_geometry"], paper["mode"], paper["refinement_steps"]) == ("entry", "sequential", 0)

@@ -28,6 +28,10 @@ was built (mapping-only keyframes'), which it lacks. Measured against the target
 keyframe revisiting a mapping-only keyframe's view made its Gaussians trackable again, and
 trackable Gaussians enter whatever the coverage test says: looped Replica room0 in real time
 grew by ~5,700 Gaussians a mapping-only keyframe, to 180k for 20 frames (docs/results.md).
+A mapping-only keyframe's Gaussians are never trackable (`mapping_only_trackable` false, the
+paper's Sec. 3.3: they enter the map for rendering, not the tracking target), which measured as
+good or better than making them trackable (docs/paper.md, "Differences"); `untargeted` then
+matters only with `mapping_only_trackable=true`.
 
 `new_gaussians` makes a keyframe's candidate rows; which of them enter the map is the mapper's
 decision (`Mapper.admit`, in `slamkit.run.slam.SLAM`).
@@ -83,8 +87,8 @@ class MapGrowthConfig(PluginConfig):
     scale_p: float = 1.5
     initial_opacity: float = 0.1
     new_gaussian_overlap: float | None = None
-    #: a mapping-only keyframe's Gaussians may become trackable (false: never, the paper's Sec. 3.3; docs/paper.md)
-    mapping_only_trackable: bool = True
+    #: a mapping-only keyframe's Gaussians may become trackable (false: never, as the paper's Sec. 3.3; docs/paper.md)
+    mapping_only_trackable: bool = False
 
     def validate(self) -> None:
         require(self.scale_c > 0, "growth.scale_c", "> 0", self.scale_c)
