@@ -169,3 +169,25 @@ def test_the_mappers_evaluation_scores_with_the_runs_lpips_and_psnr_pixels(tum_p
     # over every pixel, those without depth zeroed in both: the MSE shrinks by the valid fraction
     assert scores["all"]["psnr"] - scores["valid"]["psnr"] == pytest.approx(-10 * math.log10(valid_fraction), abs=1e-3)
     assert 0 < scores["all"]["lpips"] == scores["valid"]["lpips"] < 2 and scores["all"]["lpips_train"] is not None
+
+
+def test_renders_too_small_for_lpips_record_it_as_null_instead_of_failing(tum_path, caplog):
+    from slamkit.metrics.lpips import min_image_side
+    from slamkit.splatting.evaluation import evaluate_renders
+    from slamkit.splatting.rendering import RenderOutput
+
+    dataset, slam, _ = build_run(["dataset=tum", f"dataset.path={tum_path}", "dataset.max_frames=1"])
+    frames = [dataset[0]]
+
+    def render(pose, camera):
+        return RenderOutput(color=torch.zeros(camera.height, camera.width, 3), depth=torch.ones(camera.height, camera.width),
+                            alpha=torch.ones(camera.height, camera.width))
+
+    def never(*args):
+        raise AssertionError("LPIPS called on an image smaller than its network takes")
+
+    scale = (min_image_side() - 1) / frames[0].camera.height  # one pixel short
+    with caplog.at_level("WARNING"):
+        metrics = evaluate_renders(render, slam.gaussian_map, frames, [frames[0].gt_pose], set(), scale=scale, lpips=never)
+    assert metrics["lpips"] is None and isinstance(metrics["psnr"], float)
+    assert "LPIPS is null" in caplog.text

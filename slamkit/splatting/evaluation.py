@@ -39,8 +39,9 @@ def evaluate_renders(render: Callable[[np.ndarray, Camera], RenderOutput], gauss
     render | ground-truth images into `out_dir` (when given)."""
     n = min(len(dataset), len(poses))
     indices = list(range(0, n, every))
-    camera = dataset.camera if scale == 1.0 else dataset.camera.scaled(scale)
-    if lpips is not None and min(camera.width, camera.height) < min_image_side():
+    camera = dataset[indices[0]].camera if lpips is not None and indices else None
+    camera = camera.scaled(scale) if camera is not None and scale != 1.0 else camera
+    if camera is not None and min(camera.width, camera.height) < min_image_side():
         log.warning("evaluation renders at %g of the frame size are below LPIPS's %d pixels a side: LPIPS is null",
                     scale, min_image_side())
         lpips = None
