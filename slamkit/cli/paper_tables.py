@@ -178,8 +178,10 @@ def paper_table(name: str, runs: list[dict[str, Any]]) -> str:
         lines.append("| " + " | ".join(cells) + " |")
     if not ranked:
         lines.append("(no completed run)")
-    notes = ["the paper's ATE is the reference code's mean error after alignment: beside our ate_mean_m"]
-    lines += ["", "; ".join(notes + ([table.note] if table.note else [])) + "."]
+    notes = ["the paper's ATE is the reference code's mean error after alignment: beside our ate_mean_m"
+             ] if ATE in table.metrics else []
+    notes += [table.note] if table.note else []
+    lines += ["", "; ".join(notes) + "."] if notes else []
     return "\n".join(lines) + "\n"
 
 
