@@ -37,6 +37,7 @@ EXPLICIT = {
     "dataset.camera_info_topic": "/camera/rgb/camera_info", "dataset.groundtruth": "{data}/groundtruth.txt",
     "objective.metric": "psnr", "viewer.host": "0.0.0.0", "viewer.map_as": "ellipsoids",
     "preset": "paper", "data_root": "{tmp}", "scene": "room0",  # preset: a config group option that sets the key
+    "eval.lpips_backbone": "{tmp}/alexnet-owt-7be5be79.pth",
 }
 #: Top-level sections of keys that are not a role's (section -> the RunConfig field holding them).
 TOP_SECTIONS = ("growth", "eval", "objective", "checkpoint", "localize")
