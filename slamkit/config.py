@@ -27,6 +27,18 @@ C = TypeVar("C", bound="PluginConfig")
 
 
 @dataclass(frozen=True)
+class RenderScoring:
+    """How a mapper scores its renders against the sequence (the run's `eval.*`)."""
+
+    #: auto | on | off: LPIPS (auto: where its weights are, else null, said once; on: one-line error without)
+    lpips: str = "auto"
+    #: torchvision's AlexNet weights file for LPIPS (None: torch's hub cache)
+    lpips_backbone: str | None = None
+    #: valid | all: PSNR over the pixels with observed depth, or over every pixel, the others zeroed in both images
+    psnr_pixels: str = "valid"
+
+
+@dataclass(frozen=True)
 class RunContext:
     """What a run tells every plugin it builds, once, at construction."""
 
@@ -42,6 +54,8 @@ class RunContext:
     gaussian_map: Any = None
     #: build(role, name): another plugin of this run's registry, with its default config
     build: Callable[[str, str], Any] | None = None
+    #: how rendered views are scored (the run's eval.lpips, eval.lpips_backbone, eval.psnr_pixels)
+    scoring: RenderScoring = RenderScoring()
 
 
 @dataclass

@@ -29,3 +29,5 @@ class DatasetTuning:
     keyframe_overlap: float = 1e-3
     #: a tracking keyframe when the overlapping fraction drops below this (0.81 TUM, 0.7 Replica)
     keyframe_threshold: float = 0.81
+    #: the reference code's tracking target holds map Gaussians more opaque than this (0.09 TUM, 0.05 Replica)
+    target_min_opacity: float = 0.09

@@ -69,7 +69,8 @@ class ReplicaDataset(Dataset):
     # rendered, noiseless depth of 1200x680 frames: the reference code's Replica settings
     default_tuning = DatasetTuning(depth_trunc=12.0, max_gaussian_scale=0.25,
                                    tracking_pixel_stride=10, correspondence_distance=0.02,
-                                   new_gaussian_overlap=5e-5, keyframe_overlap=5e-4, keyframe_threshold=0.7)
+                                   new_gaussian_overlap=5e-5, keyframe_overlap=5e-4, keyframe_threshold=0.7,
+                                   target_min_opacity=0.05)
 
     def __init__(self, cfg: ReplicaConfig, context: RunContext = RunContext()):
         super().__init__(cfg)

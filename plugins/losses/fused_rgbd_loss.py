@@ -72,15 +72,20 @@ def check_inputs(color: torch.Tensor, depth: torch.Tensor, image: torch.Tensor, 
 
 def torch_rgbd_loss(color: torch.Tensor, depth: torch.Tensor, image: torch.Tensor, observed_depth: torch.Tensor,
                     w_l1: float = 0.8, w_ssim: float = 0.2, w_depth: float = 0.1, depth_unit: float = 10.0,
-                    num_threads: int = 1) -> torch.Tensor:
+                    num_threads: int = 1, all_pixels: bool = False) -> torch.Tensor:
     """The reference (and fallback): the loss in torch, differentiable by autograd, in the
     inputs' floating dtype. color, image (H,W,3) in [0, 1]; depth, observed_depth (H,W) in
     metres (observed 0 = no measurement); depth_unit in metres. num_threads is unused (torch's
-    own threads apply); it is here so that both functions take the same arguments."""
+    own threads apply); it is here so that both functions take the same arguments.
+    all_pixels: every pixel counts in every term, a pixel without observed depth with the
+    observed colour set to 0 there and its depth compared with 0 (GS-ICP SLAM's reference code;
+    the compiled kernel computes only the default)."""
     check_inputs(color, depth, image, observed_depth)
     mask = observed_depth > 0
     has_depth = bool(mask.any())
-    if not has_depth:
+    if all_pixels:
+        image = image * mask[..., None].to(image.dtype)
+    if all_pixels or not has_depth:
         mask = torch.ones_like(mask)
     m = mask.to(color.dtype)
     n = m.sum()

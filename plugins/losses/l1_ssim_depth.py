@@ -3,10 +3,12 @@
     loss = w_l1 L1(colour) + w_ssim (1 - SSIM(colour)) + w_depth L1(depth / 10 m)
 
 over the pixels with valid observed depth (all pixels for the colour terms when none has
-depth; no depth term then). L1 terms are means over those pixels (and the 3 channels); SSIM is
-pytorch-msssim's (window 11, sigma 1.5) with the pixels outside the mask set to 0 in both
-images. The definition is `torch_rgbd_loss` (`fused_rgbd_loss.py`); on CPU float32 images the
-compiled kernel computes the same value and its gradients in one pass (`backend`).
+depth; no depth term then), or, with `pixels_without_depth=zero` as the reference code, over
+every pixel with the observed colour and depth 0 where there is no depth (the torch backend).
+L1 terms are means over those pixels (and the 3 channels); SSIM is pytorch-msssim's (window 11,
+sigma 1.5) with the pixels outside the mask set to 0 in both images. The definition is
+`torch_rgbd_loss` (`fused_rgbd_loss.py`); on CPU float32 images the compiled kernel computes the
+same value and its gradients in one pass (`backend`).
 """
 
 from __future__ import annotations
@@ -21,6 +23,15 @@ from slamkit.plugin import PluginSpec, hookimpl
 from slamkit.roles import MappingLoss, PluginConfig, RunContext, TrainingView, require, thread_count
 from slamkit.splatting import RenderOutput
 from slamkit_plugins.losses import fused_rgbd_loss as rgbd
+
+
+class PixelsWithoutDepth(enum.Enum):
+    """What the loss does at a pixel without observed depth. ignore: it is left out of every
+    term. zero: it counts, its observed colour and depth taken as 0 (GS-ICP SLAM's reference
+    code, which masks the ground-truth image only: the render is pulled towards black there)."""
+
+    ignore = "ignore"
+    zero = "zero"
 
 
 class Backend(enum.Enum):
@@ -48,6 +59,8 @@ class L1SSIMDepthConfig(PluginConfig):
     backend: Backend = Backend.auto
     #: the compiled kernel's threads (0: every CPU this process may use)
     num_threads: int = thread_count(0)
+    #: pixels without depth: ignore (not counted) | zero (counted, depth 0; the reference code's, torch only)
+    pixels_without_depth: PixelsWithoutDepth = PixelsWithoutDepth.ignore
 
     def validate(self) -> None:
         for name in ("weight_l1", "weight_ssim", "weight_depth"):
@@ -63,9 +76,13 @@ class L1SSIMDepthLoss(MappingLoss):
     def __init__(self, cfg: L1SSIMDepthConfig, context: RunContext = RunContext()):
         self.cfg = cfg
         backend = Backend(cfg.backend)
+        self.all_pixels = PixelsWithoutDepth(cfg.pixels_without_depth) is PixelsWithoutDepth.zero
+        if backend is Backend.compiled and self.all_pixels:
+            raise ConfigError("mapper.loss.backend=compiled: the kernel computes pixels_without_depth=ignore only "
+                              "(use backend=auto or torch with pixels_without_depth=zero)")
         if backend is Backend.compiled and not rgbd.available():
             raise ConfigError(f"mapper.loss.backend=compiled: the kernel is not available ({rgbd.LIBRARY.error})")
-        self.compiled = backend is not Backend.torch and rgbd.available()
+        self.compiled = backend is not Backend.torch and not self.all_pixels and rgbd.available()
 
     def __call__(self, render: RenderOutput, view: TrainingView) -> torch.Tensor:
         c = self.cfg
@@ -74,7 +91,7 @@ class L1SSIMDepthLoss(MappingLoss):
         on_cpu = all(t.device.type == "cpu" and t.dtype == torch.float32 for t in args[:4])
         if self.compiled and on_cpu:
             return rgbd.fused_rgbd_loss(*args, num_threads=c.num_threads)
-        return rgbd.torch_rgbd_loss(*args)
+        return rgbd.torch_rgbd_loss(*args, all_pixels=self.all_pixels)
 
 
 @hookimpl

@@ -1,7 +1,7 @@
 """`mapper/strategy=gsicp`: GS-ICP SLAM's map upkeep (paper Sec. 3.2, Table 8b): no densification
 (keyframes add the Gaussians), only pruning: every `prune_every` training steps and after the
-last one, the Gaussians that are nearly transparent, larger than the scene allows, or have a
-non-finite parameter are removed."""
+last one (`prune_at_finish`; the reference code stops without it), the Gaussians that are
+nearly transparent, larger than the scene allows, or have a non-finite parameter are removed."""
 
 from __future__ import annotations
 
@@ -24,6 +24,8 @@ class PruneConfig(StrategyConfig):
     prune_min_opacity: float = 0.005
     #: metres; prune Gaussians whose largest standard deviation exceeds it (null: the dataset's max_gaussian_scale)
     max_scale: float | None = None
+    #: prune once more after the last training step (the reference code does not)
+    prune_at_finish: bool = True
 
     def validate(self) -> None:
         super().validate()
@@ -63,7 +65,7 @@ class PruneStrategy(Strategy):
             self.prune(edit)
 
     def finish(self, edit: MapEdit) -> None:
-        if self.cfg.prune_every:
+        if self.cfg.prune_every and self.cfg.prune_at_finish:
             self.prune(edit)
 
 

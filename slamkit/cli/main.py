@@ -88,6 +88,7 @@ class Command:
         pause_point("startup")
         import hydra
 
+        from slamkit.cli.scenes import present_scenes
         from slamkit.registry.compose import CONFIG_MODULE, CONFIG_NAME, check_spellings, register
         from slamkit.registry.discovery import discover
         from slamkit.run.checkpoint import resume_arguments
@@ -114,6 +115,8 @@ class Command:
         register(self.registry)
         self.startup.hold()  # Hydra and OmegaConf cut by a KeyboardInterrupt report another error: hold it
         try:
+            if not any(f not in ("-m", "--multirun") for f in flags):
+                argv = present_scenes(argv)  # a scene sweep (+experiment=paper_tum): the scenes under data_root
             overrides = [a for a in argv if not a.startswith("-")]
             if run:
                 _check_output_dir(overrides, multirun=bool(flags))

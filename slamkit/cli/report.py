@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from slamkit.cli import streams
+from slamkit.cli import paper_tables, streams
 from slamkit.errors import DataError, SlamkitError
 from slamkit.formats.atomic import atomic_open, write_atomic
 from slamkit.formats.plots import save_figure
@@ -304,6 +304,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=None, help="where to write (default: the first DIR)")
     parser.add_argument("--include-unfinished", action="store_true",
                         help="aggregate interrupted, failed and running runs with the completed ones")
+    parser.add_argument("--paper", choices=paper_tables.NAMES, default=None, metavar="TABLE",
+                        help="also print the runs as the paper's TABLE with its figures beside ours, into "
+                             f"paper_TABLE.md ({', '.join(paper_tables.NAMES)})")
     streams.guard()  # a closed, broken or full stdout / stderr never stops the command
     args = parser.parse_args(argv)
     out = args.out or args.dirs[0]
@@ -322,6 +325,8 @@ def main(argv: list[str] | None = None) -> int:
               "folder)", file=sys.stderr)
         return 1
     print((out / "report.md").read_text(), end="")
+    if args.paper:
+        paper_tables.report(args.paper, runs, out)
     counts = ", ".join(f"{sum(r['status'] == s for r in runs)} {s}" for s in (*STATUSES, "unreadable", NOT_RUN)
                        if any(r["status"] == s for r in runs))
     print(f"slamkit-report: {len(runs)} runs ({counts}), {len(rows)} rows; wrote report.csv, report.md and plots "

@@ -28,6 +28,10 @@ was built (mapping-only keyframes'), which it lacks. Measured against the target
 keyframe revisiting a mapping-only keyframe's view made its Gaussians trackable again, and
 trackable Gaussians enter whatever the coverage test says: looped Replica room0 in real time
 grew by ~5,700 Gaussians a mapping-only keyframe, to 180k for 20 frames (docs/results.md).
+A mapping-only keyframe's Gaussians are never trackable (`mapping_only_trackable` false, the
+paper's Sec. 3.3: they enter the map for rendering, not the tracking target), which measured as
+good or better than making them trackable (docs/paper.md, "Differences"); `untargeted` then
+matters only with `mapping_only_trackable=true`.
 
 `new_gaussians` makes a keyframe's candidate rows; which of them enter the map is the mapper's
 decision (`Mapper.admit`, in `slamkit.run.slam.SLAM`).
@@ -83,6 +87,8 @@ class MapGrowthConfig(PluginConfig):
     scale_p: float = 1.5
     initial_opacity: float = 0.1
     new_gaussian_overlap: float | None = None
+    #: a mapping-only keyframe's Gaussians may become trackable (false: never, as the paper's Sec. 3.3; docs/paper.md)
+    mapping_only_trackable: bool = False
 
     def validate(self) -> None:
         require(self.scale_c > 0, "growth.scale_c", "> 0", self.scale_c)
@@ -137,12 +143,15 @@ def sq_dist_to_nearest(points: np.ndarray, others: np.ndarray) -> np.ndarray:
 
 
 def new_gaussians(gaussians: FrameGaussians, keyframe_id: int, cfg: MapGrowthConfig, device=None,
-                  untargeted: np.ndarray | None = None) -> GaussianRows:
+                  untargeted: np.ndarray | None = None, mapping_only: bool = False) -> GaussianRows:
     """A keyframe's Gaussians as map rows (scale-aligned, opacity `initial_opacity`), not yet in
     the map. Trackable are those the tracker found trackable whose squared distance (m^2) to
     its target (`sq_dist_to_map`) and to `untargeted` ((P,3) world metres: where the trackable
-    map Gaussians its target does not hold yet entered the map) exceeds new_gaussian_overlap."""
+    map Gaussians its target does not hold yet entered the map) exceeds new_gaussian_overlap;
+    none of a mapping-only keyframe's (`mapping_only`) unless `mapping_only_trackable`."""
     trackable = np.asarray(gaussians.trackable, dtype=bool)
+    if mapping_only and not cfg.mapping_only_trackable:
+        trackable = np.zeros_like(trackable)
     if gaussians.sq_dist_to_map is not None and cfg.new_gaussian_overlap is not None:
         trackable = trackable & (gaussians.sq_dist_to_map > cfg.new_gaussian_overlap)
         if untargeted is not None and len(untargeted) and trackable.any():

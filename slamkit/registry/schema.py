@@ -18,6 +18,8 @@ from omegaconf import MISSING, DictConfig, OmegaConf
 from slamkit.config import PluginConfig, check_values, require, thread_count
 from slamkit.errors import ConfigError
 from slamkit.map.growth import MapGrowthConfig
+from slamkit.metrics.images import PsnrPixels
+from slamkit.metrics.lpips import LpipsMode
 from slamkit.roles import RUN_ROLES
 from slamkit.scheduling import ThreadPriority
 
@@ -63,6 +65,12 @@ class EvalConfig(PluginConfig):
     plot: bool = True
     running_ate_every: int = 10
     max_lost_fraction: float = 0.5
+    #: auto | on | off: LPIPS of the mapper's renders (auto: null without its weight files, said once; on: exit 2 then)
+    lpips: LpipsMode = LpipsMode.auto
+    #: torchvision's AlexNet weights file alexnet-owt-7be5be79.pth for LPIPS (null: torch's hub cache)
+    lpips_backbone: str | None = None
+    #: valid | all: PSNR over the pixels with observed depth, or over every pixel with the others zeroed (the reference code)
+    psnr_pixels: PsnrPixels = PsnrPixels.valid
 
     def validate(self) -> None:
         require(0.0 <= self.max_lost_fraction <= 1.0, "eval.max_lost_fraction", "a fraction in [0, 1]",
@@ -182,6 +190,12 @@ class RunConfig(PluginConfig):
     resume: str | None = None
     localize: LocalizeConfig = field(default_factory=LocalizeConfig)
     existing_outputs: ExistingOutputs = ExistingOutputs.refuse
+    #: the preset the run's defaults came from, set by `preset=slamkit|paper|paper_unlimited` (docs/paper.md)
+    preset: str = "slamkit"
+    #: folder of the paper's sequences as `slamkit-data download paper --root DIR` lays them out
+    data_root: str | None = None
+    #: a sequence's folder under data_root (what +experiment=paper_replica / paper_tum sweep)
+    scene: str | None = None
 
     def device(self) -> str:
         """The torch device the map lives on ("cpu" or "cuda"); ConfigError when cuda is asked

@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Sequence
 
-from slamkit.config import RunContext, resolve_tree
+from slamkit.config import RenderScoring, RunContext, resolve_tree
 from slamkit.errors import DataError
 from slamkit.map.gaussian_map import GaussianMap
 from slamkit.native import available_threads
@@ -56,7 +56,8 @@ def build(cfg: RunConfig, registry: Registry, names: dict[str, str]) -> BuiltRun
 
     context = RunContext(tuning=dataset.tuning, realtime=cfg.mode is Mode.realtime,
                          tracking_threads=tracking_threads(cfg), device=str(gaussian_map.device),
-                         gaussian_map=gaussian_map, build=build_default)
+                         gaussian_map=gaussian_map, build=build_default, scoring=RenderScoring(
+                             cfg.eval.lpips.value, cfg.eval.lpips_backbone, cfg.eval.psnr_pixels.value))
     cfg = resolve_tree(cfg, context)
 
     def create(path: str, config: Any, **parts) -> Any:

@@ -96,7 +96,7 @@ class SLAM:
         return StepResult(result, decision, time.perf_counter() - start, 0.0, 0)
 
     def add_keyframe(self, frame: Frame, result: TrackingResult, kind: KeyframeKind) -> None:
-        rows = self.grow_map(frame, result)
+        rows = self.grow_map(frame, result, kind)
         if kind is KeyframeKind.TRACKING:
             with self.boundary("tracker", "update_target"):
                 self.tracker.update_target(self.gaussian_map)
@@ -137,14 +137,16 @@ class SLAM:
             with self.boundary(key, "load_state_dict"):
                 plugin.load_state_dict(states.get(key, {}))
 
-    def grow_map(self, frame: Frame, result: TrackingResult) -> slice:
+    def grow_map(self, frame: Frame, result: TrackingResult, kind: KeyframeKind) -> slice:
         """The keyframe's Gaussians (scale-aligned, paper Sec. 3.1) that the mapper admits enter
-        the map; returns the rows they occupy."""
+        the map (a mapping-only keyframe's trackable or not: `growth.mapping_only_trackable`);
+        returns the rows they occupy."""
         gm = self.gaussian_map
         if result.gaussians is None:
             return slice(len(gm), len(gm))
         untargeted = gm.trackable_entry_means(self.keyframes_in_target)
-        new = new_gaussians(result.gaussians, self.num_keyframes, self.growth, gm.device, untargeted)
+        new = new_gaussians(result.gaussians, self.num_keyframes, self.growth, gm.device, untargeted,
+                            mapping_only=kind is KeyframeKind.MAPPING_ONLY)
         with gm.lock, self.boundary("mapper", "admit"):
             admitted = self.mapper.admit(frame, result.pose, new)
         entering = (new if admitted is None else new.select(admitted)).computed()  # outside the lock

@@ -1,13 +1,16 @@
 """Rendering metrics of a trained map: every `every`-th frame rendered from its estimated pose.
 
-PSNR / SSIM are masked by valid depth (`slamkit.metrics.images`) and reported for the keyframes
-(training views: psnr_train, ssim_train), the other frames (held-out views: psnr_test,
-ssim_test) and all (psnr, ssim); depth L1 in cm over valid pixels. A few render | ground-truth
-images go into the run folder (written atomically).
+PSNR / SSIM (and LPIPS, given its network) are masked by valid depth (`slamkit.metrics.images`,
+`slamkit.metrics.lpips`; PSNR over the valid pixels or, `psnr_pixels="all"`, over every pixel
+with the others zeroed, as the reference code) and reported for the keyframes (training views:
+psnr_train, ssim_train, lpips_train), the other frames (held-out views: *_test) and all (psnr,
+ssim, lpips; lpips null without the network); depth L1 in cm over valid pixels. A few render |
+ground-truth images go into the run folder (written atomically).
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from pathlib import Path
@@ -17,23 +20,34 @@ import numpy as np
 import torch
 
 from slamkit.metrics import images as image_metrics
+from slamkit.metrics.lpips import LPIPS, min_image_side
 from slamkit.map.gaussian_map import GaussianMap
 from slamkit.splatting.rendering import RenderOutput
 from slamkit.types import Camera
 from slamkit.splatting.keyframes import resize_rgbd
 
+log = logging.getLogger(__name__)
+
 
 def evaluate_renders(render: Callable[[np.ndarray, Camera], RenderOutput], gaussian_map: GaussianMap, dataset,
                      poses: list[np.ndarray], train_frames: set[int], every: int = 1, scale: float = 1.0,
-                     save_images: int = 0, out_dir: Path | None = None) -> dict[str, Any]:
+                     save_images: int = 0, out_dir: Path | None = None, lpips: LPIPS | None = None,
+                     psnr_pixels: image_metrics.PsnrPixels | str = image_metrics.PsnrPixels.valid) -> dict[str, Any]:
     """Metrics of `render(pose, camera)` (no gradients) against every `every`-th frame of
     `dataset`, at `scale` of its resolution; `train_frames` are the keyframes' frame indices.
-    Writes `save_images` render | ground-truth images into `out_dir` (when given)."""
+    LPIPS with `lpips` (None: recorded as null); PSNR over `psnr_pixels`. Writes `save_images`
+    render | ground-truth images into `out_dir` (when given)."""
     n = min(len(dataset), len(poses))
     indices = list(range(0, n, every))
+    camera = dataset[indices[0]].camera if lpips is not None and indices else None
+    camera = camera.scaled(scale) if camera is not None and scale != 1.0 else camera
+    if camera is not None and min(camera.width, camera.height) < min_image_side():
+        log.warning("evaluation renders at %g of the frame size are below LPIPS's %d pixels a side: LPIPS is null",
+                    scale, min_image_side())
+        lpips = None
     n_img = min(save_images, len(indices))
     save_at = set(np.linspace(0, len(indices) - 1, n_img).round().astype(int).tolist()) if n_img else set()
-    rows: dict[str, list[tuple[float, float]]] = {"all": [], "train": [], "test": []}
+    rows: dict[str, list[tuple[float, float, float]]] = {"all": [], "train": [], "test": []}
     depth_l1 = []
     start = time.perf_counter()
     for k, i in enumerate(indices):
@@ -42,7 +56,8 @@ def evaluate_renders(render: Callable[[np.ndarray, Camera], RenderOutput], gauss
         out = render(poses[i], cam)
         color = out.color.clamp(0, 1)
         mask = depth > 0
-        scores = (image_metrics.psnr(color, image, mask), image_metrics.ssim(color, image, mask))
+        scores = (image_metrics.psnr(color, image, mask, psnr_pixels), image_metrics.ssim(color, image, mask),
+                  lpips(color, image, mask) if lpips is not None else math.nan)
         depth_l1.append(image_metrics.l1_depth(out.depth, depth, mask))
         rows["all"].append(scores)
         rows["train" if frame.index in train_frames else "test"].append(scores)
@@ -50,8 +65,9 @@ def evaluate_renders(render: Callable[[np.ndarray, Camera], RenderOutput], gauss
             _save_side_by_side(Path(out_dir) / f"render_{i:04d}.png", color, image)
     metrics: dict[str, Any] = {}
     for group, suffix in (("all", ""), ("train", "_train"), ("test", "_test")):
-        metrics[f"psnr{suffix}"] = _finite_mean([p for p, _ in rows[group]])
-        metrics[f"ssim{suffix}"] = _finite_mean([s for _, s in rows[group]])
+        metrics[f"psnr{suffix}"] = _finite_mean([p for p, _, _ in rows[group]])
+        metrics[f"ssim{suffix}"] = _finite_mean([s for _, s, _ in rows[group]])
+        metrics[f"lpips{suffix}"] = _finite_mean([d for _, _, d in rows[group]])
     l1 = _finite_mean(depth_l1)
     metrics.update(depth_l1_cm=None if l1 is None else 100.0 * l1, num_gaussians=len(gaussian_map),
                    eval_frames=len(indices), eval_train_frames=len(rows["train"]),

@@ -5,7 +5,9 @@ A densification strategy (`slamkit.splatting.strategy.Strategy`) edits the map o
 every per-row state aligned with the map's rows, in one place: the optimiser's (`MapOptimizer.
 edit_rows`; rows that are new or whose values were replaced start with zero moments) and the
 strategy's own statistics (`state`: copied for duplicates and split children, zero for new rows).
-Call them under the map's lock (the trainer calls the strategy's hooks holding it).
+Call them under the map's lock (the trainer calls the strategy's hooks holding it). Each
+`MapEdit` counts the Gaussians its operations added, removed and replaced (`counts`), so that a
+run can say what its strategy did.
 """
 
 from __future__ import annotations
@@ -38,6 +40,9 @@ class MapEdit:
         self.map = gaussian_map
         self.optimizer = optimizer
         self.state = state
+        #: Gaussians appended, duplicated (cloned), added by splits (children less parents),
+        #: removed, and given new values (update), through this object
+        self.counts = {"appended": 0, "cloned": 0, "split": 0, "removed": 0, "updated": 0}
 
     def __len__(self) -> int:
         return len(self.map)
@@ -74,10 +79,16 @@ class MapEdit:
         self.sync()
         added = self.map.append(rows)
         self.sync()
+        self.counts["appended"] += added.stop - added.start
         return added
 
     def remove(self, drop: torch.Tensor) -> int:
         """Remove the rows where `drop` (bool, one per row) is true; returns how many."""
+        removed = self._remove(drop)
+        self.counts["removed"] += removed
+        return removed
+
+    def _remove(self, drop: torch.Tensor) -> int:
         self.sync()
         drop = torch.as_tensor(drop, dtype=torch.bool, device=self.map.device)
         removed = int(drop.sum())
@@ -92,6 +103,11 @@ class MapEdit:
     def duplicate(self, index: torch.Tensor) -> slice:
         """Append a copy of the rows at `index` (integer indices, repeats allowed): zero
         optimiser state, the strategy state of their originals. Returns the new rows."""
+        added = self._duplicate(index)
+        self.counts["cloned"] += added.stop - added.start
+        return added
+
+    def _duplicate(self, index: torch.Tensor) -> slice:
         self.sync()
         index = torch.as_tensor(index, dtype=torch.long, device=self.map.device)
         copied = {k: v[index.to(v.device)] for k, v in self.state.items()}
@@ -119,12 +135,13 @@ class MapEdit:
             child = self.map.rows(index)
             child.means = parents.means + torch.einsum("nij,nj->ni", R, s * noise)
             child.log_scales = parents.log_scales - math.log(scale_divisor)
-            self.duplicate(index)
+            self._duplicate(index)
             self._overwrite(slice(len(self.map) - len(index), len(self.map)), child.entering_now())
         drop = torch.zeros(len(self.map), dtype=torch.bool, device=self.map.device)
         drop[index] = True
-        self.remove(drop)
+        self._remove(drop)
         assert len(self.map) == start + (children - 1) * len(index)
+        self.counts["split"] += (children - 1) * len(index)
         return len(index)
 
     def reset_opacity(self, max_opacity: float) -> None:
@@ -138,7 +155,9 @@ class MapEdit:
         """Give the rows at `index` (integer indices) the parameters and flags of `rows` and
         zero optimiser state (e.g. relocating dead Gaussians, as 3DGS-MCMC does)."""
         self.sync()
-        self._overwrite(torch.as_tensor(index, dtype=torch.long, device=self.map.device), rows)
+        index = torch.as_tensor(index, dtype=torch.long, device=self.map.device)
+        self._overwrite(index, rows)
+        self.counts["updated"] += len(index)
 
     def _overwrite(self, index, rows: GaussianRows) -> None:
         self.map.overwrite(index, rows)

@@ -114,6 +114,9 @@ class Trainer:
         self.timer.sync = torch.cuda.synchronize if gaussian_map.device.type == "cuda" else None
         optimizer.reset()
         self.edit = MapEdit(gaussian_map, optimizer, strategy.state)
+        # the strategy's own, sharing every per-row state with `edit`: its counts are the strategy's
+        self.strategy_edit = MapEdit(gaussian_map, optimizer, strategy.state)
+        self.gaussians_added = 0  # keyframes' Gaussians that entered the map
 
     # -- keyframes -------------------------------------------------------------------------
     def admit(self, frame: Frame, pose: np.ndarray, new: GaussianRows) -> torch.Tensor | None:
@@ -131,6 +134,7 @@ class Trainer:
         at `new_rows` of the map (protected from the memory cap while others can go)."""
         keyframe = self.keyframes.add(frame, pose, kind)
         self.pending.append(keyframe.id)
+        self.gaussians_added += max(0, new_rows.stop - new_rows.start)
         with self.gaussian_map.lock:
             self.memory_cap.enforce(self.edit, protect=new_rows)
 
@@ -181,7 +185,8 @@ class Trainer:
             self.steps += 1
             self.last_loss = float(loss.detach())
             with timer("strategy"):
-                self.strategy.step_post_backward(self.edit, StepInfo(self.steps, view, render, grads, self.last_loss))
+                self.strategy.step_post_backward(self.strategy_edit,
+                                                 StepInfo(self.steps, view, render, grads, self.last_loss))
                 self.memory_cap.enforce(self.edit)  # a strategy that grew the map
         return True
 
@@ -190,7 +195,7 @@ class Trainer:
         start, cpu_start = time.perf_counter(), time.thread_time()
         with self.gaussian_map.lock:
             self.edit.sync()
-            self.strategy.finish(self.edit)
+            self.strategy.finish(self.strategy_edit)
         self._count_time(start, cpu_start)
         if self.memory_cap.prunings:
             log.info("memory cap (max_gaussians %s): %d Gaussians pruned in %d prunings",
@@ -210,9 +215,14 @@ class Trainer:
 
     # -- what it reports and keeps ---------------------------------------------------------
     def metrics(self) -> dict[str, Any]:
-        """Counters and timings for metrics.json."""
+        """Counters and timings for metrics.json: among them the Gaussians keyframes added
+        (gaussians_added) and those the strategy removed (gaussians_pruned), added by cloning
+        and splitting (gaussians_densified) and gave new values (gaussians_relocated)."""
         first = self.keyframes[self.keyframes.ids[0]].camera if len(self.keyframes) else None
+        edits = self.strategy_edit.counts
         return {**self.strategy.metrics(), **self.admission.metrics(), **self.memory_cap.metrics(),
+                "gaussians_added": self.gaussians_added, "gaussians_pruned": edits["removed"],
+                "gaussians_densified": edits["cloned"] + edits["split"], "gaussians_relocated": edits["updated"],
                 "mapping_steps": self.steps, "mapping_skipped_steps": self.skipped_steps,
                 "mapping_stale_steps": self.stale_steps, "mapping_step_ms": self.timer.per_step_ms(),
                 "mapping_train_time_s": self.train_time_s, "mapping_train_cpu_s": self.train_cpu_s,
@@ -229,7 +239,8 @@ class Trainer:
                     "steps": self.steps, "skipped_steps": self.skipped_steps, "stale_steps": self.stale_steps,
                     "train_time_s": self.train_time_s, "train_cpu_s": self.train_cpu_s, "last_loss": self.last_loss,
                     "optimizer": self.optimizer.state_dict(), "strategy": self.strategy.state_dict(),
-                    "admission": self.admission.metrics(), "memory_cap": self.memory_cap.metrics()}
+                    "admission": self.admission.metrics(), "memory_cap": self.memory_cap.metrics(),
+                    "gaussians_added": self.gaussians_added, "strategy_edits": dict(self.strategy_edit.counts)}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Take back a `state_dict()`, after the map's rows are restored."""
@@ -255,6 +266,8 @@ class Trainer:
         cap = state.get("memory_cap", older)
         self.memory_cap.pruned = int(cap.get("pruned_by_memory_guard", 0))
         self.memory_cap.prunings = int(cap.get("memory_guard_prunings", 0))
+        self.gaussians_added = int(state.get("gaussians_added", 0))  # 0 from a checkpoint older than the counters
+        self.strategy_edit.counts.update({k: int(v) for k, v in state.get("strategy_edits", {}).items()})
 
     # -- internals -------------------------------------------------------------------------
     def _count_time(self, start: float, cpu_start: float) -> None:

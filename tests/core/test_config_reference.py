@@ -35,6 +35,8 @@ EXPLICIT = {
     "dataset.color_topic": "/camera/rgb/image_color", "dataset.depth_topic": "/camera/depth/image",
     "dataset.camera_info_topic": "/camera/rgb/camera_info", "dataset.groundtruth": "{data}/groundtruth.txt",
     "objective.metric": "psnr", "viewer.host": "0.0.0.0", "viewer.map_as": "ellipsoids",
+    "preset": "paper", "data_root": "{tmp}", "scene": "room0",  # preset: a config group option that sets the key
+    "eval.lpips_backbone": "{tmp}/alexnet-owt-7be5be79.pth",
 }
 
 

@@ -224,11 +224,13 @@ def test_gaussians_the_target_lacks_yet_are_not_made_trackable_twice():
     """The tracker measures new surface against its target, which only a tracking keyframe
     rebuilds. A keyframe whose Gaussians duplicate a mapping-only keyframe's (added since the
     target was built) must not make them trackable again: trackable Gaussians enter the map
-    whatever the coverage test says, so a loop would add them at every revisit."""
+    whatever the coverage test says, so a loop would add them at every revisit (with mapping-only
+    keyframes' Gaussians trackable, `growth.mapping_only_trackable=true`)."""
     gm = GaussianMap()
     mapper = make_mapper(gm, mapper={"admission": AdmissionConfig(covered_cell=5.0)})
     slam = SLAM(TargetlessTracker(), EveryNKeyframePolicy(EveryNKeyframeConfig(tracking_every=3, mapping_every=1)),
-                mapper, gm, MapGrowthConfig(new_gaussian_overlap=1e-3), iterations_per_frame=0)
+                mapper, gm, MapGrowthConfig(new_gaussian_overlap=1e-3, mapping_only_trackable=True),
+                iterations_per_frame=0)
     slam.initialize(np.eye(4))
     frame = render_frame(create_rasterizer("torch"), make_map(*plane_scene()), np.eye(4))
     kinds, sizes = [], []

@@ -120,3 +120,18 @@ def test_rows_appended_outside_are_picked_up_and_rows_lost_outside_reset_the_sta
     edit.map.keep(keep)  # not through MapEdit: state can no longer be matched to rows
     edit.sync()
     assert edit.optimizer.num_rows() == 0 and "optimiser and strategy state reset" in caplog.text
+
+
+def test_counts_say_what_the_operations_added_removed_and_replaced():
+    edit = trained_edit("adam")
+    assert edit.counts == {"appended": 0, "cloned": 0, "split": 0, "removed": 0, "updated": 0}
+    edit.duplicate(torch.tensor([0, 1, 1]))
+    mask = torch.zeros(len(edit.map), dtype=torch.bool)
+    mask[2:6] = True
+    assert edit.split(mask, children=3) == 4  # four parents, each replaced by three children
+    drop = torch.zeros(len(edit.map), dtype=torch.bool)
+    drop[:5] = True
+    edit.remove(drop)
+    edit.update(torch.tensor([0, 1]), edit.map.rows(torch.tensor([2, 3])))
+    assert edit.counts == {"appended": 0, "cloned": 3, "split": 8, "removed": 5, "updated": 2}
+    assert len(edit.map) == N + 3 + 8 - 5

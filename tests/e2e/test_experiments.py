@@ -31,6 +31,7 @@ def test_two_job_sweep_with_submitit_local_then_report(tmp_path):
 def test_seed_sweep_rows_average_with_spread(tmp_path):
     sweep = tmp_path / "sweep"
     proc = run_slamkit("+experiment=ablation_regularization", "dataset.num_frames=8", "seed=0,1", "progress=false",
+                       "iterations_per_frame=1", "mapper.resolution_scale=0.25", "mapper.eval_every=8",
                        f"hydra.sweep.dir={sweep}", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert report_main([str(sweep)]) == 0

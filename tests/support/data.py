@@ -21,3 +21,13 @@ def require_data(path: Path) -> Path:
     if not path.is_dir():
         pytest.skip(f"shared data not found at {path} (it ships beside the repository in CI)")
     return path
+
+
+def paper_data_root(root: Path) -> Path:
+    """A data_root as `slamkit-data download paper` lays it out under `root`, holding one Replica
+    scene (room0: the shared excerpt) and one TUM sequence (fr1/desk: the shared fr1/rpy excerpt,
+    a fr1 camera), both linked to the shared data."""
+    (root / "Replica").mkdir(parents=True)
+    (root / "Replica" / "room0").symlink_to(require_data(REPLICA), target_is_directory=True)
+    (root / "rgbd_dataset_freiburg1_desk").symlink_to(require_data(TUM), target_is_directory=True)
+    return root

@@ -2,7 +2,9 @@
 `slamkit.splatting.Trainer` composed of the parts chosen on the command line
 (`mapper/rasterizer=`, `mapper/sampler=`, `mapper/strategy=`, `mapper/optimizer=`,
 `mapper/loss=`), the map written as a 3DGS PLY, and the map's renders evaluated against the
-sequence."""
+sequence, scored as the run says (`RunContext.scoring`: the run's eval.lpips, eval.lpips_backbone,
+eval.psnr_pixels; the LPIPS network is loaded when the mapper is built, so eval.lpips=on without
+its weights stops the run before any work)."""
 
 from __future__ import annotations
 
@@ -13,6 +15,8 @@ import numpy as np
 
 from slamkit.config import RunContext
 from slamkit.formats.ply import save_ply
+from slamkit.metrics.images import PsnrPixels
+from slamkit.metrics.lpips import lpips_for_evaluation
 from slamkit.roles import KeyframeSampler, Mapper, MapOptimizer, MappingLoss, Rasterizer, Strategy
 from slamkit.splatting import RenderOutput, Trainer
 from slamkit.splatting.evaluation import evaluate_renders
@@ -29,6 +33,9 @@ class GaussianSplattingMapper(Mapper):
                  sampler: KeyframeSampler, strategy: Strategy, optimizer: MapOptimizer, loss: MappingLoss):
         super().__init__(cfg, context)
         self.trainer = Trainer(cfg, self.gaussian_map, rasterizer, sampler, strategy, optimizer, loss)
+        scoring = context.scoring
+        self.psnr_pixels = PsnrPixels(scoring.psnr_pixels)
+        self.lpips = lpips_for_evaluation(scoring.lpips, scoring.lpips_backbone, self.gaussian_map.device)
 
     def admit(self, frame, pose, new):
         return self.trainer.admit(frame, pose, new)
@@ -62,5 +69,6 @@ class GaussianSplattingMapper(Mapper):
         cfg, keyframes = self.cfg, self.trainer.keyframes
         train_frames = {kf.frame_index for kf in keyframes.values()}
         metrics = evaluate_renders(self.render_view, self.gaussian_map, dataset, poses, train_frames,
-                                   cfg.eval_every, cfg.eval_resolution_scale, cfg.save_images, out_dir)
+                                   cfg.eval_every, cfg.eval_resolution_scale, cfg.save_images, out_dir,
+                                   self.lpips, self.psnr_pixels)
         return {**metrics, **self.trainer.metrics()}

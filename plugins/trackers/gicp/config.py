@@ -56,8 +56,8 @@ class GICPConfig(PluginConfig):
     rotation_tolerance: float = 2e-3
     #: metres; converged when every entry of the last update's |dt| is below this
     translation_tolerance: float = 5e-4
-    #: map Gaussians at or below this opacity are not aligned to (0: all; reference 0.09 TUM, 0.05 Replica)
-    min_target_opacity: float = 0.0
+    #: map Gaussians at or below this opacity are not aligned to (0: all; null: the dataset's, 0.09 TUM, 0.05 Replica)
+    min_target_opacity: float | None = 0.0
     #: the target's means and shapes: entry (as they entered the map) | optimised (the mapper's; reference)
     target_geometry: TargetGeometry = TargetGeometry.entry
     #: where the optimisation starts: previous (pose) | constant_velocity (the last motion applied again)
@@ -96,8 +96,8 @@ class GICPConfig(PluginConfig):
         require(self.rotation_tolerance > 0, "tracker.rotation_tolerance", "> 0", self.rotation_tolerance)
         require(self.translation_tolerance > 0,
                 "tracker.translation_tolerance", "> 0 metres", self.translation_tolerance)
-        require(0 <= self.min_target_opacity < 1, "tracker.min_target_opacity", "in [0, 1)",
-                self.min_target_opacity)
+        require(self.min_target_opacity is None or 0 <= self.min_target_opacity < 1, "tracker.min_target_opacity",
+                "null or in [0, 1)", self.min_target_opacity)
         require(self.min_points >= 1, "tracker.min_points", "an integer >= 1", self.min_points)
         require(self.min_correspondences >= 6,
                 "tracker.min_correspondences", "an integer >= 6", self.min_correspondences)
@@ -112,4 +112,5 @@ class GICPConfig(PluginConfig):
         tuning = context.tuning
         return self.fill_nulls(pixel_stride=tuning.tracking_pixel_stride,
                                max_correspondence_distance=tuning.correspondence_distance,
+                               min_target_opacity=tuning.target_min_opacity,
                                num_threads=context.tracking_threads)

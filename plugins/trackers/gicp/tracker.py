@@ -40,7 +40,7 @@ class GICPTracker(Tracker):
 
     def __init__(self, cfg: GICPConfig, context: RunContext = RunContext()):
         self.cfg = cfg
-        for name in ("pixel_stride", "max_correspondence_distance"):
+        for name in ("pixel_stride", "max_correspondence_distance", "min_target_opacity"):
             require(getattr(cfg, name) is not None, f"tracker.{name}", "a value (GICPConfig.resolve fills it from the dataset)", None)
         self.pixel_stride = int(cfg.pixel_stride)
         self.max_corr = float(cfg.max_correspondence_distance)

@@ -1,0 +1,211 @@
+"""`slamkit-report --paper TABLE DIR`: a sweep's results as one of GS-ICP SLAM's tables (Ha, Yeon
+and Yu, ECCV 2024), the paper's figure beside each of ours (docs/paper.md transcribes them).
+
+A run's row in the table is told by the settings its table varies (its overrides, as
+`slamkit-report` reads them: `+scale_variant=z` is `scale_variant`), and its scene by `scene` or
+the folder of `dataset.path`; runs of one row and scene (seeds) are averaged. The paper's figure
+is its value for that row and scene, or its mean over its scenes where ours is another one (the
+`paper's column` cell says which). The paper's ATE is what the authors' code prints, the mean
+translation error after alignment (called RMSE there): it stands beside our `ate_mean_m`, with our
+RMSE (`ate_rmse_m`) in a column of its own. FPS is frames over the run's wall time (`fps`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from slamkit.downloads.catalogue import PAPER_TUM, REPLICA_SCENES
+from slamkit.formats.atomic import write_atomic
+
+
+@dataclass(frozen=True)
+class Metric:
+    """A column: its header, metrics.json's key, the factor to the table's unit, decimals."""
+
+    header: str
+    key: str
+    scale: float = 1.0
+    digits: int = 2
+
+
+ATE = Metric("ATE [cm]", "ate_mean_m", 100.0, 3)
+ATE_RMSE = Metric("ATE RMSE [cm]", "ate_rmse_m", 100.0, 3)
+PSNR = Metric("PSNR [dB]", "psnr", 1.0, 2)
+SSIM = Metric("SSIM", "ssim", 1.0, 3)
+LPIPS = Metric("LPIPS", "lpips", 1.0, 3)
+FPS = Metric("FPS", "fps", 1.0, 2)
+#: The paper's mean over its scenes (the "Avg." column).
+MEAN = "mean"
+#: Replica's scenes as the paper's columns (room0 ... office4), TUM's folders as its names (fr1/desk ...).
+REPLICA_COLUMNS = {s: s for s in REPLICA_SCENES}
+TUM_COLUMNS = {folder: name for name, folder in PAPER_TUM.items()}
+
+
+@dataclass(frozen=True)
+class PaperTable:
+    """One table: what it shows, the settings that tell its rows apart (`keys`), its metric
+    columns, the paper's figures {(row values..., paper's column): {metric key: value}}, the
+    paper's row labels, and the scene folders that are its columns (none: only its mean)."""
+
+    title: str
+    keys: tuple[str, ...]
+    metrics: tuple[Metric, ...]
+    paper: dict[tuple, dict[str, float]]
+    labels: dict[tuple, str] = field(default_factory=dict)
+    columns: dict[str, str] = field(default_factory=dict)
+    note: str = ""
+
+
+def _by_column(row: tuple, columns: list[str], **series: list[float]) -> dict[tuple, dict[str, float]]:
+    """{(*row, column): {metric: value}} from one list per metric, in `columns` order."""
+    return {(*row, c): {k: v[i] for k, v in series.items()} for i, c in enumerate(columns)}
+
+
+_REPLICA = [*REPLICA_SCENES, MEAN]
+_TUM = [*PAPER_TUM, MEAN]
+
+
+def _rows(keys_values: dict[tuple, tuple], *metrics: str) -> dict[tuple, dict[str, float]]:
+    return {(*row, MEAN): dict(zip(metrics, values)) for row, values in keys_values.items()}
+
+
+TABLES: dict[str, PaperTable] = {
+    "table1": PaperTable(
+        "Table 1: tracking on Replica", ("preset",), (ATE, ATE_RMSE),
+        _by_column(("paper",), _REPLICA, ate_mean_m=[0.15, 0.16, 0.11, 0.18, 0.12, 0.17, 0.16, 0.21, 0.16]),
+        {("paper",): "GS-ICP SLAM (30 FPS)"}, REPLICA_COLUMNS),
+    "table2": PaperTable(
+        "Table 2: tracking on TUM RGB-D", ("preset",), (ATE, ATE_RMSE),
+        _by_column(("paper",), _TUM, ate_mean_m=[2.7, 1.8, 2.7, 2.4]),
+        {("paper",): "GS-ICP SLAM (30 FPS)"}, TUM_COLUMNS),
+    "table3": PaperTable(
+        "Table 3: map quality and speed on Replica", ("preset",), (PSNR, SSIM, LPIPS, FPS),
+        {**_by_column(("paper",), _REPLICA,
+                      psnr=[35.37, 37.80, 38.50, 43.13, 43.26, 36.93, 36.90, 38.75, 38.83],
+                      ssim=[0.963, 0.971, 0.975, 0.986, 0.985, 0.974, 0.969, 0.973, 0.975],
+                      lpips=[0.048, 0.045, 0.048, 0.026, 0.029, 0.043, 0.042, 0.045, 0.041],
+                      fps=[29.97, 29.98, 29.98, 29.98, 29.99, 29.97, 29.97, 29.97, 29.98]),
+         **_by_column(("paper_unlimited",), _REPLICA,
+                      psnr=[32.20, 35.36, 34.42, 40.31, 40.75, 33.85, 34.08, 36.47, 35.93],
+                      ssim=[0.940, 0.960, 0.957, 0.978, 0.977, 0.962, 0.953, 0.963, 0.962],
+                      lpips=[0.081, 0.067, 0.083, 0.045, 0.051, 0.069, 0.067, 0.065, 0.066],
+                      fps=[100.98, 84.92, 103.38, 99.10, 107.06, 95.60, 97.20, 96.66, 98.11])},
+        {("paper",): "GS-ICP SLAM (30 FPS)", ("paper_unlimited",): "GS-ICP SLAM (no speed limit)"}, REPLICA_COLUMNS),
+    "table4": PaperTable(
+        "Table 4: map quality and speed on TUM RGB-D (the paper gives the mean of its three sequences)",
+        ("preset",), (PSNR, SSIM, LPIPS, FPS),
+        _rows({("paper",): (20.72, 0.768, 0.218, 29.99), ("paper_unlimited",): (19.62, 0.750, 0.240, 73.92)},
+              "psnr", "ssim", "lpips", "fps"),
+        {("paper",): "GS-ICP SLAM (30 FPS)", ("paper_unlimited",): "GS-ICP SLAM (no speed limit)"}),
+    "table5": PaperTable(
+        "Table 5: covariance regularisation (TUM RGB-D)", ("tracker.regularization",), (ATE, ATE_RMSE),
+        {**_by_column(("none",), _TUM, ate_mean_m=[136.32, 196.61, 376.40, 236.54]),
+         **_by_column(("plane",), _TUM, ate_mean_m=[65.63, 5.53, 16.21, 29.12]),
+         **_by_column(("ellipse",), _TUM, ate_mean_m=[2.66, 1.77, 2.67, 2.37])},
+        {("none",): "none", ("plane",): "plane", ("ellipse",): "ellipse"}, TUM_COLUMNS),
+    "table6": PaperTable(
+        "Table 6: scale alignment (Replica, the paper's mean of 8 scenes)", ("scale_variant",),
+        (ATE, ATE_RMSE, PSNR, SSIM, LPIPS),
+        _rows({("knn",): (8.893, 24.81, 0.840, 0.380), ("none",): (0.258, 33.21, 0.922, 0.177),
+               ("constant",): (0.158, 37.33, 0.964, 0.074), ("z",): (0.158, 38.70, 0.974, 0.044),
+               ("z_pow",): (0.157, 38.83, 0.975, 0.041)}, "ate_mean_m", "psnr", "ssim", "lpips"),
+        {("knn",): "no G-ICP covariances", ("none",): "no re-init", ("constant",): "constant", ("z",): "z",
+         ("z_pow",): "z^1.5"},
+        note="the paper's ATE column has no unit; its last row equals Table 7's 0.157 cm"),
+    "table7": PaperTable(
+        "Table 7: keyframes and mapping-only keyframes (Replica, the paper's mean of 8 scenes)", ("keyframe_variant",),
+        (ATE, ATE_RMSE, PSNR, SSIM, LPIPS),
+        _rows({("tracking_every30",): (0.174, 37.52, 0.968, 0.055), ("tracking_every10",): (0.176, 38.83, 0.974, 0.041),
+               ("mapping_every10",): (0.157, 38.83, 0.975, 0.041)}, "ate_mean_m", "psnr", "ssim", "lpips"),
+        {("tracking_every30",): "tracking + every 30 frames", ("tracking_every10",): "tracking + every 10 frames",
+         ("mapping_every10",): "tracking, mapping-only every 10"}),
+    "table8a": PaperTable(
+        "Table 8a: which keyframe a mapping step trains on (Replica, the paper's mean of 8 scenes)",
+        ("mapper/sampler",), (PSNR, SSIM, LPIPS),
+        _rows({("recent",): (26.85, 0.872, 0.200), ("covisible",): (31.34, 0.924, 0.120),
+               ("random",): (38.83, 0.975, 0.041)}, "psnr", "ssim", "lpips"),
+        {("recent",): "recent 1 keyframe", ("covisible",): "covisible keyframes", ("random",): "random keyframes"}),
+    "table8b": PaperTable(
+        "Table 8b: densification and pruning (Replica, the paper's mean of 8 scenes)",
+        ("mapper/strategy", "mapper.strategy.prune_every"), (ATE, ATE_RMSE, PSNR, SSIM, LPIPS),
+        _rows({("3dgs", "200"): (0.188, 38.65, 0.973, 0.041), ("3dgs", "0"): (0.170, 37.90, 0.971, 0.052),
+               ("gsicp", "200"): (0.157, 38.83, 0.975, 0.041), ("gsicp", "0"): (0.159, 38.72, 0.974, 0.041)},
+              "ate_mean_m", "psnr", "ssim", "lpips"),
+        {("3dgs", "200"): "densify, prune", ("3dgs", "0"): "densify, no pruning",
+         ("gsicp", "200"): "no densification, prune", ("gsicp", "0"): "neither"}),
+    "fig4a": PaperTable(
+        "Fig. 4a: keyframe selection (Replica)", ("keyframe_selection",), (ATE, ATE_RMSE, PSNR), {},
+        {("overlap",): "overlap (the paper's)", ("every_5",): "every 5 frames", ("every_10",): "every 10 frames",
+         ("every_30",): "every 30 frames"},
+        note="the paper's values are in its figure only; its caption: every n frames tracks notably worse, "
+             "the overlap selection best"),
+}
+NAMES = tuple(TABLES)
+
+
+def scene_of(settings: dict[str, str]) -> str:
+    """The run's scene: `scene` (a folder under data_root) or the folder of `dataset.path`."""
+    where = settings.get("scene") or settings.get("dataset.path") or ""
+    return Path(where.rstrip("/")).name
+
+
+def paper_table(name: str, runs: list[dict[str, Any]]) -> str:
+    """The sweep's completed `runs` (`slamkit.cli.report.load_run` entries: settings, metrics,
+    status) as the paper's table `name` (one of NAMES), in Markdown, the paper's figure beside
+    each of ours ("-" where the paper has none)."""
+    table = TABLES[name]
+    groups: dict[tuple, list[dict]] = {}
+    for run in runs:
+        if run["status"] == "completed":
+            row = tuple(run["settings"].get(k) for k in table.keys)
+            groups.setdefault((row, scene_of(run["settings"])), []).append(run["metrics"])
+    order = [k[:-1] for k in table.labels] + [k[:-1] for k in table.paper]
+    ranked = sorted(groups, key=lambda g: (order.index(g[0]) if g[0] in order else len(order), g[1]))
+    header = [*table.keys, "the paper's row", "scene", "the paper's column", "runs"]
+    for metric in table.metrics:
+        header += [metric.header] + ([f"{metric.header}, paper"] if _in_paper(table, metric) else [])
+    lines = [f"**{table.title}**", "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for row, scene in ranked:
+        column = table.columns.get(scene, MEAN)
+        paper = table.paper.get((*row, column), {})
+        cells = [str(v) if v is not None else "-" for v in row]
+        cells += [table.labels.get(row, "-"), scene or "-", column if paper else "-", str(len(groups[row, scene]))]
+        for metric in table.metrics:
+            cells.append(_fmt(_mean(groups[row, scene], metric), metric.digits))
+            if _in_paper(table, metric):
+                cells.append(_fmt(paper.get(metric.key), metric.digits))
+        lines.append("| " + " | ".join(cells) + " |")
+    if not ranked:
+        lines.append("(no completed run)")
+    notes = ["the paper's ATE is the reference code's mean error after alignment: beside our ate_mean_m"
+             ] if ATE in table.metrics else []
+    notes += [table.note] if table.note else []
+    lines += ["", "; ".join(notes) + "."] if notes else []
+    return "\n".join(lines) + "\n"
+
+
+def report(name: str, runs: list[dict[str, Any]], out: Path) -> Path:
+    """Print `paper_table(name, runs)` and write it as out/paper_NAME.md; returns the file."""
+    text = paper_table(name, runs)
+    print(text, end="")
+    path = Path(out) / f"paper_{name}.md"
+    write_atomic(path, text)
+    return path
+
+
+def _in_paper(table: PaperTable, metric: Metric) -> bool:
+    return any(metric.key in values for values in table.paper.values())
+
+
+def _mean(metrics: list[dict], metric: Metric) -> float | None:
+    values = [m.get(metric.key) for m in metrics]
+    values = [float(v) * metric.scale for v in values
+              if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)]
+    return sum(values) / len(values) if values else None
+
+
+def _fmt(value: float | None, digits: int) -> str:
+    return "-" if value is None else f"{value:.{digits}f}"

@@ -1,0 +1,74 @@
+"""`slamkit-report --paper TABLE`: a sweep's runs as the paper's table, the paper's figure beside
+each of ours (the row told by the swept setting, the column by the scene), seeds averaged,
+unfinished runs left out, written to paper_TABLE.md."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import yaml
+
+from slamkit.cli.report import main as report_main
+
+
+def fake_run(root: Path, name: str, overrides: list[str], status: str = "completed", **metrics) -> None:
+    """A run folder as a sweep job leaves it: .hydra/overrides.yaml and metrics.json."""
+    run = root / name
+    (run / ".hydra").mkdir(parents=True)
+    (run / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump(overrides))
+    base = {"status": status, "completed": status == "completed", "error": None, "num_frames": 20}
+    (run / "metrics.json").write_text(json.dumps({**base, **metrics}))
+
+
+def table_rows(text: str) -> list[list[str]]:
+    rows = [[c.strip() for c in line.strip().strip("|").split("|")] for line in text.splitlines()
+            if line.startswith("|")]
+    return rows[0:1] + rows[2:]  # the header, then the rows (no separator)
+
+
+def test_table6_rows_by_variant_with_the_papers_figures_beside_ours(tmp_path, capsys):
+    sweep = tmp_path / "sweep"
+    path = "dataset.path=/data/replica_room0_first20"
+    for i, (variant, psnr) in enumerate([("knn", 20.0), ("z_pow", 30.0), ("none", 25.0)]):
+        fake_run(sweep, str(i), [f"+scale_variant={variant}", path, "seed=0"], ate_mean_m=0.001 * (i + 1),
+                 ate_rmse_m=0.002, psnr=psnr, ssim=0.9, lpips=None)
+    fake_run(sweep, "3", ["+scale_variant=z_pow", path, "seed=1"], ate_mean_m=0.003, ate_rmse_m=0.004, psnr=32.0,
+             ssim=0.8, lpips=None)
+    fake_run(sweep, "4", ["+scale_variant=z", path, "seed=0"], status="interrupted", psnr=1.0)
+    assert report_main([str(sweep), "--paper", "table6"]) == 0
+    printed = capsys.readouterr().out
+    written = (sweep / "paper_table6.md").read_text()
+    assert written in printed
+    header, *rows = table_rows(written)
+    cell = {name: i for i, name in enumerate(header)}
+    by_variant = {r[0]: r for r in rows}
+    assert list(by_variant) == ["knn", "none", "z_pow"]  # the paper's order; the interrupted z run left out
+    z_pow = by_variant["z_pow"]
+    assert z_pow[cell["runs"]] == "2" and z_pow[cell["PSNR [dB]"]] == "31.00"  # two seeds averaged
+    assert z_pow[cell["PSNR [dB], paper"]] == "38.83" and z_pow[cell["ATE [cm], paper"]] == "0.157"
+    assert z_pow[cell["ATE [cm]"]] == "0.250" and z_pow[cell["ATE RMSE [cm]"]] == "0.300"
+    assert z_pow[cell["the paper's row"]] == "z^1.5" and z_pow[cell["LPIPS"]] == "-"
+    assert by_variant["knn"][cell["ATE [cm], paper"]] == "8.893"
+
+
+def test_table1_takes_the_papers_column_of_the_scene_or_its_mean(tmp_path, capsys):
+    sweep = tmp_path / "sweep"
+    fake_run(sweep, "0", ["scene=Replica/room0", "preset=paper"], ate_mean_m=0.002, ate_rmse_m=0.003)
+    fake_run(sweep, "1", ["scene=Replica/office4", "preset=paper"], ate_mean_m=0.004, ate_rmse_m=0.005)
+    fake_run(sweep, "2", ["dataset.path=/elsewhere/my_room/", "preset=paper"], ate_mean_m=0.01, ate_rmse_m=0.02)
+    fake_run(sweep, "3", ["scene=Replica/room0", "preset=slamkit"], ate_mean_m=0.001, ate_rmse_m=0.001)
+    assert report_main([str(sweep), "--paper", "table1"]) == 0
+    header, *rows = table_rows(capsys.readouterr().out.split("**Table 1")[1])
+    cell = {name: i for i, name in enumerate(header)}
+    got = {(r[0], r[cell["scene"]]): (r[cell["the paper's column"]], r[cell["ATE [cm], paper"]]) for r in rows}
+    assert got == {("paper", "room0"): ("room0", "0.150"), ("paper", "office4"): ("office4", "0.210"),
+                   ("paper", "my_room"): ("mean", "0.160"), ("slamkit", "room0"): ("-", "-")}
+
+
+def test_an_unknown_table_is_refused(tmp_path, capsys):
+    fake_run(tmp_path, "0", ["seed=0"], psnr=1.0)
+    with pytest.raises(SystemExit) as exit_:
+        report_main([str(tmp_path), "--paper", "table9"])
+    assert exit_.value.code == 2 and "table9" in capsys.readouterr().err
