@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -148,7 +148,12 @@ class LoopDecision:
 
 
 class LoopClosure(ABC):
-    """Detects loops among keyframes and corrects their poses (see the module docstring)."""
+    """Detects loops among keyframes and corrects their poses (see the module docstring).
+
+    `closes_loops`: False for a loop closure that never moves a keyframe (`none`): the run then
+    gives it no keyframes and starts no thread for it."""
+
+    closes_loops: ClassVar[bool] = True
 
     @abstractmethod
     def add_keyframe(self, keyframe: LoopKeyframe) -> None:

@@ -1,6 +1,7 @@
 """A run's plugins built from its validated config: the dataset first, then, in the run's
 context (the dataset's tuning, the mode, the shared map), every other role with its config's
-null fields filled (`slamkit.config.resolve_tree`), the mapper with its parts.
+null fields filled (`slamkit.config.resolve_tree`), the mapper with its parts, the loop closure
+(`slamkit.run.loop_closing.LoopCloser`).
 
     dataset, slam, viewer = build_run(["dataset=tum", "dataset.path=PATH"])
 """
@@ -11,14 +12,15 @@ from dataclasses import dataclass
 from typing import Any, Sequence
 
 from slamkit.config import RunContext, resolve_tree
-from slamkit.errors import DataError
+from slamkit.errors import ConfigError, DataError
 from slamkit.map.gaussian_map import GaussianMap
 from slamkit.native import available_threads
 from slamkit.registry.compose import compose_run
 from slamkit.registry.discovery import Registry, default_registry
 from slamkit.registry.schema import Mode, RunConfig
-from slamkit.roles import Dataset, Viewer
+from slamkit.roles import Dataset, Tracker, Viewer
 from slamkit.run.boundary import PluginBoundary
+from slamkit.run.loop_closing import LoopCloser
 from slamkit.run.slam import SLAM
 
 
@@ -65,8 +67,14 @@ def build(cfg: RunConfig, registry: Registry, names: dict[str, str]) -> BuiltRun
 
     mapper_parts = registry.get("mapper", names["mapper"]).cls.parts
     parts = {part: create(f"mapper.{part}", getattr(cfg.mapper, part)) for part in mapper_parts}
-    slam = SLAM(create("tracker", cfg.tracker), create("keyframe", cfg.keyframe),
-                create("mapper", cfg.mapper, **parts), gaussian_map, cfg.growth, cfg.iterations_per_frame, boundary)
+    tracker = create("tracker", cfg.tracker)
+    loop_closer = LoopCloser(create("loop_closure", cfg.loop_closure), boundary)
+    if loop_closer.active and type(tracker).move_world is Tracker.move_world:
+        raise ConfigError(f"loop_closure={names['loop_closure']}: tracker={names['tracker']} cannot follow a loop "
+                          "closure's corrections (it does not implement Tracker.move_world); use loop_closure=none "
+                          "or tracker=gicp")
+    slam = SLAM(tracker, create("keyframe", cfg.keyframe), create("mapper", cfg.mapper, **parts), gaussian_map,
+                cfg.growth, cfg.iterations_per_frame, boundary, loop_closer)
     return BuiltRun(dataset, slam, create("viewer", cfg.viewer), cfg)
 
 

@@ -1,7 +1,8 @@
 """The shared operations that change which Gaussians the map holds (gsplat's strategy ops).
 
 A densification strategy (`slamkit.splatting.strategy.Strategy`) edits the map only through a
-`MapEdit`: append, remove, duplicate, split, reset opacity, update rows. Each operation keeps
+`MapEdit`: append, remove, duplicate, split, reset opacity, update rows, move rows (a loop
+closure's correction). Each operation keeps
 every per-row state aligned with the map's rows, in one place: the optimiser's (`MapOptimizer.
 edit_rows`; rows that are new or whose values were replaced start with zero moments) and the
 strategy's own statistics (`state`: copied for duplicates and split children, zero for new rows).
@@ -16,7 +17,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from slamkit.map.gaussian_map import GaussianMap, GaussianRows
+from slamkit.map.gaussian_map import GaussianMap, GaussianRows, RowMotion
 from slamkit.geometry.transforms import quat_to_rotmat
 
 if TYPE_CHECKING:
@@ -139,6 +140,14 @@ class MapEdit:
         zero optimiser state (e.g. relocating dead Gaussians, as 3DGS-MCMC does)."""
         self.sync()
         self._overwrite(torch.as_tensor(index, dtype=torch.long, device=self.map.device), rows)
+
+    def move(self, motion: RowMotion) -> None:
+        """Move every row rigidly by `motion` (`GaussianMap.move_rows`: means, rotations and
+        their entry geometry); the optimiser's state follows (`MapOptimizer.move_rows`), the
+        strategy's statistics (gradient norms, counts: unchanged by a rigid motion) stay."""
+        self.sync()
+        self.map.move_rows(motion)
+        self.optimizer.move_rows(motion)
 
     def _overwrite(self, index, rows: GaussianRows) -> None:
         self.map.overwrite(index, rows)

@@ -36,6 +36,9 @@ class GaussianSplattingMapper(Mapper):
     def add_keyframe(self, frame, pose, kind, new_rows) -> None:
         self.trainer.add_keyframe(frame, pose, kind, new_rows)
 
+    def move_keyframes(self, updates) -> None:
+        self.trainer.move_keyframes(updates)
+
     def optimize(self, iterations: int) -> int:
         return self.trainer.train(iterations)
 

@@ -76,6 +76,12 @@ class GICPTracker(Tracker):
         self.first_pose = orthonormalize(np.asarray(first_pose, dtype=np.float64))
         self.poses = []
 
+    def move_world(self, motion: np.ndarray) -> None:
+        """The motion model's poses move with the world (the velocity between them is kept)."""
+        motion = np.asarray(motion, dtype=np.float64)
+        self.poses = [orthonormalize(motion @ p) for p in self.poses]
+        self.first_pose = orthonormalize(motion @ self.first_pose)
+
     def update_target(self, gaussian_map: GaussianMap) -> None:
         """Take the map's trackable Gaussians as the new target; regularise their covariances
         and build their nearest-neighbour index (the only place it is built)."""
