@@ -53,6 +53,7 @@ from slamkit.metrics.trajectory import ate
 from slamkit.registry.compose import compose_run
 from slamkit.run.build import build_run
 from slamkit.registry.discovery import default_registry
+from slamkit.run.loop_closing import loop_keyframe
 from slamkit.roles.loop_closure import (LoopKeyframe, PoseGraph, PoseGraphEdge, follow_keyframes, pose_difference,
                                         relative_pose)
 from slamkit_plugins.loop_closures.pose_graph import closure as pose_graph_closure
@@ -71,11 +72,6 @@ RIGHT_M, RIGHT_DEG = 0.05, 3.0
 TRUE_REVISIT_OVERLAP, TRUE_REVISIT_VOXELS = 0.3, 2.0
 #: The wrong loop of --wrong-loop: its relative pose moved by this (rotation vector rad, translation m).
 WRONG_LOOP = np.array([0.0, np.radians(10.0), 0.0, 0.25, 0.0, 0.0])
-
-
-#: The keyframe image kept for appearance is the frame's colour image averaged over blocks of
-#: this many pixels a side (80x60 from 640x480).
-IMAGE_BLOCK = 8
 
 
 @dataclass
@@ -111,14 +107,6 @@ class TrackedSequence:
                        [str(o) for o in f["overrides"]])
 
 
-def block_average(image: np.ndarray, block: int) -> np.ndarray:
-    """(H,W,C) image averaged over block x block pixels (the edge rows and columns that do not
-    fill a block dropped), same dtype."""
-    h, w = image.shape[0] // block * block, image.shape[1] // block * block
-    blocks = image[:h, :w].reshape(h // block, block, w // block, block, -1).astype(np.float32)
-    return blocks.mean(axis=(1, 3)).round().astype(image.dtype)
-
-
 def track(dataset: str, path: Path, max_frames: int | None = None, extra: tuple[str, ...] = ()) -> TrackedSequence:
     """Track `dataset` at `path` (tracking only) and keep its keyframes (see TrackedSequence)."""
     overrides = [f"dataset={dataset}", f"dataset.path={path}", "mapper=none", *extra]
@@ -134,15 +122,12 @@ def track(dataset: str, path: Path, max_frames: int | None = None, extra: tuple[
         pose = step.tracking.pose
         poses.append(pose)
         gts.append(frame.gt_pose if frame.gt_pose is not None else np.full((4, 4), np.nan))
-        g = step.tracking.gaussians
-        if step.keyframe and g is not None:
-            world_to_camera = invert_pose(pose)
-            keep = np.asarray(g.trackable, dtype=bool)
-            R = world_to_camera[:3, :3]
+        if step.keyframe and step.tracking.gaussians is not None:  # as the run gives it (slamkit.run.loop_closing)
+            keyframe = loop_keyframe(len(kf_frames), frame, pose, step.tracking.gaussians, 0)
             kf_frames.append(i)
-            points.append(transform_points(world_to_camera, np.asarray(g.means, dtype=np.float64)[keep]).astype(np.float32))
-            covariances.append((R @ np.asarray(g.covariances, dtype=np.float64)[keep] @ R.T).astype(np.float32))
-            images.append(block_average(np.asarray(frame.rgb), IMAGE_BLOCK))
+            points.append(keyframe.points)
+            covariances.append(keyframe.covariances)
+            images.append(keyframe.image)
     return TrackedSequence(np.array(poses), np.array(gts), np.array(kf_frames), points, covariances, images, overrides)
 
 

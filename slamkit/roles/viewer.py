@@ -80,8 +80,9 @@ class ViewerFrame:
     the estimated camera-to-world pose (4x4, metres, OpenCV axes). keyframe, lost: the
     tracker's and keyframe policy's outcome. trajectory, gt_trajectory: (n,3) camera centres
     in world metres of the frames so far (gt: the frames that have ground truth; the estimate
-    as corrected by the loop closure so far). loops: (L,2,3) the loop closure's accepted loops,
-    each the two keyframes' camera centres in world metres (earlier keyframe first). The map and
+    as corrected by the loop closure so far). keyframes: (K,3) the keyframes' camera centres so
+    far, likewise. loops: (L,2,3) the loop closure's accepted loops, each the two keyframes'
+    camera centres in world metres (earlier keyframe first). The map and
     the mapper are shared with the running SLAM: use `map_gaussians`, `map_points` and `render`, which copy
     under the map's lock.
     """
@@ -94,6 +95,7 @@ class ViewerFrame:
     gt_trajectory: np.ndarray
     gaussian_map: GaussianMap
     mapper: Mapper
+    keyframes: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     loops: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 3)))
 
     def map_gaussians(self, max_points: int) -> MapGaussians:

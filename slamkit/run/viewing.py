@@ -56,6 +56,7 @@ class ViewerFeed:
             gt_trajectory=np.array(self._gt_centres).reshape(-1, 3),
             gaussian_map=self.gaussian_map,
             mapper=self.mapper,
+            keyframes=np.array([self._centres[i] for i in self._keyframe_positions]).reshape(-1, 3),
             loops=np.zeros((0, 2, 3)) if loops is None else np.asarray(loops, dtype=np.float64).reshape(-1, 2, 3),
         )
         self._call("show", self.last_view)
