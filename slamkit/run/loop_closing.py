@@ -121,7 +121,8 @@ class LoopClosureCost:
     """What the loop closure cost, over the whole run: keyframes it took, its calls, CPU and
     wall seconds in its calls (the calling thread's CPU: where open3d starts OpenMP workers their
     CPU is not counted, OMP_NUM_THREADS=1 keeps it in), and the tracking thread's seconds applying
-    corrections (moving the map, rebuilding the tracker's target)."""
+    corrections (moving the map, rebuilding the tracker's target); the corrections applied and
+    the largest keyframe motion of one."""
 
     keyframes: int = 0
     calls: int = 0
@@ -131,6 +132,7 @@ class LoopClosureCost:
     corrections: int = 0
     largest_correction_m: float = 0.0
     largest_correction_deg: float = 0.0
+    after_stream: int = 0  # keyframes not taken yet when the stream ended (real time: the loop thread's backlog)
 
 
 def _keyframe_state(k: LoopKeyframe) -> dict[str, Any]:
@@ -243,6 +245,11 @@ class LoopCloser:
                      100 * check.correction_m, check.correction_deg)
         return True
 
+    def finish_stream(self) -> None:
+        """After the stream (the loop thread stopped): decide on the keyframes not taken yet."""
+        self.cost.after_stream = self.waiting()
+        self.detect()
+
     def waiting(self) -> int:
         """Keyframes waiting for `detect`."""
         with self._wake:
@@ -281,7 +288,7 @@ class LoopCloser:
                 "loop_correction_max_deg": c.largest_correction_deg, "loop_closure_keyframes": c.keyframes,
                 "loop_closure_calls": c.calls, "loop_closure_cpu_s": c.cpu_s, "loop_closure_wall_s": c.wall_s,
                 "loop_closure_cpu_s_per_keyframe": c.cpu_s / c.keyframes if c.keyframes else None,
-                "loop_closure_apply_s": c.apply_s, "loop_keyframes_waiting": self.waiting()}
+                "loop_closure_apply_s": c.apply_s, "loop_keyframes_after_stream": c.after_stream}
 
     # -- checkpoints ---------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:

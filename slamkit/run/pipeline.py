@@ -270,7 +270,7 @@ def _close_remaining_loops(slam: SLAM, state: RunState, viewer: ViewerFeed) -> N
     """After the stream: the keyframes the real-time loop thread had not taken yet are decided
     on now, and the decisions not applied yet are, so that the trajectory written and the map
     refined are the corrected ones."""
-    slam.loop_closer.detect()
+    slam.loop_closer.finish_stream()
     correction = slam.correct()
     if correction is not None:
         state.follow(correction)
