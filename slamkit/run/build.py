@@ -21,6 +21,7 @@ from slamkit.registry.schema import Mode, RunConfig
 from slamkit.roles import Dataset, Tracker, Viewer
 from slamkit.run.boundary import PluginBoundary
 from slamkit.run.loop_closing import LoopCloser
+from slamkit.run.loop_process import LoopClosureProcess
 from slamkit.run.slam import SLAM
 
 
@@ -68,7 +69,7 @@ def build(cfg: RunConfig, registry: Registry, names: dict[str, str]) -> BuiltRun
     mapper_parts = registry.get("mapper", names["mapper"]).cls.parts
     parts = {part: create(f"mapper.{part}", getattr(cfg.mapper, part)) for part in mapper_parts}
     tracker = create("tracker", cfg.tracker)
-    loop_closer = LoopCloser(create("loop_closure", cfg.loop_closure), boundary)
+    loop_closer = LoopCloser(_loop_closure(cfg, registry, names, context, create), boundary)
     if loop_closer.active and type(tracker).move_world is Tracker.move_world:
         raise ConfigError(f"loop_closure={names['loop_closure']}: tracker={names['tracker']} cannot follow a loop "
                           "closure's corrections (it does not implement Tracker.move_world); use loop_closure=none "
@@ -76,6 +77,15 @@ def build(cfg: RunConfig, registry: Registry, names: dict[str, str]) -> BuiltRun
     slam = SLAM(tracker, create("keyframe", cfg.keyframe), create("mapper", cfg.mapper, **parts), gaussian_map,
                 cfg.growth, cfg.iterations_per_frame, boundary, loop_closer)
     return BuiltRun(dataset, slam, create("viewer", cfg.viewer), cfg)
+
+
+def _loop_closure(cfg: RunConfig, registry: Registry, names: dict[str, str], context: RunContext, create):
+    """The run's loop closure: in real time, one that closes loops runs in a process of its own
+    at the mapping thread's priority (`slamkit.run.loop_process`); otherwise here."""
+    cls = registry.get("loop_closure", names["loop_closure"]).cls
+    if context.realtime and cls.closes_loops:
+        return LoopClosureProcess(cls, cfg.loop_closure, context, cfg.mapping_priority)
+    return create("loop_closure", cfg.loop_closure)
 
 
 def build_run(overrides: Sequence[str] = (), registry: Registry | None = None) -> tuple[Dataset, SLAM, Viewer]:

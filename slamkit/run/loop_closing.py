@@ -1,7 +1,8 @@
 """Loop closure inside the running system: `LoopCloser` hands each keyframe to the run's
 `slamkit.roles.loop_closure.LoopClosure`, has it decide (`detect_and_optimise`) in the tracking
-thread after the keyframe (sequential mode: deterministic) or in a thread of its own
-(`LoopThread`, real time, at the mapping thread's priority), and hands the decisions to the
+thread after the keyframe (sequential mode: deterministic) or, in real time, in a process of its
+own at the mapping thread's priority (`slamkit.run.loop_process`) that a thread of this one waits
+on (`LoopThread`), and hands the decisions to the
 tracking thread as one `Correction` between two frames (`SLAM.correct` applies it: the map's
 Gaussians and the mapper's keyframes move, the tracker follows; the run's trajectory follows
 through `Correction.follow`).
@@ -28,7 +29,7 @@ from slamkit.geometry.pose_graph import PoseGraph, follow_keyframes, owning_keyf
 from slamkit.geometry.transforms import invert_pose, transform_points
 from slamkit.roles.loop_closure import LoopCheck, LoopClosure, LoopDecision, LoopKeyframe
 from slamkit.run.boundary import PluginBoundary
-from slamkit.scheduling import ThreadPriority, lower_calling_thread
+from slamkit.run.loop_process import LoopClosureProcess
 from slamkit.types import Frame, FrameGaussians
 
 log = logging.getLogger(__name__)
@@ -119,8 +120,9 @@ class Correction:
 @dataclass
 class LoopClosureCost:
     """What the loop closure cost, over the whole run: keyframes it took, its calls, CPU and
-    wall seconds in its calls (the calling thread's CPU: where open3d starts OpenMP workers their
-    CPU is not counted, OMP_NUM_THREADS=1 keeps it in), and the tracking thread's seconds applying
+    wall seconds in its calls (CPU: its process's in real time, threads included; in sequential
+    mode the tracking thread's, where open3d's OpenMP workers are not counted unless
+    OMP_NUM_THREADS=1), and the tracking thread's seconds applying
     corrections (moving the map, rebuilding the tracker's target); the corrections applied and
     the largest keyframe motion of one."""
 
@@ -225,7 +227,7 @@ class LoopCloser:
                 batch, self._queued = self._queued, []
             if not batch:
                 return False
-            wall, cpu = time.perf_counter(), time.thread_time()
+            wall, cpu = time.perf_counter(), self._cpu_clock()
             for keyframe in batch:
                 with self.boundary("loop_closure", "add_keyframe"):
                     self.closure.add_keyframe(keyframe)
@@ -233,7 +235,7 @@ class LoopCloser:
                 decision = self.closure.detect_and_optimise()
             self.cost.keyframes += len(batch)
             self.cost.calls += 1
-            self.cost.cpu_s += time.thread_time() - cpu
+            self.cost.cpu_s += self._cpu_clock() - cpu
             self.cost.wall_s += time.perf_counter() - wall
             with self._wake:
                 self._decisions.append(decision)
@@ -244,6 +246,16 @@ class LoopCloser:
                      check.frame_index, check.match_frame_index, check.fitness, check.inliers,
                      100 * check.correction_m, check.correction_deg)
         return True
+
+    def _cpu_clock(self) -> float:
+        """CPU seconds so far of whoever runs the loop closure: its process (real time, its
+        threads included) or this thread (sequential)."""
+        return self.closure.cpu_s if isinstance(self.closure, LoopClosureProcess) else time.thread_time()
+
+    def close(self) -> None:
+        """End the loop closure's process, if it has one (after the run's last call)."""
+        if isinstance(self.closure, LoopClosureProcess):
+            self.closure.close()
 
     def finish_stream(self) -> None:
         """After the stream (the loop thread stopped): decide on the keyframes not taken yet."""
@@ -337,22 +349,22 @@ class LoopCloser:
 
 
 class LoopThread(threading.Thread):
-    """Runs `closer.detect()` whenever keyframes are queued, beside tracking (real-time mode), at
-    `priority` (`slamkit.scheduling`, the mapping thread's): tracking never waits for it, and
-    what it decides is applied by the tracking thread between two frames (`LoopCloser.take`).
+    """Runs `closer.detect()` whenever keyframes are queued, beside tracking (real-time mode):
+    tracking never waits for it, and what it decides is applied by the tracking thread between
+    two frames (`LoopCloser.take`). The work itself is the loop closure's process's, at the
+    mapping thread's priority (`slamkit.run.loop_process`); this thread only hands it the
+    keyframes and waits for its answer, at normal priority (holding the GIL at a lower one
+    while it pickles a keyframe would make tracking wait for a thread that waits for a CPU).
     An exception in the loop closure stops the thread and is re-raised by `check()` / `stop()`.
     `stop()` lets the call in progress end."""
 
-    def __init__(self, closer: LoopCloser, priority: ThreadPriority = ThreadPriority.idle):
+    def __init__(self, closer: LoopCloser):
         super().__init__(name="slamkit-loop-closure", daemon=True)
         self.closer = closer
-        self.priority = ThreadPriority(priority)
-        self.lowered: bool | None = None
         self.error: BaseException | None = None
         self._stop_event = threading.Event()
 
     def run(self) -> None:
-        self.lowered = lower_calling_thread(self.priority)
         try:
             while not self._stop_event.is_set():
                 if not self.closer.detect():

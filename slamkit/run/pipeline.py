@@ -93,6 +93,7 @@ def _run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Pat
                 metrics = outputs.save_all()
             finally:
                 viewer.close()
+                slam.loop_closer.close()
     if outputs.unwritten:
         name, why = next(iter(outputs.unwritten.items()))
         more = f" (and {len(outputs.unwritten) - 1} more)" if len(outputs.unwritten) > 1 else ""
@@ -199,7 +200,7 @@ def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, frames_log: Fram
     realtime = cfg.mode is Mode.realtime
     clock = InputClock(cfg.fps_limit if realtime else None)
     mapping = MappingThread(slam, cfg.switch_interval, cfg.mapping_priority) if realtime else None
-    loops = LoopThread(slam.loop_closer, cfg.mapping_priority) if realtime and slam.loop_closer.active else None
+    loops = LoopThread(slam.loop_closer) if realtime and slam.loop_closer.active else None
     bar = tqdm(total=len(dataset), initial=first, unit="frame", disable=None if cfg.progress else True,
                dynamic_ncols=True)
     start, cpu_start, loading = time.perf_counter(), time.thread_time(), LoadCost()
