@@ -84,7 +84,8 @@ def _loop_closure(cfg: RunConfig, registry: Registry, names: dict[str, str], con
     at the mapping thread's priority (`slamkit.run.loop_process`); otherwise here."""
     cls = registry.get("loop_closure", names["loop_closure"]).cls
     if context.realtime and cls.closes_loops:
-        return LoopClosureProcess(cls, cfg.loop_closure, context, cfg.mapping_priority)
+        with PluginBoundary(names)("loop_closure", "__init__"):
+            return LoopClosureProcess(cls, cfg.loop_closure, context, cfg.mapping_priority)
     return create("loop_closure", cfg.loop_closure)
 
 

@@ -39,13 +39,13 @@ def _serve(conn, cls: type, config: PluginConfig, context: RunContext, priority:
     seconds of this process in the call) until the pipe closes."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    lower_calling_thread(priority)
-    try:
+    try:  # at normal priority: its imports run beside the run's start-up, not after its stream
         closure = cls(config, context)
         conn.send((True, None, 0.0))
     except Exception as exc:
         conn.send((False, f"{type(exc).__name__}: {exc}", 0.0))
         return
+    lower_calling_thread(priority)  # the threads it starts from now on inherit it
     while True:
         try:
             method, args = conn.recv()
@@ -79,15 +79,15 @@ class LoopClosureProcess(LoopClosure):
                                       name="slamkit-loop-closure", daemon=True)
         self._process.start()
         child.close()
-        self._ready = False
         self.cpu_s = 0.0
+        # complete when built: its start-up (imports, seconds) is over before the stream, where it
+        # would take the CPU the mapper gets
+        ok, why, _ = self._receive()
+        if not ok:
+            self.close()
+            raise LoopClosureError(f"{cls.__name__} could not be built in its process: {why}")
 
     def _call(self, method: str, *args: Any) -> Any:
-        if not self._ready:
-            ok, why, _ = self._receive()
-            if not ok:
-                raise LoopClosureError(f"{self.cls.__name__} could not be built in its process: {why}")
-            self._ready = True
         self._conn.send((method, args))
         ok, value, cpu_s = self._receive()
         self.cpu_s += cpu_s

@@ -23,11 +23,11 @@ from typing import Any
 import numpy as np
 
 from slamkit.config import RunContext
-from slamkit.geometry.registration import FeatureCloud
+from slamkit.geometry.registration import FeatureCloud, import_open3d
 from slamkit.roles.loop_closure import (LoopCheck, LoopClosure, LoopDecision, LoopKeyframe, PoseGraph, PoseGraphEdge,
                                         relative_pose)
 from slamkit_plugins.loop_closures.pose_graph import detection, optimisation, verification
-from slamkit_plugins.loop_closures.pose_graph.config import PoseGraphConfig
+from slamkit_plugins.loop_closures.pose_graph.config import Backend, PoseGraphConfig
 
 #: Added to an odometry edge's information per matched point, so that a direction the two
 #: keyframes' points do not constrain (or a pair with no matched points) stays tied to odometry
@@ -55,6 +55,9 @@ class PoseGraphLoopClosure(LoopClosure):
 
     def __init__(self, cfg: PoseGraphConfig, context: RunContext = RunContext()):
         self.cfg = cfg
+        import_open3d()  # the libraries it needs, now: a missing one fails here, in one line
+        if cfg.backend is Backend.gtsam:
+            optimisation.import_gtsam()
         self.nodes: list[_Node] = []
         self.edges: list[PoseGraphEdge] = []
         self.accepted: list[LoopCheck] = []  # in the graph, in the order of self.edges' loop edges
