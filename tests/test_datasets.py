@@ -348,17 +348,19 @@ def test_replica_errors(tmp_path):
 
 # --- synthetic 7-Scenes -----------------------------------------------------------------------
 
-def make_sevenscenes(root: Path, n: int = 3, intrinsics: bool = True) -> tuple[Path, np.ndarray]:
+def make_sevenscenes(root: Path, n: int = 3, intrinsics: bool = True, first: int = 0) -> tuple[Path, np.ndarray]:
+    """`n` frames numbered from `first` (the shared data's start at frame-000300)."""
     root.mkdir(parents=True)
     rng = np.random.default_rng(0)
     poses = np.stack([make_pose(so3_exp(rng.normal(size=3)), rng.normal(size=3)) for _ in range(n)])
-    for i in range(n):
+    for k in range(n):
+        i = first + k
         ext = "png" if i % 2 else "jpg"
         Image.fromarray(np.zeros((48, 64, 3), np.uint8)).save(root / f"frame-{i:06d}.color.{ext}")
         raw = np.full((48, 64), 1500, np.uint16)
         raw[0, 0], raw[0, 1] = 0, 65535
         save_depth(root / f"frame-{i:06d}.depth.png", raw)
-        np.savetxt(root / f"frame-{i:06d}.pose.txt", poses[i], delimiter="\t")
+        np.savetxt(root / f"frame-{i:06d}.pose.txt", poses[k], delimiter="\t")
     if intrinsics:
         np.savetxt(root / "camera-intrinsics.txt", [[60.0, 0, 31.5], [0, 61.0, 23.5], [0, 0, 1]])
     return root, poses
@@ -376,6 +378,15 @@ def test_sevenscenes_synthetic(tmp_path):
     assert f.depth[0, 0] == 0 and f.depth[0, 1] == 0 and f.depth[1, 1] == pytest.approx(1.5)
     np.testing.assert_allclose(f.gt_pose, poses[1])
     assert ds[2].gt_pose is None
+
+
+def test_sevenscenes_timestamps_are_the_frame_numbers_read_or_not(tmp_path):
+    """A selection that starts at frame-000300: the timestamp a frame is read with and the one
+    the dataset gives without reading it (what resume= checks the frame list with) agree."""
+    root, _ = make_sevenscenes(tmp_path / "kitchen" / "seq-01", first=300)
+    ds = SevenScenesDataset(SevenScenesConfig(path=str(root)))
+    assert [ds.timestamp(i) for i in range(len(ds))] == [ds[i].timestamp for i in range(len(ds))] == [300.0, 301.0,
+                                                                                                       302.0]
 
 
 def test_sevenscenes_defaults_and_errors(tmp_path):
