@@ -2,7 +2,7 @@
 mapper none, as `slamkit dataset=NAME mapper=none` runs it, through
 `slamkit.registry.compose.build_run`), then each keyframe, with its estimated pose, points and
 image, given to the loop closure in order (`detect_and_optimise` after each keyframe), as the run
-will. Prints per sequence and setting:
+does in sequential mode. Prints per sequence and setting:
 
 - candidates: keyframe pairs verified; accepted: loops in the final pose graph;
 - right: accepted loops whose relative pose is within 5 cm and 3 degrees of the ground truth's
