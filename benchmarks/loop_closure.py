@@ -2,7 +2,7 @@
 mapper none, as `slamkit dataset=NAME mapper=none` runs it, through
 `slamkit.registry.compose.build_run`), then each keyframe, with its estimated pose, points and
 image, given to the loop closure in order (`detect_and_optimise` after each keyframe), as the run
-will. Prints per sequence and setting:
+does in sequential mode. Prints per sequence and setting:
 
 - candidates: keyframe pairs verified; accepted: loops in the final pose graph;
 - right: accepted loops whose relative pose is within 5 cm and 3 degrees of the ground truth's
@@ -51,10 +51,17 @@ from slamkit.geometry import invert_pose, nearest_rotation, se3_exp, transform_p
 from slamkit.geometry.registration import import_open3d
 from slamkit.metrics.trajectory import ate
 from slamkit.registry.compose import compose_run
-from slamkit.run.build import build_run
 from slamkit.registry.discovery import default_registry
-from slamkit.roles.loop_closure import (LoopKeyframe, PoseGraph, PoseGraphEdge, follow_keyframes, pose_difference,
-                                        relative_pose)
+from slamkit.roles.loop_closure import (
+    LoopKeyframe,
+    PoseGraph,
+    PoseGraphEdge,
+    follow_keyframes,
+    pose_difference,
+    relative_pose,
+)
+from slamkit.run.build import build_run
+from slamkit.run.loop_closing import loop_keyframe
 from slamkit_plugins.loop_closures.pose_graph import closure as pose_graph_closure
 from slamkit_plugins.loop_closures.pose_graph import optimisation, verification
 
@@ -71,11 +78,6 @@ RIGHT_M, RIGHT_DEG = 0.05, 3.0
 TRUE_REVISIT_OVERLAP, TRUE_REVISIT_VOXELS = 0.3, 2.0
 #: The wrong loop of --wrong-loop: its relative pose moved by this (rotation vector rad, translation m).
 WRONG_LOOP = np.array([0.0, np.radians(10.0), 0.0, 0.25, 0.0, 0.0])
-
-
-#: The keyframe image kept for appearance is the frame's colour image averaged over blocks of
-#: this many pixels a side (80x60 from 640x480).
-IMAGE_BLOCK = 8
 
 
 @dataclass
@@ -111,14 +113,6 @@ class TrackedSequence:
                        [str(o) for o in f["overrides"]])
 
 
-def block_average(image: np.ndarray, block: int) -> np.ndarray:
-    """(H,W,C) image averaged over block x block pixels (the edge rows and columns that do not
-    fill a block dropped), same dtype."""
-    h, w = image.shape[0] // block * block, image.shape[1] // block * block
-    blocks = image[:h, :w].reshape(h // block, block, w // block, block, -1).astype(np.float32)
-    return blocks.mean(axis=(1, 3)).round().astype(image.dtype)
-
-
 def track(dataset: str, path: Path, max_frames: int | None = None, extra: tuple[str, ...] = ()) -> TrackedSequence:
     """Track `dataset` at `path` (tracking only) and keep its keyframes (see TrackedSequence)."""
     overrides = [f"dataset={dataset}", f"dataset.path={path}", "mapper=none", *extra]
@@ -134,15 +128,12 @@ def track(dataset: str, path: Path, max_frames: int | None = None, extra: tuple[
         pose = step.tracking.pose
         poses.append(pose)
         gts.append(frame.gt_pose if frame.gt_pose is not None else np.full((4, 4), np.nan))
-        g = step.tracking.gaussians
-        if step.keyframe and g is not None:
-            world_to_camera = invert_pose(pose)
-            keep = np.asarray(g.trackable, dtype=bool)
-            R = world_to_camera[:3, :3]
+        if step.keyframe and step.tracking.gaussians is not None:  # as the run gives it (slamkit.run.loop_closing)
+            keyframe = loop_keyframe(len(kf_frames), frame, pose, step.tracking.gaussians, 0)
             kf_frames.append(i)
-            points.append(transform_points(world_to_camera, np.asarray(g.means, dtype=np.float64)[keep]).astype(np.float32))
-            covariances.append((R @ np.asarray(g.covariances, dtype=np.float64)[keep] @ R.T).astype(np.float32))
-            images.append(block_average(np.asarray(frame.rgb), IMAGE_BLOCK))
+            points.append(keyframe.points)
+            covariances.append(keyframe.covariances)
+            images.append(keyframe.image)
     return TrackedSequence(np.array(poses), np.array(gts), np.array(kf_frames), points, covariances, images, overrides)
 
 
@@ -247,7 +238,8 @@ def agreement(seq: TrackedSequence, gt: np.ndarray, measure, pairs: list[tuple[i
         odometry = relative_pose(seq.poses[kf[m]], seq.poses[kf[q]])
         truth = relative_pose(gt[kf[m]], gt[kf[q]])
         gicp = measure(q, m, odometry)
-        rows.append([*pose_difference(odometry, truth), *pose_difference(gicp, truth), *pose_difference(odometry, gicp)])
+        rows.append([*pose_difference(odometry, truth), *pose_difference(gicp, truth),
+                     *pose_difference(odometry, gicp)])
     median = np.median(np.array(rows), axis=0) if rows else [None] * 6
     names = ("odometry_vs_gt_m", "odometry_vs_gt_deg", "gicp_vs_gt_m", "gicp_vs_gt_deg", "odometry_vs_gicp_m",
              "odometry_vs_gicp_deg")

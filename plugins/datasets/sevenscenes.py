@@ -107,7 +107,7 @@ class SevenScenesDataset(Dataset):
         return len(self.numbers)
 
     def raw_timestamp(self, raw_index: int) -> float:
-        return float(raw_index)
+        return float(self.numbers[raw_index])  # the frame number, as `load` gives it
 
     def load(self, raw_index: int) -> Frame:
         rgb, depth = read_rgbd(self.rgb_files[raw_index], self.depth_files[raw_index], self.cfg.depth_scale,

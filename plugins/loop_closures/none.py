@@ -17,6 +17,8 @@ class NoLoopClosureConfig(PluginConfig):
 class NoLoopClosure(LoopClosure):
     """Looks for no loops and moves no keyframe."""
 
+    closes_loops = False
+
     def __init__(self, cfg: NoLoopClosureConfig, context: RunContext = RunContext()):
         self.cfg = cfg
 

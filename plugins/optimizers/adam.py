@@ -19,6 +19,7 @@ import torch
 from slamkit.map.gaussian_map import PARAMETERS
 from slamkit.plugin import PluginSpec, hookimpl
 from slamkit.roles import MapOptimizer, PluginConfig, RunContext, require
+from slamkit.splatting.optimizer import rotated_moments
 
 #: Which config field holds each parameter's learning rate.
 LR_FIELDS = {"means": "lr_means", "quats": "lr_quats", "log_scales": "lr_scales", "opacity_logits": "lr_opacity",
@@ -115,6 +116,13 @@ class TorchAdam(MapOptimizer):
             for key in ("exp_avg", "exp_avg_sq"):
                 if key in state:
                     state[key] = edit(name, state[key])
+
+    def move_rows(self, motion) -> None:
+        """Adam's moments follow rows a loop closure moved (`rotated_moments`)."""
+        for name, linear in (("means", motion.rotations), ("quats", motion.quat_maps)):
+            state = self._state(name)
+            if "exp_avg" in state:
+                state["exp_avg"], state["exp_avg_sq"] = rotated_moments(linear, state["exp_avg"], state["exp_avg_sq"])
 
     def reset(self) -> None:
         self.adam = None

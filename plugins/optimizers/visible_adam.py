@@ -28,6 +28,7 @@ from slamkit.errors import ConfigError
 from slamkit.native import NativeLibrary
 from slamkit.plugin import PluginSpec, hookimpl
 from slamkit.roles import MapOptimizer, RunContext
+from slamkit.splatting.optimizer import rotated_moments
 from slamkit_plugins.optimizers.adam import AdamConfig
 
 log = logging.getLogger(__name__)
@@ -103,6 +104,12 @@ class VisibleAdam(MapOptimizer):
     def edit_rows(self, edit) -> None:
         self.moments = {name: (edit(name, m), edit(name, v)) for name, (m, v) in self.moments.items()}
         self.steps = edit(STEPS, self.steps)
+
+    def move_rows(self, motion) -> None:
+        """The moments follow rows a loop closure moved (`rotated_moments`); step counts stay."""
+        for name, linear in (("means", motion.rotations), ("quats", motion.quat_maps)):
+            if name in self.moments:
+                self.moments[name] = rotated_moments(linear, *self.moments[name])
 
     def reset(self) -> None:
         self.moments, self.steps = {}, torch.zeros(0)

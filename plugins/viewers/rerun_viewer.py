@@ -9,7 +9,10 @@ Needs the optional extra `viewer` (`pip install -e '.[viewer]'`, rerun-sdk). Ent
     world/camera/image/depth      DepthImage: the input depth (uint16 millimetres)
     world/trajectory/estimate     LineStrips3D: camera centres so far (metres)
     world/trajectory/ground_truth LineStrips3D: the ground-truth centres so far, when the data has them
-    world/keyframes               Points3D: the keyframes' camera centres
+    world/keyframes               Points3D: the keyframes' camera centres (moved with the loop
+                                  closure's corrections, as the estimate is)
+    world/loops                   LineStrips3D: each loop the loop closure accepted, a line between
+                                  its two keyframes' camera centres
     world/map                     GaussianSplats3D: the map's Gaussians (centres, scales as standard
                                   deviations in metres, rotations, colour with opacity as alpha;
                                   subsampled); map_as=ellipsoids: Ellipsoids3D of one standard
@@ -92,14 +95,15 @@ class RerunViewer(Viewer):
         self.stream = None
         self.recording_path: Path | None = None
         self._last_map_frame: int | None = None
-        self._keyframe_centres: list[np.ndarray] = []
+        self._loops_logged: np.ndarray | None = None
 
     # -- the Viewer role -------------------------------------------------------------------
     def start(self, camera: Camera, out_dir: Path) -> None:
         rr, cfg = self.rr, self.cfg
         self.stream = rr.RecordingStream(cfg.application_id)
         sinks = []
-        save = cfg.save if cfg.save is not None else (None if cfg.spawn or cfg.connect else str(out_dir / DEFAULT_RECORDING))
+        live = cfg.spawn or cfg.connect
+        save = cfg.save if cfg.save is not None else (None if live else str(out_dir / DEFAULT_RECORDING))
         if save is not None:
             self.recording_path = Path(save)
             self.recording_path.parent.mkdir(parents=True, exist_ok=True)
@@ -152,10 +156,12 @@ class RerunViewer(Viewer):
         if len(view.gt_trajectory) >= 2:
             self.stream.log("world/trajectory/ground_truth",
                             rr.LineStrips3D([view.gt_trajectory], colors=[[40, 160, 60]]))
-        if view.keyframe:
-            self._keyframe_centres.append(view.pose[:3, 3].copy())
-            self.stream.log("world/keyframes", rr.Points3D(np.array(self._keyframe_centres), radii=0.01,
-                                                           colors=[[250, 200, 0]]))
+        loops_changed = self._loops_logged is None or not np.array_equal(self._loops_logged, view.loops)
+        if view.keyframe or loops_changed:  # a correction moves the keyframes too
+            self.stream.log("world/keyframes", rr.Points3D(view.keyframes, radii=0.01, colors=[[250, 200, 0]]))
+        if loops_changed:
+            self._loops_logged = view.loops.copy()
+            self.stream.log("world/loops", rr.LineStrips3D(list(view.loops), colors=[[60, 120, 250]], radii=0.004))
 
     def _log_inputs(self, view: ViewerFrame) -> None:
         self.stream.log("world/camera/image/rgb", self._color_image(view.frame.rgb))

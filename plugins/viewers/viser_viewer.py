@@ -9,6 +9,8 @@ Needs the optional extra `web` (`pip install -e '.[web]'`, viser). Open the prin
                           comes first, and once more after the last frame
     /camera               the current camera frustum (camera-to-world pose, metres)
     /trajectory/estimate  the camera centres so far (orange), /trajectory/ground_truth (green)
+    /loops                the loop closure's accepted loops (blue): a line between each loop's
+                          two keyframe camera centres
     GUI panel             the current input frame and the mapper's render from its pose, side by
                           side (every `image_every` / `render_every` frames, at render_scale)
 
@@ -45,7 +47,7 @@ log = logging.getLogger(__name__)
 
 #: The cost record written into the run folder.
 STATS_FILE = "viser.json"
-ESTIMATE_COLOUR, GROUND_TRUTH_COLOUR = (230, 90, 30), (40, 160, 60)
+ESTIMATE_COLOUR, GROUND_TRUTH_COLOUR, LOOP_COLOUR = (230, 90, 30), (40, 160, 60), (60, 120, 250)
 
 
 @dataclass
@@ -247,6 +249,9 @@ class ViserViewer(Viewer):
                 segments = np.stack([centres[:-1], centres[1:]], axis=1).astype(np.float32)
                 scene.add_line_segments(f"/trajectory/{name}", segments, colour, thickness=2.0,
                                         thickness_units="screen")
+        if len(view.loops):
+            scene.add_line_segments("/loops", view.loops.astype(np.float32), LOOP_COLOUR, thickness=3.0,
+                                    thickness_units="screen")
 
     def _panel_image(self, rgb: np.ndarray) -> np.ndarray:
         """rgb (H,W,3) uint8 or float in [0,1], resized to image_width (nearest, numpy only)."""

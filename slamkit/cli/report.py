@@ -74,8 +74,8 @@ def sweep_jobs(record: Path) -> list[tuple[Path, list[str]]]:
     """(folder, overrides) of every job of the sweep recorded in `record` (its multirun.yaml), in
     job order, as Hydra's basic sweeper makes them; none for another sweeper (an optimising one
     decides its jobs as it goes) or job folders not named by job number."""
-    from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.override_parser.overrides_parser import OverridesParser
 
     try:
         hydra = (yaml.safe_load(record.read_text()) or {}).get("hydra", {})

@@ -1,11 +1,26 @@
 """Geometry, vectorised, each formula in one place: rigid transforms and projection
 (`transforms`, re-exported here) and Gaussian covariances (`gaussians`)."""
 
-from slamkit.geometry.transforms import (backproject, covariance_from_scales, invert_pose, make_pose,
-                                         nearest_rotation, pixel_grid, project_points, quat_to_rotmat,
-                                         rotation_angle_deg, rotmat_to_quat, scales_from_covariance, se3_exp, skew,
-                                         so3_exp, so3_log, transform_points)
+from slamkit.geometry.transforms import (
+                                         backproject,
+                                         covariance_from_scales,
+                                         invert_pose,
+                                         make_pose,
+                                         nearest_rotation,
+                                         pixel_grid,
+                                         project_points,
+                                         quat_left_matrix,
+                                         quat_to_rotmat,
+                                         rotation_angle_deg,
+                                         rotmat_to_quat,
+                                         scales_from_covariance,
+                                         se3_exp,
+                                         skew,
+                                         so3_exp,
+                                         so3_log,
+                                         transform_points,
+)
 
 __all__ = ["backproject", "covariance_from_scales", "invert_pose", "make_pose", "nearest_rotation", "pixel_grid",
-           "project_points", "quat_to_rotmat", "rotation_angle_deg", "rotmat_to_quat", "scales_from_covariance",
-           "se3_exp", "skew", "so3_exp", "so3_log", "transform_points"]
+           "project_points", "quat_left_matrix", "quat_to_rotmat", "rotation_angle_deg", "rotmat_to_quat",
+           "scales_from_covariance", "se3_exp", "skew", "so3_exp", "so3_log", "transform_points"]

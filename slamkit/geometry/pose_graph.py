@@ -63,8 +63,14 @@ def follow_keyframes(poses: np.ndarray, frame_indices: np.ndarray, keyframe_fram
            "one update per keyframe, at least one keyframe", (len(keyframe_frames), len(updates)))
     check_argument(bool(np.all(np.diff(keyframe_frames) > 0)), "follow_keyframes keyframe_frames", "increasing indices",
            keyframe_frames)
-    owner = np.clip(np.searchsorted(keyframe_frames, np.asarray(frame_indices), side="right") - 1, 0, None)
-    return np.asarray(updates, dtype=np.float64)[owner] @ poses
+    return np.asarray(updates, dtype=np.float64)[owning_keyframes(frame_indices, keyframe_frames)] @ poses
+
+
+def owning_keyframes(indices: np.ndarray, keyframe_indices: np.ndarray) -> np.ndarray:
+    """(F,) positions in `keyframe_indices` ((K,) increasing, K >= 1) of the last keyframe at or
+    before each of `indices` (the first keyframe for those before it): whose correction a frame
+    (or a Gaussian, by the keyframe id it carries) follows."""
+    return np.clip(np.searchsorted(np.asarray(keyframe_indices), np.asarray(indices), side="right") - 1, 0, None)
 
 
 def relative_pose(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -32,6 +32,18 @@ def quat_to_rotmat(q):
     return xp.stack(rows, axis=-1).reshape(q.shape[:-1] + (3, 3))
 
 
+def quat_left_matrix(q):
+    """(..., 4, 4) matrices L(q) of (..., 4) quaternions (w, x, y, z): the Hamilton product
+    q * p is L(q) @ p (L(q) is orthogonal for a unit q: rotating a quaternion by q is linear)."""
+    xp = _xp(q)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    rows = [w, -x, -y, -z,
+            x, w, -z, y,
+            y, z, w, -x,
+            z, -y, x, w]
+    return xp.stack(rows, axis=-1).reshape(q.shape[:-1] + (4, 4))
+
+
 def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
     """(..., 3, 3) rotation matrices to (..., 4) unit quaternions (w, x, y, z) with w >= 0.
 

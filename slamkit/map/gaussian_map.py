@@ -11,7 +11,8 @@ from typing import Iterator
 import numpy as np
 import torch
 
-from slamkit.geometry.transforms import covariance_from_scales, scales_from_covariance
+from slamkit.geometry.pose_graph import owning_keyframes
+from slamkit.geometry.transforms import covariance_from_scales, quat_left_matrix, rotmat_to_quat, scales_from_covariance
 from slamkit.types import Deferred
 
 #: The optimisable parameters, in this order everywhere (GaussianMap, GaussianRows, optimisers).
@@ -205,6 +206,34 @@ class GaussianRows:
         return {name: getattr(self, name) for name in PARAMETERS}
 
 
+@dataclass
+class RowMotion:
+    """A rigid motion per map row, as the row's parameters see it: row i's mean x becomes
+    `rotations[i] @ x + translations[i]` and its quaternion q becomes `quat_maps[i] @ q` (the
+    Hamilton product with the rotation's quaternion). rotations (N,3,3), translations (N,3),
+    quat_maps (N,4,4), float64 tensors on the map's device; `moved` (N,) bool: rows whose motion
+    is not the identity."""
+
+    rotations: torch.Tensor
+    translations: torch.Tensor
+    quat_maps: torch.Tensor
+    moved: torch.Tensor
+
+    @classmethod
+    def of(cls, motions: np.ndarray, which: torch.Tensor) -> RowMotion:
+        """Row i moves by `motions[which[i]]`: motions (M,4,4) world-frame rigid motions
+        (float64), which (N,) integer indices into them."""
+        motions = np.asarray(motions, dtype=np.float64).reshape(-1, 4, 4)
+        device = which.device
+        quats = rotmat_to_quat(motions[:, :3, :3])
+        per_motion = [torch.as_tensor(a, dtype=torch.float64, device=device)
+                      for a in (motions[:, :3, :3], motions[:, :3, 3], quat_left_matrix(quats))]
+        identity = torch.as_tensor(np.all(np.abs(motions - np.eye(4)) <= 1e-15, axis=(1, 2)), device=device)
+        which = which.long()
+        rotations, translations, quat_maps = (a[which] for a in per_motion)
+        return cls(rotations, translations, quat_maps, ~identity[which])
+
+
 def _leaf(t: torch.Tensor) -> torch.Tensor:
     """`t` as a new leaf tensor that autograd differentiates (the map's parameters)."""
     return t.detach().requires_grad_(True)
@@ -296,6 +325,37 @@ class GaussianMap:
         with self.lock, torch.no_grad():
             for f in fields(GaussianRows):
                 getattr(self, f.name)[index] = getattr(rows, f.name).to(self.device)
+            self.version += 1
+            self.structure_version += 1
+
+    def keyframe_motion(self, updates: np.ndarray) -> RowMotion:
+        """Each row's motion when keyframe k moves by `updates[k]` ((K,4,4) world-frame rigid
+        motions of keyframes 0..K-1, K >= 1): a row follows the keyframe that added it
+        (`keyframe_id`; a row of a later keyframe follows the last one, of none the first)."""
+        with self.lock:
+            ids = self.keyframe_id.cpu().numpy()
+        which = owning_keyframes(ids, np.arange(len(updates)))
+        return RowMotion.of(updates, torch.as_tensor(which, device=self.device))
+
+    def move_rows(self, motion: RowMotion) -> None:
+        """Move every row rigidly by `motion` (one per row): its mean and entry mean, its
+        quaternion and entry quaternion (scales, opacities and colours are the Gaussian's own).
+        The rows hold their Gaussians elsewhere now: the parameters are new tensors (a training
+        step in flight keeps differentiating the old ones) and `structure_version` changes (so
+        such a step is dropped rather than applied to moved Gaussians)."""
+        with self.lock, torch.no_grad():
+            if len(motion.rotations) != len(self):
+                raise ValueError(f"GaussianMap.move_rows: expected one motion per row ({len(self)}), "
+                                 f"got {len(motion.rotations)}")
+            columns = self._columns()
+            for name in ("means", "entry_means"):
+                x = columns[name].double()
+                columns[name] = (torch.einsum("nij,nj->ni", motion.rotations, x)
+                                 + motion.translations).to(columns[name].dtype)
+            for name in ("quats", "entry_quats"):
+                q = columns[name].double()
+                columns[name] = torch.einsum("nij,nj->ni", motion.quat_maps, q).to(columns[name].dtype)
+            self._set(GaussianRows(**columns))
             self.version += 1
             self.structure_version += 1
 

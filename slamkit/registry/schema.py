@@ -69,7 +69,7 @@ class EvalConfig(PluginConfig):
     lpips: LpipsMode = LpipsMode.auto
     #: torchvision's AlexNet weights file alexnet-owt-7be5be79.pth for LPIPS (null: torch's hub cache)
     lpips_backbone: str | None = None
-    #: valid | all: PSNR over the pixels with observed depth, or over every pixel with the others zeroed (the reference code)
+    #: valid | all: PSNR over the pixels with observed depth, or every pixel, the others zeroed (reference)
     psnr_pixels: PsnrPixels = PsnrPixels.valid
 
     def validate(self) -> None:
@@ -182,7 +182,7 @@ class RunConfig(PluginConfig):
     progress: bool = True
     mapping_threads: int = thread_count(0)
     switch_interval: float = SWITCH_INTERVAL_S
-    #: realtime: mapping's priority (its threads' too) below tracking's: idle (only CPU left over), low (5 nice levels), same
+    #: realtime: mapping's priority (its threads' too): idle (only CPU left over), low (5 nice levels), same
     mapping_priority: ThreadPriority = ThreadPriority.idle
     final_iterations: int | None = None
     mapping_device: Device = Device.auto

@@ -19,13 +19,17 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
-from slamkit.geometry.pose_graph import (PoseGraph, PoseGraphEdge, check_argument as _check, follow_keyframes,
-                                         pose_difference, relative_pose)
+from slamkit.geometry.pose_graph import PoseGraph, PoseGraphEdge, follow_keyframes, pose_difference, relative_pose
+from slamkit.geometry.pose_graph import check_argument as _check
 from slamkit.geometry.transforms import rotmat_to_quat
+
+# The pose graph's types and relations are part of the role's contract: a plugin imports them here.
+__all__ = ["LoopCheck", "LoopClosure", "LoopDecision", "LoopKeyframe", "PoseGraph", "PoseGraphEdge",
+           "follow_keyframes", "pose_difference", "relative_pose"]
 
 
 @dataclass(frozen=True)
@@ -148,7 +152,12 @@ class LoopDecision:
 
 
 class LoopClosure(ABC):
-    """Detects loops among keyframes and corrects their poses (see the module docstring)."""
+    """Detects loops among keyframes and corrects their poses (see the module docstring).
+
+    `closes_loops`: False for a loop closure that never moves a keyframe (`none`): the run then
+    gives it no keyframes and starts no thread for it."""
+
+    closes_loops: ClassVar[bool] = True
 
     @abstractmethod
     def add_keyframe(self, keyframe: LoopKeyframe) -> None:

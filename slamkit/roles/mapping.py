@@ -44,6 +44,15 @@ class Mapper(ABC):
     def optimize(self, iterations: int) -> int:
         """Run up to `iterations` optimisation steps; return how many were done."""
 
+    def move_keyframes(self, updates: np.ndarray) -> None:
+        """A loop closure corrected the keyframes: keyframe k (the k-th `add_keyframe`, the id
+        its Gaussians carry in `GaussianMap.keyframe_id`) moved by the world-frame rigid motion
+        `updates[k]` ((K,4,4), corrected pose = updates[k] @ pose). Move its Gaussians with it
+        and whatever the mapper keeps of it (training views' poses, per-row optimiser state).
+        The default moves the map's rows alone (`GaussianMap.move_rows`); an override must move
+        them too. Called from the tracking thread, between two frames."""
+        self.gaussian_map.move_rows(self.gaussian_map.keyframe_motion(updates))
+
     def finish(self) -> None:
         """Called once after the last frame and any refinement steps (`optimize` calls), to
         wrap up (e.g. a last pruning)."""

@@ -32,6 +32,16 @@ class Tracker(ABC):
     def initialize(self, first_pose: np.ndarray) -> None:
         """Called once before the first frame with the pose the trajectory starts from."""
 
+    def move_world(self, motion: np.ndarray) -> None:
+        """A loop closure moved the world under the tracker: what it tracks against now lies
+        at `motion` (4x4 world-frame rigid motion, a point p is now at motion @ p). Move every
+        pose it keeps (its motion model) the same way; its target is rebuilt next
+        (`update_target`). Called between two frames. A tracker that keeps a map of its own
+        moves that too. The default raises NotImplementedError: such a tracker cannot run with
+        a loop closure (the run says so before it starts)."""
+        raise NotImplementedError(f"{type(self).__name__} does not follow a loop closure's corrections "
+                                  "(Tracker.move_world)")
+
     def state_dict(self) -> dict[str, Any]:
         """What this tracker needs to go on where a run stopped (saved in the map checkpoint,
         `slamkit.run.checkpoint`): JSON values and arrays (numpy or torch). {} by default."""

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -79,7 +79,10 @@ class ViewerFrame:
     frame: the input (rgb, depth in metres, camera, gt_pose camera-to-world or None). pose:
     the estimated camera-to-world pose (4x4, metres, OpenCV axes). keyframe, lost: the
     tracker's and keyframe policy's outcome. trajectory, gt_trajectory: (n,3) camera centres
-    in world metres of the frames so far (gt: the frames that have ground truth). The map and
+    in world metres of the frames so far (gt: the frames that have ground truth; the estimate
+    as corrected by the loop closure so far). keyframes: (K,3) the keyframes' camera centres so
+    far, likewise. loops: (L,2,3) the loop closure's accepted loops, each the two keyframes'
+    camera centres in world metres (earlier keyframe first). The map and
     the mapper are shared with the running SLAM: use `map_gaussians`, `map_points` and `render`, which copy
     under the map's lock.
     """
@@ -92,6 +95,8 @@ class ViewerFrame:
     gt_trajectory: np.ndarray
     gaussian_map: GaussianMap
     mapper: Mapper
+    keyframes: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    loops: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 3)))
 
     def map_gaussians(self, max_points: int) -> MapGaussians:
         """An even subsample (every k-th row) of at most `max_points` Gaussians, copied under

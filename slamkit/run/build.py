@@ -1,6 +1,7 @@
 """A run's plugins built from its validated config: the dataset first, then, in the run's
 context (the dataset's tuning, the mode, the shared map), every other role with its config's
-null fields filled (`slamkit.config.resolve_tree`), the mapper with its parts.
+null fields filled (`slamkit.config.resolve_tree`), the mapper with its parts, the loop closure
+(`slamkit.run.loop_closing.LoopCloser`).
 
     dataset, slam, viewer = build_run(["dataset=tum", "dataset.path=PATH"])
 """
@@ -11,14 +12,16 @@ from dataclasses import dataclass
 from typing import Any, Sequence
 
 from slamkit.config import RenderScoring, RunContext, resolve_tree
-from slamkit.errors import DataError
+from slamkit.errors import ConfigError, DataError
 from slamkit.map.gaussian_map import GaussianMap
 from slamkit.native import available_threads
 from slamkit.registry.compose import compose_run
 from slamkit.registry.discovery import Registry, default_registry
 from slamkit.registry.schema import Mode, RunConfig
-from slamkit.roles import Dataset, Viewer
+from slamkit.roles import Dataset, Tracker, Viewer
 from slamkit.run.boundary import PluginBoundary
+from slamkit.run.loop_closing import LoopCloser
+from slamkit.run.loop_process import LoopClosureProcess
 from slamkit.run.slam import SLAM
 
 
@@ -66,9 +69,25 @@ def build(cfg: RunConfig, registry: Registry, names: dict[str, str]) -> BuiltRun
 
     mapper_parts = registry.get("mapper", names["mapper"]).cls.parts
     parts = {part: create(f"mapper.{part}", getattr(cfg.mapper, part)) for part in mapper_parts}
-    slam = SLAM(create("tracker", cfg.tracker), create("keyframe", cfg.keyframe),
-                create("mapper", cfg.mapper, **parts), gaussian_map, cfg.growth, cfg.iterations_per_frame, boundary)
+    tracker = create("tracker", cfg.tracker)
+    loop_closer = LoopCloser(_loop_closure(cfg, registry, names, context, create), boundary)
+    if loop_closer.active and type(tracker).move_world is Tracker.move_world:
+        raise ConfigError(f"loop_closure={names['loop_closure']}: tracker={names['tracker']} cannot follow a loop "
+                          "closure's corrections (it does not implement Tracker.move_world); use loop_closure=none "
+                          "or tracker=gicp")
+    slam = SLAM(tracker, create("keyframe", cfg.keyframe), create("mapper", cfg.mapper, **parts), gaussian_map,
+                cfg.growth, cfg.iterations_per_frame, boundary, loop_closer)
     return BuiltRun(dataset, slam, create("viewer", cfg.viewer), cfg)
+
+
+def _loop_closure(cfg: RunConfig, registry: Registry, names: dict[str, str], context: RunContext, create):
+    """The run's loop closure: in real time, one that closes loops runs in a process of its own
+    at the mapping thread's priority (`slamkit.run.loop_process`); otherwise here."""
+    cls = registry.get("loop_closure", names["loop_closure"]).cls
+    if context.realtime and cls.closes_loops:
+        with PluginBoundary(names)("loop_closure", "__init__"):
+            return LoopClosureProcess(cls, cfg.loop_closure, context, cfg.mapping_priority)
+    return create("loop_closure", cfg.loop_closure)
 
 
 def build_run(overrides: Sequence[str] = (), registry: Registry | None = None) -> tuple[Dataset, SLAM, Viewer]:

@@ -38,8 +38,14 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from slamkit.formats.checkpoint import (CHECKPOINT_NAME, CheckpointError, checkpoint_path, read_checkpoint,
-                                        read_meta, write_checkpoint)
+from slamkit.formats.checkpoint import (
+    CHECKPOINT_NAME,
+    CheckpointError,
+    checkpoint_path,
+    read_checkpoint,
+    read_meta,
+    write_checkpoint,
+)
 from slamkit.map.gaussian_map import ROW_WIDTHS, GaussianMap
 from slamkit.run.metrics import peak_memory_mb
 from slamkit.run.state import SESSION_FIGURES, EarlierSessions

@@ -1,7 +1,8 @@
 """The run's output files (`RunOutputs`), from what it has produced so far (`slamkit.run.state`)
 and its metrics (`slamkit.run.metrics`), each written atomically as soon as what it holds is
 known, in the order of their value: camera.json at start-up; trajectory.txt, keyframes.txt,
-groundtruth.txt, the tracking metrics (metrics.json) and trajectory.png when the stream ends; the
+groundtruth.txt, with a loop closure loops.csv and pose_graph.g2o, the tracking metrics
+(metrics.json) and trajectory.png when the stream ends; the
 map (the mapper's `save_map`, map.ply) and the checkpoint (checkpoint.zip) after the refinement,
 or as the run stops early; the evaluation merged into metrics.json last.
 
@@ -20,11 +21,14 @@ import numpy as np
 
 from slamkit.formats.atomic import write_atomic
 from slamkit.formats.checkpoint import CHECKPOINT_NAME
+from slamkit.formats.g2o import to_g2o
+from slamkit.formats.loops import write_loops_csv
 from slamkit.formats.tum import write_tum_trajectory
 from slamkit.metrics import trajectory as evaluation
 from slamkit.registry.schema import RunConfig
 from slamkit.run.checkpoint import CheckpointWriter
 from slamkit.run.lifecycle import StopSignals
+from slamkit.run.loop_closing import LOOPS_COLUMNS
 from slamkit.run.metrics import headline, run_metrics
 from slamkit.run.slam import SLAM
 from slamkit.run.state import FAILED, RUNNING, RunState
@@ -81,15 +85,26 @@ class RunOutputs:
         poses = state.trajectory()
         self.keep("trajectory.txt", lambda: write_tum_trajectory(out / "trajectory.txt", state.timestamps, poses))
         rows = state.keyframe_rows
-        self.keep("keyframes.txt", lambda: write_tum_trajectory(out / "keyframes.txt", [state.timestamps[i] for i in rows],
-                                                                 poses[rows].reshape(-1, 4, 4)))
+        self.keep("keyframes.txt", lambda: write_tum_trajectory(
+            out / "keyframes.txt", [state.timestamps[i] for i in rows], poses[rows].reshape(-1, 4, 4)))
         has_gt = [i for i, p in enumerate(state.gt_poses) if p is not None and np.all(np.isfinite(p))]
         if has_gt:  # beside the estimate, for evo and slamkit-report
             self.keep("groundtruth.txt", lambda: write_tum_trajectory(
-                out / "groundtruth.txt", [state.timestamps[i] for i in has_gt], np.array([state.gt_poses[i] for i in has_gt])))
+                out / "groundtruth.txt", [state.timestamps[i] for i in has_gt],
+                np.array([state.gt_poses[i] for i in has_gt])))
+        self.save_loops()
         metrics = self.save_metrics()
         if self.cfg.eval.plot and len(poses):
             self.keep("trajectory.png", lambda: self._plot(poses, metrics))
+
+    def save_loops(self) -> None:
+        """With a loop closure: loops.csv (every candidate verified, `slamkit.formats.loops`) and
+        pose_graph.g2o (the pose graph as it stands, `slamkit.formats.g2o`)."""
+        closer, out = self.slam.loop_closer, self.out_dir
+        if not closer.active:
+            return
+        self.keep("loops.csv", lambda: write_loops_csv(out / "loops.csv", LOOPS_COLUMNS, closer.rows()))
+        self.keep("pose_graph.g2o", lambda: write_atomic(out / "pose_graph.g2o", to_g2o(closer.pose_graph())))
 
     def save_map(self) -> None:
         """The map trained so far (the mapper's `save_map`: map.ply), once the mapper has stopped
@@ -137,6 +152,7 @@ class RunOutputs:
     def save_metrics(self) -> dict[str, Any]:
         """metrics.json as the run stands; returns the metrics."""
         metrics = run_metrics(self.cfg, self.slam, self.state, time.perf_counter() - self.start)
+        metrics.update(self.slam.loop_closer.metrics())
         self.keep("metrics.json", lambda: _write_json_atomic(self.out_dir / "metrics.json", metrics))
         return metrics
 

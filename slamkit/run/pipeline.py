@@ -1,8 +1,8 @@
 """Running SLAM on a dataset: building the roles from config, then the run's phases
-(`slamkit.run.lifecycle.Phase`): the stream (the frame loop, sequential or beside a mapping thread,
-paced like a camera, with the progress bar, the viewer and the per-frame log), the refinement,
-the map and the evaluation, each phase's outputs written as soon as it ends
-(`slamkit.run.outputs`), and what the run has kept when a signal or an error stops it.
+(`slamkit.run.lifecycle.Phase`): the stream (the frame loop, sequential or beside a mapping thread
+and a loop-closure thread, paced like a camera, with the progress bar, the viewer and the
+per-frame log), the refinement, the map and the evaluation, each phase's outputs written as soon
+as it ends (`slamkit.run.outputs`), and what the run has kept when a signal or an error stops it.
 
 The algorithm itself is `slamkit.run.slam.SLAM`; this module is the I/O around it.
 """
@@ -22,12 +22,13 @@ from slamkit.metrics import trajectory as evaluation
 from slamkit.registry.discovery import Registry
 from slamkit.registry.schema import Mode, RunConfig
 from slamkit.run import checkpoint
+from slamkit.run.build import build
 from slamkit.run.frame_log import FrameLog
 from slamkit.run.lifecycle import Phase, StopSignals, pause_point
+from slamkit.run.loop_closing import LoopThread
 from slamkit.run.metrics import summary
 from slamkit.run.outputs import RunOutputs
 from slamkit.run.prefetch import LoadCost, UnreadableFrame, prefetched
-from slamkit.run.build import build
 from slamkit.run.slam import SLAM, MappingThread
 from slamkit.run.state import COMPLETED, FAILED, INTERRUPTED, RunState
 from slamkit.run.viewing import ViewerFeed
@@ -92,6 +93,7 @@ def _run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Pat
                 metrics = outputs.save_all()
             finally:
                 viewer.close()
+                slam.loop_closer.close()
     if outputs.unwritten:
         name, why = next(iter(outputs.unwritten.items()))
         more = f" (and {len(outputs.unwritten) - 1} more)" if len(outputs.unwritten) > 1 else ""
@@ -119,6 +121,7 @@ def _phases(cfg: RunConfig, dataset, slam: SLAM, state: RunState, outputs: RunOu
         state.stop(FAILED, failure)
         log.error("%s", failure)
         return
+    _close_remaining_loops(slam, state, viewer)
     _enter(Phase.refine, state, stop)
     outputs.save_trajectory()
     _refine(slam, cfg.refinement_iterations(), state, stop)
@@ -197,6 +200,7 @@ def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, frames_log: Fram
     realtime = cfg.mode is Mode.realtime
     clock = InputClock(cfg.fps_limit if realtime else None)
     mapping = MappingThread(slam, cfg.switch_interval, cfg.mapping_priority) if realtime else None
+    loops = LoopThread(slam.loop_closer) if realtime and slam.loop_closer.active else None
     bar = tqdm(total=len(dataset), initial=first, unit="frame", disable=None if cfg.progress else True,
                dynamic_ncols=True)
     start, cpu_start, loading = time.perf_counter(), time.thread_time(), LoadCost()
@@ -205,6 +209,8 @@ def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, frames_log: Fram
     try:
         if mapping:
             mapping.start()
+        if loops:
+            loops.start()
         skip_errors = cfg.dataset.on_error.value == "skip"
         for frame in prefetched(dataset, cfg.dataset.prefetch, skip_errors, first, loading):
             stop.check()
@@ -216,7 +222,7 @@ def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, frames_log: Fram
                 state.record_dropped(frame)
                 frames_log.dropped(frame)
             else:
-                _track(frame, slam, state, frames_log, viewer, mapping)
+                _track(frame, slam, state, frames_log, viewer, mapping, loops)
                 checkpoints.after_frame(frames_log.flush)  # checkpoint: every N keyframes
             bar.update(1)
             every = cfg.eval.running_ate_every
@@ -233,23 +239,43 @@ def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, frames_log: Fram
             waited = schedule_end.cpu_wait_s - schedule_start.cpu_wait_s
             state.tracking_cpu_wait_s = (state.tracking_cpu_wait_s or 0.0) + waited
         bar.close()
-        if mapping:
-            _stop_mapping(mapping, state)
+        try:
+            if loops:
+                loops.stop()
+        finally:
+            if mapping:
+                _stop_mapping(mapping, state)
         state.loading_cpu_s += loading.cpu_s
 
 
 def _track(frame: Frame, slam: SLAM, state: RunState, frames_log: FrameLog, viewer: ViewerFeed,
-           mapping: MappingThread | None) -> None:
+           mapping: MappingThread | None, loops: LoopThread | None = None) -> None:
     if slam.last_pose is None:  # the first frame tracked
         slam.initialize(frame.gt_pose if frame.gt_pose is not None else np.eye(4))
     step = slam.track(frame) if mapping else slam.step(frame)
     if mapping:
         mapping.check()
+    if loops:
+        loops.check()
+    if step.correction is not None:  # a loop closed: the frames so far follow their keyframes
+        state.follow(step.correction)
+        viewer.follow(step.correction)
     state.record(frame, step)
     frames_log.frame(frame, step, len(slam.gaussian_map))
     if step.tracking.lost:
         log.warning("frame %d lost: %s", frame.index, step.tracking.stats.get("lost_reason", "?"))
-    viewer.show(frame, step.tracking.pose, step.keyframe, step.tracking.lost)
+    viewer.show(frame, step.tracking.pose, step.keyframe, step.tracking.lost, slam.loop_closer.loop_segments)
+
+
+def _close_remaining_loops(slam: SLAM, state: RunState, viewer: ViewerFeed) -> None:
+    """After the stream: the keyframes the real-time loop thread had not taken yet are decided
+    on now, and the decisions not applied yet are, so that the trajectory written and the map
+    refined are the corrected ones."""
+    slam.loop_closer.finish_stream()
+    correction = slam.correct()
+    if correction is not None:
+        state.follow(correction)
+        viewer.follow(correction)
 
 
 def _stop_mapping(mapping: MappingThread, state: RunState) -> None:

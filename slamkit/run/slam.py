@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -14,23 +14,33 @@ from slamkit.map.growth import MapGrowthConfig, new_gaussians
 from slamkit.roles import KeyframeDecision, KeyframePolicy, Mapper, Tracker
 from slamkit.run.boundary import PluginBoundary
 from slamkit.run.heap import release_free_memory
+from slamkit.run.loop_closing import Correction, LoopCloser
 from slamkit.scheduling import ThreadPriority, lower_calling_thread, thread_schedule
 from slamkit.types import Frame, KeyframeKind, TrackingResult
 
 
 @dataclass
 class StepResult:
-    """One frame's outcome. Times in seconds."""
+    """One frame's outcome. Times in seconds. correction: the loop closure's correction applied
+    after this frame was tracked (its pose is already corrected; the frames before it follow
+    their keyframes: `Correction.follow`), or None."""
 
     tracking: TrackingResult
     decision: KeyframeDecision
     tracking_time_s: float
     mapping_time_s: float
     mapping_iterations: int
+    correction: Correction | None = None
 
     @property
     def keyframe(self) -> KeyframeKind:
         return self.decision.kind
+
+    def corrected(self, correction: Correction) -> StepResult:
+        """This step after `correction` (its pose moved with the newest keyframe)."""
+        tracking = replace(self.tracking, pose=correction.current @ self.tracking.pose)
+        return replace(self, tracking=tracking,
+                       correction=correction if self.correction is None else self.correction.then(correction))
 
 
 class SLAM:
@@ -39,13 +49,16 @@ class SLAM:
     Each frame is tracked against the map; a keyframe's Gaussians that the mapper admits enter
     the map (a tracking keyframe also rebuilds the tracker's target from the map, which by then
     holds the mapper's optimised values); then the mapper runs a fixed number of iterations, so
-    the run is deterministic. After each keyframe the C heap's free pages go back to the OS
+    the run is deterministic. Every keyframe goes to the loop closure (`loop_closer`); when it
+    corrects the keyframes, the map's Gaussians and the mapper's keyframes move with them and the
+    tracker follows (`correct`). After each keyframe the C heap's free pages go back to the OS
     (`slamkit.run.heap`), so that a long run's resident memory follows what it holds. Every call
     into a plugin passes `boundary`, which names the plugin a failure came from.
     """
 
     def __init__(self, tracker: Tracker, keyframe_policy: KeyframePolicy, mapper: Mapper, gaussian_map: GaussianMap,
-                 growth: MapGrowthConfig, iterations_per_frame: int = 0, boundary: PluginBoundary | None = None):
+                 growth: MapGrowthConfig, iterations_per_frame: int = 0, boundary: PluginBoundary | None = None,
+                 loop_closer: LoopCloser | None = None):
         self.tracker = tracker
         self.keyframe_policy = keyframe_policy
         self.mapper = mapper
@@ -53,6 +66,7 @@ class SLAM:
         self.growth = growth
         self.iterations_per_frame = iterations_per_frame
         self.boundary = boundary or PluginBoundary({})
+        self.loop_closer = loop_closer or LoopCloser(boundary=self.boundary)
         self.num_keyframes = 0
         self.keyframes_in_target = 0  # keyframes (ids below this) whose Gaussians the tracker's target was built with
         self.last_pose: np.ndarray | None = None
@@ -64,8 +78,11 @@ class SLAM:
         self.last_pose = first_pose
 
     def step(self, frame: Frame) -> StepResult:
-        """Track one frame, then run this frame's mapping iterations (sequential mode)."""
+        """Track one frame, have the loop closure decide on its keyframe at once and apply the
+        decision, then run this frame's mapping iterations (sequential mode)."""
         step = self.track(frame)
+        self.loop_closer.detect()
+        step = self.close_loops(step)
         start = time.perf_counter()
         step.mapping_iterations = self.optimize(self.iterations_per_frame)
         step.mapping_time_s = time.perf_counter() - start
@@ -93,7 +110,32 @@ class SLAM:
                 decision = self.keyframe_policy.decide(frame, result)
         if decision.kind:
             self.add_keyframe(frame, result, decision.kind)
-        return StepResult(result, decision, time.perf_counter() - start, 0.0, 0)
+        return self.close_loops(StepResult(result, decision, time.perf_counter() - start, 0.0, 0))
+
+    def close_loops(self, step: StepResult) -> StepResult:
+        """`step` after the loop closure's decisions made by now are applied (`correct`)."""
+        correction = self.correct()
+        return step if correction is None else step.corrected(correction)
+
+    def correct(self) -> Correction | None:
+        """Apply the loop closure's decisions made by now: each keyframe's Gaussians and training
+        view move with its correction (`Mapper.move_keyframes`), the tracker follows the newest
+        keyframe's and aligns to the moved map from now on. Returns the correction (the run's
+        trajectory follows it), or None."""
+        start = time.perf_counter()
+        correction = self.loop_closer.take(self.num_keyframes)
+        if correction is None:
+            return None
+        with self.boundary("mapper", "move_keyframes"):
+            self.mapper.move_keyframes(correction.updates)
+        with self.boundary("tracker", "move_world"):
+            self.tracker.move_world(correction.current)
+        with self.boundary("tracker", "update_target"):
+            self.tracker.update_target(self.gaussian_map)
+        self.keyframes_in_target = self.num_keyframes
+        self.last_pose = correction.current @ self.last_pose
+        self.loop_closer.cost.apply_s += time.perf_counter() - start
+        return correction
 
     def add_keyframe(self, frame: Frame, result: TrackingResult, kind: KeyframeKind) -> None:
         rows = self.grow_map(frame, result, kind)
@@ -103,6 +145,7 @@ class SLAM:
             self.keyframes_in_target = self.num_keyframes + 1
         with self.boundary("mapper", "add_keyframe"):
             self.mapper.add_keyframe(frame, result.pose, kind, rows)
+        self.loop_closer.add_keyframe(self.num_keyframes, frame, result.pose, result.gaussians)
         self.num_keyframes += 1
         release_free_memory()
 
@@ -127,6 +170,7 @@ class SLAM:
         for key, plugin in (("tracker", self.tracker), ("keyframe", self.keyframe_policy), ("mapper", self.mapper)):
             with self.boundary(key, "state_dict"):
                 states[key] = plugin.state_dict()
+        states["loop_closure"] = self.loop_closer.state_dict()
         return states
 
     def load_plugin_states(self, states: dict[str, dict]) -> None:
@@ -136,6 +180,7 @@ class SLAM:
         for key, plugin in (("tracker", self.tracker), ("keyframe", self.keyframe_policy), ("mapper", self.mapper)):
             with self.boundary(key, "load_state_dict"):
                 plugin.load_state_dict(states.get(key, {}))
+        self.loop_closer.load_state_dict(states.get("loop_closure", {}))
 
     def grow_map(self, frame: Frame, result: TrackingResult, kind: KeyframeKind) -> slice:
         """The keyframe's Gaussians (scale-aligned, paper Sec. 3.1) that the mapper admits enter

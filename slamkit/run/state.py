@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from slamkit.run.lifecycle import Phase
+from slamkit.run.loop_closing import Correction
 from slamkit.run.slam import MappingThrottle, StepResult
 from slamkit.types import Frame
 
@@ -126,6 +127,12 @@ class RunState:
         self.mapping_iterations += step.mapping_iterations
         self.tracking_time_s += step.tracking_time_s
         self.mapping_time_s += step.mapping_time_s
+
+    def follow(self, correction: Correction) -> None:
+        """A loop closure corrected the keyframes: every pose so far follows its keyframe
+        (`Correction.follow`; the keyframes recorded are `keyframe_rows`)."""
+        if self.poses:
+            self.poses = list(correction.follow(np.array(self.poses), self.keyframe_rows))
 
     def lost_fraction(self) -> float:
         """Lost frames (tracking lost or unreadable) over the frames the run took in (dropped

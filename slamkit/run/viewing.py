@@ -1,8 +1,9 @@
 """Feeding the selected viewer (`viewer=NAME`) from the run loop, so that it can never stop a run.
 
 `ViewerFeed` turns each processed frame into a `slamkit.roles.ViewerFrame` (with the trajectory so
-far) and calls the viewer. The first exception a viewer raises is logged as a warning naming it,
-and the viewer gets no more frames (only `close`, so that a recording keeps what it has).
+far, moved with the loop closure's corrections, and its loops) and calls the viewer. The first
+exception a viewer raises is logged as a warning naming it, and the viewer gets no more frames
+(only `close`, so that a recording keeps what it has).
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import numpy as np
 
 from slamkit.map.gaussian_map import GaussianMap
 from slamkit.roles import Mapper, Viewer, ViewerFrame
+from slamkit.run.loop_closing import Correction
 from slamkit.types import Camera, Frame, KeyframeKind
 
 log = logging.getLogger(__name__)
@@ -28,14 +30,19 @@ class ViewerFeed:
         self.failed = False
         self.last_view: ViewerFrame | None = None
         self._centres: list[np.ndarray] = []
+        self._keyframe_positions: list[int] = []  # indices into _centres of the keyframes shown
         self._gt_centres: list[np.ndarray] = []
 
     def start(self, camera: Camera, out_dir: Path) -> None:
         """Open the viewer with the dataset's camera and the run folder."""
         self._call("start", camera, out_dir)
 
-    def show(self, frame: Frame, pose: np.ndarray, keyframe: KeyframeKind, lost: bool) -> None:
-        """Hand one processed frame (its estimated camera-to-world `pose`) to the viewer."""
+    def show(self, frame: Frame, pose: np.ndarray, keyframe: KeyframeKind, lost: bool,
+             loops: np.ndarray | None = None) -> None:
+        """Hand one processed frame (its estimated camera-to-world `pose`) to the viewer, with the
+        loop closure's accepted loops as (L,2,3) camera-centre pairs (world metres)."""
+        if keyframe:
+            self._keyframe_positions.append(len(self._centres))
         self._centres.append(np.asarray(pose, dtype=np.float64)[:3, 3].copy())
         if frame.gt_pose is not None and np.all(np.isfinite(frame.gt_pose)):
             self._gt_centres.append(np.asarray(frame.gt_pose, dtype=np.float64)[:3, 3].copy())
@@ -50,8 +57,18 @@ class ViewerFeed:
             gt_trajectory=np.array(self._gt_centres).reshape(-1, 3),
             gaussian_map=self.gaussian_map,
             mapper=self.mapper,
+            keyframes=np.array([self._centres[i] for i in self._keyframe_positions]).reshape(-1, 3),
+            loops=np.zeros((0, 2, 3)) if loops is None else np.asarray(loops, dtype=np.float64).reshape(-1, 2, 3),
         )
         self._call("show", self.last_view)
+
+    def follow(self, correction: Correction) -> None:
+        """The trajectory shown so far follows a loop closure's correction."""
+        if not self._centres:
+            return
+        poses = np.tile(np.eye(4), (len(self._centres), 1, 1))
+        poses[:, :3, 3] = self._centres
+        self._centres = list(correction.follow(poses, self._keyframe_positions)[:, :3, 3])
 
     def close(self) -> None:
         """Close the viewer (also after it failed: a recording keeps what it has)."""

@@ -19,12 +19,12 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
+from slamkit.map.gaussian_map import GaussianMap
 from slamkit.metrics import images as image_metrics
 from slamkit.metrics.lpips import LPIPS, min_image_side
-from slamkit.map.gaussian_map import GaussianMap
+from slamkit.splatting.keyframes import resize_rgbd
 from slamkit.splatting.rendering import RenderOutput
 from slamkit.types import Camera
-from slamkit.splatting.keyframes import resize_rgbd
 
 log = logging.getLogger(__name__)
 

@@ -144,6 +144,13 @@ class ViewCache:
         return view
 
 
+    def clear(self) -> None:
+        """Forget every view (their poses changed)."""
+        with self._lock:
+            self._views.clear()
+            self.held_bytes = 0
+
+
 class KeyframeStore:
     """The keyframes in arrival order (`ids`), by id (`[id]`). Append-only: a keyframe is
     stored before its id is published, so a mapping thread may read while the tracking thread
@@ -157,6 +164,7 @@ class KeyframeStore:
         self.ids: list[int] = []
         self._by_id: dict[int, Keyframe] = {}
         self._views = ViewCache(int(view_cache_mb * 2**20))
+        self.moves = 0  # loop closures' corrections so far (`move`)
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -171,7 +179,8 @@ class KeyframeStore:
         """Keyframe `kf_id` as a training target (Keyframe.view), from the cache when it holds it
         (a keyframe's half-resolution view for `coarse_steps` is kept too, until newer views push
         it out)."""
-        return self._views.get((kf_id, str(device), scale), lambda: self._by_id[kf_id].view(device, scale))
+        key = (kf_id, str(device), scale, self.moves)  # a view made before a move is never handed out after it
+        return self._views.get(key, lambda: self._by_id[kf_id].view(device, scale))
 
     def training_camera(self, camera: Camera) -> Camera:
         return camera.scaled(self.resolution_scale) if self.resolution_scale != 1 else camera
@@ -217,6 +226,22 @@ class KeyframeStore:
         self._by_id[kf.id] = kf
         self.ids.append(kf.id)
         return kf
+
+    def move(self, updates: np.ndarray) -> None:
+        """Keyframes 0..K-1 moved by `updates` ((K,4,4) world-frame rigid motions, a loop
+        closure's correction): each pose becomes updates[k] @ pose (a new array, so a view taken
+        before is seen to be out of date: `is_current`), and the views kept are dropped."""
+        for kf_id in list(self.ids):
+            if kf_id < len(updates):
+                kf = self._by_id[kf_id]
+                kf.pose = np.asarray(updates[kf_id], dtype=np.float64) @ kf.pose
+        self.moves += 1
+        self._views.clear()
+
+    def is_current(self, view: TrainingView) -> bool:
+        """Whether `view` was taken at its keyframe's current pose (not before a `move`)."""
+        kf = self._by_id.get(view.keyframe_id)
+        return kf is None or view.pose is kf.pose or np.array_equal(view.pose, kf.pose)
 
     def memory_bytes(self) -> int:
         """Bytes of keyframe images held in memory (0 with disk storage)."""

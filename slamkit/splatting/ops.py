@@ -1,7 +1,8 @@
 """The shared operations that change which Gaussians the map holds (gsplat's strategy ops).
 
 A densification strategy (`slamkit.splatting.strategy.Strategy`) edits the map only through a
-`MapEdit`: append, remove, duplicate, split, reset opacity, update rows. Each operation keeps
+`MapEdit`: append, remove, duplicate, split, reset opacity, update rows, move rows (a loop
+closure's correction). Each operation keeps
 every per-row state aligned with the map's rows, in one place: the optimiser's (`MapOptimizer.
 edit_rows`; rows that are new or whose values were replaced start with zero moments) and the
 strategy's own statistics (`state`: copied for duplicates and split children, zero for new rows).
@@ -18,8 +19,8 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from slamkit.map.gaussian_map import GaussianMap, GaussianRows
 from slamkit.geometry.transforms import quat_to_rotmat
+from slamkit.map.gaussian_map import GaussianMap, GaussianRows, RowMotion
 
 if TYPE_CHECKING:
     from slamkit.splatting.optimizer import MapOptimizer
@@ -67,7 +68,11 @@ class MapEdit:
             rows = 0
         device = self.map.device
         if rows < n:
-            self.optimizer.edit_rows(lambda name, v: torch.cat([v.to(device), _zeros_like_rows(v.to(device), n - v.shape[0])]))
+            def padded(name, v):
+                v = v.to(device)
+                return torch.cat([v, _zeros_like_rows(v, n - v.shape[0])])
+
+            self.optimizer.edit_rows(padded)
         for k, v in self.state.items():
             if v.shape[0] < n or v.device != device:
                 v = v.to(device)
@@ -158,6 +163,14 @@ class MapEdit:
         index = torch.as_tensor(index, dtype=torch.long, device=self.map.device)
         self._overwrite(index, rows)
         self.counts["updated"] += len(index)
+
+    def move(self, motion: RowMotion) -> None:
+        """Move every row rigidly by `motion` (`GaussianMap.move_rows`: means, rotations and
+        their entry geometry); the optimiser's state follows (`MapOptimizer.move_rows`), the
+        strategy's statistics (gradient norms, counts: unchanged by a rigid motion) stay."""
+        self.sync()
+        self.map.move_rows(motion)
+        self.optimizer.move_rows(motion)
 
     def _overwrite(self, index, rows: GaussianRows) -> None:
         self.map.overwrite(index, rows)

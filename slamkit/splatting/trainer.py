@@ -6,6 +6,8 @@ from the values the optimiser moved (GS-ICP SLAM's exchange); the optimiser owns
 state and the strategy edits rows only through `MapEdit`, which keeps every per-row state
 aligned. A step, as in 3DGS: take a keyframe (the untrained ones first, once each, then the
 sampler's choice), render it, the loss, its gradient, the optimiser's update, the strategy's hook.
+A loop closure's correction moves the Gaussians, the optimiser's state and the keyframes' poses
+together (`move_keyframes`).
 
 Threads (real time): `admit` and `add_keyframe` (tracking thread) may run beside `train` (mapping
 thread). A step holds the map's lock only to take the parameters and to apply its update, so a
@@ -138,6 +140,15 @@ class Trainer:
         with self.gaussian_map.lock:
             self.memory_cap.enforce(self.edit, protect=new_rows)
 
+    def move_keyframes(self, updates: np.ndarray) -> None:
+        """A loop closure moved keyframes 0..K-1 by `updates` ((K,4,4) world-frame rigid
+        motions): their Gaussians (each row by its keyframe's motion, the optimiser's state
+        with it: `MapEdit.move`) and their training views' poses. A step in flight is dropped
+        (`stale_steps`)."""
+        with self.gaussian_map.lock:
+            self.edit.move(self.gaussian_map.keyframe_motion(updates))
+            self.keyframes.move(updates)
+
     # -- training --------------------------------------------------------------------------
     def train(self, iterations: int) -> int:
         """Up to `iterations` steps; returns the steps attempted (skipped and dropped ones
@@ -162,6 +173,9 @@ class Trainer:
         gm, timer = self.gaussian_map, self.timer
         with self._locked():
             params, rows, structure = gm.parameters(), len(gm), gm.structure_version
+            if not self.keyframes.is_current(view):  # a loop closure moved its keyframe since it was taken
+                self.stale_steps += 1
+                return False
         if rows == 0:
             return False
         with timer("render"):

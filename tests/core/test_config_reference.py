@@ -86,10 +86,8 @@ def built_config(key: str, run, slam, viewer, dataset):
         return getattr(run, path[0])
     if path[0] == "growth":
         return slam.growth
-    if path[0] == "loop_closure":
-        return getattr(slam, "loop_closure", None) and slam.loop_closure.cfg or run.loop_closure
     objects = {"dataset": dataset, "tracker": slam.tracker, "keyframe": slam.keyframe_policy,
-               "mapper": slam.mapper, "viewer": viewer}
+               "mapper": slam.mapper, "viewer": viewer, "loop_closure": slam.loop_closer.closure}
     if path[0] == "mapper" and len(path) > 1 and path[1] in PARTS:
         return getattr(slam.mapper.trainer, path[1]).cfg
     cfg = objects[path[0]].cfg

@@ -358,6 +358,15 @@ def test_sevenscenes_synthetic(tmp_path):
     assert ds[2].gt_pose is None
 
 
+def test_sevenscenes_timestamps_are_the_frame_numbers_read_or_not(tmp_path):
+    """A selection that starts at frame-000300: the timestamp a frame is read with and the one
+    the dataset gives without reading it (what resume= checks the frame list with) agree."""
+    root, _ = make_sevenscenes(tmp_path / "kitchen" / "seq-01", first=300)
+    ds = SevenScenesDataset(SevenScenesConfig(path=str(root)))
+    assert [ds.timestamp(i) for i in range(len(ds))] == [ds[i].timestamp for i in range(len(ds))] == [300.0, 301.0,
+                                                                                                       302.0]
+
+
 def test_sevenscenes_defaults_and_errors(tmp_path):
     root, _ = make_sevenscenes(tmp_path / "scene" / "seq-01", n=2, intrinsics=False)
     cam = SevenScenesDataset(SevenScenesConfig(path=str(root))).camera

@@ -58,18 +58,20 @@ def save_depth(path: Path, raw: np.ndarray) -> None:
     Image.fromarray(raw.astype(np.uint16)).save(path)
 
 
-def make_sevenscenes(root: Path, n: int = 3, intrinsics: bool = True) -> tuple[Path, np.ndarray]:
-    """A 7-Scenes sequence folder of `n` 64x48 frames at random poses (returned, camera-to-world)."""
+def make_sevenscenes(root: Path, n: int = 3, intrinsics: bool = True, first: int = 0) -> tuple[Path, np.ndarray]:
+    """A 7-Scenes sequence folder of `n` 64x48 frames at random poses (returned, camera-to-world),
+    numbered from `first` (the shared data's start at frame-000300)."""
     root.mkdir(parents=True)
     rng = np.random.default_rng(0)
     poses = np.stack([make_pose(so3_exp(rng.normal(size=3)), rng.normal(size=3)) for _ in range(n)])
-    for i in range(n):
+    for k in range(n):
+        i = first + k
         ext = "png" if i % 2 else "jpg"
         Image.fromarray(np.zeros((48, 64, 3), np.uint8)).save(root / f"frame-{i:06d}.color.{ext}")
         raw = np.full((48, 64), 1500, np.uint16)
         raw[0, 0], raw[0, 1] = 0, 65535
         save_depth(root / f"frame-{i:06d}.depth.png", raw)
-        np.savetxt(root / f"frame-{i:06d}.pose.txt", poses[i], delimiter="\t")
+        np.savetxt(root / f"frame-{i:06d}.pose.txt", poses[k], delimiter="\t")
     if intrinsics:
         np.savetxt(root / "camera-intrinsics.txt", [[60.0, 0, 31.5], [0, 61.0, 23.5], [0, 0, 1]])
     return root, poses

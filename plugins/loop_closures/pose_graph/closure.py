@@ -23,11 +23,18 @@ from typing import Any
 import numpy as np
 
 from slamkit.config import RunContext
-from slamkit.geometry.registration import FeatureCloud
-from slamkit.roles.loop_closure import (LoopCheck, LoopClosure, LoopDecision, LoopKeyframe, PoseGraph, PoseGraphEdge,
-                                        relative_pose)
+from slamkit.geometry.registration import FeatureCloud, import_open3d
+from slamkit.roles.loop_closure import (
+    LoopCheck,
+    LoopClosure,
+    LoopDecision,
+    LoopKeyframe,
+    PoseGraph,
+    PoseGraphEdge,
+    relative_pose,
+)
 from slamkit_plugins.loop_closures.pose_graph import detection, optimisation, verification
-from slamkit_plugins.loop_closures.pose_graph.config import PoseGraphConfig
+from slamkit_plugins.loop_closures.pose_graph.config import Backend, PoseGraphConfig
 
 #: Added to an odometry edge's information per matched point, so that a direction the two
 #: keyframes' points do not constrain (or a pair with no matched points) stays tied to odometry
@@ -55,6 +62,9 @@ class PoseGraphLoopClosure(LoopClosure):
 
     def __init__(self, cfg: PoseGraphConfig, context: RunContext = RunContext()):
         self.cfg = cfg
+        import_open3d()  # the libraries it needs, now: a missing one fails here, in one line
+        if cfg.backend is Backend.gtsam:
+            optimisation.import_gtsam()
         self.nodes: list[_Node] = []
         self.edges: list[PoseGraphEdge] = []
         self.accepted: list[LoopCheck] = []  # in the graph, in the order of self.edges' loop edges
@@ -150,8 +160,9 @@ class PoseGraphLoopClosure(LoopClosure):
         for j in list(near)[:cfg.max_candidates]:
             match = self.nodes[j]
             ids = (node.keyframe_id, match.keyframe_id, node.frame_index, match.frame_index)
-            check, information = verification.verify(node.cloud, match.cloud, relative_pose(match.pose, node.pose),
-                                                     float(path[query] - path[j]), cfg, ids, cfg.seed + node.keyframe_id)
+            odometry = relative_pose(match.pose, node.pose)
+            check, information = verification.verify(node.cloud, match.cloud, odometry, float(path[query] - path[j]),
+                                                     cfg, ids, cfg.seed + node.keyframe_id)
             if check.accepted:
                 self.edges.append(PoseGraphEdge("loop", match.keyframe_id, node.keyframe_id, check.relative_pose,
                                                 information))

@@ -26,7 +26,7 @@ class PoseGraphConfig(PluginConfig):
     exclude_recent: int = 10
     #: metres of camera path between a candidate and the keyframe, at least (a shorter gap is odometry's job).
     min_path_m: float = 1.0
-    #: metres between the places two keyframes look at (camera centre + median depth along the axis) for a candidate, with no path between them.
+    #: metres between the places two keyframes look at (centre + median depth along the axis), with no path between
     search_radius_m: float = 0.3
     #: metres added to search_radius_m per metre of camera path between the two keyframes (drift grows with the path).
     radius_per_path: float = 0.05
@@ -46,7 +46,7 @@ class PoseGraphConfig(PluginConfig):
     min_fitness: float = 0.62
     #: metres: RMS distance of those point pairs, at most.
     max_inlier_rmse_m: float = 0.015
-    #: metres the loop's relative pose may differ from odometry's with no path between them (a registration that snapped elsewhere lands farther).
+    #: metres the loop's relative pose may differ from odometry's with no path between (a wrong snap lands farther)
     max_correction_m: float = 0.1
     #: metres added to max_correction_m per metre of camera path between the two keyframes.
     correction_per_path: float = 0.03
@@ -54,7 +54,7 @@ class PoseGraphConfig(PluginConfig):
     max_correction_deg: float = 2.0
     #: degrees added to max_correction_deg per metre of camera path between the two keyframes.
     correction_deg_per_path: float = 0.5
-    #: the loop's point-to-plane information per matched point: its weakest translation direction, at least (1/3 for a box; 0 along a wall).
+    #: the loop's point-to-plane information per point along its weakest direction, at least (1/3 a box; 0 a wall)
     min_constraint: float = 0.02
     #: the pose-graph optimiser: gtsam | open3d.
     backend: Backend = Backend.gtsam
@@ -62,9 +62,9 @@ class PoseGraphConfig(PluginConfig):
     odometry_sigma_m: float = 0.005
     #: metres: standard deviation of a loop edge along its best-constrained direction.
     loop_sigma_m: float = 0.01
-    #: whitened residual at which a loop edge's robust kernel halves its weight (gtsam's Cauchy; open3d's line process prunes the loop there).
+    #: whitened residual at which a loop edge's robust kernel halves its weight (gtsam: Cauchy; open3d: pruned there)
     robust_width: float = 3.0
-    #: whitened residual (sqrt of the chi-square) of an optimised loop above which it is dropped as inconsistent and the graph optimised again.
+    #: an optimised loop's whitened residual (sqrt chi-square) above which it is dropped and the graph solved again
     max_loop_residual: float = 10.0
     #: seed of RANSAC's random choices.
     seed: int = 0
@@ -80,6 +80,7 @@ class PoseGraphConfig(PluginConfig):
         require(0 < self.max_view_angle_deg <= 180, "loop_closure.max_view_angle_deg", "in (0, 180]",
                 self.max_view_angle_deg)
         require(-1 <= self.min_appearance <= 1, "loop_closure.min_appearance", "in [-1, 1]", self.min_appearance)
+        require(self.seed >= 0, "loop_closure.seed", "an integer >= 0", self.seed)
         require(self.max_candidates >= 1, "loop_closure.max_candidates", "an integer >= 1", self.max_candidates)
         require(self.ransac_iterations >= 1, "loop_closure.ransac_iterations", "an integer >= 1",
                 self.ransac_iterations)

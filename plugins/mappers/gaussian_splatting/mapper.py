@@ -17,7 +17,7 @@ from slamkit.config import RunContext
 from slamkit.formats.ply import save_ply
 from slamkit.metrics.images import PsnrPixels
 from slamkit.metrics.lpips import lpips_for_evaluation
-from slamkit.roles import KeyframeSampler, Mapper, MapOptimizer, MappingLoss, Rasterizer, Strategy
+from slamkit.roles import KeyframeSampler, MapOptimizer, Mapper, MappingLoss, Rasterizer, Strategy
 from slamkit.splatting import RenderOutput, Trainer
 from slamkit.splatting.evaluation import evaluate_renders
 from slamkit.types import Camera
@@ -42,6 +42,9 @@ class GaussianSplattingMapper(Mapper):
 
     def add_keyframe(self, frame, pose, kind, new_rows) -> None:
         self.trainer.add_keyframe(frame, pose, kind, new_rows)
+
+    def move_keyframes(self, updates) -> None:
+        self.trainer.move_keyframes(updates)
 
     def optimize(self, iterations: int) -> int:
         return self.trainer.train(iterations)

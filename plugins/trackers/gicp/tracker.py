@@ -21,8 +21,8 @@ import time
 import numpy as np
 
 from slamkit.geometry.gaussians import Regularization, rotate_covariances
-from slamkit.map.gaussian_map import GaussianMap
 from slamkit.geometry.transforms import backproject, invert_pose
+from slamkit.map.gaussian_map import GaussianMap
 from slamkit.roles import RunContext, Tracker, require
 from slamkit.types import Frame, FrameGaussians, TrackingResult
 from slamkit_plugins.trackers.gicp.alignment import Aligner, new_stats, orthonormalize
@@ -41,7 +41,8 @@ class GICPTracker(Tracker):
     def __init__(self, cfg: GICPConfig, context: RunContext = RunContext()):
         self.cfg = cfg
         for name in ("pixel_stride", "max_correspondence_distance", "min_target_opacity"):
-            require(getattr(cfg, name) is not None, f"tracker.{name}", "a value (GICPConfig.resolve fills it from the dataset)", None)
+            require(getattr(cfg, name) is not None, f"tracker.{name}",
+                    "a value (GICPConfig.resolve fills it from the dataset)", None)
         self.pixel_stride = int(cfg.pixel_stride)
         self.max_corr = float(cfg.max_correspondence_distance)
         self.min_opacity = float(cfg.min_target_opacity)
@@ -59,6 +60,12 @@ class GICPTracker(Tracker):
     def initialize(self, first_pose: np.ndarray) -> None:
         self.first_pose = orthonormalize(np.asarray(first_pose, dtype=np.float64))
         self.poses = []
+
+    def move_world(self, motion: np.ndarray) -> None:
+        """The motion model's poses move with the world (the velocity between them is kept)."""
+        motion = np.asarray(motion, dtype=np.float64)
+        self.poses = [orthonormalize(motion @ p) for p in self.poses]
+        self.first_pose = orthonormalize(motion @ self.first_pose)
 
     def update_target(self, gaussian_map: GaussianMap) -> None:
         """Take the map's trackable Gaussians as the new target; regularise their covariances

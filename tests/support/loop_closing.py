@@ -1,0 +1,129 @@
+"""A loop closure and a viewer for tests of loop closure inside the run: `shifting` moves every
+keyframe by SHIFT once it has `after` keyframes (sleeping `sleep_s` a call, logging its process id),
+`recording` keeps the last ViewerFrame; `loop_registry()` holds them, `run_shifted` runs the
+synthetic sequence through it, `offsets` reads a run's position errors."""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from slamkit.formats.tum import read_tum_trajectory
+from slamkit.geometry import make_pose
+from slamkit.plugin import PluginSpec, hookimpl
+from slamkit.registry import default_registry
+from slamkit.registry.compose import compose_run
+from slamkit.roles import PluginConfig, Viewer, ViewerConfig, ViewerFrame
+from slamkit.roles.loop_closure import LoopCheck, LoopClosure, LoopDecision, LoopKeyframe, PoseGraph, PoseGraphEdge
+from slamkit.run import pipeline
+
+#: The correction the shifting loop closure below makes: every keyframe 10 cm along x.
+SHIFT = make_pose(np.eye(3), [0.10, 0.0, 0.0])
+
+
+@dataclass
+class ShiftingConfig(PluginConfig):
+    """Test plugin: the decision after this many keyframes moves them all by SHIFT."""
+
+    #: keyframes before the one decision that moves them
+    after: int = 3
+    #: seconds each detect_and_optimise sleeps (a slow loop closure)
+    sleep_s: float = 0.0
+    #: a file each detect_and_optimise appends its process id to (null: none)
+    log: str | None = None
+
+
+class ShiftingLoopClosure(LoopClosure):
+    """Keeps its keyframes' poses (placed in the newest world); once it has `after` keyframes it
+    reports one accepted loop (the last to the first) and moves every keyframe by SHIFT."""
+
+    def __init__(self, cfg: ShiftingConfig, context=None):
+        self.cfg = cfg
+        self.poses: dict[int, np.ndarray] = {}
+        self.frames: dict[int, int] = {}
+        self.world_updates: list[np.ndarray] = []
+        self.pending: list[LoopKeyframe] = []
+
+    def add_keyframe(self, keyframe: LoopKeyframe) -> None:
+        self.pending.append(keyframe)
+
+    def detect_and_optimise(self) -> LoopDecision:
+        if self.cfg.log:
+            with open(self.cfg.log, "a") as f:
+                f.write(f"{os.getpid()}\n")
+        time.sleep(self.cfg.sleep_s)
+        for k in self.pending:
+            pose = k.pose
+            for update in self.world_updates[k.world:]:
+                pose = update @ pose
+            self.poses[k.keyframe_id], self.frames[k.keyframe_id] = pose, k.frame_index
+        self.pending = []
+        if self.world_updates or len(self.poses) < self.cfg.after:
+            return LoopDecision(world=len(self.world_updates))
+        before = dict(self.poses)
+        self.poses = {k: SHIFT @ p for k, p in self.poses.items()}
+        self.world_updates.append(SHIFT)
+        first, last = min(self.poses), max(self.poses)
+        check = LoopCheck(last, first, self.frames[last], self.frames[first], np.eye(4), 0.9, 100, 0.005, 0.1, 0.0,
+                          True)
+        return LoopDecision((check,), dict(self.poses), {k: self.poses[k] @ np.linalg.inv(before[k]) for k in before},
+                            world=1)
+
+    def pose_graph(self) -> PoseGraph:
+        ids = sorted(self.poses)
+        edges = tuple(PoseGraphEdge("odometry", a, b, np.linalg.inv(self.poses[a]) @ self.poses[b], np.eye(6))
+                      for a, b in zip(ids, ids[1:]))
+        return PoseGraph(np.array(ids), np.array([self.poses[k] for k in ids]).reshape(-1, 4, 4), edges)
+
+    def state_dict(self) -> dict:
+        return {"ids": np.array(sorted(self.poses), dtype=np.int64),
+                "poses": np.array([self.poses[k] for k in sorted(self.poses)]).reshape(-1, 4, 4),
+                "frames": [self.frames[k] for k in sorted(self.poses)], "world_updates": list(self.world_updates)}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.poses = {int(k): np.asarray(p) for k, p in zip(state["ids"], state["poses"])}
+        self.frames = {int(k): int(f) for k, f in zip(state["ids"], state["frames"])}
+        self.world_updates = [np.asarray(u) for u in state["world_updates"]]
+
+
+class RecordingViewer(Viewer):
+    """Test viewer: keeps the last ViewerFrame it was shown."""
+
+    last: ViewerFrame | None = None
+
+    def __init__(self, cfg: ViewerConfig, context=None):
+        self.cfg = cfg
+
+    def show(self, view: ViewerFrame) -> None:
+        RecordingViewer.last = view
+
+
+@hookimpl
+def slamkit_plugins():
+    return [PluginSpec("shifting", ShiftingLoopClosure, ShiftingConfig),
+            PluginSpec("recording", RecordingViewer, ViewerConfig)]
+
+
+def loop_registry():
+    registry = default_registry()
+    if "shifting" not in registry.plugins["loop_closure"]:
+        registry.add_module(sys.modules[__name__], "tests/support/loop_closing.py")
+    return registry
+
+
+def run_shifted(registry, out: Path, *overrides: str) -> dict:
+    cfg, names = compose_run(["dataset.num_frames=30", "mapper=none", "loop_closure=shifting", "progress=false",
+                              "eval.plot=false", *overrides], registry)
+    return pipeline.run(cfg, registry, names, out)
+
+
+def offsets(out: Path) -> np.ndarray:
+    """(F,3) estimated minus true camera centres (metres) of a run's frames."""
+    _, est = read_tum_trajectory(out / "trajectory.txt")
+    _, gt = read_tum_trajectory(out / "groundtruth.txt")
+    return est[:, :3, 3] - gt[:, :3, 3]
