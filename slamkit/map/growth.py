@@ -2,35 +2,23 @@
 
 A frame's Gaussians carry their raw k-NN covariance (`shape_covariances`; the regularised one
 G-ICP aligns with has a median axis of 1 m and would make 10 cm - 1 m Gaussians). Entering the
-map, each scale (square root of a raw eigenvalue) is divided by an alignment factor that grows with the point's
-camera depth z (metres): none -> 1, constant -> c, z -> max(c z, 1), z_pow -> max(c z^p, 1)
-(the paper's choice, p = 1.5; the default in sequential mode, with c = 1 where the reference
-code has c = 2); eq4 -> Eq. 4 as printed, z^p dividing the ellipse-regularised scales (median
-axis 1 m) in place of the raw ones. In real-time mode the
-default is none: a Gaussian there gets a few dozen steps at most, and aligned scales (1-3 mm on
-TUM, spaced ~1 cm) leave the views full of holes that the steps have no time to close (TUM
-fr1/rpy real time 17.7 dB unaligned against 15.6 dB aligned; looped Replica 21.6 against 9.2
-dB; docs/results.md). Sequential runs score higher the less they align (TUM fr1/rpy 18.23 /
-18.38 / 18.53 / 18.60 dB for c = 2 / 1 / 0.5 / none; Replica room0 20 frames 27.63 / 28.30 /
-28.83 / 28.90 dB), because the map bounded by the scene (`Strategy.admit`) keeps about one
-Gaussian per sampling cell where the reference code piles every keyframe's on top of each other;
-but their surfaces get blurrier (a mesh of the rendered depth of 20 Replica frames: median vertex
-error 1.25 / 1.38 / 1.78 / 4.05 cm, 96 / 94 / 84 / 34 % of the true surface within 3 cm), so
-c = 1 is the default: most of the PSNR, nearly the paper's surfaces (docs/results.md, "Scale
-alignment with a bounded map"). Tracking hardly changes either way (TUM fr1/rpy 4.90 cm; 4.70
-against 4.67 cm looped 4 times): the ellipse regularisation divides each target covariance
-by its median eigenvalue, which cancels a Gaussian's alignment factor; only which trackable
-Gaussians pruning removes (by opacity) depends on the training. Gaussians close to an existing
-trackable map Gaussian (squared distance <= new_gaussian_overlap, m^2) are added for rendering
-but not marked trackable, so the tracking target is not duplicated: the tracker measures the
-distance to its target, and `new_gaussians` to the trackable Gaussians added since that target
-was built (mapping-only keyframes'), which it lacks. Measured against the target alone, a
-keyframe revisiting a mapping-only keyframe's view made its Gaussians trackable again, and
-trackable Gaussians enter whatever the coverage test says: looped Replica room0 in real time
-grew by ~5,700 Gaussians a mapping-only keyframe, to 180k for 20 frames (docs/results.md).
-A mapping-only keyframe's Gaussians are never trackable (`mapping_only_trackable` false, the
-paper's Sec. 3.3: they enter the map for rendering, not the tracking target), which measured as
-good or better than making them trackable (docs/paper.md, "Differences"); `untargeted` then
+map, each scale (square root of a raw eigenvalue) is divided by an alignment factor that grows
+with the point's camera depth z (metres): none -> 1, constant -> c, z -> max(c z, 1), z_pow ->
+max(c z^p, 1) (the paper's choice, p = 1.5); eq4 -> Eq. 4 as printed, z^p dividing the
+ellipse-regularised scales in place of the raw ones. The defaults: z_pow with c = 1 in
+sequential mode (the reference code's c = 2 gives sharper surfaces but less PSNR), none in real
+time (a Gaussian there gets a few dozen steps at most, too few to close the holes that small
+aligned Gaussians leave); the measurements behind both are in docs/results.md ("Scale alignment")
+and docs/paper.md. Tracking hardly depends on it: the ellipse
+regularisation divides each target covariance by its median eigenvalue, which cancels a
+Gaussian's alignment factor.
+
+Gaussians within new_gaussian_overlap (squared distance, m^2) of an existing trackable map
+Gaussian are added for rendering but not marked trackable, so the tracking target is not
+duplicated: the tracker measures the distance to its target, and `new_gaussians` to the
+trackable Gaussians added since that target was built (mapping-only keyframes'), which it lacks.
+A mapping-only keyframe's Gaussians are never trackable unless `mapping_only_trackable` (the
+paper's Sec. 3.3: they enter the map for rendering, not the tracking target); `untargeted` then
 matters only with `mapping_only_trackable=true`.
 
 `new_gaussians` makes a keyframe's candidate rows; which of them enter the map is the mapper's
@@ -72,20 +60,21 @@ class ScaleAlignment(enum.Enum):
 
 @dataclass
 class MapGrowthConfig(PluginConfig):
-    """initial_shape: gicp | knn (see InitialShape). scale_alignment: how gicp shapes are
-    scaled entering the map (paper Table 6): none | constant | z | z_pow divide the raw k-NN
-    scales by 1 | c | max(c z, 1) | max(c z^p, 1); eq4 (the paper's Eq. 4) divides the
-    ellipse-regularised scales (median axis 1 m) by z^p; null: z_pow in sequential mode, none
-    in real-time mode (see the module docstring). scale_c, scale_p: the c and p of max(c z^p, 1), p also Eq. 4's (the
-    reference code: c = 2, p = 1.5; c = 1 by default, see the module docstring).
-    initial_opacity: opacity of new Gaussians in (0, 1). new_gaussian_overlap: m^2, null = the
-    dataset's (`DatasetTuning.new_gaussian_overlap`)."""
+    """How keyframes grow the map (`growth.*`). Scale alignment (paper Table 6): none | constant |
+    z | z_pow divide the raw k-NN scales by 1 | c | max(c z, 1) | max(c z^p, 1); eq4 (Eq. 4
+    read literally) divides the ellipse-regularised scales (median axis 1 m) by z^p."""
 
+    #: gicp | knn: new Gaussians' shapes (see InitialShape)
     initial_shape: InitialShape = InitialShape.gicp
+    #: none | constant | z | z_pow | eq4 (null: z_pow sequential, none in real time; module docstring)
     scale_alignment: ScaleAlignment | None = None
+    #: the c of max(c z^p, 1) (the reference code's 2; see the module docstring)
     scale_c: float = 1.0
+    #: the p of max(c z^p, 1) and of Eq. 4 (the reference code's 1.5)
     scale_p: float = 1.5
+    #: opacity of new Gaussians, in (0, 1)
     initial_opacity: float = 0.1
+    #: m^2: a new Gaussian this close (squared) to a trackable one is not trackable (null: the dataset's)
     new_gaussian_overlap: float | None = None
     #: a mapping-only keyframe's Gaussians may become trackable (false: never, as the paper's Sec. 3.3; docs/paper.md)
     mapping_only_trackable: bool = False

@@ -56,14 +56,15 @@ class Device(enum.Enum):
 
 @dataclass
 class EvalConfig(PluginConfig):
-    """plot: write trajectory.png. running_ate_every: frames between running-ATE updates of the
-    progress bar (0 = off). max_lost_fraction: a run that loses more than this fraction of the
-    frames it takes in (tracking lost or unreadable; dropped frames excluded), or tracks none,
-    has failed: it reports no ATE, skips the refinement and the evaluation, and exits with
-    status 3 (1.0: only a run that tracked no frame fails)."""
+    """How a run is evaluated. A run that loses more than `max_lost_fraction` of the frames it
+    takes in (tracking lost or unreadable; dropped frames excluded), or tracks none, has failed:
+    it reports no ATE, skips the refinement and the evaluation, and exits with status 3."""
 
+    #: write trajectory.png
     plot: bool = True
+    #: frames between running-ATE updates of the progress bar (0: off)
     running_ate_every: int = 10
+    #: a run losing more than this fraction of its frames has failed (1.0: only one that tracked none)
     max_lost_fraction: float = 0.5
     #: auto | on | off: LPIPS of the mapper's renders (auto: null without its weight files, said once; on: exit 2 then)
     lpips: LpipsMode = LpipsMode.auto
@@ -81,11 +82,11 @@ class EvalConfig(PluginConfig):
 
 @dataclass
 class CheckpointConfig(PluginConfig):
-    """The run's map checkpoint (RUN_DIR/checkpoint.zip, what `resume=` and `mode=localize`
-    read). save: write it at the end of the run and when the run is interrupted (SIGINT,
-    SIGTERM). every_keyframes: also write it every this many keyframes (0 = only then)."""
+    """The run's map checkpoint (RUN_DIR/checkpoint.zip, what `resume=` and `mode=localize` read)."""
 
+    #: write it at the end of the run and when the run is interrupted (SIGINT, SIGTERM)
     save: bool = True
+    #: also write it every this many keyframes (0: only then)
     every_keyframes: int = 0
 
     def validate(self) -> None:
@@ -98,22 +99,21 @@ class LocalizeConfig(PluginConfig):
     first frame, and any frame where tracking is lost, is placed by global registration of its
     points against the map's trackable Gaussians (FPFH + RANSAC, then G-ICP, with open3d) and
     tracked by the run's tracker from there (the map: `map=RUN_DIR`); it is localised when it
-    reaches the three min_* figures (slamkit.run.localization). voxel: metres, both clouds are
-    downsampled to this for global registration. min_inlier_fraction: a localised frame's least
-    fraction of trackable points with a map Gaussian within the tracker's correspondence distance.
-    min_surface_agreement: a localised frame's least fraction of the image cells where the map is
-    in view whose nearest map Gaussian centre lies on the frame's depth. min_color_correlation: a
-    localised frame's least correlation of the map's colours with its own in those cells.
-    ransac_iterations: RANSAC's iteration limit. ransac_confidence: RANSAC's stopping confidence.
-    attempts: RANSAC runs (other seeds) per global registration before the frame counts as not
-    localised."""
+    reaches the three min_* figures (slamkit.run.localization)."""
 
+    #: metres: both clouds are downsampled to this for global registration
     voxel: float = 0.05
+    #: a localised frame's least fraction of trackable points with a map Gaussian within correspondence distance
     min_inlier_fraction: float = 0.3
+    #: a localised frame's least fraction of the cells seeing the map whose nearest Gaussian lies on its depth
     min_surface_agreement: float = 0.7
+    #: a localised frame's least correlation of the map's colours with its own in those cells
     min_color_correlation: float = 0.5
+    #: RANSAC's iteration limit
     ransac_iterations: int = 100000
+    #: RANSAC's stopping confidence
     ransac_confidence: float = 0.999
+    #: RANSAC runs (other seeds) per global registration before the frame counts as not localised
     attempts: int = 3
 
     def validate(self) -> None:
@@ -131,64 +131,55 @@ class LocalizeConfig(PluginConfig):
 
 @dataclass
 class ObjectiveConfig:
-    """What a run returns to a Hydra sweeper that optimises (hydra/sweeper=optuna; docs/search.md).
-    metric: the metrics.json key whose value is the run's score (ate_rmse_m, psnr, fps, ...; the
-    sweeper's direction says whether lower or higher is better). failed_value: the score of a
-    run that fails (a bad value, a plugin error, an interrupted run) or lacks the metric (no
-    ground truth); null = a failed run stops the sweep with exit status 2, as a single run."""
+    """What a run returns to a Hydra sweeper that optimises (hydra/sweeper=optuna; docs/search.md)."""
 
+    #: the metrics.json key scoring the run (ate_rmse_m, psnr, fps, ...; the sweeper's direction says which way)
     metric: str = "ate_rmse_m"
+    #: score of a failed run or one lacking the metric (null: a failed run stops the sweep, exit 2)
     failed_value: float | None = None
 
 
 @dataclass
 class RunConfig(PluginConfig):
-    """Top-level keys (`run_schema` adds one group per role). mode: sequential (fixed mapping
-    iterations per frame, deterministic), realtime, or localize (tracking in a saved map,
-    `localize.*`). iterations_per_frame: mapper steps per frame in sequential mode. fps_limit:
-    input frames per second in realtime mode (null = as fast as possible). drop_frames: in
-    realtime mode, skip a frame when the next one has already arrived (a live camera's
-    behaviour) instead of processing every frame late. seed: for every
-    random choice. progress: show a progress bar. mapping_threads: torch threads for mapping
-    (0: every CPU in sequential mode; every CPU but one in realtime mode, where the tracking
-    thread runs beside the mapping thread; the compiled kernels have their own
-    `rasterizer.num_threads` and `loss.num_threads`). switch_interval: seconds; in realtime mode, Python's
-    thread switch interval while the mapping thread runs (how long a thread waiting for the GIL
-    may wait; Python's default is 0.005, which stalls both threads: slamkit.run.slam's
-    SWITCH_INTERVAL_S). final_iterations: mapping steps after the last
-    frame, the map's refinement (null: 400 in sequential mode, so that a short sequence, 20
-    Replica frames at 10 steps a frame, is trained for ~600 steps in all, its training views'
-    PSNR still rising at 350; none in real-time mode, whose map is what the stream trained, as
-    the paper's real-time system stops mapping with the stream). mapping_device: auto | cpu | cuda: where the map's
-    tensors and the mapper's keyframes live (auto = the GPU when CUDA is available, as the
-    paper maps on the GPU; the tracker always runs on the CPU and takes its target from the map
-    as a CPU copy). checkpoint: the map checkpoint (CheckpointConfig). resume: a run folder
-    (or checkpoint file) whose run this one continues (`slamkit resume=RUN_DIR`). localize:
-    `mode=localize`'s settings (LocalizeConfig). growth: how keyframes grow the map
-    (MapGrowthConfig). map: with mode=localize, the run folder or checkpoint file of the saved
-    map to localise in. existing_outputs: refuse | clean: a new run into a folder holding an
-    earlier run's outputs stops in one line, or deletes them first (clean;
-    `slamkit.run.ownership`)."""
+    """Top-level keys (`run_schema` adds one group per role)."""
 
+    #: how keyframes grow the map (MapGrowthConfig)
     growth: MapGrowthConfig = field(default_factory=MapGrowthConfig)
+    #: with mode=localize, the run folder or checkpoint file of the saved map to localise in
     map: str | None = None
+    #: how the run is evaluated (EvalConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
+    #: what the run returns to an optimising sweeper (ObjectiveConfig)
     objective: ObjectiveConfig = field(default_factory=ObjectiveConfig)
+    #: sequential (fixed mapping steps a frame, deterministic) | realtime | localize (in a saved map)
     mode: Mode = Mode.sequential
+    #: mapper steps per frame in sequential mode
     iterations_per_frame: int = 10
+    #: realtime: input frames per second (null: as fast as possible)
     fps_limit: float | None = None
+    #: realtime: skip a frame when the next one has already arrived (a live camera), not process every one late
     drop_frames: bool = False
+    #: seed of every random choice
     seed: int = 0
+    #: show a progress bar
     progress: bool = True
+    #: torch threads for mapping (0: every CPU sequential, every CPU but tracking's in real time)
     mapping_threads: int = thread_count(0)
+    #: seconds: realtime, Python's thread switch interval while mapping runs (Python's 0.005 stalls both threads)
     switch_interval: float = SWITCH_INTERVAL_S
     #: realtime: mapping's priority (its threads' too): idle (only CPU left over), low (5 nice levels), same
     mapping_priority: ThreadPriority = ThreadPriority.idle
+    #: mapping steps after the last frame, the refinement (null: 400 sequential, none in real time as the paper)
     final_iterations: int | None = None
+    #: auto | cpu | cuda: where the map and the mapper's keyframes live (auto: the GPU when there is one)
     mapping_device: Device = Device.auto
+    #: the map checkpoint (CheckpointConfig)
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
+    #: a run folder (or checkpoint file) whose run this one continues
     resume: str | None = None
+    #: mode=localize's settings (LocalizeConfig)
     localize: LocalizeConfig = field(default_factory=LocalizeConfig)
+    #: refuse | clean: a run into a folder holding an earlier run's outputs stops in one line, or deletes them
     existing_outputs: ExistingOutputs = ExistingOutputs.refuse
     #: the preset the run's defaults came from, set by `preset=slamkit|paper|paper_unlimited` (docs/paper.md)
     preset: str = "slamkit"

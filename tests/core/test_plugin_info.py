@@ -8,6 +8,7 @@ import dataclasses
 from slamkit.cli.plugins import markdown_reference
 from slamkit.config import field_docs
 from slamkit.registry.discovery import discover
+from slamkit.registry.schema import RunConfig
 
 from support.data import REPO
 
@@ -42,4 +43,5 @@ def test_every_builtin_config_field_has_a_one_line_doc():
     assert {role for role, _, _ in builtin} >= {"dataset", "tracker", "keyframe", "mapper", "viewer"}
     missing = [f"{role}={name}: {key}" for role, name, entry in builtin
                for key in _undocumented(entry.spec.config, f"{role}.")]
+    missing += _undocumented(RunConfig, "")  # the run's own keys: eval.*, growth.*, checkpoint.*, ...
     assert not missing, "fields without a `#:` line:\n" + "\n".join(missing)
