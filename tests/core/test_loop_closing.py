@@ -8,7 +8,6 @@ tests/e2e/test_loop_closing_runs.py."""
 from __future__ import annotations
 
 import csv
-import os
 
 import numpy as np
 import pytest
@@ -31,8 +30,8 @@ from support.loop_closing import (
     RecordingViewer,
     ShiftingConfig,
     ShiftingLoopClosure,
+    check_run_follows_shift,
     loop_registry,
-    offsets,
     run_shifted,
 )
 
@@ -139,38 +138,8 @@ def test_a_correction_spreads_over_the_keyframes_and_the_frames_follow_them():
 
 # -- a loop closure whose decisions are known: it shifts every keyframe by SHIFT once ----------
 
-def test_the_run_follows_a_correction_its_map_tracker_and_trajectory(tmp_path, registry, mode="sequential"):
-    """The loop closure moves every keyframe 10 cm along x once: the whole trajectory is then
-    10 cm along x of the truth, the frames before the correction (they followed their keyframe)
-    and after it (tracked against the moved map, from the moved motion model) alike; keyframes.txt
-    and the pose graph agree; the map is the uncorrected run's moved by 10 cm; loops.csv and
-    pose_graph.g2o are written. In real time the loop closure sleeps 1.5 s a call in a process
-    of its own, and no frame waits for it (each is tracked in less)."""
-    log = tmp_path / "calls.txt"
-    sleep = ["loop_closure.sleep_s=1.5", "mode=realtime", f"loop_closure.log={log}"] if mode == "realtime" else []
-    metrics = run_shifted(registry, tmp_path / "shifted", *sleep)
-    run_shifted(registry, tmp_path / "plain", "loop_closure=none", *(["mode=realtime"] if sleep else []))
-    shifted = offsets(tmp_path / "shifted")
-    assert np.abs(offsets(tmp_path / "plain")).max() < 0.01  # synthetic tracking: millimetres
-    np.testing.assert_allclose(shifted, np.tile([0.10, 0.0, 0.0], (len(shifted), 1)), atol=0.01)
-    assert metrics["loop_corrections"] == 1 and metrics["loops_accepted"] == 1
-    _, keyframes = read_tum_trajectory(tmp_path / "shifted" / "keyframes.txt")
-    graph = read_g2o(tmp_path / "shifted" / "pose_graph.g2o")
-    np.testing.assert_allclose(graph.poses[:, :3, 3], keyframes[:len(graph.poses), :3, 3], atol=1e-6)
-    with open(tmp_path / "shifted" / "loops.csv") as f:
-        rows = list(csv.DictReader(f))
-    assert len(rows) == 1 and rows[0]["accepted"] == "True" and rows[0]["fitness"] == "0.9"
-    shifted_map, _ = checkpoint.load_map(tmp_path / "shifted")
-    plain_map, _ = checkpoint.load_map(tmp_path / "plain")
-    shift = shifted_map.entry_means.mean(dim=0) - plain_map.entry_means.mean(dim=0)
-    np.testing.assert_allclose(shift.numpy(), [0.10, 0.0, 0.0], atol=0.01)
-    if mode == "realtime":
-        pids = log.read_text().split()
-        assert len(pids) >= 2 and str(os.getpid()) not in pids
-        with open(tmp_path / "shifted" / "frames.csv") as f:
-            tracking_ms = [float(r["tracking_ms"]) for r in csv.DictReader(f) if r["tracking_ms"]]
-        assert len(tracking_ms) == 30 and max(tracking_ms) < 1000, max(tracking_ms)
-        assert metrics["loop_closure_wall_s"] >= 1.5 * metrics["loop_closure_calls"] >= 3.0
+def test_the_run_follows_a_correction_its_map_tracker_and_trajectory(tmp_path, registry):
+    check_run_follows_shift(tmp_path, registry, "sequential")
 
 
 def test_viewers_are_shown_the_corrected_trajectory_and_the_loops(tmp_path, registry):

@@ -19,11 +19,7 @@ from slamkit.formats.tum import (
 )
 from slamkit.geometry.transforms import make_pose, quat_to_rotmat, rotation_angle_deg, so3_exp
 
-
-def one_line_error(excinfo, name: str) -> str:
-    msg = str(excinfo.value)
-    assert "\n" not in msg and name in msg, msg
-    return msg
+from support.errors import one_line
 
 
 def write(path: Path, text: str) -> Path:
@@ -44,7 +40,7 @@ def test_list_file_duplicate_timestamp(tmp_path):
     p = write(tmp_path / "rgb.txt", "1.0 a.png\n2.0 b.png\n1.0 c.png\n")
     with pytest.raises(DataError) as e:
         read_tum_list(p)
-    assert "1.000000" in one_line_error(e, "rgb.txt")
+    assert "1.000000" in one_line(e, "rgb.txt")
 
 
 @pytest.mark.parametrize(
@@ -55,21 +51,21 @@ def test_list_file_bad_line_names_line(tmp_path, line, needle):
     p = write(tmp_path / "depth.txt", f"# header\n0.5 x.png\n{line}\n")
     with pytest.raises(DataError) as e:
         read_tum_list(p)
-    msg = one_line_error(e, "depth.txt")
+    msg = one_line(e, "depth.txt")
     assert "line 3" in msg and needle in msg
 
 
 def test_missing_file(tmp_path):
     with pytest.raises(DataError) as e:
         read_tum_list(tmp_path / "nope.txt")
-    assert "not found" in one_line_error(e, "nope.txt")
+    assert "not found" in one_line(e, "nope.txt")
 
 
 def test_float_table_field_count(tmp_path):
     p = write(tmp_path / "traj.txt", "1 2 3\n4 5\n")
     with pytest.raises(DataError) as e:
         read_float_table(p, 3, "3 numbers")
-    assert "line 2" in one_line_error(e, "traj.txt")
+    assert "line 2" in one_line(e, "traj.txt")
 
 
 # --- trajectories -------------------------------------------------------------------------
@@ -114,7 +110,7 @@ def test_trajectory_sorted_and_validated(tmp_path):
                         ("1 0 0 0 0 0 0 1\n1 0 0 0 0 0 0 1\n", "twice"), ("1 0 nan 0 0 0 0 1\n", "line 1")]:
         with pytest.raises(DataError) as e:
             read_tum_trajectory(write(tmp_path / "gt.txt", bad))
-        assert needle in one_line_error(e, "gt.txt")
+        assert needle in one_line(e, "gt.txt")
 
 
 # --- association --------------------------------------------------------------------------

@@ -17,6 +17,7 @@ from slamkit_plugins.datasets.tum import TUMConfig, TUMDataset
 
 from support.commands import run_slamkit
 from support.data import TUM, require_data
+from support.errors import one_line
 from support.folders import FOLDER_FRAMES as FRAMES
 from support.folders import make_folder
 
@@ -25,13 +26,6 @@ from support.folders import make_folder
 def scene(tmp_path) -> Path:
     return make_folder(tmp_path / "scene", TUMDataset(TUMConfig(path=str(require_data(TUM)), max_frames=FRAMES)))
 
-
-def one_line(excinfo, *needles: str) -> str:
-    msg = str(excinfo.value)
-    assert "\n" not in msg, msg
-    for needle in needles:
-        assert needle in msg, msg
-    return msg
 
 
 @pytest.mark.slow

@@ -41,6 +41,6 @@ def test_realtime_trains_after_the_stream_only_when_asked(tmp_path, final, steps
     assert metrics["mapping_cpu_s"] > 0 and metrics["mapping_iterations"] > 0
     # and the whole process's (every thread, the kernels' workers too) holds the frame loop's
     assert metrics["stream_cpu_s"] >= metrics["tracking_cpu_s"]
-    line = proc.stdout.splitlines()[0]
+    (line,) = [line for line in proc.stdout.splitlines() if "frames/s in real time" in line]  # the summary
     assert f"{metrics['stream_fps']:.1f} frames/s in real time" in line
     assert ("refinement steps" in line) == (steps > 0)

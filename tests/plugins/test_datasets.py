@@ -25,6 +25,7 @@ from slamkit_plugins.datasets.tum import TUMConfig, TUMDataset
 from support.data import DATA
 from support.data import REPLICA as REPLICA_DIR
 from support.data import TUM as TUM_DIR
+from support.errors import one_line
 from support.folders import make_sevenscenes, save_depth
 
 
@@ -34,11 +35,6 @@ def data() -> Path:
         pytest.skip(f"shared data not found at {DATA}")
     return DATA
 
-
-def one_line_error(excinfo, name: str) -> str:
-    msg = str(excinfo.value)
-    assert "\n" not in msg and name in msg, msg
-    return msg
 
 
 def assert_rigid(T: np.ndarray) -> None:
@@ -166,7 +162,7 @@ def test_tum_duplicate_timestamp(tmp_path):
     (root / "rgb.txt").write_text("0.0 rgb/0.png\n0.1 rgb/1.png\n0.1 rgb/0.png\n")
     with pytest.raises(DataError) as e:
         TUMDataset(TUMConfig(path=str(root)))
-    assert "0.100000" in one_line_error(e, "rgb.txt")
+    assert "0.100000" in one_line(e, "rgb.txt")
 
 
 def test_tum_gt_interpolation_and_coverage(tmp_path, caplog):
@@ -200,7 +196,7 @@ def test_tum_explicit_gt_path(tmp_path):
     np.testing.assert_allclose(ds[0].gt_pose[:3, 3], [1, 2, 3])
     with pytest.raises(DataError) as e:
         TUMDataset(TUMConfig(path=str(root), gt_path="missing_gt.txt"))
-    one_line_error(e, "missing_gt.txt")
+    one_line(e, "missing_gt.txt")
 
 
 # --- bad input --------------------------------------------------------------------------------
@@ -218,10 +214,10 @@ def test_missing_and_empty_folders(tmp_path):
     for cls, cfg, path, name in cases:
         with pytest.raises(DataError) as e:
             cls(cfg(path=str(path)))
-        one_line_error(e, name)
+        one_line(e, name)
     with pytest.raises(DataError) as e:
         TUMDataset(TUMConfig(path=""))
-    one_line_error(e, "dataset.path")
+    one_line(e, "dataset.path")
 
 
 @pytest.mark.parametrize(
@@ -243,7 +239,7 @@ def test_bad_images(tmp_path, damage, name, needle):
     ds = TUMDataset(TUMConfig(path=str(root)))
     with pytest.raises(DataError) as e:
         ds[0]
-    assert needle in one_line_error(e, name)
+    assert needle in one_line(e, name)
 
 
 def flip_byte(path: Path) -> None:
@@ -278,7 +274,7 @@ def test_a_colour_png_is_checked_when_loaded_and_decoded_when_read(tmp_path):
     corrupt_pixels_keep_checksums(root / "rgb/1.png")
     with pytest.raises(DataError) as e:
         later.rgb
-    assert "colour" in one_line_error(e, "1.png")
+    assert "colour" in one_line(e, "1.png")
     with pytest.raises(DataError):
         ds[1].rgb  # the checks at load pass: the checksums are right
     calls = []
@@ -296,7 +292,7 @@ def test_image_io_direct(tmp_path):
     assert read_rgb(tmp_path / "g.png").shape == (2, 3, 3)
     with pytest.raises(DataError) as e:
         read_rgb(tmp_path / "d.png")
-    assert "colour" in one_line_error(e, "d.png")
+    assert "colour" in one_line(e, "d.png")
 
 
 # --- synthetic Replica ------------------------------------------------------------------------
@@ -326,20 +322,20 @@ def test_replica_synthetic(tmp_path):
 def test_replica_errors(tmp_path):
     with pytest.raises(DataError) as e:
         ReplicaDataset(ReplicaConfig(path=str(make_replica(tmp_path / "a", 3, 2))))
-    one_line_error(e, "traj.txt")
+    one_line(e, "traj.txt")
     root = make_replica(tmp_path / "b", 3, 3)
     (root / "results/depth000001.png").unlink()
     with pytest.raises(DataError) as e:
         ReplicaDataset(ReplicaConfig(path=str(root)))
-    one_line_error(e, "depth000001.png")
+    one_line(e, "depth000001.png")
     root = make_replica(tmp_path / "c", 2, 2)
     (root / "cam_params.json").write_text('{"camera": {"w": 8}}')
     with pytest.raises(DataError) as e:
         ReplicaDataset(ReplicaConfig(path=str(root)))
-    one_line_error(e, "cam_params.json")
+    one_line(e, "cam_params.json")
     with pytest.raises(DataError) as e:
         ReplicaDataset(ReplicaConfig(path=str(make_replica(tmp_path / "d", 2, 2)), gt_path="nothere.txt"))
-    one_line_error(e, "nothere.txt")
+    one_line(e, "nothere.txt")
 
 
 # --- synthetic 7-Scenes -----------------------------------------------------------------------
@@ -376,16 +372,16 @@ def test_sevenscenes_defaults_and_errors(tmp_path):
     # a scene folder holding seq-NN subfolders: the message points at them
     with pytest.raises(DataError) as e:
         SevenScenesDataset(SevenScenesConfig(path=str(root.parent)))
-    assert "seq-01" in one_line_error(e, "scene")
+    assert "seq-01" in one_line(e, "scene")
     (root / "frame-000001.pose.txt").write_text("1 0 0 0\n0 1 0 0\n0 0 1 -inf\n0 0 0 1\n")
     ds = SevenScenesDataset(SevenScenesConfig(path=str(root)))
     with pytest.raises(DataError) as e:
         ds[1]
-    assert "line 3" in one_line_error(e, "frame-000001.pose.txt")
+    assert "line 3" in one_line(e, "frame-000001.pose.txt")
     (root / "frame-000001.depth.png").unlink()
     with pytest.raises(DataError) as e:
         SevenScenesDataset(SevenScenesConfig(path=str(root)))
-    one_line_error(e, "frame-000001.depth.png")
+    one_line(e, "frame-000001.depth.png")
 
 
 def test_passes_play_the_frames_back_and_forth_with_running_timestamps(replica_path):

@@ -19,6 +19,7 @@ from slamkit_plugins.datasets.folder import FolderConfig, FolderDataset
 from slamkit_plugins.datasets.tum import CAMERAS, TUMConfig, TUMDataset
 
 from support.data import TUM, require_data
+from support.errors import one_line
 from support.folders import FOLDER_FRAMES as FRAMES
 from support.folders import FOLDER_INTRINSICS as INTRINSICS
 from support.folders import make_folder
@@ -33,13 +34,6 @@ def tum_frames() -> TUMDataset:
 def scene(tmp_path, tum_frames) -> Path:
     return make_folder(tmp_path / "scene", tum_frames)
 
-
-def one_line(excinfo, *needles: str) -> str:
-    msg = str(excinfo.value)
-    assert "\n" not in msg, msg
-    for needle in needles:
-        assert needle in msg, msg
-    return msg
 
 
 def test_hook_and_entry_point():

@@ -1,10 +1,12 @@
 """A loop closure and a viewer for tests of loop closure inside the run: `shifting` moves every
 keyframe by SHIFT once it has `after` keyframes (sleeping `sleep_s` a call, logging its process id),
 `recording` keeps the last ViewerFrame; `loop_registry()` holds them, `run_shifted` runs the
-synthetic sequence through it, `offsets` reads a run's position errors."""
+synthetic sequence through it, `offsets` reads a run's position errors, and
+`check_run_follows_shift` asserts that a run follows the shift, in either mode."""
 
 from __future__ import annotations
 
+import csv
 import os
 import sys
 import time
@@ -13,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from slamkit.formats.g2o import read_g2o
 from slamkit.formats.tum import read_tum_trajectory
 from slamkit.geometry import make_pose
 from slamkit.plugin import PluginSpec, hookimpl
@@ -20,7 +23,7 @@ from slamkit.registry import default_registry
 from slamkit.registry.compose import compose_run
 from slamkit.roles import PluginConfig, Viewer, ViewerConfig, ViewerFrame
 from slamkit.roles.loop_closure import LoopCheck, LoopClosure, LoopDecision, LoopKeyframe, PoseGraph, PoseGraphEdge
-from slamkit.run import pipeline
+from slamkit.run import checkpoint, pipeline
 
 #: The correction the shifting loop closure below makes: every keyframe 10 cm along x.
 SHIFT = make_pose(np.eye(3), [0.10, 0.0, 0.0])
@@ -127,3 +130,37 @@ def offsets(out: Path) -> np.ndarray:
     _, est = read_tum_trajectory(out / "trajectory.txt")
     _, gt = read_tum_trajectory(out / "groundtruth.txt")
     return est[:, :3, 3] - gt[:, :3, 3]
+
+
+def check_run_follows_shift(tmp_path: Path, registry, mode: str) -> None:
+    """A run with `shifting`: the loop closure moves every keyframe 10 cm along x once: the whole trajectory is then
+    10 cm along x of the truth, the frames before the correction (they followed their keyframe)
+    and after it (tracked against the moved map, from the moved motion model) alike; keyframes.txt
+    and the pose graph agree; the map is the uncorrected run's moved by 10 cm; loops.csv and
+    pose_graph.g2o are written. In real time the loop closure sleeps 1.5 s a call in a process
+    of its own, and no frame waits for it (each is tracked in less)."""
+    log = tmp_path / "calls.txt"
+    sleep = ["loop_closure.sleep_s=1.5", "mode=realtime", f"loop_closure.log={log}"] if mode == "realtime" else []
+    metrics = run_shifted(registry, tmp_path / "shifted", *sleep)
+    run_shifted(registry, tmp_path / "plain", "loop_closure=none", *(["mode=realtime"] if sleep else []))
+    shifted = offsets(tmp_path / "shifted")
+    assert np.abs(offsets(tmp_path / "plain")).max() < 0.01  # synthetic tracking: millimetres
+    np.testing.assert_allclose(shifted, np.tile([0.10, 0.0, 0.0], (len(shifted), 1)), atol=0.01)
+    assert metrics["loop_corrections"] == 1 and metrics["loops_accepted"] == 1
+    _, keyframes = read_tum_trajectory(tmp_path / "shifted" / "keyframes.txt")
+    graph = read_g2o(tmp_path / "shifted" / "pose_graph.g2o")
+    np.testing.assert_allclose(graph.poses[:, :3, 3], keyframes[:len(graph.poses), :3, 3], atol=1e-6)
+    with open(tmp_path / "shifted" / "loops.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 1 and rows[0]["accepted"] == "True" and rows[0]["fitness"] == "0.9"
+    shifted_map, _ = checkpoint.load_map(tmp_path / "shifted")
+    plain_map, _ = checkpoint.load_map(tmp_path / "plain")
+    shift = shifted_map.entry_means.mean(dim=0) - plain_map.entry_means.mean(dim=0)
+    np.testing.assert_allclose(shift.numpy(), [0.10, 0.0, 0.0], atol=0.01)
+    if mode == "realtime":
+        pids = log.read_text().split()
+        assert len(pids) >= 2 and str(os.getpid()) not in pids
+        with open(tmp_path / "shifted" / "frames.csv") as f:
+            tracking_ms = [float(r["tracking_ms"]) for r in csv.DictReader(f) if r["tracking_ms"]]
+        assert len(tracking_ms) == 30 and max(tracking_ms) < 1000, max(tracking_ms)
+        assert metrics["loop_closure_wall_s"] >= 1.5 * metrics["loop_closure_calls"] >= 3.0
