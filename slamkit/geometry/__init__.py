@@ -6,6 +6,7 @@ from slamkit.geometry.transforms import (
                                          covariance_from_scales,
                                          invert_pose,
                                          make_pose,
+                                         motion_power,
                                          nearest_rotation,
                                          pixel_grid,
                                          project_points,
@@ -21,6 +22,6 @@ from slamkit.geometry.transforms import (
                                          transform_points,
 )
 
-__all__ = ["backproject", "covariance_from_scales", "invert_pose", "make_pose", "nearest_rotation", "pixel_grid",
-           "project_points", "quat_left_matrix", "quat_to_rotmat", "rotation_angle_deg", "rotmat_to_quat",
+__all__ = ["backproject", "covariance_from_scales", "invert_pose", "make_pose", "motion_power", "nearest_rotation",
+           "pixel_grid", "project_points", "quat_left_matrix", "quat_to_rotmat", "rotation_angle_deg", "rotmat_to_quat",
            "scales_from_covariance", "se3_exp", "skew", "so3_exp", "so3_log", "transform_points"]

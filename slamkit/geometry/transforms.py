@@ -119,6 +119,16 @@ def so3_log(R: np.ndarray) -> np.ndarray:
     return axis * scale[..., None]
 
 
+def motion_power(motion: np.ndarray, times: float) -> np.ndarray:
+    """A 4x4 rigid motion taken `times` times (a real number): the rotation's angle and the
+    translation scaled by it apart (R^times = exp(times log R), t * times), what a constant
+    velocity does over `times` intervals for the small motions between video frames."""
+    out = np.eye(4)
+    out[:3, :3] = so3_exp(times * so3_log(motion[:3, :3]))
+    out[:3, 3] = times * np.asarray(motion[:3, 3], dtype=np.float64)
+    return out
+
+
 def se3_exp(xi: np.ndarray) -> np.ndarray:
     """4x4 exp of xi = (omega, v): rotation vector (rad) and translation part (metres)."""
     omega, v = xi[:3], xi[3:]

@@ -23,6 +23,7 @@ from slamkit.geometry.transforms import (
     covariance_from_scales,
     invert_pose,
     make_pose,
+    motion_power,
     quat_to_rotmat,
     rotation_angle_deg,
     scales_from_covariance,
@@ -467,6 +468,36 @@ def test_constant_velocity_prediction():
     prev = GICPTracker(tight_config(initial_guess=InitialGuess.previous))
     prev.poses = [A, A @ step]
     np.testing.assert_allclose(prev.predict(), A @ step)
+
+
+def test_motion_power_scales_the_angle_and_the_translation():
+    turn = make_pose(so3_exp(np.array([0.0, 0.3, 0.0])), [0.0, 0.0, 0.0])
+    shift = make_pose(np.eye(3), [0.01, -0.02, 0.03])
+    np.testing.assert_allclose(motion_power(turn, 3.0), turn @ turn @ turn, atol=1e-12)
+    np.testing.assert_allclose(motion_power(shift, 2.5)[:3, 3], 2.5 * shift[:3, 3], atol=1e-15)
+    half = motion_power(turn @ shift, 0.5)
+    np.testing.assert_allclose(motion_power(turn @ shift, 1.0), turn @ shift, atol=1e-12)
+    np.testing.assert_allclose((half @ half)[:3, :3], (turn @ shift)[:3, :3], atol=1e-12)
+    np.testing.assert_allclose(motion_power(turn, 0.0), np.eye(4), atol=1e-15)
+
+
+def test_constant_velocity_goes_as_far_as_the_frames_dropped_since(tum_path):
+    """On TUM fr1/rpy's fast rotation (frames 40-100), from the ground truth's last two poses:
+    predicting a frame 3 indices later (two frames dropped) by the gap lands nearer its true
+    pose than one motion ahead, and without a gap the prediction is the one of before."""
+    from slamkit_plugins.datasets.tum import TUMConfig, TUMDataset
+
+    gt = TUMDataset(TUMConfig(path=str(tum_path), max_frames=110)).gt_poses[40:104]
+    tracker = GICPTracker(tight_config(initial_guess=InitialGuess.constant_velocity))
+    by_gap, by_one = [], []
+    for k in range(1, len(gt) - 3):
+        tracker.poses, tracker.frame_indices = [gt[k - 1], gt[k]], [40 + k - 1, 40 + k]
+        np.testing.assert_array_equal(tracker.predict(40 + k + 1), tracker.predict())
+        for out, guess in ((by_gap, tracker.predict(40 + k + 3)), (by_one, tracker.predict())):
+            error = invert_pose(gt[k + 3]) @ guess
+            out.append((np.linalg.norm(error[:3, 3]), float(rotation_angle_deg(error[:3, :3]))))
+    gap, one = np.median(by_gap, axis=0), np.median(by_one, axis=0)
+    assert gap[0] < 0.7 * one[0] and gap[1] < 0.7 * one[1], (gap, one)
 
 
 def test_se3_exp_small_and_large():

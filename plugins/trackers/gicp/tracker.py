@@ -21,7 +21,7 @@ import time
 import numpy as np
 
 from slamkit.geometry.gaussians import Regularization, rotate_covariances
-from slamkit.geometry.transforms import backproject, invert_pose
+from slamkit.geometry.transforms import backproject, invert_pose, motion_power
 from slamkit.map.gaussian_map import GaussianMap
 from slamkit.roles import RunContext, Tracker, require
 from slamkit.types import Frame, FrameGaussians, TrackingResult
@@ -54,12 +54,13 @@ class GICPTracker(Tracker):
         self.target: Target | None = None
         self.tree_builds = 0
         self.poses: list[np.ndarray] = []
+        self.frame_indices: list[int] = []  # the dataset indices of `poses`' frames
         self.first_pose = np.eye(4)
 
     # ---------------------------------------------------------------- role API
     def initialize(self, first_pose: np.ndarray) -> None:
         self.first_pose = orthonormalize(np.asarray(first_pose, dtype=np.float64))
-        self.poses = []
+        self.poses, self.frame_indices = [], []
 
     def move_world(self, motion: np.ndarray) -> None:
         """The motion model's poses move with the world (the velocity between them is kept)."""
@@ -82,7 +83,7 @@ class GICPTracker(Tracker):
         """The motion model's last two poses, the first pose, and the target (means, regularised
         covariances and the map version they were taken at)."""
         state = {"first_pose": self.first_pose, "poses": np.array(self.poses).reshape(-1, 4, 4),
-                 "tree_builds": self.tree_builds}
+                 "frame_indices": list(self.frame_indices), "tree_builds": self.tree_builds}
         if self.target is not None:
             state["target"] = {"means": self.target.means32, "covariances": self.target.covariances.copy(),
                                "version": self.target.version}
@@ -91,24 +92,42 @@ class GICPTracker(Tracker):
     def load_state_dict(self, state: dict) -> None:
         self.first_pose = np.asarray(state["first_pose"], dtype=np.float64)
         self.poses = list(np.asarray(state["poses"], dtype=np.float64).reshape(-1, 4, 4))
+        self.frame_indices = [int(i) for i in state.get("frame_indices", [])]  # none before 0.3: no gaps then
         self.tree_builds = int(state.get("tree_builds", 0))
         target = state.get("target")
         self.target = None if target is None else Target(np.asarray(target["means"]), np.asarray(
             target["covariances"], dtype=np.float64), int(target["version"]), self.kernels, self.max_corr)
 
-    def predict(self) -> np.ndarray:
-        """The pose the optimisation starts from (camera-to-world)."""
+    def predict(self, frame_index: int | None = None) -> np.ndarray:
+        """The pose the optimisation starts from (camera-to-world) for the frame of dataset index
+        `frame_index`. With constant velocity, the last motion is taken once per frame interval
+        since the last frame: after frames were dropped (`drop_frames`) the prediction goes as
+        far as the camera went (without it, the alignment starts a few motions short and needs
+        more iterations and fallbacks, which makes the next frame late in turn)."""
         if not self.poses:
             return self.first_pose.copy()
         if self.initial_guess is InitialGuess.constant_velocity and len(self.poses) >= 2:
             prev, last = self.poses[-2], self.poses[-1]
-            return orthonormalize(last @ (invert_pose(prev) @ last))
+            motion = invert_pose(prev) @ last
+            times = self._intervals(frame_index)
+            return orthonormalize(last @ (motion if times == 1.0 else motion_power(motion, times)))
         return self.poses[-1].copy()
 
+    def _intervals(self, frame_index: int | None) -> float:
+        """How many times the last motion (between the last two tracked frames) the camera made
+        by `frame_index`: the ratio of the frame gaps (1 without indices or a gap)."""
+        if frame_index is None or len(self.frame_indices) != len(self.poses):
+            return 1.0
+        before, last = self.frame_indices[-2], self.frame_indices[-1]
+        if last <= before or frame_index <= last:
+            return 1.0
+        return (frame_index - last) / (last - before)
+
     def track(self, frame: Frame) -> TrackingResult:
-        predicted = self.predict()
+        predicted = self.predict(frame.index)
         result = self._track(frame, predicted)
         self.poses = self.poses[-1:] + [result.pose]  # the motion model needs the last two
+        self.frame_indices = self.frame_indices[-1:] + [frame.index]
         return result
 
     # ---------------------------------------------------------------- internals
