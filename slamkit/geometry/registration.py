@@ -4,7 +4,8 @@ Both clouds are voxel-downsampled (`voxel`, metres), given normals (radius 2 vox
 features (radius 5 voxels; Rusu et al. 2009); RANSAC over feature matches (3 points, mutual
 matches, edge-length and distance checks, open3d's `registration_ransac_based_on_feature_matching`)
 finds a coarse pose, which open3d's generalized ICP refines (distance 1 voxel). A cloud's
-features are computed once (`FeatureCloud`), so that one cloud can be registered with many.
+features are computed once, when first needed (`FeatureCloud`), so that one cloud can be
+registered with many.
 Needs open3d (the optional extra `mesh`).
 
 `alignment_information` is the information matrix of such an alignment, from its correspondences.
@@ -53,7 +54,8 @@ class FeatureCloud:
     """A point cloud ready for global registration: `cloud`, the open3d cloud voxel-downsampled
     (`voxel` metres) with normals (and the given covariances, averaged per voxel, which
     generalized ICP then uses in place of ones from the normals), and `features`, its FPFH
-    features."""
+    features, computed on first use: most clouds of a loop closure are never registered (no
+    candidate comes near them), and FPFH is the larger part of preparing one."""
 
     def __init__(self, points: np.ndarray, voxel: float, covariances: np.ndarray | None = None):
         """points: (N,3) metres; covariances: (N,3,3) m^2 in the same frame, or None."""
@@ -64,20 +66,32 @@ class FeatureCloud:
             cloud.covariances = o3d.utility.Matrix3dVector(np.asarray(covariances, dtype=np.float64))
         cloud = cloud.voxel_down_sample(self.voxel)
         self.cloud: Any = cloud
-        self.features: Any = o3d.pipelines.registration.Feature()
-        if len(cloud.points) == 0:  # a frame without valid depth: nothing to register
-            self.features.resize(33, 0)
-            return
-        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=NORMAL_RADIUS_VOXELS * self.voxel,
-                                                                    max_nn=30))
-        self.features = o3d.pipelines.registration.compute_fpfh_feature(
-            cloud, o3d.geometry.KDTreeSearchParamHybrid(radius=FEATURE_RADIUS_VOXELS * self.voxel, max_nn=100))
+        self._features: Any = None
+        if len(cloud.points):  # a frame without valid depth has nothing to register
+            cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=NORMAL_RADIUS_VOXELS * self.voxel,
+                                                                        max_nn=30))
+
+    @property
+    def features(self) -> Any:
+        """The cloud's FPFH features (open3d Feature, 33 x M), computed on first use."""
+        if self._features is None:
+            o3d = import_open3d()
+            if len(self.cloud.points) == 0:
+                self._features = o3d.pipelines.registration.Feature()
+                self._features.resize(33, 0)
+            else:
+                self._features = o3d.pipelines.registration.compute_fpfh_feature(
+                    self.cloud,
+                    o3d.geometry.KDTreeSearchParamHybrid(radius=FEATURE_RADIUS_VOXELS * self.voxel, max_nn=100))
+        return self._features
 
     def arrays(self) -> dict[str, np.ndarray]:
-        """The cloud as arrays (points, normals, FPFH features (33,M), covariances when it has
-        them), from which `from_arrays` rebuilds it exactly (e.g. for a checkpoint)."""
-        out = {"points": np.asarray(self.cloud.points).copy(), "normals": np.asarray(self.cloud.normals).copy(),
-               "features": np.asarray(self.features.data).copy()}
+        """The cloud as arrays (points, normals, covariances when it has them, FPFH features
+        (33,M) when they were computed), from which `from_arrays` rebuilds it exactly (e.g. for
+        a checkpoint)."""
+        out = {"points": np.asarray(self.cloud.points).copy(), "normals": np.asarray(self.cloud.normals).copy()}
+        if self._features is not None:
+            out["features"] = np.asarray(self._features.data).copy()
         if self.cloud.has_covariances():
             out["covariances"] = np.asarray(self.cloud.covariances).copy()
         return out
@@ -93,8 +107,10 @@ class FeatureCloud:
         if "covariances" in arrays:
             cloud.covariances = o3d.utility.Matrix3dVector(np.asarray(arrays["covariances"], dtype=np.float64))
         self.cloud = cloud
-        self.features = o3d.pipelines.registration.Feature()
-        self.features.data = np.asarray(arrays["features"], dtype=np.float64)
+        self._features = None
+        if "features" in arrays:
+            self._features = o3d.pipelines.registration.Feature()
+            self._features.data = np.asarray(arrays["features"], dtype=np.float64)
         return self
 
     @property
