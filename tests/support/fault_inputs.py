@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Callable
 
 from support.folders import TINY_TUM_FRAMES, tiny_tum
-from support.plugins import make_plugin_dist
+from support.plugins import FAKE_TRACKER, make_plugin_dist
 
 FRAMES = TINY_TUM_FRAMES
 
@@ -64,33 +64,8 @@ def non_utf8_name(root: Path) -> None:
     shutil.copy(first, root / "color" / "caf\udce9.png")  # the file system gets the byte 0xe9
 
 
-# --- plugins a case installs (a tmp dist-info with entry points, on sys.path) --------------------
-
-STILL_TRACKER = """
-    from dataclasses import dataclass
-    from slamkit.plugin import PluginSpec, hookimpl
-    from slamkit.roles import PluginConfig, Tracker
-    from slamkit.types import TrackingResult
-
-    @dataclass
-    class StillConfig(PluginConfig):
-        fail_at: int = -1
-
-    class StillTracker(Tracker):
-        '''Reports the first pose for every frame; raises at frame `fail_at`.'''
-        def __init__(self, cfg, context=None):
-            self.cfg = cfg
-        def initialize(self, first_pose):
-            self.pose = first_pose.copy()
-        def track(self, frame):
-            if frame.index == self.cfg.fail_at:
-                raise ValueError("simulated failure")
-            return TrackingResult(pose=self.pose)
-
-    @hookimpl
-    def slamkit_plugins():
-        return [PluginSpec("still", StillTracker, StillConfig)]
-"""
+# --- plugins a case installs (a tmp dist-info with entry points, on sys.path); `still` is
+# support.plugins' FAKE_TRACKER (the first pose for every frame, raising at `fail_at`) ---------
 
 #: A config field type Hydra cannot hold (a numpy array), declared as a type, not only a value.
 ARRAY_CONFIG = """
@@ -169,7 +144,7 @@ BAD_DEFAULTS = """
         return [PluginSpec("bad_defaults", BadDefaultsTracker, BadDefaultsConfig)]
 """
 
-PLUGINS = {"still": STILL_TRACKER, "array": ARRAY_CONFIG, "broken": "raise ImportError('needs libfoo')\n",
+PLUGINS = {"still": FAKE_TRACKER, "array": ARRAY_CONFIG, "broken": "raise ImportError('needs libfoo')\n",
            "unusual": UNUSUAL_CONFIG, "bad_defaults": BAD_DEFAULTS}
 
 
