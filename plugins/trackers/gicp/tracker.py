@@ -92,7 +92,7 @@ class GICPTracker(Tracker):
     def load_state_dict(self, state: dict) -> None:
         self.first_pose = np.asarray(state["first_pose"], dtype=np.float64)
         self.poses = list(np.asarray(state["poses"], dtype=np.float64).reshape(-1, 4, 4))
-        self.frame_indices = [int(i) for i in state.get("frame_indices", [])]  # none before 0.3: no gaps then
+        self.frame_indices = [int(i) for i in state.get("frame_indices", [])]  # older checkpoints: no gap assumed
         self.tree_builds = int(state.get("tree_builds", 0))
         target = state.get("target")
         self.target = None if target is None else Target(np.asarray(target["means"]), np.asarray(
