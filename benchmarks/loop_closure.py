@@ -47,6 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
+from slamkit.cli.bench import markdown_table
 from slamkit.geometry import invert_pose, nearest_rotation, se3_exp, transform_points
 from slamkit.geometry.registration import import_open3d
 from slamkit.metrics.trajectory import ate
@@ -350,12 +351,7 @@ def print_table(rows: list[dict]) -> None:
             return f"{100 * value:.2f}"
         return f"{value:.2f}" if isinstance(value, float) else str(value)
 
-    table = [[title for _, title in COLUMNS]] + [[cell(k, r.get(k)) for k, _ in COLUMNS] for r in rows]
-    widths = [max(len(row[i]) for row in table) for i in range(len(COLUMNS))]
-    for j, row in enumerate(table):
-        print("| " + " | ".join(v.ljust(w) for v, w in zip(row, widths)) + " |")
-        if j == 0:
-            print("|" + "|".join("-" * (w + 2) for w in widths) + "|")
+    print(markdown_table([[title for _, title in COLUMNS]] + [[cell(k, r.get(k)) for k, _ in COLUMNS] for r in rows]))
 
 
 def square_drift() -> list[dict]:

@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from slamkit.cli.bench import run_system
+from slamkit.cli.bench import markdown_table, run_system
 from slamkit.formats.tum import read_tum_trajectory
 from slamkit.geometry import make_pose, quat_to_rotmat
 from slamkit.geometry.pose_graph import pose_difference, relative_pose
@@ -116,11 +116,7 @@ def print_table(records: list[dict]) -> None:
 
     rows = [[title for _, title, _ in COLUMNS]]
     rows += [[cell(k, r.get(k), s) for k, _, s in COLUMNS] for r in records]
-    widths = [max(len(row[i]) for row in rows) for i in range(len(COLUMNS))]
-    for j, row in enumerate(rows):
-        print("| " + " | ".join(v.ljust(w) for v, w in zip(row, widths)) + " |")
-        if j == 0:
-            print("|" + "|".join("-" * (w + 2) for w in widths) + "|")
+    print(markdown_table(rows))
 
 
 def main() -> None:

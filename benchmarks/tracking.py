@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from slamkit.cli.bench import markdown_table
 from slamkit.metrics import trajectory as evaluation
 from slamkit.registry.discovery import default_registry
 from slamkit.run.build import build_run
@@ -105,12 +106,7 @@ def print_table(rows: list[dict]) -> None:
         if c.startswith("ate_r") or c == "ate_mean_m":
             return f"{100 * v:.3f} cm"
         return f"{v:.2f}" if isinstance(v, float) else str(v)
-    table = [cols] + [[fmt(c, r.get(c)) for c in cols] for r in rows]
-    widths = [max(len(row[i]) for row in table) for i in range(len(cols))]
-    for j, row in enumerate(table):
-        print("| " + " | ".join(v.ljust(w) for v, w in zip(row, widths)) + " |")
-        if j == 0:
-            print("|" + "|".join("-" * (w + 2) for w in widths) + "|")
+    print(markdown_table([cols] + [[fmt(c, r.get(c)) for c in cols] for r in rows]))
 
 
 def main() -> None:

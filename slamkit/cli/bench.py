@@ -79,7 +79,12 @@ def table(records: list[dict], ate_anchor: str | None, speed_anchor: str | None)
         if "error" in r and r.get("returncode"):
             row[1] = f"failed: {r['error'][:60]}"
         rows.append(row)
-    widths = [max(len(str(row[i])) if i < len(row) else 0 for row in rows) for i in range(len(header))]
+    return markdown_table(rows)
+
+
+def markdown_table(rows: list[list]) -> str:
+    """A Markdown table of `rows` (the first is the header), columns padded to their widest cell."""
+    widths = [max(len(str(row[i])) if i < len(row) else 0 for row in rows) for i in range(len(rows[0]))]
     lines = ["| " + " | ".join(str(c).ljust(w) for c, w in zip(row, widths)) + " |" for row in rows]
     lines.insert(1, "|" + "|".join("-" * (w + 2) for w in widths) + "|")
     return "\n".join(lines)
