@@ -14,7 +14,7 @@ from slamkit.registry.schema import RunConfig
 METHOD_KEYS = (
     "preset", "mode", "fps_limit", "iterations_per_frame", "drop_frames",
     "tracker.regularization", "tracker.target_geometry", "tracker.min_target_opacity", "tracker.target_min_median",
-    "tracker.initial_guess", "tracker.fallback_to_previous", "tracker.coarse_factor",
+    "tracker.initial_guess", "tracker.fallback_to_previous", "tracker.retry_unconverged", "tracker.coarse_factor",
     "keyframe.mapping_every", "keyframe.max_interval", "keyframe.tracking_every",
     "growth.initial_shape", "growth.scale_alignment", "growth.scale_c", "growth.scale_p",
     "growth.mapping_only_trackable",

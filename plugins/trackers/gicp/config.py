@@ -68,8 +68,10 @@ class GICPConfig(PluginConfig):
     min_correspondences: int = 50
     #: a first alignment that fails or slides is run again from the previous pose (more matched points wins)
     fallback_to_previous: bool = True
-    #: an alignment slides when it ends farther than this x max_correspondence_distance (RMS) from its start
+    #: an alignment slides when it ends over this x max_correspondence_distance (RMS; 2x after drops) from its start
     fallback_slide: float = 2.0
+    #: a first alignment that did not converge (matched, not slid) is tried again too (null: yes, in real time no)
+    retry_unconverged: bool | None = None
     #: a first alignment that fails or slides is also tried coarse to fine, from this x the distance (1: off)
     coarse_factor: float = 3.0
     #: Levenberg-Marquardt's initial damping, relative to the normal matrix's largest diagonal entry
@@ -113,4 +115,6 @@ class GICPConfig(PluginConfig):
         return self.fill_nulls(pixel_stride=tuning.tracking_pixel_stride,
                                max_correspondence_distance=tuning.correspondence_distance,
                                min_target_opacity=tuning.target_min_opacity,
-                               num_threads=context.tracking_threads)
+                               num_threads=context.tracking_threads,
+                               # a live frame cannot wait for three more attempts of max_iterations
+                               retry_unconverged=not context.realtime)

@@ -1,12 +1,13 @@
 """The G-ICP tracker's fallbacks: when the alignment from the prediction is not trusted, which
 other starts to try, and which result to keep (GICPConfig.fallback_to_previous, fallback_slide,
-coarse_factor).
+retry_unconverged, coarse_factor).
 
-The first attempt starts from the prediction. When it does not converge, loses the frame or
-slides (ends more than fallback_slide * max_correspondence_distance RMS from its start, e.g.
-after a sudden stop), it is run again from the previous pose and, with coarse_factor > 1, coarse
-to fine from the prediction (a motion the prediction missed by more than the correspondence
-distance); the result matching more points is kept.
+The first attempt starts from the prediction. When it does not converge (with
+retry_unconverged), loses the frame or slides (ends more than fallback_slide *
+max_correspondence_distance RMS from its start, e.g. after a sudden stop; up to twice that after
+dropped frames, with the intervals the prediction spans), it is run again from the previous
+pose and, with coarse_factor > 1, coarse to fine from the prediction (a motion the prediction
+missed by more than the correspondence distance); the result matching more points is kept.
 """
 
 from __future__ import annotations
@@ -18,6 +19,10 @@ from slamkit_plugins.trackers.gicp.alignment import Aligner, new_stats
 from slamkit_plugins.trackers.gicp.config import GICPConfig
 from slamkit_plugins.trackers.gicp.target import Target
 
+#: The most the slide limit grows after dropped frames (x): after a long gap the prediction is
+#: too poor to trust an alignment that ended farther from it (unbounded, a first alignment after
+#: a long gap slid to a wrong pose and was kept; docs/results.md, "Tracking first").
+MAX_SLIDE_GROWTH = 2.0
 #: Stats summed over all attempts at a frame.
 _EFFORT = ("nn_search_s", "solve_s", "iterations")
 
@@ -40,16 +45,19 @@ class FallbackPolicy:
     def __init__(self, cfg: GICPConfig, aligner: Aligner):
         self.cfg = cfg
         self.aligner = aligner
+        self.retry_unconverged = cfg.retry_unconverged is not False  # null (unresolved): as sequential
 
     def solve(self, target: Target, src: np.ndarray, src_cov: np.ndarray, predicted: np.ndarray,
-              previous: np.ndarray | None, stats: dict):
+              previous: np.ndarray | None, stats: dict, intervals: float = 1.0):
         """G-ICP of the source points (camera frame, metres) and covariances to the target from
         the predicted pose, with fallbacks; previous: the last tracked pose (None before the
-        first). Returns (pose, ok, squared NN distances of the kept attempt's last search)."""
+        first); intervals: frame intervals the prediction spans (> 1 after dropped frames: the
+        slide limit grows with it, as the prediction's error does, up to MAX_SLIDE_GROWTH x). Returns (pose, ok, squared
+        NN distances of the kept attempt's last search)."""
         aligner = self.aligner
         pose, ok, sq = aligner.align(target, src, src_cov, predicted, stats)
-        slide_limit = self.cfg.fallback_slide * aligner.max_corr
-        if ok and stats["converged"] and _moved(src, predicted, pose) <= slide_limit:
+        slide_limit = self.cfg.fallback_slide * aligner.max_corr * min(max(1.0, intervals), MAX_SLIDE_GROWTH)
+        if ok and (stats["converged"] or not self.retry_unconverged) and _moved(src, predicted, pose) <= slide_limit:
             return pose, ok, sq
         best = (pose, ok, sq, stats.get("num_correspondences", 0) if ok else -1)
         for name, start, coarse in self._starts(predicted, previous):

@@ -116,7 +116,7 @@ class GICPTracker(Tracker):
     def _intervals(self, frame_index: int | None) -> float:
         """How many times the last motion (between the last two tracked frames) the camera made
         by `frame_index`: the ratio of the frame gaps (1 without indices or a gap)."""
-        if frame_index is None or len(self.frame_indices) != len(self.poses):
+        if frame_index is None or len(self.frame_indices) != len(self.poses) or len(self.poses) < 2:
             return 1.0
         before, last = self.frame_indices[-2], self.frame_indices[-1]
         if last <= before or frame_index <= last:
@@ -125,7 +125,7 @@ class GICPTracker(Tracker):
 
     def track(self, frame: Frame) -> TrackingResult:
         predicted = self.predict(frame.index)
-        result = self._track(frame, predicted)
+        result = self._track(frame, predicted, self._intervals(frame.index))
         self.poses = self.poses[-1:] + [result.pose]  # the motion model needs the last two
         self.frame_indices = self.frame_indices[-1:] + [frame.index]
         return result
@@ -135,7 +135,8 @@ class GICPTracker(Tracker):
         min_median = self.cfg.target_min_median if target else None
         return self.kernels.regularize(cov, self.regularization, self.cfg.plane_eps, min_median=min_median)
 
-    def _track(self, frame: Frame, predicted: np.ndarray) -> TrackingResult:
+    def _track(self, frame: Frame, predicted: np.ndarray, intervals: float = 1.0) -> TrackingResult:
+        """`intervals`: frame intervals since the last tracked frame (> 1 after dropped frames)."""
         cfg = self.cfg
         stats = new_stats()
         t0 = time.perf_counter()
@@ -164,7 +165,8 @@ class GICPTracker(Tracker):
             stats["note"] = "no target yet"
         else:
             previous = self.poses[-1] if self.poses else None
-            pose, ok, sq_track = self.fallbacks.solve(self.target, src, src_cov, predicted, previous, stats)
+            pose, ok, sq_track = self.fallbacks.solve(self.target, src, src_cov, predicted, previous, stats,
+                                                      intervals)
             if not ok:
                 return TrackingResult(pose=predicted, lost=True, stats=stats)
 
