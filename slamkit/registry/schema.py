@@ -169,6 +169,10 @@ class RunConfig(PluginConfig):
     switch_interval: float = SWITCH_INTERVAL_S
     #: realtime: mapping's priority (its threads' too): idle (only CPU left over), low (5 nice levels), same
     mapping_priority: ThreadPriority = ThreadPriority.idle
+    #: realtime with fps_limit: no mapping step starts while tracking is late (its next frame has arrived)
+    mapping_yields: bool = True
+    #: realtime: the mapper takes a keyframe (training view, memory cap) in a thread beside tracking (false: inline)
+    keyframe_thread: bool = True
     #: mapping steps after the last frame, the refinement (null: 400 sequential, none in real time as the paper)
     final_iterations: int | None = None
     #: auto | cpu | cuda: where the map and the mapper's keyframes live (auto: the GPU when there is one)

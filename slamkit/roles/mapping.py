@@ -38,7 +38,8 @@ class Mapper(ABC):
     @abstractmethod
     def add_keyframe(self, frame: Frame, pose: np.ndarray, kind: KeyframeKind, new_rows: slice) -> None:
         """Register a keyframe seen from `pose` (camera-to-world); `new_rows` are the map rows
-        its Gaussians were added at."""
+        its Gaussians were added at. In real time it runs in a thread of its own beside tracking
+        and training (`admit` of the next keyframe waits for it)."""
 
     @abstractmethod
     def optimize(self, iterations: int) -> int:

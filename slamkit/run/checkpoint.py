@@ -86,6 +86,7 @@ class CheckpointWriter:
         if not self.cfg.checkpoint.save or not self.state.poses:
             return None
         start = time.perf_counter()
+        self.slam.settle()  # a keyframe entering the map beside tracking is in it first
         with self.slam.gaussian_map.lock:
             state = capture(self.slam, self.state, time.perf_counter() - self.started)
         n = len(self.state.poses)

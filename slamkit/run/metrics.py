@@ -3,8 +3,8 @@ terminal prints (`summary`), and the process's memory figures they report.
 
 Every figure covers the whole run, over all its sessions (a resumed run's: `sessions`), but
 those named in `last_session_only` (the process's thread setting, the mapper's per-phase step
-times); `session` gives the last session's own figures (its frames, wall time, CPU seconds, peak
-memory). Where no ATE is reported, `ate_unavailable` says why.
+times, the real-time keyframe handovers beside tracking); `session` gives the last session's
+own figures (its frames, wall time, CPU seconds, peak memory). Where no ATE is reported, `ate_unavailable` says why.
 """
 
 from __future__ import annotations
@@ -22,7 +22,8 @@ from slamkit.run.slam import SLAM
 from slamkit.run.state import COMPLETED, INTERRUPTED, SESSION_FIGURES, RunState
 
 #: metrics.json's figures that cover the last session only (`last_session_only`).
-LAST_SESSION_ONLY = ("mapping_threads", "mapping_step_ms")
+LAST_SESSION_ONLY = ("mapping_threads", "mapping_step_ms", "keyframe_handover_s",
+                     "keyframe_handover_wait_s")
 
 
 def run_metrics(cfg: RunConfig, slam: SLAM, state: RunState, wall_s: float) -> dict[str, Any]:
@@ -45,6 +46,8 @@ def run_metrics(cfg: RunConfig, slam: SLAM, state: RunState, wall_s: float) -> d
         "stream_time_s": state.stream_time_s,
         "tracking_time_s": state.tracking_time_s,
         "mapping_time_s": state.mapping_time_s,
+        "keyframe_handover_s": state.keyframe_handover_s,  # real time: the mapper taking keyframes beside tracking
+        "keyframe_handover_wait_s": state.keyframe_handover_wait_s,  # the tracking thread waiting for it
         **{figure: state.whole_run(figure) for figure in SESSION_FIGURES},
         "tracking_cpu_wait_s": state.tracking_cpu_wait_s,  # this session's, as the throttle's
         **_throttle(state),
@@ -86,7 +89,8 @@ def _throttle(state: RunState) -> dict[str, Any]:
     """The real-time mapping thread's priority and what held it back (None in sequential mode)."""
     t = state.mapping_throttle
     return {"mapping_priority": t and t.priority, "mapping_cpu_wait_s": t and t.cpu_wait_s,
-            "mapping_no_keyframe_s": t and t.no_keyframe_s, "mapping_blocked_s": t and t.blocked_s}
+            "mapping_no_keyframe_s": t and t.no_keyframe_s, "mapping_blocked_s": t and t.blocked_s,
+            "mapping_yielded_s": t and t.yielded_s}
 
 
 def _ate_unavailable(frames: int, failure: str | None, ate) -> str | None:

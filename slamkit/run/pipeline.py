@@ -175,6 +175,11 @@ class InputClock:
         self.period = 1.0 / fps if fps else 0.0
         self.start: float | None = None
 
+    def next_arrival(self, i: int) -> float | None:
+        """When frame i+1 arrives (time.perf_counter() seconds; None without an input rate or
+        before frame 0 has)."""
+        return None if not self.period or self.start is None else self.start + (i + 1) * self.period
+
     def wait(self, i: int) -> bool:
         """Sleep until frame i has arrived; True if frame i+1 has arrived too (we are late)."""
         if not self.period:
@@ -222,7 +227,11 @@ def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, frames_log: Fram
                 state.record_dropped(frame)
                 frames_log.dropped(frame)
             else:
-                _track(frame, slam, state, frames_log, viewer, mapping, loops)
+                if mapping and cfg.mapping_yields:
+                    mapping.yield_to_tracking(clock.next_arrival(frame.index - first))
+                _track(frame, slam, state, frames_log, viewer, mapping, loops, realtime and cfg.keyframe_thread)
+                if mapping:
+                    mapping.yield_to_tracking(None)
                 checkpoints.after_frame(frames_log.flush)  # checkpoint: every N keyframes
             bar.update(1)
             every = cfg.eval.running_ate_every
@@ -231,6 +240,7 @@ def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, frames_log: Fram
                 frames_log.flush()
             pause_point(f"stream@{len(state.poses)}", stop)
     finally:
+        handover_error = _settle(slam, state)  # the mapper has the last keyframe before what follows
         state.stream_time_s += time.perf_counter() - start
         state.tracking_cpu_s += time.thread_time() - cpu_start
         state.stream_cpu_s += time.process_time() - process_cpu_start
@@ -246,13 +256,29 @@ def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, frames_log: Fram
             if mapping:
                 _stop_mapping(mapping, state)
         state.loading_cpu_s += loading.cpu_s
+        if handover_error is not None:
+            raise handover_error
+
+
+def _settle(slam: SLAM, state: RunState) -> BaseException | None:
+    """Wait for the keyframe going to the mapper beside tracking and count the stream's
+    handovers; its failure is returned, to be raised once the stream's threads are stopped."""
+    try:
+        slam.settle()
+    except BaseException as exc:  # noqa: BLE001 - raised by the caller after its cleanup
+        return exc
+    finally:
+        state.keyframe_handover_s += slam.handover_time_s
+        state.keyframe_handover_wait_s += slam.handover_wait_s
+        slam.handover_time_s, slam.handover_wait_s = 0.0, 0.0
+    return None
 
 
 def _track(frame: Frame, slam: SLAM, state: RunState, frames_log: FrameLog, viewer: ViewerFeed,
-           mapping: MappingThread | None, loops: LoopThread | None = None) -> None:
+           mapping: MappingThread | None, loops: LoopThread | None = None, keyframe_thread: bool = False) -> None:
     if slam.last_pose is None:  # the first frame tracked
         slam.initialize(frame.gt_pose if frame.gt_pose is not None else np.eye(4))
-    step = slam.track(frame) if mapping else slam.step(frame)
+    step = slam.track(frame, defer_keyframe=keyframe_thread) if mapping else slam.step(frame)
     if mapping:
         mapping.check()
     if loops:

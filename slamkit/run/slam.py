@@ -5,6 +5,7 @@ from __future__ import annotations
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -54,6 +55,12 @@ class SLAM:
     tracker follows (`correct`). After each keyframe the C heap's free pages go back to the OS
     (`slamkit.run.heap`), so that a long run's resident memory follows what it holds. Every call
     into a plugin passes `boundary`, which names the plugin a failure came from.
+
+    In real time (`track(frame, defer_keyframe=True)`) the mapper takes a keyframe in a thread of
+    its own (`KeyframeHandover`) while the next frames are tracked; a tracking keyframe's growth
+    and the tracker's new target stay on the tracking thread, so the next frame aligns to the map
+    with the keyframe in it. `handover_time_s` sums the handovers' seconds, `handover_wait_s` the
+    tracking thread's waits for one (`settle`).
     """
 
     def __init__(self, tracker: Tracker, keyframe_policy: KeyframePolicy, mapper: Mapper, gaussian_map: GaussianMap,
@@ -70,6 +77,9 @@ class SLAM:
         self.num_keyframes = 0
         self.keyframes_in_target = 0  # keyframes (ids below this) whose Gaussians the tracker's target was built with
         self.last_pose: np.ndarray | None = None
+        self.handover: KeyframeHandover | None = None  # the last keyframe going to the mapper beside tracking
+        self.handover_time_s = 0.0
+        self.handover_wait_s = 0.0
 
     def initialize(self, first_pose: np.ndarray) -> None:
         """Set the pose (camera-to-world) the trajectory starts from."""
@@ -93,9 +103,10 @@ class SLAM:
         with self.boundary("mapper", "optimize"):
             return self.mapper.optimize(iterations)
 
-    def track(self, frame: Frame) -> StepResult:
+    def track(self, frame: Frame, defer_keyframe: bool = False) -> StepResult:
         """Track one frame and, if it is a keyframe, grow the map (real-time mode maps in
-        another thread: see `MappingThread`)."""
+        another thread: see `MappingThread`); defer_keyframe: the mapper takes the keyframe in
+        a thread of its own (`add_keyframe`)."""
         start = time.perf_counter()
         with self.boundary("tracker", "track"):
             result = self.tracker.track(frame)
@@ -109,7 +120,7 @@ class SLAM:
             with self.boundary("keyframe", "decide"):
                 decision = self.keyframe_policy.decide(frame, result)
         if decision.kind:
-            self.add_keyframe(frame, result, decision.kind)
+            self.add_keyframe(frame, result, decision.kind, defer_keyframe)
         return self.close_loops(StepResult(result, decision, time.perf_counter() - start, 0.0, 0))
 
     def close_loops(self, step: StepResult) -> StepResult:
@@ -126,6 +137,7 @@ class SLAM:
         correction = self.loop_closer.take(self.num_keyframes)
         if correction is None:
             return None
+        self.settle()  # the mapper has every keyframe the correction moves
         with self.boundary("mapper", "move_keyframes"):
             self.mapper.move_keyframes(correction.updates)
         with self.boundary("tracker", "move_world"):
@@ -137,17 +149,54 @@ class SLAM:
         self.loop_closer.cost.apply_s += time.perf_counter() - start
         return correction
 
-    def add_keyframe(self, frame: Frame, result: TrackingResult, kind: KeyframeKind) -> None:
-        rows = self.grow_map(frame, result, kind)
-        if kind is KeyframeKind.TRACKING:
-            with self.boundary("tracker", "update_target"):
-                self.tracker.update_target(self.gaussian_map)
-            self.keyframes_in_target = self.num_keyframes + 1
-        with self.boundary("mapper", "add_keyframe"):
-            self.mapper.add_keyframe(frame, result.pose, kind, rows)
-        self.loop_closer.add_keyframe(self.num_keyframes, frame, result.pose, result.gaussians)
+    def add_keyframe(self, frame: Frame, result: TrackingResult, kind: KeyframeKind, defer: bool = False) -> None:
+        """The keyframe's admitted Gaussians enter the map (`grow_map`), a tracking keyframe
+        rebuilds the tracker's target, the mapper and the loop closure take the keyframe.
+        defer: what the next frames' tracking does not need runs in a `KeyframeHandover`
+        thread beside it: the mapper taking the keyframe (`Mapper.add_keyframe`: a training
+        view, the memory cap) and, for a mapping-only keyframe, its growth too (the tracker
+        aligns to the map as of the last tracking keyframe). The next keyframe, a loop
+        correction and a checkpoint wait for it (`settle`)."""
+        self.settle()  # keyframes reach the map and the mapper in order, each before the next one's admission
+        keyframe_id = self.num_keyframes
+        if defer and kind is KeyframeKind.MAPPING_ONLY:
+            self._start_handover(lambda: self._hand_over(frame, result.pose, kind,
+                                                         self.grow_map(frame, result, kind, keyframe_id)))
+        else:
+            rows = self.grow_map(frame, result, kind, keyframe_id)
+            if kind is KeyframeKind.TRACKING:
+                with self.boundary("tracker", "update_target"):
+                    self.tracker.update_target(self.gaussian_map)
+                self.keyframes_in_target = keyframe_id + 1
+            if defer:
+                self._start_handover(lambda: self._hand_over(frame, result.pose, kind, rows))
+            else:
+                self._hand_over(frame, result.pose, kind, rows)
+        self.loop_closer.add_keyframe(keyframe_id, frame, result.pose, result.gaussians)
         self.num_keyframes += 1
+
+    def _start_handover(self, hand_over: Callable[[], None]) -> None:
+        self.handover = KeyframeHandover(hand_over)
+        self.handover.start()
+
+    def _hand_over(self, frame: Frame, pose: np.ndarray, kind: KeyframeKind, rows: slice) -> None:
+        """The mapper takes the keyframe; then the C heap's free pages go back to the OS."""
+        with self.boundary("mapper", "add_keyframe"):
+            self.mapper.add_keyframe(frame, pose, kind, rows)
         release_free_memory()
+
+    def settle(self) -> None:
+        """Wait for the keyframe going to the mapper beside tracking, if one is; raise its
+        failure here (on the tracking thread)."""
+        handover, self.handover = self.handover, None
+        if handover is None:
+            return
+        start = time.perf_counter()
+        handover.join()
+        self.handover_wait_s += time.perf_counter() - start
+        self.handover_time_s += handover.seconds
+        if handover.error is not None:
+            raise handover.error
 
     def finish(self) -> None:
         """The mapper's wrap-up after the stream and the refinement."""
@@ -182,15 +231,17 @@ class SLAM:
                 plugin.load_state_dict(states.get(key, {}))
         self.loop_closer.load_state_dict(states.get("loop_closure", {}))
 
-    def grow_map(self, frame: Frame, result: TrackingResult, kind: KeyframeKind) -> slice:
-        """The keyframe's Gaussians (scale-aligned, paper Sec. 3.1) that the mapper admits enter
-        the map (a mapping-only keyframe's trackable or not: `growth.mapping_only_trackable`);
-        returns the rows they occupy."""
+    def grow_map(self, frame: Frame, result: TrackingResult, kind: KeyframeKind,
+                 keyframe_id: int | None = None) -> slice:
+        """The Gaussians (scale-aligned, paper Sec. 3.1) of keyframe `keyframe_id` (None: the
+        next, `num_keyframes`) that the mapper admits enter the map (a mapping-only keyframe's
+        trackable or not: `growth.mapping_only_trackable`); returns the rows they occupy."""
         gm = self.gaussian_map
         if result.gaussians is None:
             return slice(len(gm), len(gm))
         untargeted = gm.trackable_entry_means(self.keyframes_in_target)
-        new = new_gaussians(result.gaussians, self.num_keyframes, self.growth, gm.device, untargeted,
+        keyframe_id = self.num_keyframes if keyframe_id is None else keyframe_id
+        new = new_gaussians(result.gaussians, keyframe_id, self.growth, gm.device, untargeted,
                             mapping_only=kind is KeyframeKind.MAPPING_ONLY)
         with gm.lock, self.boundary("mapper", "admit"):
             admitted = self.mapper.admit(frame, result.pose, new)
@@ -198,18 +249,46 @@ class SLAM:
         return gm.append(entering)
 
 
+class KeyframeHandover(threading.Thread):
+    """A keyframe's work that tracking does not wait for (`SLAM.add_keyframe(..., defer=True)`):
+    `hand_over()` in a thread of its own, at the tracking thread's priority (the mapping
+    thread's lower one would let training hold up the next keyframe). `error`: what it raised,
+    for `SLAM.settle` to raise on the tracking thread; `seconds`: how long it took."""
+
+    def __init__(self, hand_over: Callable[[], None]):
+        super().__init__(name="slamkit-keyframe", daemon=True)
+        self.hand_over = hand_over
+        self.error: BaseException | None = None
+        self.seconds = 0.0
+
+    def run(self) -> None:
+        start = time.perf_counter()
+        try:
+            self.hand_over()
+        except BaseException as exc:  # raised again by SLAM.settle on the tracking thread
+            self.error = exc
+        finally:
+            self.seconds = time.perf_counter() - start
+
+
 @dataclass
 class MappingThrottle:
     """What held the real-time mapping thread back, in seconds of the stream: `cpu_wait_s`
     runnable but waiting for a CPU (threads of higher priority, tracking and reading, or other
     processes went first), `no_keyframe_s` waiting for a first keyframe to train on, `blocked_s`
-    the rest of its steps' time not on a CPU (the GIL, the map's lock, the kernels' workers).
-    `priority` is what it ran at ("same" where the OS refused a lower one)."""
+    the rest of its steps' time not on a CPU (the GIL, the map's lock, the kernels' workers),
+    `yielded_s` paused for a late tracker. `priority` is what it ran at ("same" where the OS
+    refused a lower one)."""
 
     priority: str
     cpu_wait_s: float | None = None
     no_keyframe_s: float = 0.0
     blocked_s: float | None = None
+    yielded_s: float = 0.0  # paused between steps while tracking was late (`MappingThread.tracking_deadline`)
+
+
+#: Seconds between the mapping thread's looks at a late tracker.
+YIELD_POLL_S = 0.001
 
 
 class MappingThread(threading.Thread):
@@ -220,6 +299,8 @@ class MappingThread(threading.Thread):
     The mapper changes the shared map only under `gaussian_map.lock` and the tracker reads it
     only through `tracking_target()` copies, so no copy of the whole map is made per frame.
     An exception in the mapper stops the loop and is re-raised by `check()` / `stop()`.
+    While tracking is late (past `tracking_deadline`: its next frame has arrived) no step starts,
+    so that a late tracker has both CPUs until it is on time again (`yield_to_tracking`).
     While it runs, Python's thread switch interval is `switch_interval_s` (how long a thread
     waiting for the GIL may wait; restored by `stop()`).
     """
@@ -236,6 +317,7 @@ class MappingThread(threading.Thread):
         self.throttle = MappingThrottle(self.priority.value)  # complete when it ends
         self.error: BaseException | None = None
         self._stop_event = threading.Event()
+        self.tracking_deadline: float | None = None  # time.perf_counter() past which tracking is late
 
     def start(self) -> None:
         self._saved_switch_interval = sys.getswitchinterval()
@@ -249,6 +331,11 @@ class MappingThread(threading.Thread):
         try:
             while not self._stop_event.is_set():
                 start = time.perf_counter()
+                deadline = self.tracking_deadline
+                if deadline is not None and start > deadline:  # a frame is waiting: tracking first
+                    self._stop_event.wait(YIELD_POLL_S)
+                    self.throttle.yielded_s += time.perf_counter() - start
+                    continue
                 done = self.slam.optimize(1)
                 self.iterations += done
                 if done:
@@ -269,6 +356,11 @@ class MappingThread(threading.Thread):
         if schedule_start is not None and schedule_end is not None:
             throttle.cpu_wait_s = schedule_end.cpu_wait_s - schedule_start.cpu_wait_s
             throttle.blocked_s = max(0.0, wall_s - throttle.no_keyframe_s - self.cpu_time_s - throttle.cpu_wait_s)
+
+    def yield_to_tracking(self, deadline: float | None) -> None:
+        """Tracking is on a frame until `deadline` (time.perf_counter() seconds: when the next
+        frame arrives; None: tracking is idle or has no input rate). Past it, no step starts."""
+        self.tracking_deadline = deadline
 
     def check(self) -> None:
         """Re-raise a mapper failure in the calling (tracking) thread."""

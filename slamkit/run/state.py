@@ -52,6 +52,8 @@ class RunState:
     mapping_iterations: int = 0
     tracking_time_s: float = 0.0
     mapping_time_s: float = 0.0
+    keyframe_handover_s: float = 0.0  # real time: the mapper taking keyframes beside tracking (SLAM.settle)
+    keyframe_handover_wait_s: float = 0.0  # real time: the tracking thread waiting for one
     stream_time_s: float = 0.0  # from the first frame to the last one tracked
     # CPU seconds of this process's stream by thread: tracking (the frame loop), mapping (the
     # real-time mapping thread; None in sequential mode, where the loop maps), loading (frames);

@@ -9,8 +9,9 @@ sampler's choice), render it, the loss, its gradient, the optimiser's update, th
 A loop closure's correction moves the Gaussians, the optimiser's state and the keyframes' poses
 together (`move_keyframes`).
 
-Threads (real time): `admit` and `add_keyframe` (tracking thread) may run beside `train` (mapping
-thread). A step holds the map's lock only to take the parameters and to apply its update, so a
+Threads (real time): `admit` (tracking thread, or the keyframe handover's for a mapping-only
+keyframe) and `add_keyframe` (the keyframe handover's thread) may run beside `train` (mapping
+thread), one keyframe at a time. A step holds the map's lock only to take the parameters and to apply its update, so a
 keyframe's Gaussians can be appended meanwhile (the step gives them no gradient); a step during
 which rows were removed or overwritten is dropped (`stale_steps`).
 """

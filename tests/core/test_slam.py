@@ -1,10 +1,14 @@
-"""The SLAM loop with the G-ICP tracker and the `none` mapper (tracking only)."""
+"""The SLAM loop with the G-ICP tracker: tracking only (the `none` mapper), the real-time
+threads (mapping beside tracking, keyframes handed over beside it)."""
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
+from slamkit.errors import PluginError
 from slamkit.run.build import build_run
+from slamkit.types import KeyframeKind
 
 
 def _run(keep_untrackable: bool, frames: int = 30):
@@ -72,3 +76,80 @@ def test_the_mapping_thread_shortens_the_gil_switch_interval_while_it_runs():
     thread.stop()
     assert mapper.seen and all(abs(s - 2e-4) < 1e-9 for s in mapper.seen)
     assert sys.getswitchinterval() == before
+
+
+def _keyframe_run(defer: bool, frames: int = 12):
+    """A synthetic run with tracking and mapping-only keyframes, each frame tracked with
+    `slam.track` (as the real-time loop does), the keyframes' work beside tracking or not."""
+    dataset, slam, _ = build_run(["dataset=synthetic", f"dataset.num_frames={frames}", "dataset.width=64",
+                                  "dataset.height=48", "tracker=gicp", "keyframe=every_n", "keyframe.tracking_every=4",
+                                  "keyframe.mapping_every=2", "mapper=gaussian_splatting", "mode=realtime"])
+    slam.initialize(dataset[0].gt_pose)
+    steps = [slam.track(dataset[i], defer_keyframe=defer) for i in range(len(dataset))]
+    slam.settle()
+    return slam, steps
+
+
+def test_keyframes_handed_over_beside_tracking_give_the_same_run():
+    """The handover thread takes only what the next frames' tracking does not need: the poses,
+    the keyframes and the map are those of the run that waits for every keyframe."""
+    waited, waited_steps = _keyframe_run(defer=False)
+    beside, beside_steps = _keyframe_run(defer=True)
+    kinds = [s.keyframe for s in beside_steps]
+    assert KeyframeKind.TRACKING in kinds and KeyframeKind.MAPPING_ONLY in kinds
+    assert kinds == [s.keyframe for s in waited_steps]
+    np.testing.assert_array_equal([s.tracking.pose for s in beside_steps], [s.tracking.pose for s in waited_steps])
+    assert beside.num_keyframes == waited.num_keyframes
+    np.testing.assert_array_equal(beside.gaussian_map.means.detach().numpy(),
+                                  waited.gaussian_map.means.detach().numpy())
+    np.testing.assert_array_equal(beside.gaussian_map.keyframe_id.numpy(), waited.gaussian_map.keyframe_id.numpy())
+    assert beside.handover_time_s > 0 and waited.handover_time_s == 0
+    assert beside.optimize(2) == waited.optimize(2) == 2  # the mapper has every keyframe to train on
+
+
+def test_a_failure_beside_tracking_is_raised_on_the_tracking_thread_naming_the_plugin(monkeypatch):
+    dataset, slam, _ = build_run(["dataset=synthetic", "dataset.num_frames=3", "dataset.width=64",
+                                  "dataset.height=48", "tracker=gicp", "mapper=gaussian_splatting", "mode=realtime"])
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("no room for the view")
+
+    monkeypatch.setattr(slam.mapper, "add_keyframe", broken)
+    slam.initialize(dataset[0].gt_pose)
+    step = slam.track(dataset[0], defer_keyframe=True)  # returns before the mapper has it
+    assert step.keyframe is KeyframeKind.TRACKING
+    with pytest.raises(PluginError, match=r"^mapper plugin 'gaussian_splatting' failed in add_keyframe\(\): "
+                                          r"RuntimeError: no room for the view$"):
+        slam.settle()
+    slam.settle()  # raised once
+
+
+def test_mapping_starts_no_step_while_tracking_is_late():
+    """Past the tracker's deadline (its next frame has arrived) the mapping thread waits
+    between steps, and counts the wait; it trains again once tracking is on time."""
+    import threading
+    import time
+
+    from slamkit.run.slam import MappingThread
+
+    class Recorder:
+        def __init__(self):
+            self.steps, self.ran = 0, threading.Event()
+
+        def optimize(self, steps):
+            self.steps += steps
+            self.ran.set()
+            time.sleep(0.001)
+            return steps
+
+    mapper = Recorder()
+    thread = MappingThread(mapper, switch_interval_s=1e-3)
+    thread.yield_to_tracking(time.perf_counter() - 1.0)  # late since a second
+    thread.start()
+    time.sleep(0.1)
+    late_steps = mapper.steps
+    thread.yield_to_tracking(None)
+    assert mapper.ran.wait(10)
+    thread.stop()
+    assert late_steps == 0 and mapper.steps > 0
+    assert thread.throttle.yielded_s >= 0.05
