@@ -68,7 +68,7 @@ class GICPConfig(PluginConfig):
     min_correspondences: int = 50
     #: a first alignment that fails or slides is run again from the previous pose (more matched points wins)
     fallback_to_previous: bool = True
-    #: an alignment slides when it ends over this x max_correspondence_distance (RMS; 2x after drops) from its start
+    #: an alignment slides when it ends over this x max_correspondence_distance (RMS; <= 2x after drops) from its start
     fallback_slide: float = 2.0
     #: a first alignment that did not converge (matched, not slid) is tried again too (null: yes, in real time no)
     retry_unconverged: bool | None = None
