@@ -169,7 +169,7 @@ class RunConfig(PluginConfig):
     switch_interval: float = SWITCH_INTERVAL_S
     #: realtime: mapping's priority (its threads' too): idle (only CPU left over), low (5 nice levels), same
     mapping_priority: ThreadPriority = ThreadPriority.idle
-    #: realtime with fps_limit: no mapping step starts while tracking is late (its next frame has arrived)
+    #: realtime with fps_limit: no mapping step starts while tracking is late on a frame (InputClock.late_after)
     mapping_yields: bool = True
     #: realtime: the mapper takes a keyframe (training view, memory cap) in a thread beside tracking (false: inline)
     keyframe_thread: bool = True

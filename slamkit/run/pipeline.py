@@ -10,6 +10,7 @@ The algorithm itself is `slamkit.run.slam.SLAM`; this module is the I/O around i
 from __future__ import annotations
 
 import logging
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -175,10 +176,14 @@ class InputClock:
         self.period = 1.0 / fps if fps else 0.0
         self.start: float | None = None
 
-    def next_arrival(self, i: int) -> float | None:
-        """When frame i+1 arrives (time.perf_counter() seconds; None without an input rate or
-        before frame 0 has)."""
-        return None if not self.period or self.start is None else self.start + (i + 1) * self.period
+    def late_after(self, i: int) -> float | None:
+        """When tracking frame i, started now, is late (time.perf_counter() seconds): once frame
+        i+1 has arrived, or one period from now when that was already so (a tracker behind its
+        input is late only on a frame slower than the input rate); None without an input rate or
+        before frame 0 has arrived."""
+        if not self.period or self.start is None:
+            return None
+        return max(self.start + (i + 1) * self.period, time.perf_counter() + self.period)
 
     def wait(self, i: int) -> bool:
         """Sleep until frame i has arrived; True if frame i+1 has arrived too (we are late)."""
@@ -228,7 +233,7 @@ def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, frames_log: Fram
                 frames_log.dropped(frame)
             else:
                 if mapping and cfg.mapping_yields:
-                    mapping.yield_to_tracking(clock.next_arrival(frame.index - first))
+                    mapping.yield_to_tracking(clock.late_after(frame.index - first))
                 _track(frame, slam, state, frames_log, viewer, mapping, loops, realtime and cfg.keyframe_thread)
                 if mapping:
                     mapping.yield_to_tracking(None)
@@ -256,8 +261,10 @@ def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, frames_log: Fram
             if mapping:
                 _stop_mapping(mapping, state)
         state.loading_cpu_s += loading.cpu_s
-        if handover_error is not None:
+        if handover_error is not None and sys.exc_info()[1] is None:
             raise handover_error
+        if handover_error is not None:  # the stream failed first: that error goes on, this one is logged
+            log.error("the last keyframe's handover failed too: %s", handover_error)
 
 
 def _settle(slam: SLAM, state: RunState) -> BaseException | None:

@@ -188,11 +188,12 @@ class SLAM:
     def settle(self) -> None:
         """Wait for the keyframe going to the mapper beside tracking, if one is; raise its
         failure here (on the tracking thread)."""
-        handover, self.handover = self.handover, None
+        handover = self.handover
         if handover is None:
             return
         start = time.perf_counter()
-        handover.join()
+        handover.join()  # an interrupt here leaves it to the next settle()
+        self.handover = None
         self.handover_wait_s += time.perf_counter() - start
         self.handover_time_s += handover.seconds
         if handover.error is not None:
@@ -287,8 +288,9 @@ class MappingThrottle:
     yielded_s: float = 0.0  # paused between steps while tracking was late (`MappingThread.tracking_deadline`)
 
 
-#: Seconds between the mapping thread's looks at a late tracker.
-YIELD_POLL_S = 0.001
+#: The longest a mapping thread waits for a late tracker at a time (it is woken when tracking is
+#: done with the frame, or stopped).
+YIELD_WAIT_S = 0.05
 
 
 class MappingThread(threading.Thread):
@@ -299,8 +301,8 @@ class MappingThread(threading.Thread):
     The mapper changes the shared map only under `gaussian_map.lock` and the tracker reads it
     only through `tracking_target()` copies, so no copy of the whole map is made per frame.
     An exception in the mapper stops the loop and is re-raised by `check()` / `stop()`.
-    While tracking is late (past `tracking_deadline`: its next frame has arrived) no step starts,
-    so that a late tracker has both CPUs until it is on time again (`yield_to_tracking`).
+    While tracking is late on a frame (past `tracking_deadline`) no step starts, so that a slow
+    frame has both CPUs until it is tracked (`yield_to_tracking`).
     While it runs, Python's thread switch interval is `switch_interval_s` (how long a thread
     waiting for the GIL may wait; restored by `stop()`).
     """
@@ -318,6 +320,8 @@ class MappingThread(threading.Thread):
         self.error: BaseException | None = None
         self._stop_event = threading.Event()
         self.tracking_deadline: float | None = None  # time.perf_counter() past which tracking is late
+        self._tracking_done = threading.Event()  # set while tracking is not on a frame
+        self._tracking_done.set()
 
     def start(self) -> None:
         self._saved_switch_interval = sys.getswitchinterval()
@@ -333,7 +337,7 @@ class MappingThread(threading.Thread):
                 start = time.perf_counter()
                 deadline = self.tracking_deadline
                 if deadline is not None and start > deadline:  # a frame is waiting: tracking first
-                    self._stop_event.wait(YIELD_POLL_S)
+                    self._tracking_done.wait(YIELD_WAIT_S)
                     self.throttle.yielded_s += time.perf_counter() - start
                     continue
                 done = self.slam.optimize(1)
@@ -355,12 +359,17 @@ class MappingThread(threading.Thread):
         schedule_end = thread_schedule()
         if schedule_start is not None and schedule_end is not None:
             throttle.cpu_wait_s = schedule_end.cpu_wait_s - schedule_start.cpu_wait_s
-            throttle.blocked_s = max(0.0, wall_s - throttle.no_keyframe_s - self.cpu_time_s - throttle.cpu_wait_s)
+            waits = throttle.no_keyframe_s + throttle.yielded_s + throttle.cpu_wait_s
+            throttle.blocked_s = max(0.0, wall_s - waits - self.cpu_time_s)
 
     def yield_to_tracking(self, deadline: float | None) -> None:
-        """Tracking is on a frame until `deadline` (time.perf_counter() seconds: when the next
-        frame arrives; None: tracking is idle or has no input rate). Past it, no step starts."""
+        """Tracking is on a frame and late past `deadline` (time.perf_counter() seconds; None:
+        tracking is done with the frame, or has no input rate). Past it, no step starts."""
         self.tracking_deadline = deadline
+        if deadline is None:
+            self._tracking_done.set()
+        else:
+            self._tracking_done.clear()
 
     def check(self) -> None:
         """Re-raise a mapper failure in the calling (tracking) thread."""
@@ -369,6 +378,7 @@ class MappingThread(threading.Thread):
 
     def stop(self) -> None:
         self._stop_event.set()
+        self._tracking_done.set()
         if self.is_alive():
             self.join()
         if self._saved_switch_interval is not None:

@@ -80,21 +80,42 @@ def test_the_mapping_thread_shortens_the_gil_switch_interval_while_it_runs():
 
 def _keyframe_run(defer: bool, frames: int = 12):
     """A synthetic run with tracking and mapping-only keyframes, each frame tracked with
-    `slam.track` (as the real-time loop does), the keyframes' work beside tracking or not."""
+    `slam.track` (as the real-time loop does), the keyframes' work beside tracking or not; the
+    mapper's `add_keyframe` made slow (30 ms) and every call of `admit` / `add_keyframe` logged
+    with its start and end, so that an overlap would show."""
+    import time
+
     dataset, slam, _ = build_run(["dataset=synthetic", f"dataset.num_frames={frames}", "dataset.width=64",
                                   "dataset.height=48", "tracker=gicp", "keyframe=every_n", "keyframe.tracking_every=4",
                                   "keyframe.mapping_every=2", "mapper=gaussian_splatting", "mode=realtime"])
+    calls = []
+
+    def logged(name, method, pause=0.0):
+        def call(*args, **kwargs):
+            calls.append((name, "start"))
+            time.sleep(pause)
+            try:
+                return method(*args, **kwargs)
+            finally:
+                calls.append((name, "end"))
+        return call
+
+    slam.mapper.admit = logged("admit", slam.mapper.admit)
+    slam.mapper.add_keyframe = logged("add_keyframe", slam.mapper.add_keyframe, pause=0.03)
     slam.initialize(dataset[0].gt_pose)
     steps = [slam.track(dataset[i], defer_keyframe=defer) for i in range(len(dataset))]
     slam.settle()
-    return slam, steps
+    return slam, steps, calls
 
 
 def test_keyframes_handed_over_beside_tracking_give_the_same_run():
     """The handover thread takes only what the next frames' tracking does not need: the poses,
-    the keyframes and the map are those of the run that waits for every keyframe."""
-    waited, waited_steps = _keyframe_run(defer=False)
-    beside, beside_steps = _keyframe_run(defer=True)
+    the keyframes and the map are those of the run that waits for every keyframe, and the
+    mapper's calls never overlap (each keyframe's `add_keyframe` ends before the next `admit`)."""
+    waited, waited_steps, waited_calls = _keyframe_run(defer=False)
+    beside, beside_steps, beside_calls = _keyframe_run(defer=True)
+    assert beside_calls == waited_calls == [(name, edge) for name in ("admit", "add_keyframe")
+                                            for edge in ("start", "end")] * beside.num_keyframes
     kinds = [s.keyframe for s in beside_steps]
     assert KeyframeKind.TRACKING in kinds and KeyframeKind.MAPPING_ONLY in kinds
     assert kinds == [s.keyframe for s in waited_steps]
@@ -131,6 +152,7 @@ def test_mapping_starts_no_step_while_tracking_is_late():
     import time
 
     from slamkit.run.slam import MappingThread
+    from slamkit.scheduling import ThreadPriority
 
     class Recorder:
         def __init__(self):
@@ -143,7 +165,8 @@ def test_mapping_starts_no_step_while_tracking_is_late():
             return steps
 
     mapper = Recorder()
-    thread = MappingThread(mapper, switch_interval_s=1e-3)
+    # at the tracker's priority: an idle thread may not run at all on a busy machine
+    thread = MappingThread(mapper, switch_interval_s=1e-3, priority=ThreadPriority.same)
     thread.yield_to_tracking(time.perf_counter() - 1.0)  # late since a second
     thread.start()
     time.sleep(0.1)
