@@ -4,7 +4,8 @@ terminal prints (`summary`), and the process's memory figures they report.
 Every figure covers the whole run, over all its sessions (a resumed run's: `sessions`), but
 those named in `last_session_only` (the process's thread setting, the mapper's per-phase step
 times, the real-time keyframe handovers beside tracking); `session` gives the last session's
-own figures (its frames, wall time, CPU seconds, peak memory). Where no ATE is reported, `ate_unavailable` says why.
+own figures (its frames, wall time, CPU seconds, peak memory). Where no ATE is reported,
+`ate_unavailable` says why.
 """
 
 from __future__ import annotations

@@ -269,7 +269,8 @@ def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, frames_log: Fram
 
 def _settle(slam: SLAM, state: RunState) -> BaseException | None:
     """Wait for the keyframe going to the mapper beside tracking and count the stream's
-    handovers; its failure is returned, to be raised once the stream's threads are stopped."""
+    handovers (the run's SLAM streams once); its failure is returned, to be raised once the
+    stream's threads are stopped."""
     try:
         slam.settle()
     except BaseException as exc:  # noqa: BLE001 - raised by the caller after its cleanup
@@ -277,7 +278,6 @@ def _settle(slam: SLAM, state: RunState) -> BaseException | None:
     finally:
         state.keyframe_handover_s += slam.handover_time_s
         state.keyframe_handover_wait_s += slam.handover_wait_s
-        slam.handover_time_s, slam.handover_wait_s = 0.0, 0.0
     return None
 
 

@@ -52,8 +52,8 @@ class FallbackPolicy:
         """G-ICP of the source points (camera frame, metres) and covariances to the target from
         the predicted pose, with fallbacks; previous: the last tracked pose (None before the
         first); intervals: frame intervals the prediction spans (> 1 after dropped frames: the
-        slide limit grows with it, as the prediction's error does, up to MAX_SLIDE_GROWTH x). Returns (pose, ok, squared
-        NN distances of the kept attempt's last search)."""
+        slide limit grows with it, as the prediction's error does, up to MAX_SLIDE_GROWTH x).
+        Returns (pose, ok, squared NN distances of the kept attempt's last search)."""
         aligner = self.aligner
         pose, ok, sq = aligner.align(target, src, src_cov, predicted, stats)
         slide_limit = self.cfg.fallback_slide * aligner.max_corr * min(max(1.0, intervals), MAX_SLIDE_GROWTH)

@@ -104,13 +104,16 @@ class GICPTracker(Tracker):
         since the last frame: after frames were dropped (`drop_frames`) the prediction goes as
         far as the camera went (without it, the alignment starts a few motions short and needs
         more iterations and fallbacks, which makes the next frame late in turn)."""
+        return self._predicted(self._intervals(frame_index))
+
+    def _predicted(self, intervals: float) -> np.ndarray:
+        """`predict` for a frame `intervals` frame intervals after the last tracked one."""
         if not self.poses:
             return self.first_pose.copy()
         if self.initial_guess is InitialGuess.constant_velocity and len(self.poses) >= 2:
             prev, last = self.poses[-2], self.poses[-1]
             motion = invert_pose(prev) @ last
-            times = self._intervals(frame_index)
-            return orthonormalize(last @ (motion if times == 1.0 else motion_power(motion, times)))
+            return orthonormalize(last @ (motion if intervals == 1.0 else motion_power(motion, intervals)))
         return self.poses[-1].copy()
 
     def _intervals(self, frame_index: int | None) -> float:
@@ -124,8 +127,8 @@ class GICPTracker(Tracker):
         return (frame_index - last) / (last - before)
 
     def track(self, frame: Frame) -> TrackingResult:
-        predicted = self.predict(frame.index)
-        result = self._track(frame, predicted, self._intervals(frame.index))
+        intervals = self._intervals(frame.index)
+        result = self._track(frame, self._predicted(intervals), intervals)
         self.poses = self.poses[-1:] + [result.pose]  # the motion model needs the last two
         self.frame_indices = self.frame_indices[-1:] + [frame.index]
         return result
