@@ -190,8 +190,9 @@ class TrackingResult:
 
     pose: camera-to-world 4x4 float64. lost: the tracker could not estimate the pose and kept
     its prediction. correspondence_ratio: fraction of trackable frame points with a map
-    Gaussian close by (None when the tracker has no such notion). gaussians: the frame's
-    Gaussians (None for trackers that keep no Gaussian map). stats: timings in seconds and
+    Gaussians close by (None when the tracker has no such notion). gaussians: the frame's
+    Gaussians, an optional hand-over (None: the map's growth makes a keyframe's from the frame
+    at `pose`, `slamkit.map.growth.frame_gaussians`). stats: timings in seconds and
     counters for the per-frame log.
     """
 

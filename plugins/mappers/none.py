@@ -25,6 +25,8 @@ class NoMapperConfig(PluginConfig):
 class NoMapper(Mapper):
     """Admits a keyframe's trackable Gaussians; trains nothing."""
 
+    grows_from_frames = False  # nothing renders the map: a tracker without Gaussians needs none made
+
     def admit(self, frame, pose, new):
         return None if self.cfg.keep_untrackable else new.trackable
 

@@ -21,8 +21,13 @@ A mapping-only keyframe's Gaussians are never trackable unless `mapping_only_tra
 paper's Sec. 3.3: they enter the map for rendering, not the tracking target); `untargeted` then
 matters only with `mapping_only_trackable=true`.
 
-`new_gaussians` makes a keyframe's candidate rows; which of them enter the map is the mapper's
-decision (`Mapper.admit`, in `slamkit.run.slam.SLAM`).
+A keyframe's Gaussians are the map's business, whatever the tracker: `frame_gaussians` makes them
+from the frame's depth and colour at its tracked pose (every `pixel_stride`-th pixel, a k-NN
+covariance per point as G-ICP's, the frame's colours). A tracker that made them anyway (G-ICP's
+source Gaussians, which also carry the distance to its target) hands them over in
+`TrackingResult.gaussians`, and they are used instead; both go through `gaussians_at_pose`, so the
+two are the same formula. `new_gaussians` makes a keyframe's candidate rows; which of them enter
+the map is the mapper's decision (`Mapper.admit`, in `slamkit.run.slam.SLAM`).
 """
 
 from __future__ import annotations
@@ -30,12 +35,15 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass
 
+from collections.abc import Callable
+
 import numpy as np
 
 from slamkit.config import PluginConfig, RunContext, require
-from slamkit.geometry.gaussians import Regularization, regularize
+from slamkit.geometry.gaussians import Regularization, knn_covariances, regularize, rotate_covariances
+from slamkit.geometry.transforms import backproject
 from slamkit.map.gaussian_map import GaussianRows
-from slamkit.types import FrameGaussians
+from slamkit.types import Frame, FrameGaussians
 
 
 class InitialShape(enum.Enum):
@@ -78,8 +86,15 @@ class MapGrowthConfig(PluginConfig):
     new_gaussian_overlap: float | None = None
     #: a mapping-only keyframe's Gaussians may become trackable (false: never, as the paper's Sec. 3.3; docs/paper.md)
     mapping_only_trackable: bool = False
+    #: a keyframe's Gaussians from every n-th pixel when the tracker hands none over (null: the dataset's tracking stride)
+    pixel_stride: int | None = None
+    #: neighbours (the point included) of a new Gaussian's k-NN covariance when the tracker hands none over
+    knn: int = 10
 
     def validate(self) -> None:
+        require(self.pixel_stride is None or self.pixel_stride >= 1,
+                "growth.pixel_stride", "null or an integer >= 1", self.pixel_stride)
+        require(self.knn >= 3, "growth.knn", "an integer >= 3", self.knn)
         require(self.scale_c > 0, "growth.scale_c", "> 0", self.scale_c)
         require(self.scale_p >= 0, "growth.scale_p", ">= 0", self.scale_p)
         require(0 < self.initial_opacity < 1, "growth.initial_opacity", "in (0, 1)", self.initial_opacity)
@@ -89,9 +104,10 @@ class MapGrowthConfig(PluginConfig):
         )
 
     def resolve(self, context: RunContext) -> MapGrowthConfig:
-        """new_gaussian_overlap from the dataset's tuning; scale_alignment left null: none in
-        real-time mode, z_pow otherwise."""
+        """new_gaussian_overlap and pixel_stride from the dataset's tuning; scale_alignment left
+        null: none in real-time mode, z_pow otherwise."""
         return self.fill_nulls(new_gaussian_overlap=context.tuning.new_gaussian_overlap,
+                               pixel_stride=context.tuning.tracking_pixel_stride,
                                scale_alignment=ScaleAlignment.none if context.realtime else ScaleAlignment.z_pow)
 
 
@@ -129,6 +145,58 @@ def sq_dist_to_nearest(points: np.ndarray, others: np.ndarray) -> np.ndarray:
     query = np.ascontiguousarray(points, dtype=np.float32)
     dist, _ = KDTree(np.ascontiguousarray(others, dtype=np.float32)).query(query, k=1, sqr_dists=True)
     return dist.reshape(len(query))
+
+
+def gaussians_at_pose(frame: Frame, pose: np.ndarray, points: np.ndarray, pix: np.ndarray, trackable: np.ndarray,
+                      covariances: np.ndarray | Callable[[], np.ndarray], raw_covariances: np.ndarray,
+                      sq_dist_to_map: np.ndarray | None) -> FrameGaussians:
+    """The Gaussians of `frame`'s camera-frame points (N,3 metres, at flat pixel indices `pix`)
+    placed at `pose` (camera-to-world): world means (m), `covariances` (the regularised ones a
+    tracker aligns with, or a function making them) and `raw_covariances` (N,3,3 m^2, camera
+    frame) rotated to the world, colours in [0, 1] from the frame's pixels, camera depths (m),
+    `trackable` (N bool) and each point's squared distance (m^2) to the map, or None.
+    Covariances and colours are computed when first read (Deferred): for keyframes only."""
+    R, t = pose[:3, :3].copy(), pose[:3, 3].copy()  # kept by the deferred fields
+
+    def colors() -> np.ndarray:
+        rgb = np.asarray(frame.rgb).reshape(-1, 3)[pix]
+        if np.issubdtype(rgb.dtype, np.integer):
+            return rgb.astype(np.float32) / 255.0
+        return np.clip(rgb, 0.0, 1.0).astype(np.float32)
+
+    return FrameGaussians(
+        means=(points.astype(np.float64) @ R.T + t).astype(np.float32),
+        covariances=lambda: rotate_covariances(R, covariances() if callable(covariances) else covariances),
+        shape_covariances=lambda: rotate_covariances(R, raw_covariances),
+        colors=colors,
+        depths=points[:, 2].copy(),
+        trackable=trackable,
+        sq_dist_to_map=sq_dist_to_map,
+    )
+
+
+def frame_gaussians(frame: Frame, pose: np.ndarray, cfg: MapGrowthConfig, map_means: np.ndarray) -> FrameGaussians | None:
+    """A keyframe's Gaussians made by the map's growth, for a tracker that hands none over: every
+    `pixel_stride`-th pixel with valid depth back-projected and placed at `pose`
+    (camera-to-world), its raw covariance from its `knn` nearest neighbours (regularised as
+    G-ICP's `ellipse` for `covariances`), trackable within the frame's depth_trunc, and its
+    squared distance (m^2) to the nearest of `map_means` ((P,3) world metres: the map's trackable
+    Gaussians; inf when there are none). None when the frame has fewer valid points than `knn`."""
+    depth = np.asarray(frame.depth)
+    if not np.isfinite(depth).all():
+        depth = np.where(np.isfinite(depth), depth, 0.0)
+    points, pix = backproject(depth, frame.camera, int(cfg.pixel_stride or 1))
+    if len(points) < cfg.knn:
+        return None
+    raw = knn_covariances(points, cfg.knn)
+    trackable = points[:, 2] <= frame.depth_trunc
+    gaussians = gaussians_at_pose(frame, np.asarray(pose, dtype=np.float64), points, pix, trackable,
+                                  lambda: regularize(raw, Regularization.ellipse), raw, None)
+    sq_dist = np.full(len(points), np.inf)
+    if len(map_means) and trackable.any():
+        sq_dist[trackable] = sq_dist_to_nearest(gaussians.means[trackable], map_means)
+    gaussians.sq_dist_to_map = sq_dist
+    return gaussians
 
 
 def new_gaussians(gaussians: FrameGaussians, keyframe_id: int, cfg: MapGrowthConfig, device=None,

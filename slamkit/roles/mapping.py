@@ -24,6 +24,10 @@ class Mapper(ABC):
     config (`mapper.rasterizer`, chosen with `mapper/rasterizer=NAME`) and passes it by name."""
 
     parts: ClassVar[tuple[str, ...]] = ()
+    #: whether the map grows with a keyframe's every Gaussian made from its pixels when the tracker
+    #: hands none over (`slamkit.map.growth.frame_gaussians`); false for a mapper that renders
+    #: nothing and keeps only what a Gaussian-map tracker hands over
+    grows_from_frames: ClassVar[bool] = True
 
     def __init__(self, cfg: PluginConfig | None = None, context: RunContext = RunContext(), **parts: Any):
         self.cfg = cfg

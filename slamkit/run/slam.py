@@ -11,7 +11,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from slamkit.map.gaussian_map import GaussianMap
-from slamkit.map.growth import MapGrowthConfig, new_gaussians
+from slamkit.map.growth import MapGrowthConfig, frame_gaussians, new_gaussians
 from slamkit.roles import KeyframeDecision, KeyframePolicy, Mapper, Tracker
 from slamkit.run.boundary import PluginBoundary
 from slamkit.run.heap import release_free_memory
@@ -159,11 +159,11 @@ class SLAM:
         correction and a checkpoint wait for it (`settle`)."""
         self.settle()  # keyframes reach the map and the mapper in order, each before the next one's admission
         keyframe_id = self.num_keyframes
-        if defer and kind is KeyframeKind.MAPPING_ONLY:
-            self._start_handover(lambda: self._hand_over(frame, result.pose, kind,
-                                                         self.grow_map(frame, result, kind, keyframe_id)))
+        if defer and kind is KeyframeKind.MAPPING_ONLY:  # Gaussians the tracker did not hand over are made in the thread too
+            self._start_handover(lambda: self._hand_over(frame, result.pose, kind, self.grow_map(
+                frame, self.with_gaussians(frame, result), kind, keyframe_id)))
         else:
-            rows = self.grow_map(frame, result, kind, keyframe_id)
+            rows = self.grow_map(frame, self.with_gaussians(frame, result), kind, keyframe_id)
             if kind is KeyframeKind.TRACKING:
                 with self.boundary("tracker", "update_target"):
                     self.tracker.update_target(self.gaussian_map)
@@ -172,7 +172,7 @@ class SLAM:
                 self._start_handover(lambda: self._hand_over(frame, result.pose, kind, rows))
             else:
                 self._hand_over(frame, result.pose, kind, rows)
-        self.loop_closer.add_keyframe(keyframe_id, frame, result.pose, result.gaussians)
+        self.loop_closer.add_keyframe(keyframe_id, frame, result.pose, result.gaussians)  # what the tracker handed over
         self.num_keyframes += 1
 
     def _start_handover(self, hand_over: Callable[[], None]) -> None:
@@ -231,6 +231,17 @@ class SLAM:
             with self.boundary(key, "load_state_dict"):
                 plugin.load_state_dict(states.get(key, {}))
         self.loop_closer.load_state_dict(states.get("loop_closure", {}))
+
+    def with_gaussians(self, frame: Frame, result: TrackingResult) -> TrackingResult:
+        """`result` with the keyframe's Gaussians: the tracker's when it handed them over, else
+        made by the map's growth from the frame at the tracked pose (`frame_gaussians`) when the
+        mapper grows the map from frames (`Mapper.grows_from_frames`); their world covariances
+        and colours are computed when first read."""
+        if result.gaussians is not None or not self.mapper.grows_from_frames:
+            return result
+        gm = self.gaussian_map
+        return replace(result, gaussians=frame_gaussians(frame, result.pose, self.growth,
+                                                         gm.trackable_entry_means(0) if len(gm) else np.empty((0, 3))))
 
     def grow_map(self, frame: Frame, result: TrackingResult, kind: KeyframeKind,
                  keyframe_id: int | None = None) -> slice:

@@ -11,7 +11,7 @@ indexed once per tracking keyframe (`update_target`). The camera-to-world pose m
 by Levenberg-Marquardt on SE(3) (T <- T exp(xi)), matching each point to its nearest target mean
 within `max_correspondence_distance` at every iteration, from a constant-velocity prediction
 (docs/results.md, "Robustness of a single run") with the fallbacks of `.fallbacks`. The frame's
-Gaussians (world frame) are returned for the keyframe policy and map growth.
+Gaussians (world frame) are handed over to the keyframe policy and the map's growth.
 """
 
 from __future__ import annotations
@@ -20,9 +20,10 @@ import time
 
 import numpy as np
 
-from slamkit.geometry.gaussians import Regularization, rotate_covariances
+from slamkit.geometry.gaussians import Regularization
 from slamkit.geometry.transforms import backproject, invert_pose, motion_power
 from slamkit.map.gaussian_map import GaussianMap
+from slamkit.map.growth import gaussians_at_pose
 from slamkit.roles import RunContext, Tracker, require
 from slamkit.types import Frame, FrameGaussians, TrackingResult
 from slamkit_plugins.trackers.gicp.alignment import Aligner, new_stats, orthonormalize
@@ -180,26 +181,9 @@ class GICPTracker(Tracker):
     @staticmethod
     def _frame_gaussians(frame: Frame, points: np.ndarray, pix: np.ndarray, trackable: np.ndarray, pose: np.ndarray,
                          cov_cam: np.ndarray, raw_cam: np.ndarray, sq_track: np.ndarray) -> FrameGaussians:
-        """The frame's Gaussians at `pose` (camera-to-world): world means (m), regularised and raw
-        covariances rotated to the world (m^2), colours in [0, 1], camera depths (m), and the
-        trackable points' squared distance (m^2) to their nearest target mean (inf elsewhere).
-        Covariances and colours are computed when first read (Deferred): for keyframes only."""
+        """The frame's Gaussians at `pose`, handed over to the map's growth (which would otherwise
+        make them again: `slamkit.map.growth.frame_gaussians`), with the trackable points'
+        squared distance (m^2) to their nearest target mean (inf elsewhere)."""
         sq_dist = np.full(len(points), np.inf)
         sq_dist[trackable] = sq_track
-        R, t = pose[:3, :3].copy(), pose[:3, 3].copy()  # kept by the deferred fields
-
-        def colors() -> np.ndarray:
-            rgb = np.asarray(frame.rgb).reshape(-1, 3)[pix]
-            if np.issubdtype(rgb.dtype, np.integer):
-                return rgb.astype(np.float32) / 255.0
-            return np.clip(rgb, 0.0, 1.0).astype(np.float32)
-
-        return FrameGaussians(
-            means=(points.astype(np.float64) @ R.T + t).astype(np.float32),
-            covariances=lambda: rotate_covariances(R, cov_cam),
-            shape_covariances=lambda: rotate_covariances(R, raw_cam),
-            colors=colors,
-            depths=points[:, 2].copy(),
-            trackable=trackable,
-            sq_dist_to_map=sq_dist,
-        )
+        return gaussians_at_pose(frame, pose, points, pix, trackable, cov_cam, raw_cam, sq_dist)
