@@ -33,9 +33,8 @@ the map is the mapper's decision (`Mapper.admit`, in `slamkit.run.slam.SLAM`).
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass
-
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -86,7 +85,7 @@ class MapGrowthConfig(PluginConfig):
     new_gaussian_overlap: float | None = None
     #: a mapping-only keyframe's Gaussians may become trackable (false: never, as the paper's Sec. 3.3; docs/paper.md)
     mapping_only_trackable: bool = False
-    #: a keyframe's Gaussians from every n-th pixel when the tracker hands none over (null: the dataset's tracking stride)
+    #: a keyframe's Gaussians from every n-th pixel when the tracker hands none (null: the dataset's tracking stride)
     pixel_stride: int | None = None
     #: neighbours (the point included) of a new Gaussian's k-NN covariance when the tracker hands none over
     knn: int = 10
@@ -175,7 +174,8 @@ def gaussians_at_pose(frame: Frame, pose: np.ndarray, points: np.ndarray, pix: n
     )
 
 
-def frame_gaussians(frame: Frame, pose: np.ndarray, cfg: MapGrowthConfig, map_means: np.ndarray) -> FrameGaussians | None:
+def frame_gaussians(frame: Frame, pose: np.ndarray, cfg: MapGrowthConfig,
+                    map_means: np.ndarray) -> FrameGaussians | None:
     """A keyframe's Gaussians made by the map's growth, for a tracker that hands none over: every
     `pixel_stride`-th pixel with valid depth back-projected and placed at `pose`
     (camera-to-world), its raw covariance from its `knn` nearest neighbours (regularised as

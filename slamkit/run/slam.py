@@ -159,7 +159,7 @@ class SLAM:
         correction and a checkpoint wait for it (`settle`)."""
         self.settle()  # keyframes reach the map and the mapper in order, each before the next one's admission
         keyframe_id = self.num_keyframes
-        if defer and kind is KeyframeKind.MAPPING_ONLY:  # Gaussians the tracker did not hand over are made in the thread too
+        if defer and kind is KeyframeKind.MAPPING_ONLY:  # Gaussians the tracker did not hand over: made there too
             self._start_handover(lambda: self._hand_over(frame, result.pose, kind, self.grow_map(
                 frame, self.with_gaussians(frame, result), kind, keyframe_id)))
         else:
