@@ -121,11 +121,7 @@ class Command:
             if run:
                 _check_output_dir(overrides, multirun=bool(flags))
                 _check_plugin_choices(self.registry, overrides)
-                if not flags and not _is_sweep(overrides):  # a single run: its config checked before any work
-                    from slamkit.registry.compose import compose_run
-
-                    compose_run([o for o in overrides if not _is_hydra_setting(o) or o.startswith("hydra.searchpath")],
-                                self.registry)
+                _check_jobs(self.registry, overrides, sweep=bool(flags) or _is_sweep(overrides))
         except SlamkitError as exc:
             if os.environ.get("SLAMKIT_DEBUG"):
                 raise
@@ -180,6 +176,24 @@ class Command:
             else:
                 sys.exit(TRACKING_FAILED)
         return _score(run_cfg, metrics)
+
+
+def _check_jobs(registry, overrides: Sequence[str], sweep: bool) -> None:
+    """Every run's config composed and checked before any work: the single run's, or each job's
+    of a sweep (Hydra's basic sweeper), so that a combination that cannot compose is refused in
+    one line naming the job before the first one runs (ConfigError)."""
+    from slamkit.registry.compose import compose_run, sweep_jobs
+
+    jobs = sweep_jobs(overrides) if sweep else [list(overrides)]
+    for number, job in enumerate(jobs or [], start=1):
+        try:
+            compose_run([o for o in job if not _is_hydra_setting(o) or o.startswith("hydra.searchpath")], registry)
+        except ConfigError as exc:
+            if len(jobs) == 1:
+                raise
+            varied = [o for o in job if o not in overrides]
+            raise ConfigError(f"job {number} of {len(jobs)} of the sweep ({' '.join(varied) or 'as given'}): "
+                              f"{exc}") from None
 
 
 def _is_hydra_setting(override: str) -> bool:

@@ -10,6 +10,7 @@ folder.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Sequence
 
 from slamkit.errors import ConfigError
@@ -100,6 +101,75 @@ def _part_without_owner(overrides: Sequence[str], error: Exception) -> str | Non
     return None
 
 
+#: The roles (by path) whose plugin's settings a preset may give (conf/preset_settings/GROUP/PRESET/
+#: PLUGIN.yaml, GROUP the path's last part), each with the role it is a part of, if any.
+PRESET_ROLES: dict[str, str | None] = {"tracker": None, "keyframe": None, "mapper": None,
+                                       "mapper.strategy": "mapper", "mapper.loss": "mapper"}
+
+
+def preset_not_applied(preset: str, names: dict[str, str]) -> dict[str, dict]:
+    """The roles whose settings in preset `preset` were left out because the run chose another
+    plugin: {role path: {"settings_for": [plugins the preset has settings for], "chosen": name}}
+    (a part only where its owner's settings applied). `names`: the chosen plugin by role path."""
+    from importlib.resources import files
+
+    skipped: dict[str, dict] = {}
+    for path, owner in PRESET_ROLES.items():
+        if path not in names or (owner is not None and owner in skipped):
+            continue
+        folder = files(CONFIG_MODULE) / "preset_settings" / path.split(".")[-1] / preset
+        plugins = sorted(f.name.removesuffix(".yaml") for f in (folder.iterdir() if folder.is_dir() else ())
+                         if f.name.endswith(".yaml"))
+        if plugins and names[path] not in plugins:
+            skipped[path] = {"settings_for": plugins, "chosen": names[path]}
+    return skipped
+
+
+def composition_error(exc: BaseException, overrides: Sequence[str], registry: Registry) -> str:
+    """One whole line for a Hydra composition error: where the value came from (the override, or
+    the preset or experiment that set it), the key, and what was expected; for a key the chosen
+    plugin lacks, the role, the plugin and the settings it has."""
+    chain = [e for e in (exc, exc.__cause__, getattr(exc.__cause__, "__cause__", None)) if e is not None]
+    first = [str(e).strip().splitlines()[0] for e in chain if str(e).strip()]
+    missing = next((e for e in chain if type(e).__name__ in ("ConfigKeyError", "ConfigAttributeError")
+                    and getattr(e, "full_key", None)), None)
+    if missing is None:
+        return ": ".join(dict.fromkeys(first))
+    full_key, config_type = str(missing.full_key), getattr(missing, "object_type", None)
+    given = [o for o in overrides if f'{o.split("=", 1)[0].lstrip("+~")}.'.startswith(f"{full_key}.")]
+    origin = given[-1] if given else f"{full_key} ({first[0].split(':')[0].removesuffix('.')})"
+    role = max((r for r in ROLES if full_key.startswith(r.path + ".")), key=lambda r: len(r.path), default=None)
+    plugin = next((name for name, entry in registry.plugins.get(role.key if role else "", {}).items()
+                   if entry.spec.config.__name__ == getattr(config_type, "__name__", None)), None)
+    if role is None or plugin is None or not dataclasses.is_dataclass(config_type):
+        return f"{origin}: {str(missing).strip().splitlines()[0]}"
+    settings = ", ".join(f.name for f in dataclasses.fields(config_type)) or "none"
+    key = full_key[len(role.path) + 1:]
+    return (f"{origin}: the {role.path.replace('.', ' ')} {plugin!r} has no setting {key!r} (its settings: "
+            f"{settings}; choose a {role.path.replace('.', ' ')} that has it with {role.group}=NAME)")
+
+
+#: Hydra's own sweeper, whose jobs `sweep_jobs` lists (another, e.g. Optuna's, picks them as it goes).
+BASIC_SWEEPER = "hydra._internal.core_plugins.basic_sweeper.BasicSweeper"
+
+
+def sweep_jobs(overrides: Sequence[str]) -> list[list[str]] | None:
+    """The overrides of each job of the sweep `overrides` would launch (the config's
+    hydra.sweeper.params, e.g. an experiment's, then the command line's, as Hydra's basic sweeper
+    combines them), or None for a sweeper that chooses its jobs as it goes."""
+    from hydra import compose, initialize_config_module
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+
+    fixed = [o for o, parsed in zip(overrides, parse_overrides(overrides)) if not parsed.is_sweep_override()]
+    with initialize_config_module(CONFIG_MODULE, version_base=None):
+        sweeper = compose(CONFIG_NAME, overrides=fixed, return_hydra_config=True).hydra.sweeper
+    if sweeper.get("_target_") != BASIC_SWEEPER:
+        return None
+    params = [f"{key}={value}" for key, value in (sweeper.get("params") or {}).items()]
+    return [job for batch in BasicSweeper.split_arguments(parse_overrides([*params, *overrides]), None)
+            for job in batch]
+
+
 def chosen_plugins(choices) -> dict[str, str]:
     """The plugin chosen for each role and part in a composed config, from Hydra's runtime
     choices (group -> option), by role path: `tracker`, `mapper.rasterizer` (parts only where
@@ -122,8 +192,7 @@ def compose_run(overrides: Sequence[str] = (), registry: Registry | None = None)
         orphan = _part_without_owner(overrides, exc)
         if orphan:
             raise ConfigError(orphan) from None
-        causes = [str(e).strip().splitlines()[0] for e in (exc, exc.__cause__) if e is not None and str(e).strip()]
-        raise ConfigError(": ".join(dict.fromkeys(causes))) from exc
+        raise ConfigError(composition_error(exc, overrides, registry or default_registry())) from exc
     names = chosen_plugins(cfg.hydra.runtime.choices)
     with open_dict(cfg):
         del cfg["hydra"]

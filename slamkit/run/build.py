@@ -8,6 +8,7 @@ null fields filled (`slamkit.config.resolve_tree`), the mapper with its parts, t
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from typing import Any, Sequence
 
@@ -15,7 +16,7 @@ from slamkit.config import RenderScoring, RunContext, resolve_tree
 from slamkit.errors import ConfigError, DataError
 from slamkit.map.gaussian_map import GaussianMap
 from slamkit.native import available_threads
-from slamkit.registry.compose import compose_run
+from slamkit.registry.compose import compose_run, preset_not_applied
 from slamkit.registry.discovery import Registry, default_registry
 from slamkit.registry.schema import Mode, RunConfig
 from slamkit.roles import Dataset, Tracker, Viewer
@@ -23,6 +24,8 @@ from slamkit.run.boundary import PluginBoundary
 from slamkit.run.loop_closing import LoopCloser
 from slamkit.run.loop_process import LoopClosureProcess
 from slamkit.run.slam import SLAM
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -46,6 +49,10 @@ def build(cfg: RunConfig, registry: Registry, names: dict[str, str]) -> BuiltRun
     """The run's plugins from a validated config; `names` maps each role's and part's path
     (`tracker`, `mapper.rasterizer`) to the chosen plugin's name. A plugin whose constructor
     fails is named in one line (PluginError), as a failure of any of its methods is."""
+    for path, skipped in preset_not_applied(cfg.preset, names).items():
+        log.warning("preset=%s: its %s settings are for %s, left out for %s=%s (metrics.json: "
+                    "settings.preset_not_applied)", cfg.preset, path, " / ".join(skipped["settings_for"]), path,
+                    skipped["chosen"])
     boundary = PluginBoundary(names)
     with boundary("dataset", "__init__"):
         dataset = registry.create("dataset", names["dataset"], cfg.dataset)

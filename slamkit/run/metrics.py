@@ -73,7 +73,7 @@ def run_metrics(cfg: RunConfig, slam: SLAM, state: RunState, wall_s: float) -> d
         "rpe_trans_rmse_m": rpe["trans_rmse_m"] if rpe else None,
         "rpe_rot_rmse_deg": rpe["rot_rmse_deg"] if rpe else None,
         "num_gaussians": len(slam.gaussian_map),
-        "settings": method_settings(cfg),  # the method as run, the preset's and the mode's defaults filled
+        "settings": method_settings(cfg, slam.boundary.names),  # the method as run, the defaults filled
     }
     metrics.update(state.evaluation)
     peak = peak_memory_mb()  # so far: after the evaluation in the last write

@@ -7,6 +7,7 @@ from __future__ import annotations
 import enum
 from typing import Any
 
+from slamkit.registry.compose import preset_not_applied
 from slamkit.registry.schema import RunConfig
 
 #: The run config's keys that make one method differ from another (the switches of docs/paper.md's
@@ -24,9 +25,11 @@ METHOD_KEYS = (
 )
 
 
-def method_settings(cfg: RunConfig) -> dict[str, Any]:
+def method_settings(cfg: RunConfig, names: dict[str, str]) -> dict[str, Any]:
     """{key: value} of METHOD_KEYS in `cfg` (the run's effective config: `BuiltRun.config`),
-    enums by their value, plus `refinement_steps` (the mapping steps after the stream)."""
+    enums by their value, plus `refinement_steps` (the mapping steps after the stream) and
+    `preset_not_applied` (the roles whose preset settings were left out for the plugin chosen,
+    `names` by role path: `slamkit.registry.compose.preset_not_applied`)."""
     settings: dict[str, Any] = {}
     for key in METHOD_KEYS:
         node: Any = cfg
@@ -37,6 +40,7 @@ def method_settings(cfg: RunConfig) -> dict[str, Any]:
         if node is not _MISSING:
             settings[key] = node.value if isinstance(node, enum.Enum) else node
     settings["refinement_steps"] = cfg.refinement_iterations()
+    settings["preset_not_applied"] = preset_not_applied(cfg.preset, names)
     return settings
 
 

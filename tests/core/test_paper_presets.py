@@ -36,7 +36,7 @@ PAPER = {"preset": "paper", "mode": "realtime", "fps_limit": 30.0, "refinement_s
 def effective_settings(overrides: list[str]) -> tuple[dict, dict]:
     cfg, names = compose_run(overrides)
     built = build(cfg, default_registry(), names)
-    return method_settings(built.config), names
+    return method_settings(built.config, names), names
 
 
 def test_preset_paper_sets_every_switch_of_the_papers_system(tum_path):
@@ -63,6 +63,41 @@ def test_the_default_preset_is_slamkits_defaults_and_a_later_override_wins(repli
                                    "dataset=replica", f"dataset.path={replica_path}"])
     assert (paper["tracker.target_geometry"], paper["mode"], paper["refinement_steps"]) == ("entry", "sequential", 0)
     assert paper["tracker.min_target_opacity"] == 0.05  # Replica's, from the dataset's tuning
+
+
+@pytest.mark.parametrize("choice, role, left_out_for", [
+    ("mapper=none", "mapper", ["gaussian_splatting"]),
+    ("tracker=kiss_icp", "tracker", ["gicp"]),
+    ("keyframe=every_n", "keyframe", ["overlap"]),
+])
+def test_a_preset_composes_with_a_plugin_it_does_not_name_and_says_what_it_left_out(tum_path, choice, role,
+                                                                                      left_out_for):
+    settings, names = effective_settings(["preset=paper", choice, "dataset=tum", f"dataset.path={tum_path}"])
+    assert settings["preset_not_applied"] == {role: {"settings_for": left_out_for, "chosen": choice.split("=")[1]}}
+    assert (settings["mode"], settings["fps_limit"], settings["growth.scale_c"]) == ("realtime", 30.0, 2.0)
+    if role != "tracker":  # the paper's tracker still has the paper's settings
+        assert (settings["tracker.initial_guess"], settings["tracker.target_min_median"]) == ("previous", 1e-3)
+    else:
+        assert "tracker.initial_guess" not in settings and settings["mapper.admission.skip_covered"] is False
+
+
+def test_a_mapper_part_the_preset_has_no_settings_for_is_left_out_with_the_rest_applied(tum_path):
+    settings, names = effective_settings(["preset=paper", "mapper/strategy=mcmc", "dataset=tum",
+                                          f"dataset.path={tum_path}"])
+    assert names["mapper.strategy"] == "mcmc"
+    assert settings["preset_not_applied"] == {"mapper.strategy": {"settings_for": ["3dgs", "gsicp"], "chosen": "mcmc"}}
+    assert (settings["mapper.resolution_scale"], settings["mapper.loss.pixels_without_depth"]) == (1.0, "zero")
+
+
+def test_a_key_the_chosen_plugin_lacks_is_one_whole_line_naming_key_plugin_and_its_settings():
+    from slamkit.errors import ConfigError
+
+    with pytest.raises(ConfigError) as err:
+        compose_run(["preset=paper", "tracker=kiss_icp", "tracker.regularization=none"])
+    message = str(err.value)
+    assert "\n" not in message
+    assert message.startswith("tracker.regularization=none: the tracker 'kiss_icp' has no setting 'regularization'")
+    assert "voxel_size" in message and "tracker=NAME" in message
 
 
 def _mapping_only_rows(trackable: bool, tum_path) -> tuple[torch.Tensor, torch.Tensor]:
