@@ -34,7 +34,7 @@ DEVICE = "cuda"
 #: The probe's one-line failure in this process, if it failed: gsplat retries its whole build
 #: at every call after a failed one (minutes), so a later construction fails at once instead.
 _probe_failure: str | None = None
-NEEDS = "rasterizer gsplat needs CUDA and the gsplat package (pip install 'slamkit[cuda]')"
+NEEDS = "mapper/rasterizer=gsplat needs CUDA and the gsplat package (pip install 'slamkit[cuda]')"
 
 
 @dataclass

@@ -123,8 +123,20 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="slamkit-plugins", description=__doc__.split("\n")[0])
     parser.add_argument("--markdown", type=Path, default=None, metavar="FILE",
                         help="write the configuration reference of the built-in plugins to FILE")
+    parser.add_argument("--matrix", type=Path, default=None, metavar="FILE",
+                        help="run every registered plugin against the others (a few frames each, minutes) "
+                             "and write what composes with what to FILE (docs/composition.md)")
     args = parser.parse_args(argv)
     registry = discover()
+    if args.matrix:
+        from slamkit.cli.composition import markdown, quiet_logs, run_matrix
+
+        quiet_logs()
+        found, outcomes = run_matrix(registry, on_outcome=lambda n, o: print(
+            f"run {n}: {o.status}: {' '.join(f'{k}={v}' for k, v in o.combination.items())}", file=sys.stderr))
+        args.matrix.write_text(markdown(found, outcomes))
+        print(f"wrote {args.matrix}", file=sys.stderr)
+        return 1 if any(o.status == "failed" for o in outcomes) else 0
     if args.markdown:
         args.markdown.write_text(markdown_reference(registry))
         print(f"wrote {args.markdown}", file=sys.stderr)

@@ -196,4 +196,24 @@ def compose_run(overrides: Sequence[str] = (), registry: Registry | None = None)
     names = chosen_plugins(cfg.hydra.runtime.choices)
     with open_dict(cfg):
         del cfg["hydra"]
-    return validate_config(cfg), names
+    run_cfg = validate_config(cfg)
+    check_mode_uses(run_cfg, names)
+    return run_cfg, names
+
+
+#: The roles mode=localize does not run (it tracks in a saved map, which it never changes): a
+#: plugin chosen for one is refused rather than ignored.
+UNUSED_WHEN_LOCALIZING = ("mapper", "loop_closure", "viewer")
+
+
+def check_mode_uses(cfg: RunConfig, names: dict[str, str]) -> None:
+    """ConfigError (one line) for a plugin chosen for a role the run's mode does not use."""
+    from slamkit.registry.schema import Mode
+
+    if cfg.mode is not Mode.localize:
+        return
+    unused = [f"{role}={names[role]}" for role in UNUSED_WHEN_LOCALIZING if names.get(role, "none") != "none"]
+    if unused:
+        raise ConfigError(f"mode=localize tracks frames in a saved map and changes nothing, so {', '.join(unused)} "
+                          f"would not be used: leave {' and '.join(u.split('=')[0] + '=none' for u in unused)}, "
+                          f"or map further with resume=RUN (mode=sequential or realtime)")

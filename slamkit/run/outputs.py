@@ -27,7 +27,7 @@ from slamkit.formats.tum import write_tum_trajectory
 from slamkit.metrics import trajectory as evaluation
 from slamkit.registry.schema import RunConfig
 from slamkit.run.checkpoint import CheckpointWriter
-from slamkit.run.lifecycle import StopSignals
+from slamkit.run.lifecycle import Phase, StopSignals
 from slamkit.run.loop_closing import LOOPS_COLUMNS
 from slamkit.run.metrics import headline, run_metrics
 from slamkit.run.slam import SLAM
@@ -131,20 +131,29 @@ class RunOutputs:
 
     def _save_checkpoint(self) -> None:
         """checkpoint.zip: `end` after the refinement, `interrupted` when a signal stopped the run
-        at a safe point. None from a failed run, nor from a state a second signal cut in half (the
-        last checkpoint written, every N keyframes, stays)."""
+        at a safe point, `failed` when a plugin failed after the stream (its frames were all
+        tracked: the run can be resumed, or its map localised in). None when tracking failed or a
+        plugin failed during the stream, nor from a state a second signal cut in half (the last
+        checkpoint written, every N keyframes, stays)."""
         status = self.state.status
-        if self.checkpoints is None or status == FAILED:
+        after_stream = self.state.phase not in (Phase.startup, Phase.stream)  # tracking failures end the stream
+        if self.checkpoints is None or (status == FAILED and not after_stream):
             return
         if self.stop is not None and self.stop.cut_short:
             log.warning("no checkpoint from this state: a second signal stopped the run in the middle of a step")
             return
+        reason = {RUNNING: "end", FAILED: "failed"}.get(status, "interrupted")
         try:
-            path = self.checkpoints.save("end" if status == RUNNING else "interrupted")
+            path = self.checkpoints.save(reason)
         except OSError as exc:
             self._unwritten(Path(exc.filename).name if exc.filename else CHECKPOINT_NAME, exc)
             if status == RUNNING:
                 raise
+            return
+        except Exception as exc:  # a failed run's plugin that cannot give its state either
+            if status != FAILED:
+                raise
+            log.error("no checkpoint from this failed run: %s: %s", type(exc).__name__, exc)
             return
         if path is not None and path.name not in self.kept:
             self.kept.append(path.name)

@@ -354,3 +354,45 @@ def test_kill_9_at_random_moments_leaves_every_file_whole_or_absent(mode, tmp_pa
         status = f"{_metrics(out)['status']}@{_metrics(out)['phase']}" if "metrics.json" in seen else "-"
         outcomes.append(f"{delay:.1f}s:{status}:{'map' if 'map.ply' in seen else '-'}")
     print(f"kill -9 ({mode}; stream start to exit {duration:.1f} s): " + " ".join(outcomes))
+
+
+# -- issue 41 point 3: a run that fails after the stream keeps a checkpoint to resume from -------
+
+FAILING_FINISH_MAPPER = """
+from dataclasses import dataclass
+from slamkit.plugin import PluginSpec, hookimpl
+from slamkit.roles import PluginConfig
+from slamkit_plugins.mappers.none import NoMapper
+
+@dataclass
+class FinishConfig(PluginConfig):
+    keep_untrackable: bool = False
+    fail: bool = True
+
+class FailingFinishMapper(NoMapper):
+    def finish(self):
+        if self.cfg.fail:
+            raise RuntimeError("finish broke")
+
+@hookimpl
+def slamkit_plugins():
+    return [PluginSpec("failing_finish", FailingFinishMapper, FinishConfig)]
+"""
+
+
+@pytest.mark.slow
+def test_a_run_that_fails_after_the_stream_writes_a_checkpoint_that_resumes(tmp_path):
+    site = make_plugin_dist(tmp_path / "site", "slamkit-failing-finish", {"failing_finish": FAILING_FINISH_MAPPER},
+                            {"failing_finish": "failing_finish"})
+    env = {"PYTHONPATH": str(site)}
+    out = tmp_path / "run"
+    proc = run_slamkit("dataset.num_frames=8", "mapper=failing_finish", "progress=false", f"hydra.run.dir={out}",
+                       cwd=tmp_path, env_extra=env)
+    assert proc.returncode != 0 and "finish broke" in proc.stderr.strip().splitlines()[-1]
+    assert _metrics(out)["status"] == "failed"
+    meta = read_meta(out / CHECKPOINT_NAME)
+    assert (meta["reason"], meta["completed"], meta["num_frames"]) == ("failed", False, 8)
+    resumed = run_slamkit(f"resume={out}", "mapper.fail=false", cwd=tmp_path, env_extra=env)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    metrics = _metrics(out)
+    assert (metrics["status"], metrics["num_frames"]) == ("completed", 8)

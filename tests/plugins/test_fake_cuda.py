@@ -100,7 +100,7 @@ def test_auto_falls_back_to_cpu_on_a_cuda_machine_without_gsplat(fake_cuda, capl
     (skipped,) = [r.getMessage() for r in caplog.records if "not using gsplat" in r.getMessage()]
     assert "needs CUDA and the gsplat package (pip install 'slamkit[cuda]')" in skipped
     assert "ImportError" in skipped or "ModuleNotFoundError" in skipped
-    with pytest.raises(ConfigError, match=r"^rasterizer gsplat needs CUDA and the gsplat package .*Error"):
+    with pytest.raises(ConfigError, match=r"^mapper/rasterizer=gsplat needs CUDA and the gsplat package .*Error"):
         create_rasterizer("gsplat")
 
 

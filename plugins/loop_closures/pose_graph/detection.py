@@ -22,6 +22,8 @@ def appearance_descriptor(image: np.ndarray) -> np.ndarray:
     image in grey, averaged over 32x24 equal areas."""
     grey = np.asarray(image, dtype=np.float64).mean(axis=2)
     cols, rows = DESCRIPTOR_SIZE
+    # an image smaller than the descriptor: each pixel repeated, so that every area holds one
+    grey = np.repeat(np.repeat(grey, -(-rows // grey.shape[0]), axis=0), -(-cols // grey.shape[1]), axis=1)
     r = np.linspace(0, grey.shape[0], rows + 1).astype(int)[:-1]
     c = np.linspace(0, grey.shape[1], cols + 1).astype(int)[:-1]
     sums = np.add.reduceat(np.add.reduceat(grey, r, axis=0), c, axis=1)
