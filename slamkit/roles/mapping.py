@@ -36,7 +36,10 @@ class Mapper(ABC):
     def admit(self, frame: Frame, pose: np.ndarray, new: GaussianRows) -> torch.Tensor | np.ndarray | None:
         """Which of a keyframe's new Gaussians (scale-aligned, not yet in the map) enter it: a
         bool mask over `new`, or None for all (the default). `pose` is the keyframe's
-        camera-to-world pose. Called under the map's lock; the rows it admits are appended next."""
+        camera-to-world pose. The trackable ones enter whatever it answers (they are the
+        tracker's target); in real time they have entered already (rows of `new.keyframe_id` in
+        the map) and `new` holds the others only. Called under the map's lock; the rows it admits
+        are appended next."""
         return None
 
     @abstractmethod

@@ -9,8 +9,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
+import torch
 
-from slamkit.map.gaussian_map import GaussianMap
+from slamkit.map.gaussian_map import GaussianMap, GaussianRows
 from slamkit.map.growth import MapGrowthConfig, frame_gaussians, new_gaussians
 from slamkit.roles import KeyframeDecision, KeyframePolicy, Mapper, Tracker
 from slamkit.run.boundary import PluginBoundary
@@ -150,30 +151,48 @@ class SLAM:
         return correction
 
     def add_keyframe(self, frame: Frame, result: TrackingResult, kind: KeyframeKind, defer: bool = False) -> None:
-        """The keyframe's admitted Gaussians enter the map (`grow_map`), a tracking keyframe
-        rebuilds the tracker's target, the mapper and the loop closure take the keyframe.
-        defer: what the next frames' tracking does not need runs in a `KeyframeHandover`
-        thread beside it: the mapper taking the keyframe (`Mapper.add_keyframe`: a training
-        view, the memory cap) and, for a mapping-only keyframe, its growth too (the tracker
-        aligns to the map as of the last tracking keyframe). The next keyframe, a loop
-        correction and a checkpoint wait for it (`settle`)."""
+        """The keyframe's Gaussians enter the map (`grow_map`: the trackable ones, and those of
+        the others that the mapper admits), a tracking keyframe rebuilds the tracker's target, the
+        mapper and the loop closure take the keyframe. defer: what the next frames' tracking does
+        not need runs in a `KeyframeHandover` thread beside it: the mapper taking the keyframe
+        (`Mapper.add_keyframe`: a training view, the memory cap); for a tracking keyframe the
+        admission of its Gaussians that are not trackable (its trackable ones, the tracker's next
+        target, enter first on the tracking thread); for a mapping-only keyframe its whole growth
+        (the tracker aligns to the map as of the last tracking keyframe). The next keyframe, a
+        loop correction and a checkpoint wait for it (`settle`)."""
         self.settle()  # keyframes reach the map and the mapper in order, each before the next one's admission
         keyframe_id = self.num_keyframes
         if defer and kind is KeyframeKind.MAPPING_ONLY:  # Gaussians the tracker did not hand over: made there too
             self._start_handover(lambda: self._hand_over(frame, result.pose, kind, self.grow_map(
                 frame, self.with_gaussians(frame, result), kind, keyframe_id)))
+        elif defer and kind is KeyframeKind.TRACKING:
+            new = self.candidate_rows(frame, self.with_gaussians(frame, result), kind, keyframe_id)
+            trackable = None if new is None else new.trackable.cpu().numpy()
+            tracked = self.gaussian_map.append(new.select(trackable).computed()) if new is not None else None
+            self._update_target(keyframe_id)
+
+            def hand_over() -> None:
+                rows = self.grow_map(frame, result, kind, keyframe_id, None if new is None else new.select(~trackable))
+                if tracked is not None and rows.start == tracked.stop > tracked.start:
+                    rows = slice(tracked.start, rows.stop)  # nothing entered between: one keyframe's rows
+                self._hand_over(frame, result.pose, kind, rows)
+            self._start_handover(hand_over)
         else:
             rows = self.grow_map(frame, self.with_gaussians(frame, result), kind, keyframe_id)
             if kind is KeyframeKind.TRACKING:
-                with self.boundary("tracker", "update_target"):
-                    self.tracker.update_target(self.gaussian_map)
-                self.keyframes_in_target = keyframe_id + 1
+                self._update_target(keyframe_id)
             if defer:
                 self._start_handover(lambda: self._hand_over(frame, result.pose, kind, rows))
             else:
                 self._hand_over(frame, result.pose, kind, rows)
         self.loop_closer.add_keyframe(keyframe_id, frame, result.pose, result.gaussians)  # what the tracker handed over
         self.num_keyframes += 1
+
+    def _update_target(self, keyframe_id: int) -> None:
+        """The tracker aligns to the map with keyframe `keyframe_id`'s trackable Gaussians in it."""
+        with self.boundary("tracker", "update_target"):
+            self.tracker.update_target(self.gaussian_map)
+        self.keyframes_in_target = keyframe_id + 1
 
     def _start_handover(self, hand_over: Callable[[], None]) -> None:
         self.handover = KeyframeHandover(hand_over)
@@ -243,20 +262,32 @@ class SLAM:
         return replace(result, gaussians=frame_gaussians(frame, result.pose, self.growth,
                                                          gm.trackable_entry_means(0) if len(gm) else np.empty((0, 3))))
 
-    def grow_map(self, frame: Frame, result: TrackingResult, kind: KeyframeKind,
-                 keyframe_id: int | None = None) -> slice:
-        """The Gaussians (scale-aligned, paper Sec. 3.1) of keyframe `keyframe_id` (None: the
-        next, `num_keyframes`) that the mapper admits enter the map (a mapping-only keyframe's
-        trackable or not: `growth.mapping_only_trackable`); returns the rows they occupy."""
-        gm = self.gaussian_map
+    def candidate_rows(self, frame: Frame, result: TrackingResult, kind: KeyframeKind,
+                       keyframe_id: int) -> GaussianRows | None:
+        """Keyframe `keyframe_id`'s Gaussians as map rows (scale-aligned, paper Sec. 3.1), not yet
+        in the map (a mapping-only keyframe's trackable or not: `growth.mapping_only_trackable`);
+        None when it has none."""
         if result.gaussians is None:
-            return slice(len(gm), len(gm))
-        untargeted = gm.trackable_entry_means(self.keyframes_in_target)
+            return None
+        gm = self.gaussian_map
+        return new_gaussians(result.gaussians, keyframe_id, self.growth, gm.device,
+                             gm.trackable_entry_means(self.keyframes_in_target),
+                             mapping_only=kind is KeyframeKind.MAPPING_ONLY)
+
+    def grow_map(self, frame: Frame, result: TrackingResult, kind: KeyframeKind, keyframe_id: int | None = None,
+                 candidates: GaussianRows | None = None) -> slice:
+        """Keyframe `keyframe_id`'s Gaussians (None: the next, `num_keyframes`; `candidates`:
+        those of its `candidate_rows` still to enter) enter the map: the trackable ones, and those
+        of the others that the mapper admits (`Mapper.admit`); returns the rows they occupy."""
+        gm = self.gaussian_map
         keyframe_id = self.num_keyframes if keyframe_id is None else keyframe_id
-        new = new_gaussians(result.gaussians, keyframe_id, self.growth, gm.device, untargeted,
-                            mapping_only=kind is KeyframeKind.MAPPING_ONLY)
+        new = candidates if candidates is not None else self.candidate_rows(frame, result, kind, keyframe_id)
+        if new is None:
+            return slice(len(gm), len(gm))
         with gm.lock, self.boundary("mapper", "admit"):
             admitted = self.mapper.admit(frame, result.pose, new)
+        if admitted is not None:  # the trackable rows enter whatever the mapper says (the tracker's target)
+            admitted = np.asarray(torch.as_tensor(admitted).cpu(), dtype=bool) | new.trackable.cpu().numpy()
         entering = (new if admitted is None else new.select(admitted)).computed()  # outside the lock
         return gm.append(entering)
 

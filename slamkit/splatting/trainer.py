@@ -126,10 +126,18 @@ class Trainer:
         """Which of a keyframe's new Gaussians enter the map (`Admission`); `pose` is its
         camera-to-world pose. Call under the map's lock."""
         camera = self.keyframes.training_camera(frame.camera)
-        w2c = torch.as_tensor(invert_pose(np.asarray(pose, dtype=np.float64)), dtype=torch.float32,
-                              device=self.gaussian_map.device)
-        view = KeyframeView(camera, w2c, lambda: self.render(w2c, camera), input_camera=frame.camera,
-                            centres=self.gaussian_map.means.detach())
+        gm = self.gaussian_map
+        w2c = torch.as_tensor(invert_pose(np.asarray(pose, dtype=np.float64)), dtype=torch.float32, device=gm.device)
+        # the map as it was before this keyframe: in real time its trackable rows entered first
+        # (SLAM.add_keyframe), and they must not count as covering the rest
+        own = (gm.keyframe_id == int(new.keyframe_id[0])) if len(new) and len(gm) else None
+        if own is not None and bool(own.any()):
+            params = {k: v.detach()[~own] for k, v in gm.parameters().items()}
+            view = KeyframeView(camera, w2c, lambda: self.render(w2c, camera, params), input_camera=frame.camera,
+                                centres=params["means"])
+        else:
+            view = KeyframeView(camera, w2c, lambda: self.render(w2c, camera), input_camera=frame.camera,
+                                centres=gm.means.detach())
         return self.admission.admit(new, view)
 
     def add_keyframe(self, frame: Frame, pose: np.ndarray, kind: KeyframeKind, new_rows: slice) -> None:
