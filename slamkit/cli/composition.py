@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Callable
 
 from slamkit.errors import SlamkitError
-from slamkit.registry.combinations import Factor, factors, pairs, pairwise
+from slamkit.registry.combinations import Factor, covered_pairs, factors, pairs, pairwise
 from slamkit.registry.discovery import Registry
 
 #: Every run's input and length: 6 frames of 64 x 48 pixels, 2 mapping steps a frame and 2 after.
@@ -115,7 +115,7 @@ def run_matrix(registry: Registry, root: Path | None = None, seed: int = 0,
                     refused.add(outcome.refused_by[0] if len(outcome.refused_by) == 1
                                 else frozenset(outcome.refused_by[:2]))
                 else:  # ran, or failed (reported; its pairs are not tried again)
-                    covered |= set(_pairs_of(row, found))
+                    covered |= covered_pairs(row, found)
     return found, outcomes
 
 
@@ -125,14 +125,9 @@ def _makes_refused(row: dict[str, str], refused: set) -> bool:
         frozenset((a, b)) in refused for i, a in enumerate(chosen) for b in chosen[i + 1:])
 
 
-def _pairs_of(row: dict[str, str], found: list[Factor]):
-    chosen = [(f.key, row[f.key]) for f in found if f.key in row]
-    return [(a, b) for i, a in enumerate(chosen) for b in chosen[i + 1:]]
-
-
 def markdown(found: list[Factor], outcomes: list[Outcome]) -> str:
     """docs/composition.md: the factors, every run with its outcome, and the pairs it covered."""
-    ran = {p for o in outcomes if o.status == "ran" for p in _pairs_of(o.combination, found)}
+    ran = {p for o in outcomes if o.status == "ran" for p in covered_pairs(o.combination, found)}
     every = pairs(found)
     refused = [o for o in outcomes if o.status == "refused"]
     hidden = {p for p in every - ran

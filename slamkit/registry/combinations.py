@@ -66,7 +66,8 @@ def pairs(found: list[Factor]) -> set[tuple[tuple[str, str], tuple[str, str]]]:
             if _possible(a, va, b, vb)}
 
 
-def _covered(combination: dict[str, str], found: list[Factor]) -> set:
+def covered_pairs(combination: dict[str, str], found: list[Factor]) -> set:
+    """The pairs of choices a combination makes, each in `pairs`' order."""
     chosen = [(f.key, combination[f.key]) for f in found if f.key in combination]
     return set(combinations(chosen, 2))
 
@@ -101,13 +102,13 @@ def pairwise(found: list[Factor], seed: int = 0, candidates: int = 40, covered: 
                 if not values:
                     break
                 combination[factor.key] = max(values, key=lambda v: len(
-                    _covered({**combination, factor.key: v}, found) & uncovered))
+                    covered_pairs({**combination, factor.key: v}, found) & uncovered))
             else:
-                gain = len(_covered(combination, found) & uncovered)
+                gain = len(covered_pairs(combination, found) & uncovered)
                 if gain > best_gain:
                     best, best_gain = combination, gain
         if best is None:  # what is left cannot be made without a refused choice
             break
-        uncovered -= _covered(best, found)
+        uncovered -= covered_pairs(best, found)
         chosen.append(best)
     return chosen
