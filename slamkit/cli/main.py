@@ -182,16 +182,17 @@ def _check_jobs(registry, overrides: Sequence[str], sweep: bool) -> None:
     """Every run's config composed and checked before any work: the single run's, or each job's
     of a sweep (Hydra's basic sweeper), so that a combination that cannot compose is refused in
     one line naming the job before the first one runs (ConfigError)."""
-    from slamkit.registry.compose import compose_run, sweep_jobs
+    from slamkit.registry.compose import compose_run, parse_overrides, sweep_jobs
 
     jobs = sweep_jobs(overrides) if sweep else [list(overrides)]
+    swept = {o.key_or_group for o in parse_overrides(overrides) if o.is_sweep_override()}
     for number, job in enumerate(jobs or [], start=1):
         try:
             compose_run([o for o in job if not _is_hydra_setting(o) or o.startswith("hydra.searchpath")], registry)
         except ConfigError as exc:
             if len(jobs) == 1:
                 raise
-            varied = [o for o in job if o not in overrides]
+            varied = [o for o in job if o.split("=", 1)[0] in swept]
             raise ConfigError(f"job {number} of {len(jobs)} of the sweep ({' '.join(varied) or 'as given'}): "
                               f"{exc}") from None
 

@@ -25,7 +25,15 @@ from slamkit.tuning import DatasetTuning
 from slamkit.types import FrameGaussians, TrackingResult
 from slamkit_plugins.keyframes.every_n import EveryNKeyframeConfig, EveryNKeyframePolicy
 
-from support.mapping_scenes import CAM, N, make_map, make_mapper, plane_scene, render_frame
+from support.mapping_scenes import CAM, N, make_mapper, plane_scene, render_frame
+from support.mapping_scenes import make_map as make_scene_map
+
+
+def make_map(means, quats, scales, colors, opacity):
+    """The scene's map as no keyframe of the SLAM under test added it (keyframe id -1): the keyframe
+    grown next is that SLAM's keyframe 0, whose rows already in the map (in real time, its trackable
+    ones) the admission leaves out of its coverage."""
+    return make_scene_map(means, quats, scales, colors, opacity, keyframe_id=-1)
 
 
 def at_pixel(u: float, v: float, z: float, pose: np.ndarray = np.eye(4)) -> np.ndarray:

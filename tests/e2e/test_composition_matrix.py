@@ -10,14 +10,14 @@ import pytest
 
 from slamkit.cli.composition import markdown, run_matrix
 from slamkit.registry.combinations import pairs
-from slamkit.registry.discovery import default_registry
+from slamkit.registry.discovery import discover
 
 from support.data import REPO
 
 
 @pytest.fixture(scope="module")
 def matrix(tmp_path_factory):
-    registry = default_registry()
+    registry = discover()  # what is installed (tests add their own plugins to registries of their own)
     found, outcomes = run_matrix(registry, tmp_path_factory.mktemp("matrix"))
     return found, outcomes
 

@@ -397,18 +397,21 @@ def finite_ply(case: Case, result) -> None:
 
 
 def sweep_with_a_failed_job(case: Case) -> None:
-    """A sweep of three jobs whose second has a bad value: it stops there (the third never runs)."""
-    case.slamkit("-m", *TUM_DATA, "dataset.max_frames=4", "dataset.stride=1,0,2", "hydra.sweep.dir={out}", status=2)
+    """A sweep of three jobs whose second fails at run time (its dataset folder is missing, which
+    composing cannot know): it stops there (the third never runs)."""
+    case.slamkit("-m", "dataset=tum", *FAST, "dataset.max_frames=4", "dataset.path={data},{data}/missing,{data}/later",
+                 "hydra.sweep.dir={out}", status=2)
 
 
 def report_rows(*expected: tuple[str, str]) -> Callable[[Case, Any], None]:
+    """report.csv's rows as (the last name of dataset.path, status), and the failed job's error."""
     def after(case: Case, result) -> None:
         import csv
 
         rows = list(csv.DictReader(open(case.out / "report.csv")))
-        assert sorted((r["dataset.stride"], r["status"]) for r in rows) == sorted(expected)
+        assert sorted((Path(r["dataset.path"]).name, r["status"]) for r in rows) == sorted(expected)
         failed = next(r for r in rows if r["status"] == "failed")
-        assert "dataset.stride: expected an integer >= 1, got 0" in failed["error"]
+        assert "missing not found" in failed["error"]
 
     return after
 
@@ -539,9 +542,13 @@ ISSUE_36 = [
     Fault("report-into-head-1", ("{out}",), 0, "", kept=RAN, completed=True, make=tiny_tum, program="slamkit-report",
           before=earlier(), process="| head -1"),
     # 6. what slamkit-report and the metrics say
+    Fault("sweep-with-a-bad-value", ("-m", *TUM_DATA, "dataset.max_frames=4", "dataset.stride=1,0,2",
+                                     "hydra.sweep.dir={out}"), 2,
+          "job 2 of 3 of the sweep (dataset.stride=0): dataset.stride: expected an integer >= 1, got 0",
+          make=tiny_tum),
     Fault("report-sweep-with-a-failed-job", ("{out}",), 0, "3 runs (1 completed, 1 failed, 1 not run)", kept=(),
           make=tiny_tum, program="slamkit-report", before=sweep_with_a_failed_job,
-          after=report_rows(("1", "completed"), ("0", "failed"), ("2", "not run"))),
+          after=report_rows(("data", "completed"), ("missing", "failed"), ("later", "not run"))),
     Fault("report-read-only-folder", ("{out}",), 1, "cannot write the report into", kept=RAN, completed=True,
           make=tiny_tum, program="slamkit-report", before=earlier(then=read_only), after=writable_again),
     Fault("resumed-run-metrics-per-session", ("resume={out}", "dataset.max_frames=8"), 0, "", kept=RAN,

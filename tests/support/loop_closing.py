@@ -19,8 +19,8 @@ from slamkit.formats.g2o import read_g2o
 from slamkit.formats.tum import read_tum_trajectory
 from slamkit.geometry import make_pose
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.registry import default_registry
 from slamkit.registry.compose import compose_run
+from slamkit.registry.discovery import discover
 from slamkit.roles import PluginConfig, Viewer, ViewerConfig, ViewerFrame
 from slamkit.roles.loop_closure import LoopCheck, LoopClosure, LoopDecision, LoopKeyframe, PoseGraph, PoseGraphEdge
 from slamkit.run import checkpoint, pipeline
@@ -112,11 +112,17 @@ def slamkit_plugins():
             PluginSpec("recording", RecordingViewer, ViewerConfig)]
 
 
+_registry = None
+
+
 def loop_registry():
-    registry = default_registry()
-    if "shifting" not in registry.plugins["loop_closure"]:
-        registry.add_module(sys.modules[__name__], "tests/support/loop_closing.py")
-    return registry
+    """The installed plugins and this module's, in a registry of their own (the process's
+    default registry stays what is installed: the composition matrix lists it)."""
+    global _registry
+    if _registry is None:
+        _registry = discover()
+        _registry.add_module(sys.modules[__name__], "tests/support/loop_closing.py")
+    return _registry
 
 
 def run_shifted(registry, out: Path, *overrides: str) -> dict:

@@ -33,9 +33,9 @@ def rows(means, quats, scales, colors, opacity, keyframe_id: int = 0) -> Gaussia
     return GaussianRows.from_shapes(means, quats, scales, colors, opacity, np.ones(len(means), bool), keyframe_id)
 
 
-def make_map(means, quats, scales, colors, opacity) -> GaussianMap:
+def make_map(means, quats, scales, colors, opacity, keyframe_id: int = 0) -> GaussianMap:
     gm = GaussianMap()
-    gm.append(rows(means, quats, scales, colors, opacity))
+    gm.append(rows(means, quats, scales, colors, opacity, keyframe_id))
     return gm
 
 
