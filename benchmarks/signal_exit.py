@@ -12,7 +12,8 @@ metrics, map, checkpoint). The phases:
   with the mapper, the keyframe handover and the pose-graph loop closure, after 60 frames;
 - loops: the same run after its stream, where the keyframes the loop thread had not taken yet
   are decided (reached only when it had a backlog: else the row says so);
-- refine, map, evaluate: TUM with the mapper and a long refinement, at each phase's start.
+- refine, map, evaluate: TUM with the mapper and a long refinement, at each phase's start;
+- localize: tracking TUM frames 60.. in the map of a run over its first 60 (made first, not timed).
 
 Prints a table (median and largest of `--repeats` runs, and whether the largest is under the
 bound of docs/architecture.md, 5 s) and writes JSON (`--out`).
@@ -62,6 +63,7 @@ def phases(data: Path, quick: bool) -> dict[str, tuple[list[str], str]]:
         "refine": (mapping, "refine"),
         "map": ([*mapping[:-1], "final_iterations=20"], "map"),
         "evaluate": ([*mapping[:-1], "final_iterations=20"], "evaluate"),
+        "localize": (["mode=localize", "map={map}", *tum, "dataset.start=60"], "stream@5" if quick else "stream@30"),
     }
 
 
@@ -111,8 +113,17 @@ def main() -> int:
         parser.error(f"unknown phases {unknown}; expected some of {list(cases)}")
     results = {}
     with tempfile.TemporaryDirectory(prefix="slamkit-signal-exit-") as tmp:
+        if "localize" in chosen:
+            made = subprocess.run([str(Path(sys.executable).with_name("slamkit")), "dataset=tum",
+                                   f"dataset.path={args.data / 'tum_fr1_rpy_first150'}", "dataset.max_frames=60",
+                                   "mapper=none", "progress=false", f"hydra.run.dir={tmp}/map"], cwd=tmp,
+                                  capture_output=True, text=True)
+            if made.returncode:
+                print(f"the map for localize could not be made: {made.stderr.strip().splitlines()[-1:]}")
+                return 1
         for phase in chosen:
             overrides, pause_at = cases[phase]
+            overrides = [o.replace("{map}", f"{tmp}/map") for o in overrides]
             runs = []
             for k in range(repeats):
                 out = Path(tmp) / f"{phase}-{k}"
