@@ -4,8 +4,9 @@ checks every config value gets whatever its part (`check_values`).
 Validation has two layers, both run on the composed config before any work starts:
 - each config dataclass's `validate` holds the ranges of its own fields (`require(...)`);
 - `check_values` walks the whole run config and applies the rules every field shares: a number
-  is finite (NaN never; +inf only in a field declared `unlimited`), and a thread count (a field
-  declared with `thread_count`) is at most this machine's CPUs.
+  is finite (NaN never; +inf only in a field declared `unlimited`), a thread count (a field
+  declared with `thread_count`) is at most this machine's CPUs, and a string is not empty (unless
+  empty is its default: "not given").
 
 A plugin is built in two steps, both by the registry: its config's null fields are filled from
 the run (`PluginConfig.resolve(context)`: the dataset's tuning, the mode), then the plugin is
@@ -113,7 +114,8 @@ def check_values(config: Any, prefix: str = "") -> None:
     """ConfigError (one line naming the key, e.g. `dataset.cx`) for the first value of the
     dataclass `config` (recursively; keys are `prefix` + field name) that breaks a rule every
     config shares: numbers are finite (NaN never; +inf only where the field is `unlimited`),
-    thread counts (`thread_count`) are at most `machine_threads()`."""
+    thread counts (`thread_count`) are at most `machine_threads()`, strings are not empty (but
+    where the default is the empty string)."""
     for f in dataclasses.fields(config):
         key, value = f"{prefix}{f.name}", getattr(config, f.name)
         if dataclasses.is_dataclass(value) and not isinstance(value, type):
@@ -125,6 +127,8 @@ def check_values(config: Any, prefix: str = "") -> None:
                     require(item == math.inf, key, "a finite number or inf (no limit)", value)
                 else:
                     require(False, key, "a finite number", value)
+        if isinstance(value, str) and not value.strip() and f.default != "":  # `key=` said nothing
+            require(False, key, "a value" + (" or null" if f.default is None else ""), value)
         if f.metadata.get(THREADS) and isinstance(value, int) and not isinstance(value, bool):
             cpus = machine_threads()
             require(value <= cpus, key, f"at most {cpus} threads (this machine's CPUs)", value)

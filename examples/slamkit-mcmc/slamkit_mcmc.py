@@ -108,6 +108,8 @@ class MCMCConfig(StrategyConfig):
         require(self.cap_max >= 1, "mapper.strategy.cap_max", "an integer >= 1", self.cap_max)
         require(self.max_scale is None or self.max_scale > 0, "mapper.strategy.max_scale", "null or > 0 metres",
                 self.max_scale)
+        require(0 <= self.seed < 2**63, "mapper.strategy.seed", "an integer from 0 to 2^63 - 1 (torch's seed range)",
+                self.seed)
 
     def resolve(self, context: RunContext) -> MCMCConfig:
         return self.fill_nulls(max_scale=context.tuning.max_gaussian_scale)

@@ -8,7 +8,10 @@ download), extracts it into the layout the dataset plugins read and deletes it (
 (`rgbd_dataset_freiburg1_desk` or `fr1/desk`), or `paper` for all four archives;
 `slamkit-data list` prints them. `--base-url URL` (or SLAMKIT_DATA_BASE_URL) reads a mirror.
 docs/datasets.md, "Downloading the paper's sequences". Exit status: 0 done, 1 a download failed
-(what it had is kept), 2 a bad name, checksum or archive (one line each), 130 interrupted.
+(what it had is kept) or --root cannot be created, 2 a bad name, --root, checksum or archive
+(one line each), 130 interrupted. An archive that does not extract (cut short, damaged) is never
+kept as the finished download: it is moved aside as FILE.corrupt, its record dropped, and the
+next run downloads it again.
 """
 
 from __future__ import annotations
@@ -21,9 +24,9 @@ import time
 from pathlib import Path
 
 from slamkit.downloads import catalogue
-from slamkit.downloads.archives import extract
+from slamkit.downloads.archives import DamagedArchive, extract
 from slamkit.downloads.transfer import download, part_path
-from slamkit.errors import DataError, SlamkitError
+from slamkit.errors import DataError, OutputError, SlamkitError
 from slamkit.formats.atomic import write_atomic
 
 #: The record of what was downloaded into a root folder.
@@ -53,6 +56,28 @@ def _record(root: Path, file_name: str, **fields) -> None:
     write_atomic(root / MANIFEST, json.dumps(manifest, indent=2, sort_keys=True) + "\n")
 
 
+def _forget(root: Path, file_name: str) -> None:
+    """Drop the record of `file_name` (a damaged download's checksum must not bind the next one)."""
+    manifest = read_manifest(root)
+    if manifest.pop(file_name, None) is not None:
+        write_atomic(root / MANIFEST, json.dumps(manifest, indent=2, sort_keys=True) + "\n")
+
+
+def make_root(root: Path) -> None:
+    """Create the folder `--root` names (and its parents). DataError (exit 2) when it names
+    something that is not a folder, OutputError (exit 1) when it cannot be created."""
+    for path in (root, *root.parents):
+        if path.exists() and not path.is_dir():
+            raise DataError(f"--root {root}: {path} is a file, expected a folder (or a path to create one at)")
+        if path.exists():
+            break
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"--root {root}: cannot create the folder ({exc.strerror or exc}); "
+                          f"give a folder this user can write") from None
+
+
 def fetch(archive: catalogue.Archive, root: Path, *, base_url: str | None = None, sha256: str | None = None,
           keep_archive: bool = False, retries: int = 3, progress: bool = True) -> list[Path]:
     """Download, check and extract one archive under `root` (see the module docstring); returns
@@ -71,7 +96,14 @@ def fetch(archive: catalogue.Archive, root: Path, *, base_url: str | None = None
                    retries=retries, progress=progress)
     _record(root, archive.file_name, url=url, bytes=got.size, sha256=got.sha256,
             downloaded=time.strftime("%Y-%m-%dT%H:%M:%S%z"))
-    extract(got.path, root)
+    try:
+        extract(got.path, root)
+    except DamagedArchive as exc:  # never kept as the finished download: the next run fetches it again
+        corrupt = got.path.with_name(got.path.name + ".corrupt")
+        got.path.replace(corrupt)
+        _forget(root, archive.file_name)
+        raise DamagedArchive(f"{exc}; moved aside as {corrupt.name}: run the same command again to download it "
+                             f"afresh") from None
     missing = archive.missing(root)
     if missing:
         raise DataError(f"{got.path}: extracted, but {missing[0]} is not there (expected the {archive.dataset} "
@@ -115,8 +147,12 @@ def main(argv: list[str] | None = None) -> int:
     except SlamkitError as exc:
         print(f"slamkit-data: error: {exc}", file=sys.stderr)
         return exc.exit_status
+    try:
+        make_root(args.root)
+    except SlamkitError as exc:
+        print(f"slamkit-data: error: {exc}", file=sys.stderr)
+        return exc.exit_status
     status = 0
-    args.root.mkdir(parents=True, exist_ok=True)
     for archive in archives:
         try:
             fetch(archive, args.root, base_url=args.base_url, sha256=args.sha256, keep_archive=args.keep_archive,

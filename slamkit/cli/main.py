@@ -139,7 +139,7 @@ class Command:
         from hydra.types import RunMode
         from omegaconf import OmegaConf
 
-        from slamkit.registry.compose import chosen_plugins
+        from slamkit.registry.compose import chosen_plugins, parse_overrides
         from slamkit.registry.discovery import default_registry
         from slamkit.registry.schema import Mode, validate_config
         from slamkit.run import localization, pipeline
@@ -154,11 +154,11 @@ class Command:
         failed_value = OmegaConf.select(cfg, "objective.failed_value", default=None)  # also for a config that fails
         self.stop = StopSignals()
         try:
-            run_cfg = validate_config(cfg)
+            run_cfg = validate_config(cfg, parse_overrides(list(hydra_cfg.overrides.task)))
             program = localization if run_cfg.mode is Mode.localize else pipeline
             metrics = program.run(run_cfg, registry, names, out_dir, self.stop)
         except SlamkitError as exc:
-            log.error("%s", exc)
+            log.error("%s", exc, extra={streams.SAID: True})  # the log file's; the terminal gets the line below
             if os.environ.get("SLAMKIT_DEBUG"):
                 raise
             if failed_value is None:

@@ -158,8 +158,9 @@ def paper_table(name: str, runs: list[dict[str, Any]]) -> str:
     each of ours ("-" where the paper has none)."""
     table = TABLES[name]
     groups: dict[tuple, list[dict]] = {}
+    mixed = [run for run in runs if run["status"] == "completed" and run["metrics"].get("settings_changes")]
     for run in runs:
-        if run["status"] == "completed":
+        if run["status"] == "completed" and run not in mixed:  # a run resumed with other settings is no one row's
             row = tuple(run["settings"].get(k) for k in table.keys)
             groups.setdefault((row, scene_of(run["settings"])), []).append(run["metrics"])
     order = [k[:-1] for k in table.labels] + [k[:-1] for k in table.paper]
@@ -183,6 +184,8 @@ def paper_table(name: str, runs: list[dict[str, Any]]) -> str:
     notes = ["the paper's ATE is the reference code's mean error after alignment: beside our ate_mean_m"
              ] if ATE in table.metrics else []
     notes += [table.note] if table.note else []
+    notes += [f"left out, resumed with other method settings (metrics.json settings_changes): "
+              f"{', '.join(str(run['run']) for run in mixed)}"] if mixed else []
     lines += ["", "; ".join(notes) + "."] if notes else []
     return "\n".join(lines) + "\n"
 

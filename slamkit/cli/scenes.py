@@ -1,8 +1,10 @@
 """Scene sweeps over `data_root` (`slamkit +experiment=paper_replica data_root=DIR`): before the
 sweep starts, each scene it would run (its `scene` sweep, from the experiment's
 `hydra.sweeper.params.scene` or from `scene=a,b` on the command line) is looked up as a folder
-under data_root; the sweep runs the scenes found, and each missing one is named in one line.
-None found, or no data_root, is a one-line error."""
+under data_root and opened as its job's dataset would be (its lists read, its frames counted);
+the sweep runs the complete scenes, and each missing or incomplete one is named in one line
+(`slamkit: scene NAME skipped: WHY`) before the first job. None complete, or no data_root, is a
+one-line error."""
 
 from __future__ import annotations
 
@@ -42,15 +44,47 @@ def present_scenes(argv: Sequence[str], out=None) -> list[str]:
     if not root:
         raise ConfigError(f"{ROOT_KEY}: expected the folder holding the scenes {', '.join(scenes)} "
                           f"(slamkit-data download paper --root DIR, then {ROOT_KEY}=DIR), got {root!r}")
-    found = [s for s in scenes if (Path(str(root)) / s).is_dir()]
+    fixed = [o.input_line for o in parsed if not o.is_sweep_override() and o.key_or_group != SCENE_KEY
+             and not _hydra_setting(o.key_or_group)]
+    found = []
     for scene in scenes:
-        if scene not in found:
-            print(f"slamkit: scene {scene} skipped: no folder {Path(str(root)) / scene}", file=out)
+        folder = Path(str(root)) / scene
+        why = f"no folder {folder}" if not folder.is_dir() else _incomplete(fixed, scene)
+        if why is None:
+            found.append(scene)
+        else:
+            print(f"slamkit: scene {scene} skipped: {why}", file=out)
     if not found:
-        raise ConfigError(f"{ROOT_KEY}={root}: none of the scenes is there ({', '.join(scenes)}); get them with "
-                          f"slamkit-data download paper --root {root}")
+        raise ConfigError(f"{ROOT_KEY}={root}: none of the scenes is there complete ({', '.join(scenes)}); get "
+                          f"them with slamkit-data download paper --root {root}")
     kept = [a for a in argv if a.startswith("-") or a not in {o.input_line for o in given}]
     return kept + [f"{SCENE_KEY}={','.join(found)}"]
+
+
+def _hydra_setting(key: str) -> bool:
+    return key == "hydra" or key.startswith(("hydra.", "hydra/"))
+
+
+def _incomplete(overrides: list[str], scene: str) -> str | None:
+    """Why the job of `scene` could not open its dataset (a file missing or unreadable, no frame
+    selected: the DataError's line), None when it can. The job's config as the sweep composes
+    it; a bad value in it is the command's error, raised."""
+    from slamkit.errors import DataError
+    from slamkit.registry.compose import compose_run
+    from slamkit.registry.discovery import default_registry
+    from slamkit.run.boundary import PluginBoundary
+
+    cfg, names = compose_run([*overrides, f"{SCENE_KEY}={scene}"])
+    try:
+        with PluginBoundary(names)("dataset", "__init__"):
+            dataset = default_registry().create("dataset", names["dataset"], cfg.dataset)
+        if len(dataset) == 0:
+            return f"no frames selected in {cfg.dataset.path}"
+    except DataError as exc:
+        return str(exc)
+    except OSError as exc:  # a folder this user cannot read
+        return f"{exc.strerror or exc}: {exc.filename or cfg.dataset.path}"
+    return None
 
 
 def _composed(overrides: list[str]):

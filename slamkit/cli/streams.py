@@ -86,3 +86,15 @@ def guard() -> None:
             stream = open(1 if name == "stdout" else 2, "w", encoding="utf-8", errors="backslashreplace",
                           closefd=False)
         setattr(sys, name, GuardedStream(stream, name))
+
+
+#: `log.error(..., extra={SAID: True})`: a record the command also prints itself (its
+#: `slamkit: error:` line): kept in the log file, not shown on the terminal twice.
+SAID = "slamkit_said"
+
+
+class SaidOnce:
+    """The console handler's logging filter (conf/config.yaml): drops the records marked `SAID`."""
+
+    def filter(self, record) -> bool:
+        return not getattr(record, SAID, False)

@@ -17,6 +17,12 @@ from pathlib import Path, PurePosixPath
 from slamkit.errors import DataError
 
 
+class DamagedArchive(DataError):
+    """The archive's bytes are not a whole, safe archive of its kind (cut short, a CRC that does
+    not match, empty, members that would land outside its folder): the download is at fault,
+    not the folder it goes into."""
+
+
 def archive_kind(path: Path) -> str:
     """"zip" or "tar" from the file name."""
     name = path.name.lower()
@@ -30,7 +36,7 @@ def archive_kind(path: Path) -> str:
 def _safe(name: str, archive: Path) -> None:
     p = PurePosixPath(name.replace("\\", "/"))
     if p.is_absolute() or ".." in p.parts or (p.parts and ":" in p.parts[0]):  # C:... is absolute on Windows
-        raise DataError(f"{archive}: member {name!r} would land outside the folder it is extracted into")
+        raise DamagedArchive(f"{archive}: member {name!r} would land outside the folder it is extracted into")
 
 
 def extract(archive: Path, into: Path) -> list[Path]:
@@ -49,7 +55,7 @@ def extract(archive: Path, into: Path) -> list[Path]:
             _extract_tar(archive, staging)
         tops = sorted(staging.iterdir())
         if not tops:
-            raise DataError(f"{archive}: the archive is empty")
+            raise DamagedArchive(f"{archive}: the archive is empty")
         for top in tops:
             if (into / top.name).exists():
                 raise DataError(f"{into / top.name} exists already: move it away to extract {archive.name} again")
@@ -65,13 +71,12 @@ def _extract_zip(archive: Path, staging: Path) -> None:
         with zipfile.ZipFile(archive) as z:
             damaged = z.testzip()
             if damaged is not None:
-                raise DataError(f"{archive}: member {damaged!r} fails its CRC check (a damaged download: delete "
-                                f"the file and download it again)")
+                raise DamagedArchive(f"{archive}: member {damaged!r} fails its CRC check (a damaged download)")
             for name in z.namelist():
                 _safe(name, archive)
             z.extractall(staging)
     except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError) as exc:
-        raise DataError(f"{archive}: not a complete, readable zip archive ({_first_line(exc)})") from None
+        raise DamagedArchive(f"{archive}: not a complete, readable zip archive ({_first_line(exc)})") from None
 
 
 def _extract_tar(archive: Path, staging: Path) -> None:
@@ -85,9 +90,9 @@ def _extract_tar(archive: Path, staging: Path) -> None:
             if member.issym() or member.islnk():
                 target = PurePosixPath(member.name).parent / member.linkname
                 if PurePosixPath(member.linkname).is_absolute() or ".." in target.parts:
-                    raise DataError(f"{archive}: link {member.name!r} points outside the archive's folder")
+                    raise DamagedArchive(f"{archive}: link {member.name!r} points outside the archive's folder")
             elif not (member.isfile() or member.isdir()):
-                raise DataError(f"{archive}: member {member.name!r} is not a file or a folder")
+                raise DamagedArchive(f"{archive}: member {member.name!r} is not a file or a folder")
             yield member
 
     try:
@@ -100,7 +105,7 @@ def _extract_tar(archive: Path, staging: Path) -> None:
             while stream.read(1 << 20):
                 pass
     except (tarfile.TarError, gzip.BadGzipFile, zlib.error, EOFError, OSError) as exc:
-        raise DataError(f"{archive}: not a complete, readable tar archive ({_first_line(exc)})") from None
+        raise DamagedArchive(f"{archive}: not a complete, readable tar archive ({_first_line(exc)})") from None
 
 
 def _first_line(exc: BaseException) -> str:

@@ -88,6 +88,25 @@ def check_spellings(overrides: Sequence[str]) -> None:
                               f"(write {line.replace(override.key_or_group, new, 1)})")
 
 
+def _key_of_a_choice(overrides: Sequence[str]) -> str | None:
+    """The one line for a key under a config group that is a choice without keys of its own
+    (`preset.x=1`: Hydra's "Cannot convert 'dict' to string"), else None."""
+    from importlib.resources import files
+
+    roles = {r.key for r in ROLES}
+    for override in parse_overrides(overrides):
+        group, _, rest = override.key_or_group.partition(".")
+        if not rest or group in roles or group == "hydra":
+            continue
+        for module in (CONFIG_MODULE, "slamkit.experiments"):
+            folder = files(module).joinpath(group)
+            if folder.is_dir():
+                names = sorted(f.name[:-5] for f in folder.iterdir() if f.name.endswith(".yaml"))
+                return (f"{override.input_line}: {group} is chosen whole ({group}=NAME: {', '.join(names)}) and has "
+                        f"no keys; set what it sets by its own key instead (e.g. fps_limit=30)")
+    return None
+
+
 def _part_without_owner(overrides: Sequence[str], error: Exception) -> str | None:
     """The one line for a part chosen while its owner composes no such part (`mapper/rasterizer=cpu`
     with `mapper=none`, Hydra's "Could not override 'mapper/rasterizer'"), else None."""
@@ -189,14 +208,14 @@ def compose_run(overrides: Sequence[str] = (), registry: Registry | None = None)
         with initialize_config_module(CONFIG_MODULE, version_base=None):
             cfg = compose(CONFIG_NAME, overrides=list(overrides), return_hydra_config=True)
     except Exception as exc:  # Hydra's override and type errors: name the value, one line
-        orphan = _part_without_owner(overrides, exc)
+        orphan = _part_without_owner(overrides, exc) or _key_of_a_choice(overrides)
         if orphan:
             raise ConfigError(orphan) from None
         raise ConfigError(composition_error(exc, overrides, registry or default_registry())) from exc
     names = chosen_plugins(cfg.hydra.runtime.choices)
     with open_dict(cfg):
         del cfg["hydra"]
-    run_cfg = validate_config(cfg)
+    run_cfg = validate_config(cfg, parse_overrides(overrides))
     check_mode_uses(run_cfg, names)
     return run_cfg, names
 

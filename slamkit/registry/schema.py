@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass, field, is_dataclass, make_dataclass
-from typing import Any
+from typing import Any, Sequence
 
 from omegaconf import MISSING, DictConfig, OmegaConf
 
@@ -237,11 +237,34 @@ def register_run_config() -> None:
     ConfigStore.instance().store(name="slamkit_schema", node=run_schema())
 
 
-def validate_config(cfg: DictConfig) -> RunConfig:
+def check_booleans(cfg: DictConfig, overrides: Sequence[Any]) -> None:
+    """ConfigError naming the key for an override (Hydra's parsed `Override`s) that gives a
+    boolean key anything but true, false or null: OmegaConf would take `2` or `-1` as true."""
+    from omegaconf import BooleanNode
+
+    for override in overrides:
+        key = override.key_or_group
+        if override.is_delete() or override.is_sweep_override() or "/" in key or key.startswith("hydra"):
+            continue
+        node: Any = cfg
+        for part in key.split("."):
+            try:
+                node = node._get_node(part) if isinstance(node, DictConfig) else None
+            except Exception:  # noqa: BLE001 - not a key of the run config (a group: +experiment=NAME)
+                node = None
+        value = override.value()
+        if isinstance(node, BooleanNode) and not (value is None or isinstance(value, bool)
+                                                  or (isinstance(value, str) and value.startswith("${"))):
+            raise ConfigError(f"{key}: expected true or false, got {override.get_value_element_as_str()}")
+
+
+def validate_config(cfg: DictConfig, overrides: Sequence[Any] = ()) -> RunConfig:
     """Turn the composed config into a RunConfig whose groups are the plugins' config
     dataclasses, running every `validate`, then the rules every value shares
-    (`slamkit.roles.check_values`: finite numbers, thread counts bounded by the machine).
+    (`slamkit.roles.check_values`: finite numbers, thread counts bounded by the machine), and
+    `check_booleans` over the `overrides` it was composed with (Hydra's parsed `Override`s).
     Raises ConfigError (one line naming the key) on a wrong value."""
+    check_booleans(cfg, overrides)
     try:
         run = OmegaConf.to_object(cfg)
     except ConfigError:

@@ -97,7 +97,8 @@ class CheckpointWriter:
                 "camera": {"width": int(camera.width), "height": int(camera.height),
                            **{k: float(getattr(camera, k)) for k in ("fx", "fy", "cx", "cy")}},
                 "depth_trunc": _finite_or_none(self.dataset.depth_trunc),
-                "dataset": {k: getattr(self.cfg.dataset, k) for k in SAME_SELECTION}}
+                "dataset": {k: getattr(self.cfg.dataset, k) for k in SAME_SELECTION},
+                "settings_changes": self.state.settings_changes}
         size = write_checkpoint(self.path, meta, state)
         self.saved_keyframes = self.slam.num_keyframes
         log.info("checkpoint (%s) after frame %d: %s, %.1f MB in %.2f s", reason, n - 1, self.path, size / 2**20,
@@ -182,6 +183,7 @@ def resume(cfg, names: dict[str, str], slam, run_state, dataset=None) -> int:
     if dataset is not None:
         check_frames(checkpoint, dataset, cfg.resume)
     first = restore(checkpoint, slam, run_state)
+    run_state.settings_changes = settings_changes(checkpoint, cfg, first)
     log.info("resumed from %s (%s after frame %d): %d Gaussians, %d keyframes", checkpoint_path(cfg.resume),
              checkpoint.get("reason"), first - 1, len(slam.gaussian_map), slam.num_keyframes)
     return first
@@ -256,14 +258,57 @@ def finished(cfg, names: dict[str, str], frames: int) -> dict[str, Any] | None:
     return metrics
 
 
+def saved_settings(checkpoint: dict[str, Any]) -> dict[str, Any]:
+    """The method settings (`slamkit.run.settings.METHOD_KEYS`) of the session that wrote the
+    checkpoint, from its resolved config (a key its config lacks is left out)."""
+    from slamkit.run.settings import METHOD_KEYS
+
+    settings = {}
+    for key in METHOD_KEYS:
+        node: Any = checkpoint.get("config") or {}
+        for part in key.split("."):
+            node = node.get(part, _ABSENT) if isinstance(node, dict) else _ABSENT
+        if node is not _ABSENT:
+            settings[key] = node
+    return settings
+
+
+def settings_changes(checkpoint: dict[str, Any], cfg, first: int) -> list[dict[str, Any]]:
+    """The checkpoint's record of method-setting changes, plus this session's when its settings
+    differ from the checkpoint's: {frame: the first frame run with them, before, after} (only
+    the keys that changed). A resumed run is never labelled as one method when it is not."""
+    from slamkit.run.settings import method_settings
+
+    changes = list(checkpoint.get("settings_changes") or [])
+    before = saved_settings(checkpoint)
+    now = json.loads(json.dumps(method_settings(cfg)))
+    changed = sorted(k for k in before if k in now and before[k] != now[k])
+    if changed:
+        change = {"frame": first, "before": {k: before[k] for k in changed}, "after": {k: now[k] for k in changed}}
+        log.warning("resume: the method settings change at frame %d: %s (metrics.json records it under "
+                    "settings_changes)", first, ", ".join(f"{k} {before[k]!r} -> {now[k]!r}" for k in changed))
+        changes.append(change)
+    return changes
+
+
+_ABSENT = object()
+
+
 def check_resumable(checkpoint: dict[str, Any], cfg, names: dict[str, str], source: str | Path) -> None:
-    """ConfigError-like CheckpointError when this run cannot continue the checkpoint's: other
-    plugins, or another frame selection of the dataset (its max_frames may differ)."""
+    """ConfigError-like CheckpointError when this run cannot continue the checkpoint's: another
+    preset, other plugins, or another frame selection of the dataset (its max_frames may
+    differ). Other method settings may change: `settings_changes` records them."""
+    saved_preset = (checkpoint.get("config") or {}).get("preset")
+    if saved_preset is not None and saved_preset != cfg.preset:
+        raise CheckpointError(f"resume={source}: the run was made with preset={saved_preset}, this one has "
+                              f"preset={cfg.preset} (a resumed run keeps its preset and plugins: start a new run "
+                              f"to change them)")
     for role, name in (checkpoint.get("plugins") or {}).items():
         role = current_path(role)  # a checkpoint before 0.3 names a mapper part by its key alone
         if names.get(role) != name:
             raise CheckpointError(f"resume={source}: the checkpoint was made with {role}={name}, this run has "
-                                  f"{role}={names.get(role)} (a resumed run keeps its plugins)")
+                                  f"{role}={names.get(role)} (a resumed run keeps its preset and plugins: start a "
+                                  f"new run to change them)")
     saved = checkpoint.get("dataset", {})
     for key in SAME_SELECTION:
         if key in saved and saved[key] != getattr(cfg.dataset, key):
@@ -309,6 +354,7 @@ def resume_arguments(argv: list[str]) -> list[str]:
     if not isinstance(overrides, list):
         raise CheckpointError(f"resume={source}: the checkpoint has no command line to resume (it was written "
                               "outside the slamkit command)")
+    _check_choices(meta, given, source)
     kept = []
     for saved in parse_overrides(overrides):
         key = saved.key_or_group
@@ -318,6 +364,22 @@ def resume_arguments(argv: list[str]) -> list[str]:
     out_dir = source if source.is_dir() else source.parent
     run_dir = [] if "hydra.run.dir" in given else [f"hydra.run.dir={out_dir}"]
     return kept + argv + run_dir
+
+
+def _check_choices(meta: dict[str, Any], given: dict[str, Any], source: Path) -> None:
+    """CheckpointError, in the terms of the command line, for a `preset=` or a plugin choice
+    (`loop_closure=none`) other than the checkpoint's run's, before anything is composed (the
+    checkpoint's keys of the plugin it had would not compose with another)."""
+    saved = {"preset": (meta.get("config") or {}).get("preset"),
+             **{role.replace(".", "/"): name for role, name in (meta.get("plugins") or {}).items()}}
+    for key, override in given.items():
+        key = key.removeprefix("+")
+        if key not in saved or saved[key] is None or override.is_sweep_override() or override.is_delete():
+            continue
+        if str(override.value()) != str(saved[key]):
+            raise CheckpointError(f"resume={source}: the run was made with {key}={saved[key]}, this one asks for "
+                                  f"{key}={override.value()} (a resumed run keeps its preset and plugins: start a "
+                                  f"new run to change them)")
 
 
 def config_dict(cfg) -> dict[str, Any]:

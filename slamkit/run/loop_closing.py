@@ -21,7 +21,7 @@ import logging
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -217,14 +217,14 @@ class LoopCloser:
         return correction
 
     # -- deciding (the loop thread, or the tracking thread in sequential mode) ------------------
-    def detect(self) -> bool:
-        """Give the queued keyframes to the loop closure and have it decide now; the decision
-        waits for `take`. False when nothing was queued."""
+    def detect(self, limit: int | None = None) -> bool:
+        """Give the queued keyframes (the first `limit` of them; None: all) to the loop closure
+        and have it decide now; the decision waits for `take`. False when nothing was queued."""
         if not self.active:
             return False
         with self._plugin_lock:
             with self._wake:
-                batch, self._queued = self._queued, []
+                batch, self._queued = self._queued[:limit], self._queued[len(self._queued[:limit]):]
             if not batch:
                 return False
             wall, cpu = time.perf_counter(), self._cpu_clock()
@@ -257,10 +257,14 @@ class LoopCloser:
         if isinstance(self.closure, LoopClosureProcess):
             self.closure.close()
 
-    def finish_stream(self) -> None:
-        """After the stream (the loop thread stopped): decide on the keyframes not taken yet."""
+    def finish_stream(self, check_stop: Callable[[], None] = lambda: None) -> None:
+        """After the stream (the loop thread stopped): decide on the keyframes not taken yet,
+        one call per keyframe as in sequential mode, `check_stop()` before each (a stop signal:
+        it raises, and the keyframes not taken stay queued, kept by the checkpoint)."""
         self.cost.after_stream = self.waiting()
-        self.detect()
+        while self.waiting():
+            check_stop()
+            self.detect(limit=1)
 
     def waiting(self) -> int:
         """Keyframes waiting for `detect`."""
@@ -355,6 +359,9 @@ class LoopThread(threading.Thread):
     mapping thread's priority (`slamkit.run.loop_process`); this thread only hands it the
     keyframes and waits for its answer, at normal priority (holding the GIL at a lower one
     while it pickles a keyframe would make tracking wait for a thread that waits for a CPU).
+    It hands the keyframes over one call each, as sequential mode does, so that `stop()` (a
+    stop signal) waits for one keyframe's detection at most, never for a backlog: the keyframes
+    not taken stay queued (a checkpoint keeps them).
     An exception in the loop closure stops the thread and is re-raised by `check()` / `stop()`.
     `stop()` lets the call in progress end."""
 
@@ -367,7 +374,7 @@ class LoopThread(threading.Thread):
     def run(self) -> None:
         try:
             while not self._stop_event.is_set():
-                if not self.closer.detect():
+                if not self.closer.detect(limit=1):
                     self.closer.wait_for_keyframes(0.05)
         except BaseException as exc:  # handed to the tracking thread
             self.error = exc

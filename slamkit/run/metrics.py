@@ -75,6 +75,8 @@ def run_metrics(cfg: RunConfig, slam: SLAM, state: RunState, wall_s: float) -> d
         "num_gaussians": len(slam.gaussian_map),
         "settings": method_settings(cfg, slam.boundary.names),  # the method as run, the defaults filled
     }
+    if state.settings_changes:  # a resumed run that changed them: the frame from which `settings` hold
+        metrics["settings_changes"] = state.settings_changes
     metrics.update(state.evaluation)
     peak = peak_memory_mb()  # so far: after the evaluation in the last write
     earlier_peak = state.earlier.peak_memory_mb

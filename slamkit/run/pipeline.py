@@ -122,7 +122,7 @@ def _phases(cfg: RunConfig, dataset, slam: SLAM, state: RunState, outputs: RunOu
         state.stop(FAILED, failure)
         log.error("%s", failure)
         return
-    _close_remaining_loops(slam, state, viewer)
+    _close_remaining_loops(slam, state, viewer, stop)
     _enter(Phase.refine, state, stop)
     outputs.save_trajectory()
     _refine(slam, cfg.refinement_iterations(), state, stop)
@@ -254,12 +254,12 @@ def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, frames_log: Fram
             waited = schedule_end.cpu_wait_s - schedule_start.cpu_wait_s
             state.tracking_cpu_wait_s = (state.tracking_cpu_wait_s or 0.0) + waited
         bar.close()
-        try:
-            if loops:
-                loops.stop()
-        finally:
+        try:  # mapping first: a loop closure's call in progress then has the CPUs to end
             if mapping:
                 _stop_mapping(mapping, state)
+        finally:
+            if loops:
+                loops.stop()
         state.loading_cpu_s += loading.cpu_s
         if handover_error is not None and sys.exc_info()[1] is None:
             raise handover_error
@@ -300,11 +300,14 @@ def _track(frame: Frame, slam: SLAM, state: RunState, frames_log: FrameLog, view
     viewer.show(frame, step.tracking.pose, step.keyframe, step.tracking.lost, slam.loop_closer.loop_segments)
 
 
-def _close_remaining_loops(slam: SLAM, state: RunState, viewer: ViewerFeed) -> None:
+def _close_remaining_loops(slam: SLAM, state: RunState, viewer: ViewerFeed, stop: StopSignals) -> None:
     """After the stream: the keyframes the real-time loop thread had not taken yet are decided
-    on now, and the decisions not applied yet are, so that the trajectory written and the map
-    refined are the corrected ones."""
-    slam.loop_closer.finish_stream()
+    on now, one at a time (a stop signal ends it between two: those left stay queued), and the
+    decisions not applied yet are, so that the trajectory written and the map refined are the
+    corrected ones."""
+    if slam.loop_closer.waiting():
+        pause_point("loops", stop)
+    slam.loop_closer.finish_stream(stop.check)
     correction = slam.correct()
     if correction is not None:
         state.follow(correction)

@@ -73,6 +73,8 @@ class RunState:
     evaluation: dict[str, Any] = field(default_factory=dict)  # the mapper's rendering metrics
     previous_wall_s: float = 0.0  # wall time of the runs this one resumes (slamkit.run.checkpoint)
     earlier: EarlierSessions = field(default_factory=EarlierSessions)  # the sessions this one resumes
+    #: a resumed run whose method settings changed: [{frame, before, after}] per change (metrics.json)
+    settings_changes: list[dict[str, Any]] = field(default_factory=list)
 
     @property
     def sessions(self) -> int:

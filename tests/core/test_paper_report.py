@@ -67,6 +67,18 @@ def test_table1_takes_the_papers_column_of_the_scene_or_its_mean(tmp_path, capsy
                    ("paper", "my_room"): ("mean", "0.160"), ("slamkit", "room0"): ("-", "-")}
 
 
+def test_a_run_resumed_with_other_method_settings_is_no_rows_and_is_named(tmp_path, capsys):
+    sweep = tmp_path / "sweep"
+    fake_run(sweep, "0", ["scene=Replica/room0", "preset=paper"], ate_mean_m=0.002, ate_rmse_m=0.003)
+    fake_run(sweep, "1", ["scene=Replica/office4", "preset=paper"], ate_mean_m=0.004, ate_rmse_m=0.005,
+             settings_changes=[{"frame": 10, "before": {"fps_limit": 30.0}, "after": {"fps_limit": None}}])
+    assert report_main([str(sweep), "--paper", "table1"]) == 0
+    text = capsys.readouterr().out.split("**Table 1")[1]
+    header, *rows = table_rows(text)
+    assert [r[header.index("scene")] for r in rows] == ["room0"]
+    assert "resumed with other method settings" in text and str(sweep / "1") in text
+
+
 def test_an_unknown_table_is_refused(tmp_path, capsys):
     fake_run(tmp_path, "0", ["seed=0"], psnr=1.0)
     with pytest.raises(SystemExit) as exit_:

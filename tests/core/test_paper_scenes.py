@@ -39,3 +39,20 @@ def test_the_scene_sweep_keeps_the_scenes_found_and_a_given_list(data_root):
                           out=io.StringIO())
     assert argv[-1] == "scene=Replica/room0" and sum(a.startswith("scene=") for a in argv) == 1
     assert present_scenes(["tracker=gicp", "seed=2"]) == ["tracker=gicp", "seed=2"]  # no scene sweep: as given
+
+
+def test_an_incomplete_scene_is_named_with_what_is_missing_and_the_complete_ones_run(data_root):
+    incomplete = data_root / "rgbd_dataset_freiburg2_xyz"
+    incomplete.mkdir()
+    (incomplete / "rgb.txt").write_text((data_root / "rgbd_dataset_freiburg1_desk" / "rgb.txt").read_text())
+    told = io.StringIO()
+    argv = present_scenes(["+experiment=paper_tum", f"data_root={data_root}"], out=told)
+    assert argv[-1] == "scene=rgbd_dataset_freiburg1_desk"
+    lines = told.getvalue().splitlines()
+    (why,) = [line for line in lines if "freiburg2_xyz" in line]
+    assert why.startswith("slamkit: scene rgbd_dataset_freiburg2_xyz skipped: ") and "depth.txt" in why
+    # none complete: one line naming data_root
+    with pytest.raises(ConfigError, match="none of the scenes is there complete") as err:
+        present_scenes(["+experiment=paper_tum", f"data_root={data_root}", "scene=rgbd_dataset_freiburg2_xyz"],
+                       out=io.StringIO())
+    assert "\n" not in str(err.value)

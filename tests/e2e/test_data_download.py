@@ -312,3 +312,34 @@ def test_the_console_script(server, tmp_path):
     assert (tmp_path / TUM_SEQUENCE / "groundtruth.txt").is_file()
     listed = subprocess.run([str(script), "list"], capture_output=True, text=True, timeout=60)
     assert listed.returncode == 0 and "fr3/office (rgbd_dataset_freiburg3_long_office_household)" in listed.stdout
+
+
+def test_a_truncated_archive_is_moved_aside_and_the_next_run_downloads_it_again(server, tmp_path, capsys):
+    good = server.files[TUM_URL_PATH]
+    server.files[TUM_URL_PATH] = good[: len(good) // 2]  # the server's file cut short (its length says so too)
+    status, _, err = run(capsys, "fr1/desk", "--root", str(tmp_path), "--base-url", server.url)
+    line = one_line(err)
+    assert status == 2 and "not a complete, readable tar archive" in line
+    assert f"moved aside as {TUM_SEQUENCE}.tgz.corrupt" in line and "run the same command again" in line
+    assert (tmp_path / f"{TUM_SEQUENCE}.tgz.corrupt").read_bytes() == good[: len(good) // 2]
+    assert not (tmp_path / f"{TUM_SEQUENCE}.tgz").exists() and not (tmp_path / TUM_SEQUENCE).exists()
+    assert f"{TUM_SEQUENCE}.tgz" not in json.loads((tmp_path / cli.MANIFEST).read_text())  # its checksum forgotten
+
+    server.files[TUM_URL_PATH] = good  # the server serves the right file again: the same command succeeds
+    status, _, err = run(capsys, "fr1/desk", "--root", str(tmp_path), "--base-url", server.url)
+    assert status == 0, err
+    assert open_dataset("tum", tmp_path / TUM_SEQUENCE)[1].depth is not None
+    assert json.loads((tmp_path / cli.MANIFEST).read_text())[f"{TUM_SEQUENCE}.tgz"]["sha256"] == \
+        hashlib.sha256(good).hexdigest()
+
+
+@pytest.mark.parametrize("kind", ["a file", "under a file", "not creatable"])
+def test_a_root_that_is_no_folder_is_one_line_before_any_request(server, tmp_path, capsys, kind):
+    (tmp_path / "file").write_text("not a folder")
+    root, expected, message = {"a file": (tmp_path / "file", 2, "is a file, expected a folder"),
+                               "under a file": (tmp_path / "file" / "data", 2, "is a file, expected a folder"),
+                               "not creatable": (Path("/proc/slamkit-nope"), 1, "cannot create the folder")}[kind]
+    status, _, err = run(capsys, "fr1/desk", "--root", str(root), "--base-url", server.url)
+    line = one_line(err)
+    assert status == expected and line.startswith(f"slamkit-data: error: --root {root}: ") and message in line
+    assert server.requests == [] and (tmp_path / "file").read_text() == "not a folder"

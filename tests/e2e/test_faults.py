@@ -52,6 +52,7 @@ from support.data import REPLICA, require_data
 from support.fault_inputs import (
     FRAMES,
     INTRINSICS,
+    data_root_with_an_incomplete_scene,
     drop_frame,
     duplicate_timestamp,
     fifo_bag,
@@ -64,6 +65,7 @@ from support.fault_inputs import (
     tiny_tum,
     truncate_depth,
     truncate_half,
+    truncated_download,
     tum_with,
     uint16_cast_metres,
 )
@@ -673,7 +675,83 @@ def reported_by_summary(status: int) -> bool:
     return status == 3 or status > 128
 
 
-ALL_FAULTS = FAULTS + ISSUE_36
+# --- issue 45: the newest paths --------------------------------------------------------------------
+
+def corrupt_moved_aside(case: Case, result) -> None:
+    assert (case.data / "rgbd_dataset_freiburg1_xyz.tgz.corrupt").is_file()
+    assert not (case.data / "rgbd_dataset_freiburg1_xyz.tgz").exists()
+    assert not (case.data / "rgbd_dataset_freiburg1_xyz").exists()
+
+
+def incomplete_scene_skipped(case: Case, result) -> None:
+    """The incomplete scene named with what it lacks before the first job; the complete one ran."""
+    (line,) = [ln for ln in result.stderr.splitlines() if "rgbd_dataset_freiburg2_xyz skipped" in ln]
+    assert "depth.txt not found" in line
+    jobs = [p for p in case.out.iterdir() if p.is_dir() and p.name.isdigit()]
+    assert len(jobs) == 1
+    metrics = json.loads((jobs[0] / "metrics.json").read_text())
+    assert metrics["completed"] and metrics["num_frames"] == 3
+
+
+def said_once(case: Case, result) -> None:
+    """The error is on the terminal once (the `slamkit: error:` line), and in the run's log file."""
+    message = result.stderr.strip().splitlines()[-1].removeprefix("slamkit: error: ")
+    assert (result.stdout + result.stderr).count(message) == 1, result.stdout + result.stderr
+    logs = list(case.out.rglob("slamkit.log"))
+    assert logs and any(message in log.read_text() for log in logs)
+
+
+def settings_change_recorded(case: Case, result) -> None:
+    metrics = json.loads((case.out / "metrics.json").read_text())
+    before = json.loads(case.memo["metrics"])["settings"]["iterations_per_frame"]
+    assert metrics["settings"]["iterations_per_frame"] == 7 != before
+    assert metrics["settings_changes"] == [{"frame": 4, "before": {"iterations_per_frame": before},
+                                            "after": {"iterations_per_frame": 7}}]
+    assert "the method settings change at frame 4" in result.stdout + result.stderr
+
+
+LOOPS = ("loop_closure=pose_graph", "loop_closure.min_path_m=0.5")
+
+ISSUE_45 = [
+    # 1. slamkit-data: a --root that is no folder, an archive that does not extract
+    Fault("data-root-not-creatable", ("download", "fr1/xyz", "--root", "/proc/slamkit-nope"), 1,
+          "--root /proc/slamkit-nope: cannot create the folder", program="slamkit-data"),
+    Fault("data-root-a-file", ("download", "fr1/xyz", "--root", "{data}"), 2, "is a file, expected a folder",
+          program="slamkit-data", make=lambda root: root.write_text("not a folder")),
+    Fault("data-truncated-archive", ("download", "fr1/xyz", "--root", "{data}", "--base-url", "http://127.0.0.1:9",
+                                     "--no-progress"), 2,
+          "moved aside as rgbd_dataset_freiburg1_xyz.tgz.corrupt: run the same command again", program="slamkit-data",
+          make=truncated_download, after=corrupt_moved_aside),
+    # 3. a scene sweep: every scene opened before the first job, the incomplete one named and skipped
+    Fault("sweep-incomplete-scene", ("+experiment=paper_tum", "data_root={data}", "preset=slamkit", *FAST,
+                                     "dataset.max_frames=3", "hydra.sweep.dir={out}"), 0, "depth.txt not found",
+          kept=(), make=data_root_with_an_incomplete_scene, after=incomplete_scene_skipped),
+    # 5. a resume that changes the method: refused (preset, plugins) or recorded (a method key)
+    Fault("resume-another-preset", ("resume={out}", "preset=paper"), 2,
+          "the run was made with preset=slamkit, this one asks for preset=paper",
+          kept=("trajectory.txt:4", "metrics.json", "frames.csv"), completed=True, make=tiny_tum,
+          before=earlier(frames=4), after=unchanged(".hydra", "slamkit.log")),
+    Fault("resume-another-loop-closure", ("resume={out}", "loop_closure=none"), 2,
+          "the run was made with loop_closure=pose_graph, this one asks for loop_closure=none",
+          kept=("trajectory.txt:4", "metrics.json", "frames.csv"), completed=True, make=tiny_tum,
+          before=earlier(*LOOPS, base=GICP), after=unchanged(".hydra", "slamkit.log")),
+    Fault("resume-a-method-key-changed", ("resume={out}", "dataset.max_frames=8", "iterations_per_frame=7"), 0, "",
+          kept=("trajectory.txt:8", "metrics.json", "frames.csv"), make=tiny_tum,
+          before=earlier(frames=4, then=remember_metrics), after=settings_change_recorded),
+    Fault("key-of-the-preset", ("preset.x=1",), 2, "preset.x=1: preset is chosen whole (preset=NAME: paper"),
+    # 6. boolean keys take booleans only
+    Fault("bool-a-number", ("keyframe_thread=2",), 2, "keyframe_thread: expected true or false, got 2"),
+    Fault("bool-negative", ("mapping_yields=-1",), 2, "mapping_yields: expected true or false, got -1"),
+    Fault("bool-of-a-plugin", ("tracker.retry_unconverged=2",), 2,
+          "tracker.retry_unconverged: expected true or false, got 2"),
+    Fault("bool-in-a-sweep", ("-m", "dataset.num_frames=3", *FAST, "keyframe_thread=true,2", "hydra.sweep.dir={out}"),
+          2, "keyframe_thread: expected true or false, got 2", kept=(), after=said_once),
+    # 7. a job's error said once
+    Fault("job-error-said-once", ("dataset=tum", "dataset.path={data}/nope", *FAST), 2, "not found", kept=(),
+          make=lambda root: root.mkdir(parents=True), after=said_once),
+]
+
+ALL_FAULTS = FAULTS + ISSUE_36 + ISSUE_45
 
 
 @pytest.mark.slow  # every case starts the slamkit command (in process)
@@ -846,3 +924,153 @@ def test_every_numeric_key_has_a_range_and_every_thread_count_is_bounded_by_the_
                 node = getattr(node, name)
             assert node == machine_threads()
     assert not failures, "\n".join(failures)
+
+
+def _listed_keys():
+    """(overrides selecting the plugin, key, type, default) of every config key of every plugin
+    `slamkit-plugins` lists (the registry as the command discovers it: the example plugins
+    installed beside the built-in ones included)."""
+    from slamkit.cli.plugins import config_fields
+    from slamkit.registry.discovery import default_registry
+    from slamkit.roles import ROLES
+
+    registry = default_registry()
+    for role in ROLES:
+        for name, entry in sorted(registry.plugins[role.key].items()):
+            base = [f"{role.part_of}=gaussian_splatting"] if role.part_of else []
+            for key, type_, default, _ in config_fields(entry.spec.config):
+                yield [*base, f"{role.group}={name}"], f"{role.path}.{key}", type_, default
+
+
+def _bad_values(key: str, type_: str, default: str) -> dict[str, str]:
+    """The values every key of this type must refuse: of the wrong type (a mapping or a list where
+    a scalar is meant, text where a number, boolean, choice or list is), empty (unless empty is
+    the default), NaN (a float) and out of range (-1 for a number, unless NEGATIVE_OK)."""
+    kinds = [t.strip() for t in type_.split("|")]
+    values = {"wrong type": "[1]" if kinds[0] == "str" else "{}"}
+    if kinds[0] != "str":
+        values["text"] = "not_a_value"
+    if default != "''":
+        values["empty"] = ""
+    if "float" in kinds:
+        values["nan"] = "nan"
+    if {"int", "float"} & set(kinds) and key not in NEGATIVE_OK:
+        values["out of range"] = "-1"
+    return values
+
+
+@pytest.mark.slow  # ~1200 compositions
+def test_every_listed_key_refuses_a_wrong_type_empty_nan_and_out_of_range_value_in_one_line_naming_it():
+    """Generated from what `slamkit-plugins` lists: each key of each plugin, selected, given each of
+    `_bad_values`, through the composition the command uses: one ConfigError line naming the key."""
+    from slamkit.cli.plugins import text_listing
+    from slamkit.errors import ConfigError
+    from slamkit.registry.compose import compose_run
+    from slamkit.registry.discovery import default_registry
+
+    keys = list(_listed_keys())
+    listing = [line for line in text_listing(default_registry()).splitlines() if line.startswith("      ")]
+    assert len(keys) == len(listing) > 250  # every key the command lists, once
+    failures, cases = [], 0
+    for base, key, type_, default in keys:
+        for what, value in _bad_values(key, type_, default).items():
+            cases += 1
+            try:
+                compose_run([*base, f"{key}={value}"])
+                failures.append(f"{key}={value} ({what}) accepted")
+            except ConfigError as exc:
+                if key not in str(exc) or "\n" in str(exc):
+                    failures.append(f"{key}={value} ({what}): {exc}")
+    assert cases > 1000
+    assert not failures, "\n".join(failures)
+
+
+# --- a stop signal ends the run within a bound, in every phase (issue 45) -------------------------
+
+#: Seconds from a stop signal to the command's exit, at most, in any phase (docs/architecture.md).
+SIGNAL_EXIT_BOUND_S = 5.0
+#: Real time with everything beside tracking busy: the mapper, the keyframe handover and a loop
+#: closure of 0.2 s per keyframe, a keyframe every frame at 30 frames/s (90 frames, the 8 played
+#: back and forth): its backlog grows by ~5 keyframe-seconds a second, and a call that took every
+#: keyframe queued would last seconds by the 60th frame.
+BUSY_REALTIME = ("dataset=tum", "dataset.path={data}", "dataset.passes=12", "dataset.max_frames=90",
+                 "progress=false", "mode=realtime", "fps_limit=30", "keyframe=every_n", "keyframe.tracking_every=1",
+                 "keyframe_thread=true", "mapper=gaussian_splatting", "mapper/rasterizer=cpu", "loop_closure=slow",
+                 "loop_closure.seconds=0.2")
+SIGNAL_PHASES = {
+    "startup": (TUM_RUN, "startup"),
+    "stream-sequential": (TINY_MAPPING, "stream@3"),
+    "stream-realtime-busy": (BUSY_REALTIME, "stream@60"),
+    "loops-after-the-stream": (BUSY_REALTIME, "loops"),
+    "refine": ((*TINY_MAPPING, "final_iterations=100000"), "refine"),
+    "map": (TINY_MAPPING, "map"),
+    "evaluate": (TINY_MAPPING, "evaluate"),
+    "localize-stream": (("mode=localize", "map={tmp}/map", "dataset=tum", "dataset.path={data}", "progress=false"),
+                        "stream@3"),
+}
+
+
+def signal_to_exit(argv: list[str], cwd: Path, env: dict[str, str], pause_at: str,
+                   sig: signal.Signals = signal.SIGTERM, timeout: float = 240) -> tuple[int, float, str]:
+    """(exit status, seconds from the signal to the exit, stderr) of `slamkit ARGV` sent `sig` once
+    it says it has paused at `pause_at` (SLAMKIT_PAUSE_AT)."""
+    exe = Path(sys.executable).with_name("slamkit")
+    proc = subprocess.Popen([str(exe), *argv], cwd=cwd, env=dict(os.environ, **env, SLAMKIT_PAUSE_AT=pause_at),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    err: list[str] = []
+    sent: list[float] = []
+
+    def read() -> None:
+        for line in proc.stderr:
+            err.append(line)
+            if not sent and f"paused at {pause_at}" in line:
+                sent.append(time.monotonic())
+                proc.send_signal(sig)
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    try:
+        proc.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    ended = time.monotonic()
+    reader.join(timeout=10)
+    assert sent, f"never paused at {pause_at} (exit {proc.returncode}): {''.join(err)[-3000:]}"
+    return proc.returncode, ended - sent[0], "".join(err)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("phase", list(SIGNAL_PHASES))
+def test_a_stop_signal_ends_the_run_within_the_bound_in_every_phase(phase, tmp_path, monkeypatch):
+    """SIGTERM at each phase's pause point (in real time with the mapper, the keyframe handover
+    and a loop closure whose backlog grows: mid-stream, and while the keyframes left after the
+    stream are decided): the command exits 143 within SIGNAL_EXIT_BOUND_S seconds, having
+    written what it had (metrics.json: interrupted; the checkpoint keeps the keyframes the loop
+    closure had not taken)."""
+    from slamkit.formats.checkpoint import read_checkpoint
+
+    argv, pause_at = SIGNAL_PHASES[phase]
+    data, out = tmp_path / "data", tmp_path / "run"
+    tiny_tum(data)
+    monkeypatch.setattr(sys, "path", list(sys.path))
+    site = tmp_path / "site"
+    install("slow")(site.parent)  # the plugin's distribution in tmp_path/site, for the command's process too
+    env = {"PYTHONPATH": os.pathsep.join([str(site), os.environ.get("PYTHONPATH", "")])}
+    if phase.startswith("localize"):  # the map it localises in: a run of the same frames
+        made = subprocess.run([str(Path(sys.executable).with_name("slamkit")), "dataset=tum", f"dataset.path={data}",
+                               "mapper=none", "progress=false", f"hydra.run.dir={tmp_path / 'map'}"], cwd=tmp_path,
+                              capture_output=True, text=True, timeout=300)
+        assert made.returncode == 0, made.stderr[-3000:]
+    args = [a.replace("{data}", str(data)).replace("{tmp}", str(tmp_path)) for a in argv] + [f"hydra.run.dir={out}"]
+    status, seconds, err = signal_to_exit(args, tmp_path, env, pause_at)
+    assert status == 128 + signal.SIGTERM, err[-3000:]
+    assert "Traceback" not in err, err[-3000:]
+    assert seconds < SIGNAL_EXIT_BOUND_S, f"{phase}: {seconds:.1f} s from SIGTERM to exit"
+    if phase == "startup":
+        return
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["status"] == "interrupted" and metrics["num_frames"] > 0
+    if phase in ("stream-realtime-busy", "loops-after-the-stream"):
+        state = read_checkpoint(out / "checkpoint.zip")["state"]["loop_closure"]
+        assert len(state["queued"]) > 0  # the backlog kept, not decided on after the signal

@@ -144,8 +144,40 @@ BAD_DEFAULTS = """
         return [PluginSpec("bad_defaults", BadDefaultsTracker, BadDefaultsConfig)]
 """
 
+#: A loop closure that takes `seconds` per keyframe and finds nothing: in real time its backlog
+#: grows with every keyframe (what a stop signal must not wait for).
+SLOW_LOOP_CLOSURE = """
+    import time
+    from dataclasses import dataclass
+    from slamkit.plugin import PluginSpec, hookimpl
+    from slamkit.roles import PluginConfig
+    from slamkit.roles.loop_closure import LoopClosure, LoopDecision
+
+    @dataclass
+    class SlowConfig(PluginConfig):
+        seconds: float = 1.0
+
+    class SlowLoopClosure(LoopClosure):
+        def __init__(self, cfg, context=None):
+            self.cfg, self.pending = cfg, 0
+        def add_keyframe(self, keyframe):
+            self.pending += 1
+        def detect_and_optimise(self):
+            time.sleep(self.cfg.seconds * self.pending)
+            self.pending = 0
+            return LoopDecision()
+        def state_dict(self):
+            return {}
+        def load_state_dict(self, state):
+            pass
+
+    @hookimpl
+    def slamkit_plugins():
+        return [PluginSpec("slow", SlowLoopClosure, SlowConfig)]
+"""
+
 PLUGINS = {"still": FAKE_TRACKER, "array": ARRAY_CONFIG, "broken": "raise ImportError('needs libfoo')\n",
-           "unusual": UNUSUAL_CONFIG, "bad_defaults": BAD_DEFAULTS}
+           "unusual": UNUSUAL_CONFIG, "bad_defaults": BAD_DEFAULTS, "slow": SLOW_LOOP_CLOSURE}
 
 
 def install(*names: str) -> Callable[[Path], None]:
@@ -246,3 +278,30 @@ def make_read_only(folder: Path) -> Callable[[], None]:
         return lambda: (subprocess.run(["chattr", "-i", str(folder)]), folder.chmod(0o755))
     folder.chmod(0o755)
     pytest.skip("cannot make a folder read-only here (root without chattr)")
+
+
+# --- inputs of issue 45's cases ------------------------------------------------------------------
+
+def truncated_download(root: Path, name: str = "rgbd_dataset_freiburg1_xyz") -> Path:
+    """ROOT/NAME.tgz: the first half of a TUM archive (the tiny TUM copy), as a server that cut
+    it short leaves it, complete in size as far as the transfer knew."""
+    import io
+    import tarfile
+
+    tum = tiny_tum(root.parent / f"{root.name}_tum")
+    buffer = io.BytesIO()
+    with tarfile.open(fileobj=buffer, mode="w:gz") as tar:
+        tar.add(tum, arcname=name)
+    root.mkdir(parents=True)
+    archive = root / f"{name}.tgz"
+    archive.write_bytes(buffer.getvalue()[: len(buffer.getvalue()) // 2])
+    return archive
+
+
+def data_root_with_an_incomplete_scene(root: Path) -> Path:
+    """A `data_root` for `+experiment=paper_tum`: fr1/desk complete (the tiny TUM copy), fr2/xyz
+    with its rgb.txt alone (a download cut before its depth list), fr3/office absent."""
+    tiny_tum(root / "rgbd_dataset_freiburg1_desk")
+    (root / "rgbd_dataset_freiburg2_xyz").mkdir()
+    shutil.copy(root / "rgbd_dataset_freiburg1_desk" / "rgb.txt", root / "rgbd_dataset_freiburg2_xyz" / "rgb.txt")
+    return root
