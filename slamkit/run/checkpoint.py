@@ -183,7 +183,7 @@ def resume(cfg, names: dict[str, str], slam, run_state, dataset=None) -> int:
     if dataset is not None:
         check_frames(checkpoint, dataset, cfg.resume)
     first = restore(checkpoint, slam, run_state)
-    run_state.settings_changes = settings_changes(checkpoint, cfg, first)
+    run_state.settings_changes = settings_changes(checkpoint, cfg, names, first)
     log.info("resumed from %s (%s after frame %d): %d Gaussians, %d keyframes", checkpoint_path(cfg.resume),
              checkpoint.get("reason"), first - 1, len(slam.gaussian_map), slam.num_keyframes)
     return first
@@ -273,15 +273,16 @@ def saved_settings(checkpoint: dict[str, Any]) -> dict[str, Any]:
     return settings
 
 
-def settings_changes(checkpoint: dict[str, Any], cfg, first: int) -> list[dict[str, Any]]:
+def settings_changes(checkpoint: dict[str, Any], cfg, names: dict[str, str], first: int) -> list[dict[str, Any]]:
     """The checkpoint's record of method-setting changes, plus this session's when its settings
     differ from the checkpoint's: {frame: the first frame run with them, before, after} (only
-    the keys that changed). A resumed run is never labelled as one method when it is not."""
+    the keys that changed); `names`: the plugin chosen for each role path. A resumed run is
+    never labelled as one method when it is not."""
     from slamkit.run.settings import method_settings
 
     changes = list(checkpoint.get("settings_changes") or [])
     before = saved_settings(checkpoint)
-    now = json.loads(json.dumps(method_settings(cfg)))
+    now = json.loads(json.dumps(method_settings(cfg, names)))
     changed = sorted(k for k in before if k in now and before[k] != now[k])
     if changed:
         change = {"frame": first, "before": {k: before[k] for k in changed}, "after": {k: now[k] for k in changed}}

@@ -701,6 +701,13 @@ def said_once(case: Case, result) -> None:
     assert logs and any(message in log.read_text() for log in logs)
 
 
+def said_once_before_any_job(case: Case, result) -> None:
+    """Every job is composed before the first runs: the error is on the terminal once, no job ran."""
+    message = result.stderr.strip().splitlines()[-1].removeprefix("slamkit: error: ")
+    assert (result.stdout + result.stderr).count(message) == 1, result.stdout + result.stderr
+    assert not case.out.exists()
+
+
 def settings_change_recorded(case: Case, result) -> None:
     metrics = json.loads((case.out / "metrics.json").read_text())
     before = json.loads(case.memo["metrics"])["settings"]["iterations_per_frame"]
@@ -745,7 +752,8 @@ ISSUE_45 = [
     Fault("bool-of-a-plugin", ("tracker.retry_unconverged=2",), 2,
           "tracker.retry_unconverged: expected true or false, got 2"),
     Fault("bool-in-a-sweep", ("-m", "dataset.num_frames=3", *FAST, "keyframe_thread=true,2", "hydra.sweep.dir={out}"),
-          2, "keyframe_thread: expected true or false, got 2", kept=(), after=said_once),
+          2, "job 2 of 2 of the sweep (keyframe_thread=2): keyframe_thread: expected true or false, got 2",
+          after=said_once_before_any_job),
     # 7. a job's error said once
     Fault("job-error-said-once", ("dataset=tum", "dataset.path={data}/nope", *FAST), 2, "not found", kept=(),
           make=lambda root: root.mkdir(parents=True), after=said_once),
