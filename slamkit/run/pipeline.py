@@ -27,7 +27,7 @@ from slamkit.run.build import build
 from slamkit.run.frame_log import FrameLog
 from slamkit.run.lifecycle import Phase, StopSignals, pause_point
 from slamkit.run.loop_closing import LoopThread
-from slamkit.run.metrics import summary
+from slamkit.run.metrics import folder_mb, summary
 from slamkit.run.outputs import RunOutputs
 from slamkit.run.prefetch import LoadCost, UnreadableFrame, prefetched
 from slamkit.run.slam import SLAM, MappingThread
@@ -100,6 +100,7 @@ def _run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Pat
         more = f" (and {len(outputs.unwritten) - 1} more)" if len(outputs.unwritten) > 1 else ""
         raise OutputError(f"could not write {out_dir / name}{more}: {why}; kept in {out_dir}: "
                           f"{', '.join(outputs.kept) or 'nothing'}")
+    metrics["run_folder_mb"] = folder_mb(out_dir)  # the summary's, not metrics.json's: written by now
     log.info("%s", summary(metrics))
     return metrics
 
