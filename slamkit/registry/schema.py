@@ -161,7 +161,7 @@ class RunConfig(PluginConfig):
     drop_frames: bool = False
     #: seed of every random choice
     seed: int = 0
-    #: show a progress bar
+    #: show progress: a bar on a terminal, else a line every 5 s (stream, refinement, evaluation)
     progress: bool = True
     #: torch threads for mapping (0: every CPU sequential, every CPU but tracking's in real time)
     mapping_threads: int = thread_count(0)

@@ -22,6 +22,7 @@ import torch
 from slamkit.map.gaussian_map import GaussianMap
 from slamkit.metrics import images as image_metrics
 from slamkit.metrics.lpips import LPIPS, min_image_side
+from slamkit.progress import Progress
 from slamkit.splatting.keyframes import resize_rgbd
 from slamkit.splatting.rendering import RenderOutput
 from slamkit.types import Camera
@@ -50,6 +51,7 @@ def evaluate_renders(render: Callable[[np.ndarray, Camera], RenderOutput], gauss
     rows: dict[str, list[tuple[float, float, float]]] = {"all": [], "train": [], "test": []}
     depth_l1 = []
     start = time.perf_counter()
+    bar = Progress("evaluation", len(indices), "view")
     for k, i in enumerate(indices):
         frame = dataset[i]
         image, depth, cam = resize_rgbd(frame.rgb, frame.depth, frame.camera, scale, gaussian_map.device)
@@ -63,6 +65,8 @@ def evaluate_renders(render: Callable[[np.ndarray, Camera], RenderOutput], gauss
         rows["train" if frame.index in train_frames else "test"].append(scores)
         if out_dir is not None and k in save_at:
             _save_side_by_side(Path(out_dir) / f"render_{i:04d}.png", color, image)
+        bar.update(1)
+    bar.close()
     metrics: dict[str, Any] = {}
     for group, suffix in (("all", ""), ("train", "_train"), ("test", "_test")):
         metrics[f"psnr{suffix}"] = _finite_mean([p for p, _, _ in rows[group]])

@@ -48,3 +48,21 @@ def test_summary_says_why_a_run_has_no_result():
     assert "ATE RMSE not reported" in failed and failed.endswith("(failed: tracking failed)")
     interrupted = summary(metrics(status="interrupted", completed=False, phase="refine"))
     assert interrupted.endswith("(incomplete: interrupted during refine)")
+
+
+def test_starved_real_time_mapping_is_warned_with_the_figures_and_the_ways_out():
+    from types import SimpleNamespace
+
+    from slamkit.registry.schema import Mode
+    from slamkit.run.pipeline import starved_mapping
+
+    cfg = SimpleNamespace(mode=Mode.realtime, iterations_per_frame=10)
+    starved = metrics(mode="realtime", num_frames=40, mapping_iterations=1, refine_iterations=0, psnr=8.85)
+    line = starved_mapping(cfg, "gaussian_splatting", starved)
+    assert "1 mapping steps for 40 frames" in line and "10 a frame (400)" in line and "PSNR 8.85 dB" in line
+    assert "mode=sequential" in line and "final_iterations=400" in line
+    fed = metrics(mode="realtime", num_frames=40, mapping_iterations=30, refine_iterations=10)
+    assert starved_mapping(cfg, "gaussian_splatting", fed) is None  # a tenth of the method's steps
+    assert starved_mapping(cfg, "none", starved) is None  # tracking only: nothing to train
+    assert starved_mapping(SimpleNamespace(mode=Mode.sequential, iterations_per_frame=10), "gaussian_splatting",
+                           starved) is None
