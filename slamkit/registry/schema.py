@@ -84,9 +84,11 @@ class EvalConfig(PluginConfig):
 class CheckpointConfig(PluginConfig):
     """The run's map checkpoint (RUN_DIR/checkpoint.zip, what `resume=` and `mode=localize` read)."""
 
-    #: write it at the end of the run and when the run is interrupted (SIGINT, SIGTERM)
-    save: bool = True
-    #: also write it every this many keyframes (0: only then)
+    #: write it at the end of the run (what mode=localize and a mapper=none export read; off: small run folders)
+    save: bool = False
+    #: write it when the run is interrupted (SIGINT, SIGTERM), for resume=
+    on_interrupt: bool = True
+    #: also write it every this many keyframes, and at the end (0: never)
     every_keyframes: int = 0
 
     def validate(self) -> None:
