@@ -142,8 +142,10 @@ def rates(m: dict[str, Any]) -> tuple[str, str | None]:
     return rate(whole, "(whole run)") or "n/a frames/s (whole run)", rate(stream, "(stream)")
 
 
-def headline(m: dict[str, Any]) -> str:
-    """Frames, ATE and the system's frames/s, named (`rates`): trajectory.png's title."""
+def headline(m: dict[str, Any], stream_rate: bool = False) -> str:
+    """Frames, ATE and the system's frames/s, named (`rates`); with `stream_rate`, the stream's
+    (trajectory.png's title: the plot is drawn when the stream ends, before the whole run's rate
+    is known)."""
     if m["ate_rmse_m"] is not None:
         ate = f"{100 * m['ate_rmse_m']:.2f} cm"
     elif m.get("tracking_failure"):
@@ -152,7 +154,12 @@ def headline(m: dict[str, Any]) -> str:
         ate = f"n/a ({m['ate_unavailable']})"
     else:  # metrics written before ate_unavailable
         ate = "n/a (no frames)" if not m["num_frames"] else "n/a (no ground truth)"
-    return f"{m['num_frames']} frames, ATE RMSE {ate}, {rates(m)[0]}"
+    if stream_rate:
+        fps = m.get("stream_fps")
+        rate = f"{fps:.1f} frames/s (stream)" if fps else "n/a frames/s (stream)"
+    else:
+        rate = rates(m)[0]
+    return f"{m['num_frames']} frames, ATE RMSE {ate}, {rate}"
 
 
 def summary(m: dict[str, Any]) -> str:

@@ -175,7 +175,7 @@ class RunOutputs:
         ate = evaluation.ate(poses, self.state.gt_poses)
         has_gt = ate.rmse_m is not None
         plot_trajectory(self.out_dir / "trajectory.png", ate.est_aligned if has_gt else poses[:, :3, 3],
-                        ate.gt_positions if has_gt else None, title=headline(metrics))
+                        ate.gt_positions if has_gt else None, title=headline(metrics, stream_rate=True))
 
 
 def _write_json_atomic(path: Path, data: dict) -> None:

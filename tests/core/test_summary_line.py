@@ -27,6 +27,8 @@ def test_summary_names_every_figure_of_a_sequential_run():
     # the rate a sequential run is judged by comes first, and is the one the plot's title shows
     assert line.index("(whole run)") < line.index("(stream)")
     assert headline(metrics()).endswith("6.2 frames/s (whole run)")
+    # trajectory.png's title, drawn when the stream ends: the stream's rate, named
+    assert headline(metrics(), stream_rate=True).endswith("8.5 frames/s (stream)")
 
 
 def test_summary_of_a_realtime_run_leads_with_the_stream_rate():
