@@ -89,7 +89,7 @@ def test_an_interrupted_localisation_keeps_its_frames_and_exits_143_on_sigterm(t
     from support.commands import Slamkit
 
     tum = ("dataset=tum", f"dataset.path={tum_path}", "mapper=none")
-    _run(tmp_path, tmp_path / "map", *tum, "dataset.max_frames=5")
+    _run(tmp_path, tmp_path / "map", *tum, "dataset.max_frames=5", "checkpoint.save=true")
     out = tmp_path / "loc"
     run = Slamkit(*tum, "mode=localize", f"map={tmp_path / 'map'}", "dataset.max_frames=8", "progress=false",
                   f"hydra.run.dir={out}", cwd=tmp_path, pause_at="stream@3")
