@@ -39,3 +39,18 @@ def test_a_resumed_phase_counts_from_where_it_was():
 
 def test_durations_read_as_a_person_writes_them():
     assert [duration(s) for s in (4.4, 65, 3725)] == ["4 s", "1 min 05 s", "1 h 02 min"]
+
+
+def test_a_sweeps_size_is_the_product_of_its_swept_values_or_its_trials():
+    from omegaconf import OmegaConf
+
+    from slamkit.cli.hydra_hooks import sweep_size
+
+    basic = "hydra._internal.core_plugins.basic_sweeper.BasicSweeper"
+    config = OmegaConf.create({"hydra": {"sweeper": {"_target_": basic, "params": {"seed": "0,1,2"}},
+                                         "overrides": {"task": ["tracker=gicp,kiss_icp", "dataset.num_frames=12"]}}})
+    assert sweep_size(config) == 6
+    search = OmegaConf.create({"hydra": {"sweeper": {"_target_": "hydra_plugins.optuna.OptunaSweeper", "n_trials": 20},
+                                         "overrides": {"task": []}}})
+    assert sweep_size(search) == 20
+    assert sweep_size(OmegaConf.create({"hydra": {"sweeper": {"_target_": "other.Sweeper"}}})) is None
