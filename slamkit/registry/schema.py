@@ -62,7 +62,7 @@ class EvalConfig(PluginConfig):
 
     #: write trajectory.png
     plot: bool = True
-    #: frames between running-ATE updates of the progress bar (0: off)
+    #: frames between running-ATE updates of the progress (0: off)
     running_ate_every: int = 10
     #: a run losing more than this fraction of its frames has failed (1.0: only one that tracked none)
     max_lost_fraction: float = 0.5
