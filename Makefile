@@ -16,10 +16,12 @@ export SLAMKIT_CACHE ?= $(CURDIR)/.cache/slamkit
 # Debian packages whose libraries open3d (the `mesh` extra, used by `slamkit-export mesh` and its
 # test) loads: libgl1 libx11-6 libudev1 libgomp1 are linked; libusb-1.0-0 serves its RealSense
 # camera support. The tests also build the compiled kernels with Clang (TEST_DEBS), as a macOS
-# user would. `make setup-test` installs the missing ones with apt-get (as root); without apt
-# or root it only warns: everything but the mesh export still works, and the Clang test skips.
+# user would. `make setup-test` installs the missing ones with apt-get (as root), saying first
+# what and why; APT=no, or no apt or root, only warns: everything but the mesh export still
+# works, and the Clang test skips.
 MESH_DEBS ?= libusb-1.0-0 libgl1 libx11-6 libudev1 libgomp1
 TEST_DEBS ?= clang
+APT ?= yes
 
 .PHONY: run test test-fast setup setup-test system-libs clean gpu-wheels gpu-data
 
@@ -46,8 +48,8 @@ define apt_install
 command -v dpkg >/dev/null 2>&1 || exit 0; \
 missing=$$(for p in $(1); do dpkg -s $$p >/dev/null 2>&1 || echo $$p; done); \
 [ -z "$$missing" ] && exit 0; \
-echo "installing Debian packages: $$missing"; \
-if command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then \
+if [ "$(APT)" != no ] && command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then \
+  echo "make: running apt-get as root to install the Debian packages $$missing (without them $(2); APT=no skips this)"; \
   apt-get install -y -qq $$missing >/dev/null 2>&1 || \
   { apt-get update -qq >/dev/null 2>&1 && apt-get install -y -qq $$missing >/dev/null 2>&1; } || \
   echo "warning: apt-get could not install $$missing; $(2)"; \

@@ -1,7 +1,8 @@
 """Fixtures and collection rules shared by every layer: the real data folders (skipped with the
 reason where they are absent), one per-session cache for generated data, every test under
-tests/e2e marked `slow`, and the `cuda` marker's skip where there is no GPU. Helpers that test
-modules import live in tests/support (a test module never imports another, conftest included)."""
+tests/e2e marked `slow`, the `cuda` marker's skip where there is no GPU, and a loud last line
+when tests were skipped for absent data. Helpers that test modules import live in tests/support
+(a test module never imports another, conftest included)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from support.data import REPLICA, TUM, require_data
+from support.data import MISSING, REPLICA, TUM, missing_data_line, require_data
 from support.plugins import third_party_plugins
 
 E2E = Path(__file__).resolve().parent / "e2e"
@@ -33,6 +34,19 @@ def pytest_collection_modifyitems(config, items):
         skip = pytest.mark.skip(reason="CUDA not available")
         for item in cuda_tests:
             item.add_marker(skip)
+
+
+def pytest_unconfigure(config):
+    """A run that skipped tests for absent data ends with one loud line (after pytest's own
+    summary) saying how many and how to give the tests their data: a green run with the
+    data-driven tests skipped is not a pass."""
+    reporter = config.pluginmanager.get_plugin("terminalreporter")
+    if reporter is None:
+        return
+    skipped = [r for r in reporter.stats.get("skipped", [])
+               if isinstance(r.longrepr, tuple) and MISSING in str(r.longrepr[-1])]
+    if skipped:
+        reporter.write_sep("!", missing_data_line(len(skipped)), red=True, bold=True)
 
 
 @pytest.fixture

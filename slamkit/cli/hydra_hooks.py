@@ -8,6 +8,10 @@ is claimed for it (`slamkit.run.ownership`) before Hydra writes anything into it
 - `on_multirun_start` (a sweep): `hydra.sweep.dir` must be new, or an earlier sweep's cleaned
   with `existing_outputs=clean`; `on_job_start` / `on_job_end` lock each job's folder.
 
+`SweepProgressCallback` says, as each job of a sweep starts, which of how many it is, the time
+since the sweep started and an estimate of the time left (`slamkit: sweep job 3 of 8, 2 min 10 s
+elapsed, ETA 4 min 20 s`).
+
 Hydra turns an exception in a callback into a warning, so a refusal here is the command's
 one-line error and exit (`SystemExit`), as `slamkit.cli.main` reports a `SlamkitError`.
 """
@@ -16,6 +20,7 @@ from __future__ import annotations
 
 import os
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -95,3 +100,54 @@ class RunFolderCallback(Callback):
     def on_job_end(self, config, **kwargs: Any) -> None:
         if self.multirun:
             ownership.release(Path(str(config.hydra.runtime.output_dir)))
+
+
+class SweepProgressCallback(Callback):
+    """One line on stderr (and in the log) as each job of a sweep starts: job n of N, elapsed,
+    ETA. N is known for Hydra's basic sweeper (the product of the swept values) and for a
+    search's `n_trials`; where the jobs run in other processes (joblib, SLURM) each line says
+    only which job it is."""
+
+    def __init__(self) -> None:
+        self.start: float | None = None
+        self.total: int | None = None
+
+    def on_multirun_start(self, config, **kwargs: Any) -> None:
+        self.start = time.monotonic()
+        self.total = sweep_size(config)
+
+    def on_job_start(self, config, **kwargs: Any) -> None:
+        from slamkit.progress import duration
+
+        num = OmegaConf.select(config, "hydra.job.num")
+        multirun = str(OmegaConf.select(config, "hydra.mode")).endswith("MULTIRUN")
+        if num is None or not multirun or _value(config, "progress") is False:  # progress=false: quiet
+            return
+        text = f"sweep job {num + 1}" + (f" of {self.total}" if self.total else "")
+        if self.start is not None:
+            elapsed = time.monotonic() - self.start
+            text += f", {duration(elapsed)} elapsed"
+            if self.total and num > 0:
+                text += f", ETA {duration(elapsed / num * (self.total - num))}"
+        print(f"slamkit: {text}", file=sys.stderr, flush=True)
+
+
+def sweep_size(config) -> int | None:
+    """How many jobs the sweep runs: the basic sweeper's product of the swept values (its
+    `params` and the command line's overrides), a search's `n_trials`; None where unknown."""
+    sweeper = OmegaConf.select(config, "hydra.sweeper") or {}
+    target = str(sweeper.get("_target_", ""))
+    if target.endswith("BasicSweeper"):
+        from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+        from hydra.core.override_parser.overrides_parser import OverridesParser
+
+        params = sweeper.get("params") or {}
+        overrides = [f"{k}={v}" for k, v in params.items()]
+        overrides += list(OmegaConf.select(config, "hydra.overrides.task") or [])
+        try:
+            batches = BasicSweeper.split_arguments(OverridesParser.create().parse_overrides(overrides), None)
+        except Exception:  # noqa: BLE001 - a progress figure: the sweep itself reports bad overrides
+            return None
+        return sum(len(batch) for batch in batches)
+    trials = sweeper.get("n_trials")
+    return int(trials) if isinstance(trials, int) else None

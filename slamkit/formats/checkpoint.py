@@ -81,7 +81,8 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
 
 def _open(path: Path) -> zipfile.ZipFile:
     if not path.is_file():
-        raise CheckpointError(f"checkpoint {path} not found (a run writes {CHECKPOINT_NAME} into its folder)")
+        raise CheckpointError(f"checkpoint {path} not found (a run writes {CHECKPOINT_NAME} into its folder "
+                              f"with checkpoint.save=true, or when interrupted)")
     try:
         return zipfile.ZipFile(path)
     except (zipfile.BadZipFile, OSError, EOFError) as exc:

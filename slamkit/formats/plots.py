@@ -13,14 +13,15 @@ AXES = "xyz"
 
 
 def plot_trajectory(path_png, est_aligned_positions, gt_positions=None, title: str = "",
-                    ate_rmse_m: float | None = None) -> Path:
+                    ate_rmse_m: float | None = None, loops: list[tuple[int, int]] = ()) -> Path:
     """Write a PNG: top view of the trajectory plus x, y, z position (metres) per frame index.
 
     est_aligned_positions: (N, 3) estimated camera positions in metres, already aligned to the
     ground truth (ATEResult.est_aligned). gt_positions: (N, 3) ground-truth positions (NaN rows
     for missing frames, drawn as gaps) or None to plot the estimate alone. The top view shows
     the two world axes with the largest extent, with equal scale. ate_rmse_m, when given, is
-    added to the title in centimetres. Returns the path written.
+    added to the title in centimetres. loops: pairs of rows (frame, the frame it closed a loop
+    with), drawn as red segments in the top view. Returns the path written.
     """
     from matplotlib.figure import Figure  # no pyplot: no global state, no GUI backend
 
@@ -42,6 +43,9 @@ def plot_trajectory(path_png, est_aligned_positions, gt_positions=None, title: s
     for p, label, color, style in curves:
         top.plot(p[:, a], p[:, b], style, color=color, lw=1.2, label=label)
     top.plot(*est[0, [a, b]], "o", color="tab:green", label="start")
+    for k, (i, j) in enumerate(loops):
+        top.plot(est[[i, j], a], est[[i, j], b], "-", color="tab:red", lw=1.5,
+                 label=f"loops closed ({len(loops)})" if k == 0 else None)
     top.set(xlabel=f"{AXES[a]} [m]", ylabel=f"{AXES[b]} [m]", aspect="equal", title="top view")
     top.legend(loc="best")
     for k in range(3):

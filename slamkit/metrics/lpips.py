@@ -257,16 +257,18 @@ def lpips_for_evaluation(mode: LpipsMode | str = LpipsMode.auto, backbone: str |
     if backbone is not None and not Path(backbone).is_file():  # a path given is never skipped
         raise DataError(missing_backbone_message(Path(backbone)))
     backbone_path = Path(backbone) if backbone is not None else default_backbone_path()
-    missing = None
+    missing = note = None
     if not backbone_path.is_file():
         missing = missing_backbone_message(backbone_path)
+        note = f"no AlexNet weights at {backbone_path} (download {ALEXNET_URL} or give eval.lpips_backbone=PATH)"
     elif installed_linear_path() is None:
         missing = missing_linear_message()
+        note = f"its v0.1 weights not installed (pip install --no-deps lpips=={LINEAR_VERSION})"
     if missing is None:
         return load_lpips(backbone_path, device=device)
     if mode is LpipsMode.on:
         raise DataError(missing)
-    if missing not in _told:
+    if missing not in _told:  # once per process: once per sweep of the basic launcher
         _told.add(missing)
-        log.warning("%s; LPIPS is recorded as null (eval.lpips=off silences this)", missing)
+        log.warning("LPIPS null: %s; eval.lpips=off silences this", note)
     return None

@@ -62,7 +62,7 @@ class EvalConfig(PluginConfig):
 
     #: write trajectory.png
     plot: bool = True
-    #: frames between running-ATE updates of the progress bar (0: off)
+    #: frames between running-ATE updates of the progress (0: off)
     running_ate_every: int = 10
     #: a run losing more than this fraction of its frames has failed (1.0: only one that tracked none)
     max_lost_fraction: float = 0.5
@@ -84,9 +84,11 @@ class EvalConfig(PluginConfig):
 class CheckpointConfig(PluginConfig):
     """The run's map checkpoint (RUN_DIR/checkpoint.zip, what `resume=` and `mode=localize` read)."""
 
-    #: write it at the end of the run and when the run is interrupted (SIGINT, SIGTERM)
-    save: bool = True
-    #: also write it every this many keyframes (0: only then)
+    #: write it at the end of the run (what mode=localize and a mapper=none export read; off: small run folders)
+    save: bool = False
+    #: write it when the run is interrupted (SIGINT, SIGTERM), for resume=
+    on_interrupt: bool = True
+    #: also write it every this many keyframes, and at the end (0: never)
     every_keyframes: int = 0
 
     def validate(self) -> None:
@@ -161,7 +163,7 @@ class RunConfig(PluginConfig):
     drop_frames: bool = False
     #: seed of every random choice
     seed: int = 0
-    #: show a progress bar
+    #: show progress: a bar on a terminal, else a line every 5 s (stream, refinement, evaluation)
     progress: bool = True
     #: torch threads for mapping (0: every CPU sequential, every CPU but tracking's in real time)
     mapping_threads: int = thread_count(0)

@@ -11,6 +11,7 @@ own figures (its frames, wall time, CPU seconds, peak memory). Where no ATE is r
 from __future__ import annotations
 
 import os
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -109,6 +110,11 @@ def _ate_unavailable(frames: int, failure: str | None, ate) -> str | None:
     return f"too few frames: {ate.num} with ground truth, the ATE needs {MIN_ATE_POSES}"
 
 
+def folder_mb(folder: Path) -> float:
+    """The size of the files under `folder`, MB (the run folder's, for the summary line)."""
+    return sum(p.stat().st_size for p in folder.rglob("*") if p.is_file() and not p.is_symlink()) / 2**20
+
+
 def rss_mb() -> float:
     """Current resident memory in MB (Linux /proc; 0 where unavailable)."""
     try:
@@ -125,9 +131,23 @@ def peak_memory_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # kilobytes on Linux
 
 
-def headline(m: dict[str, Any]) -> str:
-    """Frames, ATE and the system's frames/s: the stream's in real-time mode (the frames/s the
-    live system kept up with), the whole run's otherwise."""
+def rates(m: dict[str, Any]) -> tuple[str, str | None]:
+    """The system's frames/s, named: first the one the run is judged by (the stream's in
+    real-time mode: the rate the live system kept up with; the whole run's otherwise), then the
+    other (None where it is not known)."""
+    def rate(fps: float | None, what: str) -> str | None:
+        return f"{fps:.1f} frames/s {what}" if fps else None
+
+    stream, whole = m.get("stream_fps"), m.get("fps")
+    if m.get("mode") == "realtime":
+        return rate(stream, "in real time (stream)") or "n/a frames/s (stream)", rate(whole, "(whole run)")
+    return rate(whole, "(whole run)") or "n/a frames/s (whole run)", rate(stream, "(stream)")
+
+
+def headline(m: dict[str, Any], stream_rate: bool = False) -> str:
+    """Frames, ATE and the system's frames/s, named (`rates`); with `stream_rate`, the stream's
+    (trajectory.png's title: the plot is drawn when the stream ends, before the whole run's rate
+    is known)."""
     if m["ate_rmse_m"] is not None:
         ate = f"{100 * m['ate_rmse_m']:.2f} cm"
     elif m.get("tracking_failure"):
@@ -136,23 +156,35 @@ def headline(m: dict[str, Any]) -> str:
         ate = f"n/a ({m['ate_unavailable']})"
     else:  # metrics written before ate_unavailable
         ate = "n/a (no frames)" if not m["num_frames"] else "n/a (no ground truth)"
-    realtime = m.get("mode") == "realtime"
-    fps = m["stream_fps"] if realtime else m["fps"]
-    fps = f"{fps:.1f} frames/s" + (" in real time" if realtime else "") if fps else "n/a frames/s"
-    return f"{m['num_frames']} frames, ATE RMSE {ate}, {fps}"
+    if stream_rate:
+        fps = m.get("stream_fps")
+        rate = f"{fps:.1f} frames/s (stream)" if fps else "n/a frames/s (stream)"
+    else:
+        rate = rates(m)[0]
+    return f"{m['num_frames']} frames, ATE RMSE {ate}, {rate}"
 
 
 def summary(m: dict[str, Any]) -> str:
-    """One line for the terminal: the result, or why there is none."""
-    text = headline(m) + f", {m['num_keyframes']} keyframes, {m['lost_frames']} lost"
-    if m.get("psnr") is not None:
-        text += f", PSNR {m['psnr']:.2f} dB"
+    """One line for the terminal: what the run did (frames, ATE, both frames/s named, keyframes,
+    lost frames, loops closed, mapping steps, PSNR, the run folder's size), or why there is no
+    result."""
+    other = rates(m)[1]
+    text = headline(m) + (f", {other}" if other else "")
+    text += f", {m['num_keyframes']} keyframes, {m['lost_frames']} lost"
+    if m.get("loops_accepted") is not None:  # loop closure on
+        text += f", {m['loops_accepted']} loops closed"
     if m.get("mapping_priority"):  # real time: the steps mapping got beside tracking, and what held it back
         waited = m.get("mapping_cpu_wait_s")
         text += (f", {m['mapping_iterations']} mapping steps in the stream ({m['mapping_priority']} priority"
                  + ("" if waited is None else f", {waited:.1f} s waiting for a CPU") + ")")
+    elif m.get("mapping_iterations"):
+        text += f", {m['mapping_iterations']} mapping steps in the stream"
     if m.get("refine_iterations"):
-        text += f" after {m['refine_iterations']} refinement steps ({m['refine_time_s']:.1f} s)"
+        text += f", {m['refine_iterations']} refinement steps after it ({m['refine_time_s']:.1f} s)"
+    if m.get("psnr") is not None:
+        text += f", PSNR {m['psnr']:.2f} dB"
+    if m.get("run_folder_mb") is not None:
+        text += f", run folder {m['run_folder_mb']:.1f} MB"
     status = m.get("status", COMPLETED if m["completed"] else INTERRUPTED)
     if status == COMPLETED:
         return text

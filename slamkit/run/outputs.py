@@ -184,7 +184,17 @@ class RunOutputs:
         ate = evaluation.ate(poses, self.state.gt_poses)
         has_gt = ate.rmse_m is not None
         plot_trajectory(self.out_dir / "trajectory.png", ate.est_aligned if has_gt else poses[:, :3, 3],
-                        ate.gt_positions if has_gt else None, title=headline(metrics))
+                        ate.gt_positions if has_gt else None, title=headline(metrics, stream_rate=True),
+                        loops=self._closed_loops())
+
+    def _closed_loops(self) -> list[tuple[int, int]]:
+        """The loops closed so far as pairs of trajectory rows (loops.csv's accepted keyframes;
+        a keyframe's id is its place among the run's keyframes)."""
+        closer, rows = self.slam.loop_closer, self.state.keyframe_rows
+        if not closer.active:
+            return []
+        pairs = [(int(r["keyframe"]), int(r["match_keyframe"])) for r in closer.rows() if r["accepted"]]
+        return [(rows[a], rows[b]) for a, b in pairs if 0 <= a < len(rows) and 0 <= b < len(rows)]
 
 
 def _write_json_atomic(path: Path, data: dict) -> None:

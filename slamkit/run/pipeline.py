@@ -18,8 +18,10 @@ from typing import Any
 import numpy as np
 import torch
 
+from slamkit import progress
 from slamkit.errors import OutputError
 from slamkit.metrics import trajectory as evaluation
+from slamkit.progress import Progress
 from slamkit.registry.discovery import Registry
 from slamkit.registry.schema import Mode, RunConfig
 from slamkit.run import checkpoint
@@ -27,7 +29,7 @@ from slamkit.run.build import build
 from slamkit.run.frame_log import FrameLog
 from slamkit.run.lifecycle import Phase, StopSignals, pause_point
 from slamkit.run.loop_closing import LoopThread
-from slamkit.run.metrics import summary
+from slamkit.run.metrics import folder_mb, summary
 from slamkit.run.outputs import RunOutputs
 from slamkit.run.prefetch import LoadCost, UnreadableFrame, prefetched
 from slamkit.run.slam import SLAM, MappingThread
@@ -61,6 +63,7 @@ def run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Path
 def _run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Path, stop: StopSignals) -> dict[str, Any]:
     out_dir.mkdir(parents=True, exist_ok=True)
     np.random.seed(cfg.seed)
+    progress.configure(cfg.progress)
     built = build(cfg, registry, names)
     dataset, slam, cfg = built.dataset, built.slam, built.config
     viewer = ViewerFeed(built.viewer, names["viewer"], slam.gaussian_map, slam.mapper)
@@ -100,8 +103,32 @@ def _run(cfg: RunConfig, registry: Registry, names: dict[str, str], out_dir: Pat
         more = f" (and {len(outputs.unwritten) - 1} more)" if len(outputs.unwritten) > 1 else ""
         raise OutputError(f"could not write {out_dir / name}{more}: {why}; kept in {out_dir}: "
                           f"{', '.join(outputs.kept) or 'nothing'}")
+    metrics["run_folder_mb"] = folder_mb(out_dir)  # the summary's, not metrics.json's: written by now
+    if (starved := starved_mapping(cfg, names["mapper"], metrics)) is not None:
+        log.warning("%s", starved)
     log.info("%s", summary(metrics))
     return metrics
+
+
+#: A real-time run whose mapping got less than this share of the steps sequential mode gives the
+#: same frames is warned about: its map is barely trained (1 step for 40 frames on 2 loaded cores).
+STARVED_SHARE = 0.1
+
+
+def starved_mapping(cfg: RunConfig, mapper: str, m: dict[str, Any]) -> str | None:
+    """One line when real-time mapping got far fewer steps than the method trains (sequential
+    mode's `iterations_per_frame` a frame): the figures and the two ways out; None otherwise."""
+    if cfg.mode is not Mode.realtime or mapper == "none" or not m.get("num_frames") or m.get("status") != COMPLETED:
+        return None
+    wanted = cfg.iterations_per_frame * m["num_frames"]
+    got = (m.get("mapping_iterations") or 0) + (m.get("refine_iterations") or 0)
+    if got >= STARVED_SHARE * wanted:
+        return None
+    psnr = f" (PSNR {m['psnr']:.2f} dB)" if m.get("psnr") is not None else ""
+    return (f"real-time mapping got {got} mapping steps for {m['num_frames']} frames, where the method trains "
+            f"{cfg.iterations_per_frame} a frame ({wanted}): this machine cannot map at this input rate and the "
+            f"map is barely trained{psnr}; for the method's full training run mode=sequential (not real time), "
+            f"or keep real time and train after the stream with final_iterations={wanted}")
 
 
 def _phases(cfg: RunConfig, dataset, slam: SLAM, state: RunState, outputs: RunOutputs, viewer: ViewerFeed,
@@ -148,13 +175,16 @@ def _refine(slam: SLAM, iterations: int, state: RunState, stop: StopSignals) -> 
     if state.refine_iterations >= iterations:
         return
     start, before = time.perf_counter(), state.refine_time_s
+    bar = Progress("refinement", iterations, "step", initial=state.refine_iterations)
     try:
         while state.refine_iterations < iterations:
             stop.check()
             if not slam.optimize(1):
                 break
             state.refine_iterations += 1
+            bar.update(1)
     finally:
+        bar.close()
         state.refine_time_s = before + time.perf_counter() - start
     log.info("refinement: %d mapping steps in %.1f s", state.refine_iterations, state.refine_time_s)
 
@@ -205,14 +235,11 @@ def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, frames_log: Fram
     tracked (and mapped, in sequential mode; beside a mapping thread in real-time mode), logged to
     frames.csv and shown, the checkpoint written every N keyframes; a signal stops it between
     two frames."""
-    from tqdm import tqdm
-
     realtime = cfg.mode is Mode.realtime
     clock = InputClock(cfg.fps_limit if realtime else None)
     mapping = MappingThread(slam, cfg.switch_interval, cfg.mapping_priority) if realtime else None
     loops = LoopThread(slam.loop_closer) if realtime and slam.loop_closer.active else None
-    bar = tqdm(total=len(dataset), initial=first, unit="frame", disable=None if cfg.progress else True,
-               dynamic_ncols=True)
+    bar = Progress("stream", len(dataset), "frame", initial=first)
     start, cpu_start, loading = time.perf_counter(), time.thread_time(), LoadCost()
     process_cpu_start = time.process_time()  # every thread: the kernels' workers too
     schedule_start = thread_schedule()
@@ -241,7 +268,7 @@ def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, frames_log: Fram
             bar.update(1)
             every = cfg.eval.running_ate_every
             if every and len(state.poses) % every == 0:
-                bar.set_postfix_str(_running_ate(state), refresh=False)
+                bar.set_postfix(_running_ate(state))
                 frames_log.flush()
             pause_point(f"stream@{len(state.poses)}", stop)
     finally:

@@ -22,6 +22,7 @@ import torch
 from slamkit.map.gaussian_map import GaussianMap
 from slamkit.metrics import images as image_metrics
 from slamkit.metrics.lpips import LPIPS, min_image_side
+from slamkit.progress import Progress
 from slamkit.splatting.keyframes import resize_rgbd
 from slamkit.splatting.rendering import RenderOutput
 from slamkit.types import Camera
@@ -50,6 +51,7 @@ def evaluate_renders(render: Callable[[np.ndarray, Camera], RenderOutput], gauss
     rows: dict[str, list[tuple[float, float, float]]] = {"all": [], "train": [], "test": []}
     depth_l1 = []
     start = time.perf_counter()
+    bar = Progress("evaluation", len(indices), "view")
     for k, i in enumerate(indices):
         frame = dataset[i]
         image, depth, cam = resize_rgbd(frame.rgb, frame.depth, frame.camera, scale, gaussian_map.device)
@@ -62,7 +64,10 @@ def evaluate_renders(render: Callable[[np.ndarray, Camera], RenderOutput], gauss
         rows["all"].append(scores)
         rows["train" if frame.index in train_frames else "test"].append(scores)
         if out_dir is not None and k in save_at:
-            _save_side_by_side(Path(out_dir) / f"render_{i:04d}.png", color, image)
+            _save_side_by_side(Path(out_dir) / f"render_{i:04d}.png", color, image, out.depth, depth, frame.index,
+                               scores[0])
+        bar.update(1)
+    bar.close()
     metrics: dict[str, Any] = {}
     for group, suffix in (("all", ""), ("train", "_train"), ("test", "_test")):
         metrics[f"psnr{suffix}"] = _finite_mean([p for p, _, _ in rows[group]])
@@ -80,11 +85,33 @@ def _finite_mean(values: list[float]) -> float | None:
     return float(np.mean(values)) if values else None
 
 
-def _save_side_by_side(path: Path, render: torch.Tensor, truth: torch.Tensor) -> None:
-    from PIL import Image
+#: The depth error that saturates the render images' error panel, metres.
+DEPTH_ERROR_SCALE_M = 0.10
+
+
+def _save_side_by_side(path: Path, render: torch.Tensor, truth: torch.Tensor, render_depth: torch.Tensor,
+                       depth: torch.Tensor, frame: int, psnr: float) -> None:
+    """render | input | depth error, each panel labelled above it (the render's PSNR; the
+    frame; the error's scale: black 0, white DEPTH_ERROR_SCALE_M or more, blue no valid depth)."""
+    from PIL import Image, ImageDraw
 
     from slamkit.formats.atomic import atomic_open
 
-    both = torch.cat([render, truth], dim=1).clamp(0, 1)
+    valid = (depth > 0).unsqueeze(-1)
+    error = ((render_depth - depth).abs() / DEPTH_ERROR_SCALE_M).clamp(0, 1).unsqueeze(-1).expand(*depth.shape, 3)
+    no_depth = torch.tensor([0.1, 0.1, 0.4], device=error.device, dtype=error.dtype).expand_as(error)
+    error = torch.where(valid, error, no_depth)
+    panels = torch.cat([render.clamp(0, 1), truth.clamp(0, 1), error.to(render.dtype)], dim=1)
+    pixels = (panels.cpu().numpy() * 255 + 0.5).astype(np.uint8)
+    h, w = pixels.shape[0], pixels.shape[1] // 3
+    strip = 14
+    canvas = Image.new("RGB", (pixels.shape[1], h + strip), "black")
+    canvas.paste(Image.fromarray(pixels), (0, strip))
+    draw = ImageDraw.Draw(canvas)
+    psnr_text = f"PSNR {psnr:.2f} dB" if math.isfinite(psnr) else "PSNR n/a"
+    labels = (f"render, {psnr_text}", f"input, frame {frame}",
+              f"depth error, 0-{100 * DEPTH_ERROR_SCALE_M:.0f} cm")
+    for k, label in enumerate(labels):
+        draw.text((k * w + 3, 1), label, fill="white")
     with atomic_open(path, "wb") as f:
-        Image.fromarray((both.cpu().numpy() * 255 + 0.5).astype(np.uint8)).save(f, format="PNG")
+        canvas.save(f, format="PNG")

@@ -139,3 +139,21 @@ def test_plot_writes_png(tmp_path):
     for name, ref in (("with_gt.png", gt_pos), ("no_gt.png", None)):
         path = plot_trajectory(tmp_path / name, res.est_aligned, ref, "test", ate_rmse_m=res.rmse_m)
         assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and path.stat().st_size > 1000
+
+
+def test_plot_draws_the_loops_closed_in_red(tmp_path):
+    from PIL import Image
+
+    from slamkit.formats.plots import plot_trajectory
+
+    gt = smooth_trajectory(30)
+    res = ate(gt, gt)
+
+    def red_pixels(name: str, loops) -> int:
+        path = plot_trajectory(tmp_path / name, res.est_aligned, res.gt_positions, "test", loops=loops)
+        rgb = np.asarray(Image.open(path).convert("RGB")).astype(int)
+        # matplotlib's tab:red (214, 39, 40)
+        return int(((abs(rgb[..., 0] - 214) < 20) & (rgb[..., 1] < 80) & (rgb[..., 2] < 80)).sum())
+
+    assert red_pixels("plain.png", []) == 0
+    assert red_pixels("loops.png", [(29, 0), (20, 5)]) > 50

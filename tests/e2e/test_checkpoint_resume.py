@@ -59,7 +59,8 @@ def test_kill_9_while_saving_leaves_the_previous_checkpoint(tmp_path):
 
 
 def _cfg(tmp_path: Path, *overrides: str):
-    return compose_run(["mapper=gaussian_splatting", "dataset.num_frames=10", "mapper.resolution_scale=0.25",
+    return compose_run(["mapper=gaussian_splatting", "checkpoint.save=true", "dataset.num_frames=10",
+                        "mapper.resolution_scale=0.25",
                         "mapper.eval_resolution_scale=0.25", "mapper.eval_every=5", "mapper.save_images=0",
                         "iterations_per_frame=2", "final_iterations=0", "progress=false", "eval.plot=false",
                         "mapper/rasterizer=cpu", "mapper.strategy.prune_every=0", *overrides])
@@ -110,9 +111,27 @@ def test_every_n_keyframes_a_checkpoint_is_written(tmp_path, caplog):
 
 
 @pytest.mark.slow
+def test_a_default_run_writes_no_checkpoint_at_its_end_and_a_resumed_one_keeps_its_own(tmp_path):
+    """Run folders stay small: the end checkpoint only when asked; but a folder that holds one (a
+    resumed run's) has it brought to the end, so the finished run is not resumed again."""
+    base = ["mapper=none", "progress=false", "eval.plot=false"]
+    cfg, names = compose_run(["dataset.max_frames=12", *base])
+    metrics = pipeline.run(cfg, default_registry(), names, tmp_path / "plain")
+    assert metrics["completed"] and not (tmp_path / "plain" / CHECKPOINT_NAME).exists()
+    assert metrics["run_folder_mb"] < 1  # 12 synthetic frames, tracking only: logs, trajectory, plot
+    cfg, names = compose_run(["dataset.max_frames=6", "checkpoint.save=true", *base])
+    pipeline.run(cfg, default_registry(), names, tmp_path / "part")
+    cfg, names = compose_run(["dataset.max_frames=12", *base, f"resume={tmp_path / 'part'}"])
+    pipeline.run(cfg, default_registry(), names, tmp_path / "part")
+    saved = read_meta(tmp_path / "part" / CHECKPOINT_NAME)
+    assert saved["reason"] == "end" and saved["num_frames"] == 12
+
+
+@pytest.mark.slow
 def test_resume_refuses_other_plugins_and_a_damaged_checkpoint(tmp_path, tum_path):
     out = tmp_path / "run"
-    base = ("dataset=tum", f"dataset.path={tum_path}", "dataset.max_frames=5", "mapper=none", "progress=false")
+    base = ("dataset=tum", f"dataset.path={tum_path}", "dataset.max_frames=5", "mapper=none", "progress=false",
+            "checkpoint.save=true")
     proc = run_slamkit(*base, f"hydra.run.dir={out}", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     proc = run_slamkit(f"resume={out}", "tracker=kiss_icp", cwd=tmp_path)
@@ -164,7 +183,8 @@ def test_export_reads_a_checkpoint(tmp_path, replica_path, capsys):
     out = tmp_path / "run"
     # the paper's scale alignment: 1-3 mm Gaussians at opacity 0.1, too faint to mesh at alpha 0.5
     proc = run_slamkit("dataset=replica", f"dataset.path={replica_path}", "dataset.max_frames=3", "mapper=none",
-                       "growth.scale_alignment=z_pow", "progress=false", f"hydra.run.dir={out}", cwd=tmp_path)
+                       "growth.scale_alignment=z_pow", "progress=false", "checkpoint.save=true",
+                       f"hydra.run.dir={out}", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert not (out / "map.ply").exists()  # mapper=none: the checkpoint is the map
     assert export_main(["ply", str(out / CHECKPOINT_NAME), "--out", str(tmp_path / "m.ply")]) == 0

@@ -236,12 +236,12 @@ TINY_MAPPING = ("dataset=synthetic", "dataset.num_frames=6", "dataset.width=64",
 
 
 def earlier(*argv: str, frames: int = FRAMES, base: tuple[str, ...] = TUM_DATA, then: Callable | None = None):
-    """`before`: a completed run in {out} (the case's TUM copy unless `base` says otherwise);
+    """`before`: a completed run in {out} with its checkpoint (the case's TUM copy unless `base` says otherwise);
     its files' digests go to memo["digests"]; then `then(case)`."""
 
     def before(case: Case) -> None:
         extra = (f"dataset.max_frames={frames}",) if base is TUM_DATA else ()
-        case.slamkit(*base, *extra, *argv, "hydra.run.dir={out}")
+        case.slamkit(*base, *extra, "checkpoint.save=true", *argv, "hydra.run.dir={out}")
         case.memo["digests"] = digests(case.out)
         if then is not None:
             then(case)

@@ -38,7 +38,7 @@ def test_tum_frames_100_149_localise_in_the_map_of_frames_0_99(tmp_path, tum_pat
     """From an unknown start; ATE at most 1.5x the full run's on the same frames (tracking-only
     runs: the point is tracking in a fixed map)."""
     tum = ("dataset=tum", f"dataset.path={tum_path}", "mapper=none")
-    _run(tmp_path, tmp_path / "map", *tum, "dataset.max_frames=100")
+    _run(tmp_path, tmp_path / "map", *tum, "dataset.max_frames=100", "checkpoint.save=true")
     _run(tmp_path, tmp_path / "full", *tum, "dataset.max_frames=150")
     before = _digest(tmp_path / "map" / CHECKPOINT_NAME)
     metrics = _run(tmp_path, tmp_path / "loc", *tum, "mode=localize", f"map={tmp_path / 'map'}",
@@ -56,7 +56,7 @@ def test_tum_frames_100_149_localise_in_the_map_of_frames_0_99(tmp_path, tum_pat
 @pytest.mark.slow
 def test_replica_frames_10_19_localise_in_the_map_of_frames_0_9(tmp_path, replica_path):
     replica = ("dataset=replica", f"dataset.path={replica_path}", "mapper=none")
-    _run(tmp_path, tmp_path / "map", *replica, "dataset.max_frames=10")
+    _run(tmp_path, tmp_path / "map", *replica, "dataset.max_frames=10", "checkpoint.save=true")
     metrics = _run(tmp_path, tmp_path / "loc", *replica, "mode=localize", f"map={tmp_path / 'map'}",
                    "dataset.start=10")
     assert metrics["num_frames"] == 10 and metrics["localized_frames"] == 10
@@ -89,7 +89,7 @@ def test_an_interrupted_localisation_keeps_its_frames_and_exits_143_on_sigterm(t
     from support.commands import Slamkit
 
     tum = ("dataset=tum", f"dataset.path={tum_path}", "mapper=none")
-    _run(tmp_path, tmp_path / "map", *tum, "dataset.max_frames=5")
+    _run(tmp_path, tmp_path / "map", *tum, "dataset.max_frames=5", "checkpoint.save=true")
     out = tmp_path / "loc"
     run = Slamkit(*tum, "mode=localize", f"map={tmp_path / 'map'}", "dataset.max_frames=8", "progress=false",
                   f"hydra.run.dir={out}", cwd=tmp_path, pause_at="stream@3")

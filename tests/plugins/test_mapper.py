@@ -11,6 +11,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from PIL import Image
 
 from slamkit.errors import ConfigError
 from slamkit.formats.ply import load_ply
@@ -401,6 +402,11 @@ def test_evaluate_reports_train_and_test_views_and_writes_outputs(truth_frames, 
     assert m["eval_frames"] == 2 and m["eval_train_frames"] == 1 and m["mapping_steps"] == 20
     assert m["psnr"] == pytest.approx((m["psnr_train"] + m["psnr_test"]) / 2)
     assert sorted(p.name for p in tmp_path.glob("render_*.png")) == ["render_0000.png", "render_0001.png"]
+    # render | input | depth error under a label strip; the input panel is the frame itself
+    panels = np.asarray(Image.open(tmp_path / "render_0000.png").convert("RGB"))
+    h, w = truth_frames[0].rgb.shape[:2]
+    assert panels.shape == (h + 14, 3 * w, 3) and panels[:14].any()  # the labels are drawn
+    np.testing.assert_allclose(panels[14:, w:2 * w].astype(int), truth_frames[0].rgb.astype(int), atol=1)
     assert not (tmp_path / "map.ply").exists()  # the run writes the map before evaluating (save_map)
     assert mapper.save_map(tmp_path) == [tmp_path / "map.ply"]
     assert len(load_ply(tmp_path / "map.ply")) == m["num_gaussians"] == len(mapper.gaussian_map)

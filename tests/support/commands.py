@@ -17,10 +17,12 @@ import pytest
 
 from slamkit.cli import main as slamkit_cli
 
-#: A short run with every phase and output: 6 synthetic frames mapped by 3DGS, refined, evaluated.
+#: A short run with every phase and output: 6 synthetic frames mapped by 3DGS, refined, evaluated,
+#: its checkpoint written.
 TINY = {"dataset": "synthetic", "dataset.num_frames": 6, "dataset.width": 64, "dataset.height": 48,
         "keyframe": "every_n", "keyframe.tracking_every": 3, "mapper": "gaussian_splatting", "final_iterations": 4,
-        "mapper.save_images": 2, "iterations_per_frame": 2, "progress": "false"}
+        "mapper.save_images": 2, "iterations_per_frame": 2, "progress": "false",
+        "checkpoint.save": "true"}
 
 
 def tiny(**changes) -> list[str]:

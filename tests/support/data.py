@@ -14,12 +14,21 @@ DATA = Path(os.environ.get("SLAMKIT_DATA") or REPO.parent / "shared" / "data")
 TUM = DATA / "tum_fr1_rpy_first150"
 REPLICA = DATA / "replica_room0_first20"
 SEVENSCENES = DATA / "7scenes_redkitchen_300to999"
+#: How a skip for absent data starts (the test run's last line counts them: conftest.py).
+MISSING = "shared data not found at"
+
+
+def missing_data_line(skipped: int) -> str:
+    """The loud last line of a test run that skipped `skipped` tests for absent data: where the
+    data was looked for and how to point the tests at it."""
+    return (f"{skipped} tests SKIPPED: no real RGB-D data at {DATA}; set SLAMKIT_DATA to a folder holding "
+            f"{TUM.name}/, {REPLICA.name}/ and {SEVENSCENES.name}/ (docs/datasets.md, 'The test data')")
 
 
 def require_data(path: Path) -> Path:
     """`path` if it is a folder, else the calling test is skipped, saying where the data was looked for."""
     if not path.is_dir():
-        pytest.skip(f"shared data not found at {path} (it ships beside the repository in CI)")
+        pytest.skip(f"{MISSING} {path} (set SLAMKIT_DATA; docs/datasets.md, 'The test data')")
     return path
 
 

@@ -127,6 +127,7 @@ def loop_registry():
 
 def run_shifted(registry, out: Path, *overrides: str) -> dict:
     cfg, names = compose_run(["dataset.num_frames=30", "mapper=none", "loop_closure=shifting", "progress=false",
+                              "checkpoint.save=true",
                               "eval.plot=false", *overrides], registry)
     return pipeline.run(cfg, registry, names, out)
 
