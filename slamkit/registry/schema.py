@@ -86,7 +86,7 @@ class CheckpointConfig(PluginConfig):
 
     #: write it at the end of the run (what mode=localize and a mapper=none export read; off: small run folders)
     save: bool = False
-    #: write it when the run is interrupted (SIGINT, SIGTERM), for resume=
+    #: write it when the run is interrupted (SIGINT, SIGTERM) or fails after the stream, for resume=
     on_interrupt: bool = True
     #: also write it every this many keyframes, and at the end (0: never)
     every_keyframes: int = 0

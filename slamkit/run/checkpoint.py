@@ -81,15 +81,16 @@ class CheckpointWriter:
             self.save("keyframes")
 
     def save(self, reason: str) -> Path | None:
-        """Write the checkpoint now (`reason`: end | keyframes | interrupted); None when it was
-        not asked for (end: `checkpoint.save`, `every_keyframes` or a checkpoint already
-        there; interrupted: those or `on_interrupt`) or nothing was tracked yet. A default run writes none at its end: a
-        checkpoint holds the whole map and the tracker's target (~100 MB for a tracking-only
-        7-Scenes run of 700 frames)."""
+        """Write the checkpoint now (`reason`: end | keyframes | interrupted | failed); None when
+        it was not asked for (end, keyframes: `checkpoint.save`, `every_keyframes` or a checkpoint
+        already there; interrupted, failed: those or `on_interrupt`) or nothing was tracked yet. A
+        default run writes none at its end: a checkpoint holds the whole map and the tracker's
+        target (~100 MB for a tracking-only 7-Scenes run of 700 frames)."""
         ck = self.cfg.checkpoint
         # a checkpoint already in the folder (a resumed run's) is kept current: a stale one would be resumed again
         asked = ck.save or ck.every_keyframes > 0 or self.path.exists()
-        if not {"end": asked, "keyframes": asked, "interrupted": asked or ck.on_interrupt}[reason]:
+        if not {"end": asked, "keyframes": asked, "interrupted": asked or ck.on_interrupt,
+                "failed": asked or ck.on_interrupt}[reason]:
             return None
         if not self.state.poses:
             return None
