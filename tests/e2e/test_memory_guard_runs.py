@@ -63,6 +63,9 @@ def test_cli_run_with_the_guard_reports_pruning_and_stays_under_the_cap(tmp_path
     assert metrics["completed"] and metrics["num_keyframes"] == 6
     assert metrics["pruned_by_memory_guard"] > 0 and metrics["num_gaussians"] <= 1000
     sizes = [int(r["num_gaussians"]) for r in csv.DictReader(open(out / "frames.csv"))]
-    one_keyframe = max(b - a for a, b in zip(sizes, sizes[1:]))  # the most one keyframe added
+    # the most one keyframe added: in real time its trackable rows enter on the tracking thread and
+    # its other admitted rows in the handover thread (which then applies the cap), so its rise can
+    # spread over the records until the next keyframe (keyframe.tracking_every=2)
+    one_keyframe = max(sizes[i + w] - sizes[i] for w in (1, 2, 3) for i in range(len(sizes) - w))
     assert len(sizes) == 12 and max(sizes) <= 1000 + (one_keyframe if mode == "realtime" else 0)
     assert metrics["ate_rmse_m"] < 0.05
