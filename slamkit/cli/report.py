@@ -300,15 +300,24 @@ def _plot_trajectories(out: Path, rows: list[dict]) -> Path | None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="slamkit-report", description=__doc__.split("\n\n")[0])
-    parser.add_argument("dirs", nargs="+", type=Path, help="multirun or run directories")
+    parser.add_argument("dirs", nargs="*", type=Path, help="multirun or run directories")
     parser.add_argument("--out", type=Path, default=None, help="where to write (default: the first DIR)")
     parser.add_argument("--include-unfinished", action="store_true",
                         help="aggregate interrupted, failed and running runs with the completed ones")
     parser.add_argument("--paper", choices=paper_tables.NAMES, default=None, metavar="TABLE",
                         help="also print the runs as the paper's TABLE with its figures beside ours, into "
                              f"paper_TABLE.md ({', '.join(paper_tables.NAMES)})")
+    parser.add_argument("--docs", type=Path, metavar="FILE",
+                        help="rewrite the generated tables of the Markdown FILE (its '<!-- slamkit-report ... -->' "
+                             "blocks) from the runs they name, folders relative to the current directory")
+    parser.add_argument("--check", action="store_true",
+                        help="with --docs: write nothing, exit 1 when FILE differs from its runs")
     streams.guard()  # a closed, broken or full stdout / stderr never stops the command
     args = parser.parse_args(argv)
+    if args.docs is not None:
+        return _docs(args.docs, args.check)
+    if not args.dirs:
+        parser.error("give run folders (or --docs FILE)")
     out = args.out or args.dirs[0]
     try:
         folders = find_runs(args.dirs)
@@ -331,6 +340,31 @@ def main(argv: list[str] | None = None) -> int:
                        if any(r["status"] == s for r in runs))
     print(f"slamkit-report: {len(runs)} runs ({counts}), {len(rows)} rows; wrote report.csv, report.md and plots "
           f"into {out}", file=sys.stderr)
+    return 0
+
+
+def _docs(path: Path, check: bool) -> int:
+    """--docs: the document's generated blocks rewritten (or, --check, compared)."""
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        print(f"slamkit-report: error: {path}: cannot read it ({exc.strerror or exc}; expected a Markdown file)",
+              file=sys.stderr)
+        return 2
+    try:
+        new = paper_tables.regenerate_document(text, Path.cwd())
+    except (SlamkitError, ValueError) as exc:
+        print(f"slamkit-report: error: {path}: {exc}", file=sys.stderr)
+        return 2
+    if new == text:
+        print(f"slamkit-report: {path} agrees with its runs", file=sys.stderr)
+        return 0
+    if check:
+        print(f"slamkit-report: {path} differs from its runs (slamkit-report --docs {path} rewrites it)",
+              file=sys.stderr)
+        return 1
+    write_atomic(path, new)
+    print(f"slamkit-report: rewrote the generated tables of {path}", file=sys.stderr)
     return 0
 
 
