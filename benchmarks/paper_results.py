@@ -105,6 +105,13 @@ def collect(src: Path, group: str, data: Path, load_note: str | None) -> Path:
         (target / ".hydra").mkdir(parents=True)
         metrics = json.loads((run / "metrics.json").read_text())
         (target / "metrics.json").write_text(json.dumps(metrics, indent=1) + "\n")
+        renders = sorted(run.glob("render_*.png"))
+        if renders:  # the middle one, at 640 pixels across, for Fig. 5 of the HTML report
+            from PIL import Image
+
+            image = Image.open(renders[len(renders) // 2])
+            image.thumbnail((640, 640))
+            image.save(target / renders[len(renders) // 2].name, optimize=True)
         overrides = run / ".hydra" / "overrides.yaml"
         if overrides.exists():
             text = overrides.read_text().replace(str(data.resolve()), "$DATA").replace(str(data), "$DATA")

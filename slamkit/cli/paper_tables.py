@@ -158,10 +158,10 @@ def scene_of(settings: dict[str, str]) -> str:
     return Path(where.rstrip("/")).name
 
 
-def paper_table(name: str, runs: list[dict[str, Any]]) -> str:
+def paper_table(name: str, runs: list[dict[str, Any]], difference: bool = False) -> str:
     """The sweep's completed `runs` (`slamkit.cli.report.load_run` entries: settings, metrics,
     status) as the paper's table `name` (one of NAMES), in Markdown, the paper's figure beside
-    each of ours ("-" where the paper has none)."""
+    each of ours ("-" where the paper has none) and, with `difference`, ours minus the paper's."""
     table = TABLES[name]
     groups: dict[tuple, list[dict]] = {}
     for run in runs:
@@ -173,6 +173,7 @@ def paper_table(name: str, runs: list[dict[str, Any]]) -> str:
     header = [*table.keys, "the paper's row", "scene", "the paper's column", "runs"]
     for metric in table.metrics:
         header += [metric.header] + ([f"{metric.header}, paper"] if _in_paper(table, metric) else [])
+        header += [f"{metric.header}, ours - paper"] if difference and _in_paper(table, metric) else []
     lines = [f"**{table.title}**", "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for row, scene in ranked:
         column = table.columns.get(scene, MEAN)
@@ -180,9 +181,13 @@ def paper_table(name: str, runs: list[dict[str, Any]]) -> str:
         cells = [str(v) if v is not None else "-" for v in row]
         cells += [table.labels.get(row, "-"), scene or "-", column if paper else "-", str(len(groups[row, scene]))]
         for metric in table.metrics:
-            cells.append(_fmt(_mean(groups[row, scene], metric), metric.digits))
+            ours = _mean(groups[row, scene], metric)
+            cells.append(_fmt(ours, metric.digits))
             if _in_paper(table, metric):
-                cells.append(_fmt(paper.get(metric.key), metric.digits))
+                theirs = paper.get(metric.key)
+                cells.append(_fmt(theirs, metric.digits))
+                if difference:
+                    cells.append("-" if ours is None or theirs is None else f"{ours - theirs:+.{metric.digits}f}")
         lines.append("| " + " | ".join(cells) + " |")
     if not ranked:
         lines.append("(no completed run)")
