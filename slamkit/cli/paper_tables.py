@@ -192,6 +192,24 @@ def paper_table(name: str, runs: list[dict[str, Any]], difference: bool = False)
                 if difference:
                     cells.append("-" if ours is None or theirs is None else f"{ours - theirs:+.{metric.digits}f}")
         lines.append("| " + " | ".join(cells) + " |")
+    for row in dict.fromkeys(r for r, _ in ranked):  # the paper's "Avg.": a mean row over our scenes
+        scenes = [scene for r, scene in ranked if r == row]
+        if len(scenes) < 2:
+            continue
+        paper = table.paper.get((*row, MEAN), {})
+        cells = [str(v) if v is not None else "-" for v in row]
+        cells += [table.labels.get(row, "-"), f"mean of {len(scenes)} scenes", MEAN if paper else "-",
+                  str(sum(len(groups[row, s]) for s in scenes))]
+        for metric in table.metrics:
+            per_scene = [_mean(groups[row, s], metric) for s in scenes]
+            ours = None if None in per_scene else sum(per_scene) / len(per_scene)
+            cells.append(_fmt(ours, metric.digits))
+            if _in_paper(table, metric):
+                theirs = paper.get(metric.key)
+                cells.append(_fmt(theirs, metric.digits))
+                if difference:
+                    cells.append("-" if ours is None or theirs is None else f"{ours - theirs:+.{metric.digits}f}")
+        lines.append("| " + " | ".join(cells) + " |")
     if not ranked:
         lines.append("(no completed run)")
     notes = ["the paper's ATE is the reference code's mean error after alignment: beside our ate_mean_m"
