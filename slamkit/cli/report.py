@@ -308,7 +308,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=None, help="where to write (default: the first DIR)")
     parser.add_argument("--include-unfinished", action="store_true",
                         help="aggregate interrupted, failed and running runs with the completed ones")
-    parser.add_argument("--paper", choices=(*paper_tables.NAMES, "all"), default=None, metavar="TABLE",
+    parser.add_argument("--paper", choices=(*paper_tables.NAMES, *paper_tables.ALIASES, "all"), default=None,
+                        metavar="TABLE",
                         help="also print the runs as the paper's TABLE with its figures beside ours, into "
                              f"paper_TABLE.md ({', '.join(paper_tables.NAMES)}; all: every table that has runs)")
     parser.add_argument("--html", type=Path, default=None, metavar="OUT",

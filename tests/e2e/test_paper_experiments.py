@@ -85,7 +85,7 @@ def test_ablation_keyframes_is_table7_with_the_mapper(tmp_path):
     papers_system_mapped(jobs, "ate_rmse_m", "psnr", "ssim")
 
 
-def test_ablation_keyframe_selection_is_fig4a(tmp_path):
+def test_ablation_keyframe_selection_is_fig3(tmp_path):
     jobs = sweep("ablation_keyframe_selection", tmp_path, *on_replica())
     assert [j["choices"]["keyframe"] for j in jobs] == ["overlap", "every_n", "every_n", "every_n"]
     assert [j["settings"].get("keyframe.tracking_every") for j in jobs] == [None, 5, 10, 30]
