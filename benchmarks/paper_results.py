@@ -49,7 +49,7 @@ GROUPS = {
     "table8a": [("replica", f"-m +experiment=ablation_training_keyframes {REPLICA}"),
                 ("tum", f"-m +experiment=ablation_training_keyframes {TUM} mapper.resolution_scale=0.5")],
     "table8b": [("replica", f"-m +experiment=ablation_densify_prune {REPLICA}")],
-    "fig4a": [("replica", f"-m +experiment=ablation_keyframe_selection {REPLICA}")],
+    "fig3": [("replica", f"-m +experiment=ablation_keyframe_selection {REPLICA}")],
 }
 
 
