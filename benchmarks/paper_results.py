@@ -106,7 +106,7 @@ def collect(src: Path, group: str, data: Path, load_note: str | None) -> Path:
         metrics = json.loads((run / "metrics.json").read_text())
         (target / "metrics.json").write_text(json.dumps(metrics, indent=1) + "\n")
         renders = sorted(run.glob("render_*.png"))
-        if renders:  # the middle one, at 640 pixels across, for Fig. 5 of the HTML report
+        if renders and group == "realtime":  # the middle one, 640 pixels across: Fig. 5 of the HTML report, per preset
             from PIL import Image
 
             image = Image.open(renders[len(renders) // 2])
