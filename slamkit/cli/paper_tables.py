@@ -7,7 +7,13 @@ the folder of `dataset.path`; runs of one row and scene (seeds) are averaged. Th
 is its value for that row and scene, or its mean over its scenes where ours is another one (the
 `paper's column` cell says which). The paper's ATE is what the authors' code prints, the mean
 translation error after alignment (called RMSE there): it stands beside our `ate_mean_m`, with our
-RMSE (`ate_rmse_m`) in a column of its own. FPS is frames over the run's wall time (`fps`).
+RMSE (`ate_rmse_m`) in a column of its own. FPS is the paper's, frames over the SLAM run's time
+(`fps`: start-up included, the evaluation after the stream not); `runs_table` sets it beside the
+input's rate (`stream_fps`).
+
+`slamkit-report --docs FILE` rewrites the generated blocks of a Markdown file (`BLOCK_START` with
+`--paper TABLE DIR...` or `--runs DIR...`, up to `BLOCK_END`) from the runs they name, each table
+followed by where its runs came from (`provenance.json`: commit, date, machine, load).
 """
 
 from __future__ import annotations
@@ -130,20 +136,33 @@ TABLES: dict[str, PaperTable] = {
         {("recent",): "recent 1 keyframe", ("covisible",): "covisible keyframes", ("random",): "random keyframes"}),
     "table8b": PaperTable(
         "Table 8b: densification and pruning (Replica, the paper's mean of 8 scenes)",
-        ("mapper/strategy", "mapper.strategy.prune_every"), (ATE, ATE_RMSE, PSNR, SSIM, LPIPS),
-        _rows({("3dgs", "200"): (0.188, 38.65, 0.973, 0.041), ("3dgs", "0"): (0.170, 37.90, 0.971, 0.052),
-               ("gsicp", "200"): (0.157, 38.83, 0.975, 0.041), ("gsicp", "0"): (0.159, 38.72, 0.974, 0.041)},
+        ("densify_variant", "mapper.strategy.prune_every"), (ATE, ATE_RMSE, PSNR, SSIM, LPIPS),
+        _rows({("reference", "200"): (0.188, 38.65, 0.973, 0.041), ("reference", "0"): (0.170, 37.90, 0.971, 0.052),
+               ("none", "200"): (0.157, 38.83, 0.975, 0.041), ("none", "0"): (0.159, 38.72, 0.974, 0.041)},
               "ate_mean_m", "psnr", "ssim", "lpips"),
-        {("3dgs", "200"): "densify, prune", ("3dgs", "0"): "densify, no pruning",
-         ("gsicp", "200"): "no densification, prune", ("gsicp", "0"): "neither"}),
-    "fig4a": PaperTable(
-        "Fig. 4a: keyframe selection (Replica)", ("keyframe_selection",), (ATE, ATE_RMSE, PSNR), {},
+        {("reference", "200"): "densify, prune", ("reference", "0"): "densify, no pruning",
+         ("none", "200"): "no densification, prune", ("none", "0"): "neither",
+         ("every100", "200"): "- (3DGS's schedule, densify, prune)", ("every100", "0"): "- (3DGS's schedule, densify)"},
+        note="densify_variant reference is the reference code's schedule (clone / split every 300 steps, an opacity "
+             "reset every 600), every100 3DGS's own (100 / 3000), none no densification"),
+    "fig4": PaperTable(
+        "Fig. 4: separated keyframe selection (the paper: Replica office4), cases 1-3", ("keyframe_variant",),
+        (ATE, ATE_RMSE, PSNR, SSIM, LPIPS), {},
+        {("tracking_every30",): "case 1: tracking keyframes, a forced one every 30 frames",
+         ("tracking_every10",): "case 2: tracking keyframes, a forced one every 10 frames",
+         ("mapping_every10",): "case 3: tracking keyframes, mapping-only every 10 frames (the paper's)"},
+        note="the paper's values are in its figure only; its caption: few tracking keyframes track best (case 1), "
+             "many mapping keyframes render best (case 2), case 3 takes both"),
+    "fig3": PaperTable(
+        "Fig. 3: keyframe selection (Replica)", ("keyframe_selection",), (ATE, ATE_RMSE, PSNR), {},
         {("overlap",): "overlap (the paper's)", ("every_5",): "every 5 frames", ("every_10",): "every 10 frames",
          ("every_30",): "every 30 frames"},
         note="the paper's values are in its figure only; its caption: every n frames tracks notably worse, "
              "the overlap selection best"),
 }
 NAMES = tuple(TABLES)
+#: Earlier names of a table: fig4a was the paper's Fig. 3 (removed in 0.4).
+ALIASES = {"fig4a": "fig3"}
 
 
 def scene_of(settings: dict[str, str]) -> str:
@@ -152,10 +171,11 @@ def scene_of(settings: dict[str, str]) -> str:
     return Path(where.rstrip("/")).name
 
 
-def paper_table(name: str, runs: list[dict[str, Any]]) -> str:
+def paper_table(name: str, runs: list[dict[str, Any]], difference: bool = False) -> str:
     """The sweep's completed `runs` (`slamkit.cli.report.load_run` entries: settings, metrics,
     status) as the paper's table `name` (one of NAMES), in Markdown, the paper's figure beside
-    each of ours ("-" where the paper has none)."""
+    each of ours ("-" where the paper has none) and, with `difference`, ours minus the paper's."""
+    name = ALIASES.get(name, name)
     table = TABLES[name]
     groups: dict[tuple, list[dict]] = {}
     mixed = [run for run in runs if run["status"] == "completed" and run["metrics"].get("settings_changes")]
@@ -168,6 +188,7 @@ def paper_table(name: str, runs: list[dict[str, Any]]) -> str:
     header = [*table.keys, "the paper's row", "scene", "the paper's column", "runs"]
     for metric in table.metrics:
         header += [metric.header] + ([f"{metric.header}, paper"] if _in_paper(table, metric) else [])
+        header += [f"{metric.header}, ours - paper"] if difference and _in_paper(table, metric) else []
     lines = [f"**{table.title}**", "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for row, scene in ranked:
         column = table.columns.get(scene, MEAN)
@@ -175,14 +196,40 @@ def paper_table(name: str, runs: list[dict[str, Any]]) -> str:
         cells = [str(v) if v is not None else "-" for v in row]
         cells += [table.labels.get(row, "-"), scene or "-", column if paper else "-", str(len(groups[row, scene]))]
         for metric in table.metrics:
-            cells.append(_fmt(_mean(groups[row, scene], metric), metric.digits))
+            ours = _mean(groups[row, scene], metric)
+            cells.append(_fmt(ours, metric.digits))
             if _in_paper(table, metric):
-                cells.append(_fmt(paper.get(metric.key), metric.digits))
+                theirs = paper.get(metric.key)
+                cells.append(_fmt(theirs, metric.digits))
+                if difference:
+                    cells.append("-" if ours is None or theirs is None else f"{ours - theirs:+.{metric.digits}f}")
+        lines.append("| " + " | ".join(cells) + " |")
+    for row in dict.fromkeys(r for r, _ in ranked):  # the paper's "Avg.": a mean row over our scenes
+        scenes = [scene for r, scene in ranked if r == row]
+        if len(scenes) < 2:
+            continue
+        paper = table.paper.get((*row, MEAN), {})
+        cells = [str(v) if v is not None else "-" for v in row]
+        cells += [table.labels.get(row, "-"), f"mean of {len(scenes)} scenes", MEAN if paper else "-",
+                  str(sum(len(groups[row, s]) for s in scenes))]
+        for metric in table.metrics:
+            per_scene = [_mean(groups[row, s], metric) for s in scenes]
+            ours = None if None in per_scene else sum(per_scene) / len(per_scene)
+            cells.append(_fmt(ours, metric.digits))
+            if _in_paper(table, metric):
+                theirs = paper.get(metric.key)
+                cells.append(_fmt(theirs, metric.digits))
+                if difference:
+                    cells.append("-" if ours is None or theirs is None else f"{ours - theirs:+.{metric.digits}f}")
         lines.append("| " + " | ".join(cells) + " |")
     if not ranked:
         lines.append("(no completed run)")
     notes = ["the paper's ATE is the reference code's mean error after alignment: beside our ate_mean_m"
              ] if ATE in table.metrics else []
+    if any(scene not in table.columns and table.paper.get((*row, MEAN)) for row, scene in ranked):
+        notes.append(f"{', '.join(sorted({s or '-' for r, s in ranked if s not in table.columns}))} "
+                     f"{'is' if len({s for r, s in ranked if s not in table.columns}) == 1 else 'are'} not among the "
+                     "paper's scenes: its figure there is its mean over its own scenes, not a measurement of ours")
     notes += [table.note] if table.note else []
     notes += [f"left out, resumed with other method settings (metrics.json settings_changes): "
               f"{', '.join(str(run['run']) for run in mixed)}"] if mixed else []
@@ -192,6 +239,7 @@ def paper_table(name: str, runs: list[dict[str, Any]]) -> str:
 
 def report(name: str, runs: list[dict[str, Any]], out: Path) -> Path:
     """Print `paper_table(name, runs)` and write it as out/paper_NAME.md; returns the file."""
+    name = ALIASES.get(name, name)
     text = paper_table(name, runs)
     print(text, end="")
     path = Path(out) / f"paper_{name}.md"
@@ -212,3 +260,115 @@ def _mean(metrics: list[dict], metric: Metric) -> float | None:
 
 def _fmt(value: float | None, digits: int) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
+
+
+# ------------------------------------------------------------------ a table of runs, one row each
+@dataclass(frozen=True)
+class RunColumn:
+    """A column of the runs table: its header, metrics.json's key, factor, decimals."""
+
+    header: str
+    key: str
+    scale: float = 1.0
+    digits: int = 2
+
+
+#: The real-time runs' table: the input's rate and the paper's FPS (frames over the SLAM run's
+#: time, start-up included, evaluation not) side by side, and what the map became.
+RUN_COLUMNS = (
+    RunColumn("stream frames/s", "stream_fps"), RunColumn("FPS (frames / total time, the paper's)", "fps"),
+    RunColumn("mapping steps", "mapping_steps", digits=0), RunColumn("PSNR [dB]", "psnr"),
+    RunColumn("SSIM", "ssim", digits=3), RunColumn("LPIPS", "lpips", digits=3),
+    RunColumn("ATE mean [cm]", "ate_mean_m", 100.0, 3), RunColumn("ATE RMSE [cm]", "ate_rmse_m", 100.0, 3),
+    RunColumn("Gaussians", "num_gaussians", digits=0),
+)
+
+
+def runs_table(runs: list[dict[str, Any]]) -> str:
+    """The completed `runs` one row each (the run's folder name), RUN_COLUMNS, the training
+    resolution and which pixels PSNR is over (the run's `settings`)."""
+    header = ["run", "training resolution", "PSNR pixels", *(c.header for c in RUN_COLUMNS)]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for run in sorted((r for r in runs if r["status"] == "completed"), key=lambda r: str(r["run"])):
+        m = run["metrics"]
+        resolution = m.get("train_resolution")
+        cells = [Path(run["run"]).name, "x".join(map(str, resolution)) if resolution else "-",
+                 str((m.get("settings") or {}).get("eval.psnr_pixels", "-"))]
+        for column in RUN_COLUMNS:
+            value = _mean([m], Metric(column.header, column.key, column.scale, column.digits))
+            cells.append("-" if value is None else f"{value:,.{column.digits}f}")
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+# ------------------------------------------------------------------ where the committed runs came from
+PROVENANCE = "provenance.json"
+
+
+def provenance_of(run: Path) -> dict[str, Any] | None:
+    """The provenance record (PROVENANCE: commit, date, machine, load, commands) of the folder of
+    runs that holds `run`, the nearest one above it; None without one."""
+    for folder in (Path(run), *Path(run).parents):
+        path = folder / PROVENANCE
+        if path.is_file():
+            import json
+
+            return json.loads(path.read_text())
+    return None
+
+
+def provenance_line(runs: list[dict[str, Any]]) -> str:
+    """One sentence per distinct provenance record of `runs`: when, where and at which commit they
+    ran, and the machine's load (frames/s are that machine's under that load)."""
+    seen, parts = [], []
+    for run in runs:
+        record = provenance_of(run["run"])
+        if record is None or record in seen:
+            continue
+        seen.append(record)
+        load = record.get("load_average")
+        parts.append(f"{record.get('group', 'runs')}: commit {record.get('commit', '?')}, {record.get('date', '?')}, "
+                     f"{record.get('machine', '?')}"
+                     + (f", load average {load} ({record.get('load_note', 'a machine shared with other work')})"
+                        if load else ""))
+    return ("Measured " + "; ".join(parts) + ".") if parts else "(no provenance record)"
+
+
+# ------------------------------------------------------------------ the tables of a document, regenerated
+#: A generated block of a Markdown document: the opening comment names what writes it (as
+#: slamkit-report's arguments: `--paper TABLE DIR...` or `--runs DIR...`, folders relative to the
+#: repository), the closing one ends it; everything between is rewritten.
+BLOCK_START = "<!-- slamkit-report "
+BLOCK_END = "<!-- end slamkit-report -->"
+
+
+def block_text(args: list[str], root: Path) -> str:
+    """What a block with arguments `args` holds: the table and where its runs came from."""
+    from slamkit.cli.report import find_runs, load_run
+
+    if len(args) < 2 or args[0] not in ("--paper", "--runs") or (args[0] == "--paper" and len(args) < 3):
+        raise ValueError(f"a block's arguments are '--paper TABLE DIR...' or '--runs DIR...', got {' '.join(args)!r}")
+    dirs = [root / d for d in (args[2:] if args[0] == "--paper" else args[1:])]
+    runs = [load_run(r) for r in find_runs(dirs)]
+    if args[0] == "--paper":
+        if ALIASES.get(args[1], args[1]) not in TABLES:
+            raise ValueError(f"no paper table {args[1]!r} (expected one of {', '.join(NAMES)})")
+        table = paper_table(args[1], runs)
+    else:
+        table = runs_table(runs)
+    return f"{table}\n{provenance_line(runs)}\n"
+
+
+def regenerate_document(text: str, root: Path) -> str:
+    """`text` with every generated block rewritten from the runs it names (under `root`)."""
+    out, pos = [], 0
+    while (start := text.find(BLOCK_START, pos)) >= 0:
+        head_end = text.index("-->", start) + 3
+        end = text.find(BLOCK_END, head_end)
+        if end < 0:
+            raise ValueError(f"a generated block at character {start} has no {BLOCK_END!r}")
+        args = text[start + len(BLOCK_START):head_end - 3].split()
+        out += [text[pos:head_end], "\n", block_text(args, root)]
+        pos = end
+    out.append(text[pos:])
+    return "".join(out)

@@ -36,6 +36,8 @@ from slamkit.metrics import trajectory as evaluation
 METRICS = ["ate_rmse_m", "ate_mean_m", "rpe_trans_rmse_m", "fps", "tracking_fps", "psnr", "ssim",
            "psnr_train", "psnr_test", "depth_l1_cm", "num_keyframes", "num_gaussians", "lost_frames", "peak_memory_mb",
            "mapping_train_time_s", "mapping_train_cpu_s", "wall_time_s", "num_frames"]
+#: Columns of the tables that are no plot: counts of the input, not results.
+UNPLOTTED = ("num_frames", "lost_frames")
 STATUSES = ("completed", "interrupted", "failed", "running")
 #: A sweep's job that never started (no folder).
 NOT_RUN = "not run"
@@ -244,15 +246,17 @@ def write_plots(out: Path, rows: list[dict]) -> list[Path]:
     rows = [r for r in rows if r["aggregate"]]
     written = []
     for name in METRICS:
-        if not any(r[name] is not None for r in rows):
+        if name in UNPLOTTED or not any(r[name] is not None for r in rows):
             continue
         fig = Figure(figsize=(max(4, 1.2 * len(rows)), 3.5), layout="constrained")
         ax = fig.add_subplot()
         means = [r[name][0] if r[name] else np.nan for r in rows]
         stds = [r[name][1] if r[name] else 0 for r in rows]
-        ax.bar(range(len(rows)), means, yerr=stds, capsize=4, color="tab:blue")
+        spread = any(r["n"] > 1 for r in rows)  # a standard deviation over one run is no error bar
+        ax.bar(range(len(rows)), means, yerr=stds if spread else None, capsize=4, color="tab:blue")
         ax.set_xticks(range(len(rows)), [_label(r) for r in rows], rotation=20, ha="right", fontsize=8)
         ax.set_ylabel(name)
+        ax.set_title(f"{name} by configuration" + (" (mean ± std over runs)" if spread else ""), fontsize=9)
         path = out / f"bar_{name}.png"
         save_figure(fig, path)
         written.append(path)
@@ -300,15 +304,30 @@ def _plot_trajectories(out: Path, rows: list[dict]) -> Path | None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="slamkit-report", description=__doc__.split("\n\n")[0])
-    parser.add_argument("dirs", nargs="+", type=Path, help="multirun or run directories")
+    parser.add_argument("dirs", nargs="*", type=Path, help="multirun or run directories")
     parser.add_argument("--out", type=Path, default=None, help="where to write (default: the first DIR)")
     parser.add_argument("--include-unfinished", action="store_true",
                         help="aggregate interrupted, failed and running runs with the completed ones")
-    parser.add_argument("--paper", choices=paper_tables.NAMES, default=None, metavar="TABLE",
+    parser.add_argument("--paper", choices=(*paper_tables.NAMES, *paper_tables.ALIASES, "all"), default=None,
+                        metavar="TABLE",
                         help="also print the runs as the paper's TABLE with its figures beside ours, into "
-                             f"paper_TABLE.md ({', '.join(paper_tables.NAMES)})")
+                             f"paper_TABLE.md ({', '.join(paper_tables.NAMES)}; all: every table that has runs)")
+    parser.add_argument("--html", type=Path, default=None, metavar="OUT",
+                        help="with --paper all: write one self-contained HTML page of every table, figure, run "
+                             "setting and provenance to OUT")
+    parser.add_argument("--docs", type=Path, metavar="FILE",
+                        help="rewrite the generated tables of the Markdown FILE (its '<!-- slamkit-report ... -->' "
+                             "blocks) from the runs they name, folders relative to the current directory")
+    parser.add_argument("--check", action="store_true",
+                        help="with --docs: write nothing, exit 1 when FILE differs from its runs")
     streams.guard()  # a closed, broken or full stdout / stderr never stops the command
     args = parser.parse_args(argv)
+    if args.docs is not None:
+        return _docs(args.docs, args.check)
+    if not args.dirs:
+        parser.error("give run folders (or --docs FILE)")
+    if args.html is not None and args.paper != "all":
+        parser.error("--html needs --paper all")
     out = args.out or args.dirs[0]
     try:
         folders = find_runs(args.dirs)
@@ -325,12 +344,50 @@ def main(argv: list[str] | None = None) -> int:
               "folder)", file=sys.stderr)
         return 1
     print((out / "report.md").read_text(), end="")
-    if args.paper:
+    if args.paper == "all":
+        from slamkit.cli import paper_html
+
+        for name in paper_tables.NAMES:
+            if paper_html.table_runs(name, runs):
+                paper_tables.report(name, paper_html.table_runs(name, runs), out)
+        if args.html is not None:
+            try:
+                paper_html.paper_html(runs, args.html)
+            except OSError as exc:
+                print(f"slamkit-report: error: cannot write {args.html}: {exc.strerror or exc}", file=sys.stderr)
+                return 1
+            print(f"slamkit-report: wrote {args.html}", file=sys.stderr)
+    elif args.paper:
         paper_tables.report(args.paper, runs, out)
     counts = ", ".join(f"{sum(r['status'] == s for r in runs)} {s}" for s in (*STATUSES, "unreadable", NOT_RUN)
                        if any(r["status"] == s for r in runs))
     print(f"slamkit-report: {len(runs)} runs ({counts}), {len(rows)} rows; wrote report.csv, report.md and plots "
           f"into {out}", file=sys.stderr)
+    return 0
+
+
+def _docs(path: Path, check: bool) -> int:
+    """--docs: the document's generated blocks rewritten (or, --check, compared)."""
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        print(f"slamkit-report: error: {path}: cannot read it ({exc.strerror or exc}; expected a Markdown file)",
+              file=sys.stderr)
+        return 2
+    try:
+        new = paper_tables.regenerate_document(text, Path.cwd())
+    except (SlamkitError, ValueError) as exc:
+        print(f"slamkit-report: error: {path}: {exc}", file=sys.stderr)
+        return 2
+    if new == text:
+        print(f"slamkit-report: {path} agrees with its runs", file=sys.stderr)
+        return 0
+    if check:
+        print(f"slamkit-report: {path} differs from its runs (slamkit-report --docs {path} rewrites it)",
+              file=sys.stderr)
+        return 1
+    write_atomic(path, new)
+    print(f"slamkit-report: rewrote the generated tables of {path}", file=sys.stderr)
     return 0
 
 

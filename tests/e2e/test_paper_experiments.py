@@ -85,7 +85,7 @@ def test_ablation_keyframes_is_table7_with_the_mapper(tmp_path):
     papers_system_mapped(jobs, "ate_rmse_m", "psnr", "ssim")
 
 
-def test_ablation_keyframe_selection_is_fig4a(tmp_path):
+def test_ablation_keyframe_selection_is_fig3(tmp_path):
     jobs = sweep("ablation_keyframe_selection", tmp_path, *on_replica())
     assert [j["choices"]["keyframe"] for j in jobs] == ["overlap", "every_n", "every_n", "every_n"]
     assert [j["settings"].get("keyframe.tracking_every") for j in jobs] == [None, 5, 10, 30]
@@ -101,9 +101,13 @@ def test_ablation_training_keyframes_is_table8a(tmp_path):
 
 def test_ablation_densify_prune_is_table8b_two_by_two(tmp_path):
     jobs = sweep("ablation_densify_prune", tmp_path, *on_replica())
-    assert [(j["choices"]["mapper/strategy"], j["settings"]["mapper.strategy.prune_every"]) for j in jobs] == [
-        ("3dgs", 200), ("3dgs", 0), ("gsicp", 200), ("gsicp", 0)]
+    assert [(j["choices"]["densify_variant"], j["choices"]["mapper/strategy"],
+             j["settings"]["mapper.strategy.prune_every"]) for j in jobs] == [
+        ("reference", "3dgs", 200), ("reference", "3dgs", 0), ("none", "gsicp", 200), ("none", "gsicp", 0)]
     papers_system_mapped(jobs, "ate_rmse_m", "psnr", "ssim", "gaussians_densified")
+    config = yaml.safe_load((tmp_path / "sweep" / "0" / ".hydra" / "config.yaml").read_text())
+    assert (config["mapper"]["strategy"]["densify_every"], config["mapper"]["strategy"]["reset_opacity_every"]) == (
+        300, 600)  # the reference code's schedule
 
 
 @pytest.fixture
