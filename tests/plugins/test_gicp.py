@@ -459,7 +459,7 @@ def test_a_prediction_over_a_long_gap_is_capped():
 
 def test_a_frame_budget_stops_the_fallbacks():
     """The sudden stop of test_fallback_to_previous_pose_after_a_sudden_stop with a frame budget
-    already spent: one iteration, no fallback, the frame lost rather than late; the real-time
+    already spent: the first alignment fails, no fallback starts, the frame is lost rather than late; the real-time
     defaults bound a frame, the sequential ones do not."""
     frame = make_frame(POSE)
     gmap = map_from_frame(frame, POSE)

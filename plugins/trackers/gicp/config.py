@@ -17,8 +17,8 @@ from slamkit.geometry.gaussians import Regularization
 from slamkit.roles import PluginConfig, RunContext, require, thread_count
 from slamkit_plugins.trackers.gicp.kernels import Kernels
 
-#: ms: a real-time frame's alignments stop after this much of its tracking (`frame_budget_ms`): with
-#: its covariances and the frame's Gaussians before and after, about 1.5 frame periods at 30 frames/s.
+#: ms: no fallback of a real-time frame starts after this much of its tracking (`frame_budget_ms`):
+#: with its covariances, first alignment and Gaussians, about 1.5 frame periods at 30 frames/s.
 REALTIME_BUDGET_MS = 40.0
 
 
@@ -81,12 +81,12 @@ class GICPConfig(PluginConfig):
     #: after dropped frames the prediction spans at most this many frame intervals of the last motion
     max_prediction_intervals: float = 4.0
     #: an alignment matching fewer of the trackable points is not trusted: the fallbacks run, else the frame is lost
-    min_matched_fraction: float = 0.2
-    #: nor one matching less than this x the last tracked frame's matched fraction (sequential: >= 0.91 x; 0: off)
+    min_matched_fraction: float = 0.1
+    #: nor, after dropped frames, one matching less than this x the last tracked frame's fraction (0: off)
     min_matched_ratio: float = 0.8
     #: metres: when no alignment is trusted, FPFH + RANSAC registration to the map at this voxel, then G-ICP (0: off)
     relocalize_voxel: float = 0.05
-    #: ms from a frame's start: no alignment iteration or fallback starts after it (null: 40 in real time; 0: none)
+    #: ms from a frame's start: no fallback (nor its iterations) starts after it (null: 40 in real time; 0: none)
     frame_budget_ms: float | None = None
     #: a first alignment that fails or slides is also tried coarse to fine, from this x the distance (1: off)
     coarse_factor: float = 3.0

@@ -8,6 +8,10 @@ max_correspondence_distance RMS from its start, e.g. after a sudden stop; up to 
 dropped frames, with the intervals the prediction spans), it is run again from the previous
 pose and, with coarse_factor > 1, coarse to fine from the prediction (a motion the prediction
 missed by more than the correspondence distance); the result matching more points is kept.
+An attempt matching too few points (min_matched_fraction; after dropped frames
+min_matched_ratio x the last frame's) is not trusted; when none is, the frame's points are
+registered to the map without a first guess (relocalize_voxel) and aligned from there. No
+fallback starts past the frame's budget (frame_budget_ms, real time).
 """
 
 from __future__ import annotations
@@ -61,16 +65,21 @@ class FallbackPolicy:
         the predicted pose, with fallbacks; previous: the last tracked pose (None before the
         first); intervals: frame intervals the prediction spans (> 1 after dropped frames: the
         slide limit grows with it, as the prediction's error does, up to MAX_SLIDE_GROWTH x);
-        deadline: time.perf_counter() seconds after which no iteration or fallback starts (the
-        frame's budget in real time). An attempt matching less than min_matched_fraction of the
-        points, or less than min_matched_ratio x `last_matched` (the last tracked frame's
-        matched fraction), is not trusted (after a long gap, one that converged to a wrong pose:
+        deadline: time.perf_counter() seconds after which no fallback, nor an iteration of one,
+        starts (the frame's budget in real time). An attempt matching less than min_matched_fraction of the
+        points, or after dropped frames less than min_matched_ratio x `last_matched` (the last
+        tracked frame's matched fraction), is not trusted (after a long gap, one that converged to a wrong pose:
         TUM frame 120 after 20 dropped matched 0.61, 84 cm off, where the frames before matched
         0.93; issue 47): the fallbacks run, and when none is trusted the frame is lost.
         Returns (pose, ok, squared NN distances of the kept attempt's last search)."""
         aligner = self.aligner
-        pose, ok, sq = aligner.align(target, src, src_cov, predicted, stats, deadline=deadline)
-        self._floor = max(self.cfg.min_matched_fraction, self.cfg.min_matched_ratio * (last_matched or 0.0))
+        # the first alignment runs to its end (stop_stalled bounds it): cut short under a busy
+        # CPU it ended unconverged and far off, and the map grew from it
+        pose, ok, sq = aligner.align(target, src, src_cov, predicted, stats)
+        # relative to the last frame only after dropped frames: between two consecutive frames the
+        # overlap with the map may fall for good (a camera leaving it, until the next keyframe)
+        reference = (last_matched or 0.0) if intervals > 1 else 0.0
+        self._floor = max(self.cfg.min_matched_fraction, self.cfg.min_matched_ratio * reference)
         ok = ok and self._trusted(sq, stats)
         slide_limit = self.cfg.fallback_slide * aligner.max_corr * min(max(1.0, intervals), MAX_SLIDE_GROWTH)
         if ok and (stats["converged"] or not self.retry_unconverged) and _moved(src, predicted, pose) <= slide_limit:
