@@ -14,6 +14,7 @@ JSON (`--out`).
 
     python benchmarks/frame_delay.py --out benchmarks/results/frame_delay.json   # ~15 min on 2 cores
     python benchmarks/frame_delay.py --quick                                     # smoke: 60 frames
+    python benchmarks/frame_delay.py --set tracker.frame_budget_ms=60            # another budget
 
 Run it alone on a quiet machine: delays are wall-clock figures.
 """
@@ -84,9 +85,11 @@ def main() -> int:
     parser.add_argument("--quick", action="store_true", help="60 frames, one run each: a smoke test")
     parser.add_argument("--timeout", type=float, default=1800)
     parser.add_argument("--out", type=Path)
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="an override of every run, e.g. --set tracker.frame_budget_ms=60")
     args = parser.parse_args()
     repeats = 1 if args.quick else args.repeats
-    limit = ["dataset.max_frames=60"] if args.quick else []
+    limit = (["dataset.max_frames=60"] if args.quick else []) + args.set
     runs_dir = Path(tempfile.mkdtemp(prefix="frame_delay_"))
     result: dict = {"machine": {"platform": platform.platform(), "processor": platform.processor()},
                     "runs_dir": str(runs_dir), "realtime": {}, "gaps": {}}
