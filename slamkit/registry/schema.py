@@ -161,6 +161,10 @@ class RunConfig(PluginConfig):
     fps_limit: float | None = None
     #: realtime: skip a frame when the next one has already arrived (a live camera), not process every one late
     drop_frames: bool = False
+    #: a test of long gaps: drop forced_gap_length frames after every this many, as if tracking had been busy (0: off)
+    forced_gap_every: int = 0
+    #: frames each forced gap drops (forced_gap_every)
+    forced_gap_length: int = 20
     #: seed of every random choice
     seed: int = 0
     #: show progress: a bar on a terminal, else a line every 5 s (stream, refinement, evaluation)
@@ -205,6 +209,12 @@ class RunConfig(PluginConfig):
                 "cpu or auto on a machine without CUDA", self.mapping_device.value)
         return self.mapping_device.value
 
+    def in_forced_gap(self, position: int) -> bool:
+        """Whether the frame at `position` in the stream (0: its first) falls in a forced gap:
+        positions N, N+1, .. N+length-1 for N = every, 2 every, ..."""
+        every = self.forced_gap_every
+        return bool(every) and position >= every and position % every < self.forced_gap_length
+
     def refinement_iterations(self) -> int:
         """Mapping steps after the stream (`final_iterations`, or the mode's choice)."""
         if self.final_iterations is not None:
@@ -216,6 +226,10 @@ class RunConfig(PluginConfig):
                 "null or an integer >= 0", self.final_iterations)
         require(self.iterations_per_frame >= 0, "iterations_per_frame", ">= 0", self.iterations_per_frame)
         require(self.fps_limit is None or self.fps_limit > 0, "fps_limit", "null or > 0", self.fps_limit)
+        require(self.forced_gap_every >= 0, "forced_gap_every", "an integer >= 0 (0: off)", self.forced_gap_every)
+        gap_fits = not self.forced_gap_every or self.forced_gap_length < self.forced_gap_every
+        require(self.forced_gap_length >= 1 and gap_fits,
+                "forced_gap_length", "an integer >= 1, below forced_gap_every", self.forced_gap_length)
         require(0 < self.switch_interval <= 1, "switch_interval", "in (0, 1] seconds", self.switch_interval)
         require(self.mapping_threads >= 0, "mapping_threads", "an integer >= 0 (0: automatic)", self.mapping_threads)
         require(0 <= self.seed < 2**32, "seed", "an integer from 0 to 2^32 - 1 (numpy's seed range)", self.seed)

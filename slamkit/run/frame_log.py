@@ -23,7 +23,8 @@ class FrameLog:
     drops a last line that has no line end. An OSError names the file."""
 
     COLUMNS = ["index", "timestamp", "keyframe", "lost", "tracking_ms", "mapping_ms", "iterations",
-               "correspondence_ratio", "num_gaussians", "rss_mb", "note"]
+               "correspondence_ratio", "num_gaussians", "rss_mb", "note",
+               "delay_ms"]
 
     def __init__(self, path: Path, resume_from: int = 0):
         """`resume_from` > 0: extend the log of the run this one resumes, from that frame index
@@ -47,18 +48,19 @@ class FrameLog:
         csv.writer(out).writerows([self.COLUMNS] + [row for row in rows if row and _index_below(row[0], index)])
         write_atomic(self.path, out.getvalue())
 
-    def frame(self, frame: Frame, step: StepResult, num_gaussians: int) -> None:
+    def frame(self, frame: Frame, step: StepResult, num_gaussians: int, delay_s: float | None = None) -> None:
+        """A tracked frame's row; `delay_s`: from its arrival to its pose (delay_ms)."""
         result = step.tracking
         self._row([frame.index, f"{frame.timestamp:.6f}", step.keyframe.value, int(result.lost),
                    f"{1e3 * step.tracking_time_s:.2f}", f"{1e3 * step.mapping_time_s:.2f}", step.mapping_iterations,
                    _fmt(step.decision.correspondence_ratio), num_gaussians, f"{rss_mb():.1f}",
-                   result.stats.get("lost_reason", "")])
+                   result.stats.get("lost_reason", ""), "" if delay_s is None else f"{1e3 * delay_s:.2f}"])
 
     def unreadable(self, index: int, timestamp: float, error: Exception) -> None:
-        self._row([index, f"{timestamp:.6f}", "none", 1, "", "", 0, "", "", "", f"unreadable: {error}"])
+        self._row([index, f"{timestamp:.6f}", "none", 1, "", "", 0, "", "", "", f"unreadable: {error}", ""])
 
     def dropped(self, frame: Frame) -> None:
-        self._row([frame.index, f"{frame.timestamp:.6f}", "none", 0, "", "", 0, "", "", "", "dropped"])
+        self._row([frame.index, f"{frame.timestamp:.6f}", "none", 0, "", "", 0, "", "", "", "dropped", ""])
 
     def flush(self) -> None:
         self._guard(self._file.flush)

@@ -14,6 +14,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from slamkit.metrics import trajectory as evaluation
@@ -25,7 +26,7 @@ from slamkit.run.state import COMPLETED, INTERRUPTED, SESSION_FIGURES, RunState
 
 #: metrics.json's figures that cover the last session only (`last_session_only`).
 LAST_SESSION_ONLY = ("mapping_threads", "mapping_step_ms", "keyframe_handover_s",
-                     "keyframe_handover_wait_s")
+                     "keyframe_handover_wait_s", "delay_median_ms", "delay_p99_ms", "delay_max_ms")
 
 
 def run_metrics(cfg: RunConfig, slam: SLAM, state: RunState, wall_s: float) -> dict[str, Any]:
@@ -61,6 +62,7 @@ def run_metrics(cfg: RunConfig, slam: SLAM, state: RunState, wall_s: float) -> d
         "lost_fraction": state.lost_fraction() if n else None,
         "tracking_failure": failure,  # why no trajectory error is reported
         "dropped_frames": state.dropped_frames,
+        **_delays(state.delays_s),
         "mode": cfg.mode.value,
         "mapping_threads": torch.get_num_threads(),
         "completed": state.completed,
@@ -87,6 +89,16 @@ def run_metrics(cfg: RunConfig, slam: SLAM, state: RunState, wall_s: float) -> d
                           **{figure: getattr(state, figure) for figure in SESSION_FIGURES}, "peak_memory_mb": peak}
     metrics["last_session_only"] = list(LAST_SESSION_ONLY)
     return metrics
+
+
+def _delays(delays_s: list[float]) -> dict[str, float | None]:
+    """The median, 99th percentile and largest delay of this session's tracked frames, from
+    arrival to pose, in ms (a live camera does not wait: the slowest frames matter)."""
+    if not delays_s:
+        return {"delay_median_ms": None, "delay_p99_ms": None, "delay_max_ms": None}
+    ms = 1e3 * np.asarray(delays_s)
+    return {"delay_median_ms": float(np.median(ms)), "delay_p99_ms": float(np.percentile(ms, 99)),
+            "delay_max_ms": float(ms.max())}
 
 
 def _throttle(state: RunState) -> dict[str, Any]:

@@ -215,6 +215,10 @@ class InputClock:
             return None
         return max(self.start + (i + 1) * self.period, time.perf_counter() + self.period)
 
+    def arrival(self, i: int) -> float | None:
+        """When frame i arrived (time.perf_counter() seconds); None without an input rate."""
+        return self.start + i * self.period if self.period and self.start is not None else None
+
     def wait(self, i: int) -> bool:
         """Sleep until frame i has arrived; True if frame i+1 has arrived too (we are late)."""
         if not self.period:
@@ -255,13 +259,17 @@ def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, frames_log: Fram
                 log.warning("frame %d skipped: %s", frame.index, frame.error)
                 state.record_unreadable(frame.timestamp)
                 frames_log.unreadable(frame.index, frame.timestamp, frame.error)
-            elif clock.wait(frame.index - first) and cfg.drop_frames and state.poses:
+            elif ((clock.wait(frame.index - first) and cfg.drop_frames or cfg.in_forced_gap(frame.index - first))
+                  and state.poses):
                 state.record_dropped(frame)
                 frames_log.dropped(frame)
             else:
+                # a frame arrives at its time with an input rate, else when the loop takes it
+                arrival = clock.arrival(frame.index - first) or time.perf_counter()
                 if mapping and cfg.mapping_yields:
                     mapping.yield_to_tracking(clock.late_after(frame.index - first))
-                _track(frame, slam, state, frames_log, viewer, mapping, loops, realtime and cfg.keyframe_thread)
+                _track(frame, slam, state, frames_log, viewer, mapping, loops, realtime and cfg.keyframe_thread,
+                       arrival)
                 if mapping:
                     mapping.yield_to_tracking(None)
                 checkpoints.after_frame(frames_log.flush)  # checkpoint: every N keyframes
@@ -309,10 +317,16 @@ def _settle(slam: SLAM, state: RunState) -> BaseException | None:
 
 
 def _track(frame: Frame, slam: SLAM, state: RunState, frames_log: FrameLog, viewer: ViewerFeed,
-           mapping: MappingThread | None, loops: LoopThread | None = None, keyframe_thread: bool = False) -> None:
+           mapping: MappingThread | None, loops: LoopThread | None = None, keyframe_thread: bool = False,
+           arrival: float | None = None) -> None:
+    """Track (and, in sequential mode, map) one frame; `arrival`: when it arrived
+    (time.perf_counter() seconds; None: now). Its delay runs from there to its pose, out of
+    the tracker with its keyframe handed over (mapping steps after it not counted)."""
     if slam.last_pose is None:  # the first frame tracked
         slam.initialize(frame.gt_pose if frame.gt_pose is not None else np.eye(4))
+    started = time.perf_counter()
     step = slam.track(frame, defer_keyframe=keyframe_thread) if mapping else slam.step(frame)
+    delay_s = started - (started if arrival is None else arrival) + step.tracking_time_s
     if mapping:
         mapping.check()
     if loops:
@@ -320,8 +334,8 @@ def _track(frame: Frame, slam: SLAM, state: RunState, frames_log: FrameLog, view
     if step.correction is not None:  # a loop closed: the frames so far follow their keyframes
         state.follow(step.correction)
         viewer.follow(step.correction)
-    state.record(frame, step)
-    frames_log.frame(frame, step, len(slam.gaussian_map))
+    state.record(frame, step, delay_s)
+    frames_log.frame(frame, step, len(slam.gaussian_map), delay_s)
     if step.tracking.lost:
         log.warning("frame %d lost: %s", frame.index, step.tracking.stats.get("lost_reason", "?"))
     viewer.show(frame, step.tracking.pose, step.keyframe, step.tracking.lost, slam.loop_closer.loop_segments)

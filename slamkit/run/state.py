@@ -49,6 +49,7 @@ class RunState:
     num_keyframes: int = 0
     lost_frames: int = 0
     dropped_frames: int = 0
+    delays_s: list[float] = field(default_factory=list)  # each tracked frame's, arrival to pose (this session's)
     mapping_iterations: int = 0
     tracking_time_s: float = 0.0
     mapping_time_s: float = 0.0
@@ -120,7 +121,10 @@ class RunState:
         self.gt_poses.append(frame.gt_pose)
         self.dropped_frames += 1
 
-    def record(self, frame: Frame, step: StepResult) -> None:
+    def record(self, frame: Frame, step: StepResult, delay_s: float | None = None) -> None:
+        """A tracked frame; `delay_s`: from its arrival to its pose."""
+        if delay_s is not None:
+            self.delays_s.append(delay_s)
         self.timestamps.append(frame.timestamp)
         self.poses.append(step.tracking.pose)
         self.gt_poses.append(frame.gt_pose)

@@ -404,15 +404,98 @@ def test_degenerate_frame_is_lost_and_keeps_predicted_pose():
 
 
 def test_frame_without_overlap_is_lost_with_reason():
-    tracker = GICPTracker(tight_config(max_correspondence_distance=0.01))
+    """A start 50 m from the map: no local alignment matches; without global registration the
+    frame is lost with the reason, with it the frame is found again (the camera sees the map)."""
     frame = make_frame(POSE)
     gmap = map_from_frame(frame, POSE)
-    tracker.update_target(gmap)
     far = make_pose(np.eye(3), [50.0, 0, 0]) @ POSE
+    tracker = GICPTracker(tight_config(max_correspondence_distance=0.01, relocalize_voxel=0.0))
+    tracker.update_target(gmap)
     tracker.initialize(far)
     result = tracker.track(frame)
     assert result.lost and "correspondences" in result.stats["lost_reason"]
     np.testing.assert_allclose(result.pose, far)
+    pytest.importorskip("open3d")
+    tracker = GICPTracker(tight_config(max_correspondence_distance=0.01))
+    tracker.update_target(gmap)
+    tracker.initialize(far)
+    result = tracker.track(frame)
+    assert not result.lost and result.stats["fallback"] == "global registration", result.stats
+    E = invert_pose(POSE) @ result.pose
+    assert np.linalg.norm(E[:3, 3]) < 1e-3 and rotation_angle_deg(E[:3, :3]) < 0.1
+
+
+def test_an_alignment_matching_too_few_points_is_not_trusted():
+    """The map holds the left half of the view only: an alignment matches about half of the
+    frame's points, correct or not. Below tracker.min_matched_fraction the frame is lost
+    (every fallback matches as few) with the reason; at a lower bound it is tracked."""
+    frame = make_frame(POSE)
+    half = frame.depth.copy()
+    half[:, CAMERA.width // 2:] = 0.0
+    gmap = map_from_frame(make_frame(POSE, depth=half), POSE)
+    start = POSE @ make_pose(so3_exp(np.radians([0.5, -0.5, 0.3])), [0.01, -0.01, 0.005])
+    for bound, lost in ((0.7, True), (0.3, False)):
+        tracker = GICPTracker(tight_config(min_matched_fraction=bound, relocalize_voxel=0.0))
+        tracker.update_target(gmap)
+        tracker.initialize(start)
+        result = tracker.track(frame)
+        assert result.lost is lost, (bound, result.stats)
+        if lost:
+            assert "tracker.min_matched_fraction" in result.stats["lost_reason"] and result.stats["retried"]
+        else:
+            assert 0.3 < result.stats["matched_fraction"] < 0.7
+
+
+def test_a_prediction_over_a_long_gap_is_capped():
+    """After 20 dropped frames the constant-velocity prediction spans at most
+    max_prediction_intervals of the last motion; a shorter gap is predicted in full."""
+    step = make_pose(so3_exp(np.array([0.0, 0.02, 0.0])), [0.01, 0.0, 0.02])
+    tracker = GICPTracker(tight_config(max_prediction_intervals=4.0))
+    tracker.poses, tracker.frame_indices = [POSE, POSE @ step], [9, 10]
+    np.testing.assert_allclose(tracker.predict(31), POSE @ step @ motion_power(step, 4.0), atol=1e-12)
+    np.testing.assert_allclose(tracker.predict(13), POSE @ step @ motion_power(step, 3.0), atol=1e-12)
+    assert not np.allclose(tracker.predict(31), POSE @ step @ motion_power(step, 21.0), atol=1e-3)
+
+
+def test_a_frame_budget_stops_the_fallbacks():
+    """The sudden stop of test_fallback_to_previous_pose_after_a_sudden_stop with a frame budget
+    already spent: the first alignment fails, no fallback starts, the frame is lost rather than late; the real-time
+    defaults bound a frame, the sequential ones do not."""
+    frame = make_frame(POSE)
+    gmap = map_from_frame(frame, POSE)
+    tracker = GICPTracker(tight_config(max_correspondence_distance=0.03, min_correspondences=4000,
+                                       frame_budget_ms=1e-6))
+    tracker.update_target(gmap)
+    tracker.poses = [POSE @ make_pose(so3_exp(np.radians([0, -4.0, 0])), [-0.08, 0, 0]), POSE]
+    result = tracker.track(frame)
+    assert result.lost and result.stats["out_of_time"] and "retried" not in result.stats, result.stats
+    realtime, sequential = GICPConfig().resolve(RunContext(realtime=True)), GICPConfig().resolve(RunContext())
+    assert realtime.frame_budget_ms > 0 and realtime.stop_stalled
+    assert sequential.frame_budget_ms == 0 and not sequential.stop_stalled
+
+
+@pytest.mark.slow
+def test_an_oscillating_alignment_stops():
+    """7-Scenes redkitchen frame 50 (issue 47): the first alignment goes back and forth between
+    two poses for all 64 iterations. With stop_stalled it stops within a few iterations of the
+    first return, at a pose within the oscillation's size of the one after 64."""
+    from slamkit.run.build import build_run
+
+    from support.data import SEVENSCENES, require_data
+
+    path = require_data(SEVENSCENES)
+    poses, stats = {}, {}
+    for stop in (False, True):
+        dataset, slam, _ = build_run(["dataset=sevenscenes", f"dataset.path={path}", "dataset.max_frames=51",
+                                      "tracker=gicp", "keyframe=overlap", "mapper=none",
+                                      "tracker.retry_unconverged=false", f"tracker.stop_stalled={stop}"])
+        slam.initialize(dataset[0].gt_pose)
+        result = [slam.track(dataset[i]).tracking for i in range(51)][-1]
+        poses[stop], stats[stop] = result.pose, result.stats
+    assert stats[False]["iterations"] == 64 and not stats[False].get("stalled"), stats[False]
+    assert stats[True]["stalled"] and stats[True]["iterations"] < 32, stats[True]
+    E = invert_pose(poses[False]) @ poses[True]
+    assert np.linalg.norm(E[:3, 3]) < 0.01 and rotation_angle_deg(E[:3, :3]) < 0.5
 
 
 @pytest.mark.parametrize("kernels", ["numpy", "auto"])
@@ -547,7 +630,8 @@ def test_fallback_to_previous_pose_after_a_sudden_stop():
     for fallback in (True, False):
         tracker = GICPTracker(tight_config(max_correspondence_distance=0.03,
                                            initial_guess=InitialGuess.constant_velocity,
-                                           fallback_to_previous=fallback, min_correspondences=4000))
+                                           fallback_to_previous=fallback, min_correspondences=4000,
+                                           relocalize_voxel=0.0))
         tracker.update_target(gmap)
         tracker.poses = [POSE @ make_pose(so3_exp(np.radians([0, -4.0, 0])), [-0.08, 0, 0]), POSE]
         result = tracker.track(frame)

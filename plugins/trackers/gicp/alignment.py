@@ -16,9 +16,12 @@ import time
 
 import numpy as np
 
-from slamkit.geometry.transforms import se3_exp
+from slamkit.geometry.transforms import invert_pose, se3_exp
 from slamkit_plugins.trackers.gicp.config import GICPConfig
 from slamkit_plugins.trackers.gicp.target import Target
+
+#: The longest cycle of poses (iterations) an alignment is seen to stall in (stop_stalled).
+STALL_PERIOD = 6
 
 
 def new_stats() -> dict:
@@ -51,9 +54,14 @@ class Aligner:
         self.max_corr = max_corr
 
     def align(self, target: Target, src: np.ndarray, src_cov: np.ndarray, T0: np.ndarray, stats: dict,
-              max_corr: float | None = None):
+              max_corr: float | None = None, deadline: float | None = None):
         """Levenberg-Marquardt G-ICP from T0. Returns (pose, ok, squared NN distances of the
         last correspondence search (inf where none)).
+
+        It stops early, not converged, when it stalls (with `stop_stalled`: a step lands within
+        the tolerances of the pose 2 to STALL_PERIOD iterations back, so the iterations left would
+        only go back and forth; stats["stalled"]) or past `deadline` (time.perf_counter()
+        seconds; stats["out_of_time"]).
 
         Residuals are taken in the body frame: r_i = R^T (mu_i - R p_i - t) with weight
         W_i = (R^T C_t,i R + C_s,i)^-1 = G_i^T G_i (G_i: inverse Cholesky factor; the
@@ -68,7 +76,11 @@ class Aligner:
         sq = np.full(len(src), np.inf)
         idx = None  # the last matches: each search starts from them
         converged = False
+        recent = [T0]  # the start and the last accepted poses, to see a stall
         for it in range(cfg.max_iterations):
+            if deadline is not None and it and time.perf_counter() > deadline:
+                stats["out_of_time"] = True
+                break
             stats["iterations"] = it + 1
             R, t = T[:3, :3], T[:3, 3]
             query = (src @ R.T + t).astype(np.float32)
@@ -115,6 +127,9 @@ class Aligner:
             stats["singular_covariances"] = lin.singular
             if converged or not accepted:
                 break
+            if cfg.stop_stalled and self._stalled(recent, T):
+                stats["stalled"] = True
+                break
         stats["converged"] = bool(converged)
         if not np.isfinite(T).all():
             stats["lost_reason"] = "non-finite pose"
@@ -126,6 +141,15 @@ class Aligner:
         within max_correspondence_distance (inf where none)."""
         query = (src @ pose[:3, :3].T + pose[:3, 3]).astype(np.float32)
         return target.index.nearest(query, self.max_corr)[0].astype(np.float64)
+
+    def _stalled(self, recent: list[np.ndarray], T: np.ndarray) -> bool:
+        """Whether T is within the tolerances of the pose 2 to STALL_PERIOD accepted steps back (an
+        alignment cycling through poses: 7-Scenes frame 50 goes -4, -2, -1, +7 mm round and round
+        for all its iterations, issue 47); T is remembered for the next iteration."""
+        stalled = any(self._small(invert_pose(old) @ T) for old in recent[-STALL_PERIOD:-1])
+        recent.append(T)
+        del recent[:-STALL_PERIOD]
+        return stalled
 
     def _small(self, delta: np.ndarray) -> bool:
         """Whether an update (4x4) is within rotation_tolerance (every |dR - I| entry) and

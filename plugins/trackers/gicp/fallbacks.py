@@ -8,9 +8,16 @@ max_correspondence_distance RMS from its start, e.g. after a sudden stop; up to 
 dropped frames, with the intervals the prediction spans), it is run again from the previous
 pose and, with coarse_factor > 1, coarse to fine from the prediction (a motion the prediction
 missed by more than the correspondence distance); the result matching more points is kept.
+An attempt matching too few points (min_matched_fraction; after dropped frames
+min_matched_ratio x the last frame's) is not trusted; when none is, the frame's points are
+registered to the map without a first guess (relocalize_voxel) and aligned from there. No
+fallback starts past the frame's budget (frame_budget_ms, real time).
 """
 
 from __future__ import annotations
+
+import logging
+import time
 
 import numpy as np
 
@@ -18,6 +25,8 @@ from slamkit.geometry.transforms import invert_pose
 from slamkit_plugins.trackers.gicp.alignment import Aligner, new_stats
 from slamkit_plugins.trackers.gicp.config import GICPConfig
 from slamkit_plugins.trackers.gicp.target import Target
+
+log = logging.getLogger(__name__)
 
 #: The most the slide limit grows after dropped frames (x): after a long gap the prediction is
 #: too poor to trust an alignment that ended farther from it (unbounded, a first alignment after
@@ -46,33 +55,53 @@ class FallbackPolicy:
         self.cfg = cfg
         self.aligner = aligner
         self.retry_unconverged = cfg.retry_unconverged is not False  # null (unresolved): as sequential
+        self._warned = False  # that global registration is unavailable
+        self._floor = cfg.min_matched_fraction  # the frame's least trusted matched fraction (solve)
 
     def solve(self, target: Target, src: np.ndarray, src_cov: np.ndarray, predicted: np.ndarray,
-              previous: np.ndarray | None, stats: dict, intervals: float = 1.0):
+              previous: np.ndarray | None, stats: dict, intervals: float = 1.0, deadline: float | None = None,
+              last_matched: float | None = None):
         """G-ICP of the source points (camera frame, metres) and covariances to the target from
         the predicted pose, with fallbacks; previous: the last tracked pose (None before the
         first); intervals: frame intervals the prediction spans (> 1 after dropped frames: the
-        slide limit grows with it, as the prediction's error does, up to MAX_SLIDE_GROWTH x).
+        slide limit grows with it, as the prediction's error does, up to MAX_SLIDE_GROWTH x);
+        deadline: time.perf_counter() seconds after which no fallback, nor an iteration of one,
+        starts (the frame's budget in real time). An attempt matching less than min_matched_fraction of the
+        points, or after dropped frames less than min_matched_ratio x `last_matched` (the last
+        tracked frame's matched fraction), is not trusted (after a long gap, one that converged to a wrong pose:
+        TUM frame 120 after 20 dropped matched 0.61, 84 cm off, where the frames before matched
+        0.93; issue 47): the fallbacks run, and when none is trusted the frame is lost.
         Returns (pose, ok, squared NN distances of the kept attempt's last search)."""
         aligner = self.aligner
+        # the first alignment runs to its end (stop_stalled bounds it): cut short under a busy
+        # CPU it ended unconverged and far off, and the map grew from it
         pose, ok, sq = aligner.align(target, src, src_cov, predicted, stats)
+        # relative to the last frame only after dropped frames: between two consecutive frames the
+        # overlap with the map may fall for good (a camera leaving it, until the next keyframe)
+        reference = (last_matched or 0.0) if intervals > 1 else 0.0
+        self._floor = max(self.cfg.min_matched_fraction, self.cfg.min_matched_ratio * reference)
+        ok = ok and self._trusted(sq, stats)
         slide_limit = self.cfg.fallback_slide * aligner.max_corr * min(max(1.0, intervals), MAX_SLIDE_GROWTH)
         if ok and (stats["converged"] or not self.retry_unconverged) and _moved(src, predicted, pose) <= slide_limit:
             return pose, ok, sq
         best = (pose, ok, sq, stats.get("num_correspondences", 0) if ok else -1)
-        for name, start, coarse in self._starts(predicted, previous):
+        for name, start, coarse in self._starts(predicted, previous, target, src, deadline, stats, best[1]):
+            if deadline is not None and time.perf_counter() > deadline:
+                stats["out_of_time"] = True
+                break
             retry = new_stats()
             if coarse:
                 start, ok_coarse, _ = aligner.align(target, src, src_cov, start, retry,
-                                                    aligner.max_corr * self.cfg.coarse_factor)
+                                                    aligner.max_corr * self.cfg.coarse_factor, deadline=deadline)
                 if not ok_coarse:
                     _add_effort(stats, retry)
                     continue
-            pose2, ok2, sq2 = aligner.align(target, src, src_cov, start, retry)
+            pose2, ok2, sq2 = aligner.align(target, src, src_cov, start, retry, deadline=deadline)
             if coarse and ok2 and _moved(src, start, pose2) > slide_limit:
                 # the fine stage slid away from the coarse alignment: keep the coarse pose
                 pose2, sq2 = start, aligner.match(target, src, start)
                 retry["num_correspondences"] = int(np.isfinite(sq2).sum())
+            ok2 = ok2 and self._trusted(sq2, retry)
             _add_effort(stats, retry)
             stats.setdefault("retried", []).append(name)
             if ok2 and retry["num_correspondences"] > best[3]:
@@ -80,15 +109,53 @@ class FallbackPolicy:
                 stats.update({k: v for k, v in retry.items() if k not in _EFFORT and k != "covariance_s"})
                 stats["fallback"] = name
                 best = (pose2, ok2, sq2, retry["num_correspondences"])
+            elif not best[1] and "lost_reason" in retry:
+                stats["lost_reason"] = retry["lost_reason"]
         return best[:3]
 
-    def _starts(self, predicted: np.ndarray, previous: np.ndarray | None):
-        """(name, start pose, coarse first?) of the attempts after the first one failed."""
+    def _trusted(self, sq: np.ndarray, stats: dict) -> bool:
+        """Whether an alignment matched at least the frame's floor (`solve`) of the points within
+        the correspondence distance at its last search (else stats["lost_reason"] says so)."""
+        fraction = float(np.isfinite(sq).mean()) if len(sq) else 0.0
+        if fraction >= self._floor:
+            return True
+        stats["lost_reason"] = (f"matched fraction {fraction:.2f} < {self._floor:.2f} (tracker.min_matched_fraction, "
+                                "tracker.min_matched_ratio x the last frame's)")
+        return False
+
+    def _starts(self, predicted: np.ndarray, previous: np.ndarray | None, target: Target, src: np.ndarray,
+                deadline: float | None, stats: dict, trusted: bool):
+        """(name, start pose, coarse first?) of the attempts after the first one failed; the
+        last, when none so far is trusted (`trusted`: the first; then `stats["fallback"]`), is
+        G-ICP from a global registration to the map (FPFH + RANSAC, without a first guess): after
+        a long gap the camera may have turned tens of degrees (TUM fr1/rpy: 50-60 over 20
+        frames), beyond any local start. Generated lazily: each start sees the ones before."""
         previous = self._previous_start(predicted, previous)
         if previous is not None:
             yield "previous pose", previous, False
         if self.cfg.coarse_factor > 1:
             yield "coarse to fine", predicted, True
+        out_of_time = deadline is not None and time.perf_counter() > deadline
+        if self.cfg.relocalize_voxel > 0 and not trusted and "fallback" not in stats and not out_of_time:
+            start = self._relocalize(target, src, stats)
+            if start is not None:
+                yield "global registration", start, False
+
+    def _relocalize(self, target: Target, src: np.ndarray, stats: dict) -> np.ndarray | None:
+        """The frame's pose by global registration of its points to the target's means (None
+        without open3d, said once)."""
+        from slamkit.errors import SlamkitError
+        from slamkit.geometry.registration import FeatureCloud, register
+
+        try:
+            found = register(FeatureCloud(src, self.cfg.relocalize_voxel), target.features(self.cfg.relocalize_voxel))
+        except SlamkitError as exc:  # open3d is the optional extra `mesh`
+            if not self._warned:
+                log.warning("tracker.relocalize_voxel: no global registration (%s)", exc)
+                self._warned = True
+            return None
+        stats["relocalized_fitness"] = found.fitness
+        return found.pose
 
     def _previous_start(self, predicted: np.ndarray, previous: np.ndarray | None) -> np.ndarray | None:
         """The previous pose, when the motion model moved the start away from it and

@@ -17,6 +17,17 @@ class Target:
         self.packed = np.concatenate([self.means32.astype(np.float64), covariances.reshape(-1, 9)], axis=1)
         self.version = version
         self.index = kernels.nearest_index(self.means32, max_distance)
+        self._features = None  # global registration's view of the means, made when first needed
+
+    def features(self, voxel: float):
+        """The means ready for global registration (`slamkit.geometry.registration.FeatureCloud`,
+        downsampled to `voxel` metres), made once per target: only a frame no alignment
+        matched needs it."""
+        if self._features is None:
+            from slamkit.geometry.registration import FeatureCloud
+
+            self._features = FeatureCloud(self.means, voxel)
+        return self._features
 
     @property
     def means(self) -> np.ndarray:
