@@ -50,6 +50,10 @@ GROUPS = {
                 ("tum", f"-m +experiment=ablation_training_keyframes {TUM} mapper.resolution_scale=0.5")],
     "table8b": [("replica", f"-m +experiment=ablation_densify_prune {REPLICA}")],
     "fig3": [("replica", f"-m +experiment=ablation_keyframe_selection {REPLICA}")],
+    # not a paper table: docs/results.md's tracker ablation (any tracker under the 3DGS mapper)
+    "ablation_tracker": [
+        ("tum", f"-m +experiment=ablation_tracker tracker=gicp,kiss_icp,small_gicp,p2plane {TUM}"),
+        ("replica", f"-m +experiment=ablation_tracker tracker=gicp,kiss_icp,small_gicp,p2plane {REPLICA}")],
 }
 
 

@@ -301,6 +301,39 @@ def runs_table(runs: list[dict[str, Any]]) -> str:
     return "\n".join(lines) + "\n"
 
 
+#: A sweep's table (sequential runs, one row per job): what the method made of the frames and
+#: what it cost, without the real-time rates.
+SWEEP_COLUMNS = (
+    RunColumn("keyframes", "num_keyframes", digits=0), RunColumn("ATE RMSE [cm]", "ate_rmse_m", 100.0, 3),
+    RunColumn("PSNR [dB]", "psnr"), RunColumn("SSIM", "ssim", digits=3), RunColumn("LPIPS", "lpips", digits=3),
+    RunColumn("Gaussians", "num_gaussians", digits=0), RunColumn("tracking [s]", "tracking_time_s", digits=1),
+    RunColumn("whole run [s]", "wall_time_s", digits=1),
+)
+
+
+def varied_settings(runs: list[dict[str, Any]]) -> list[str]:
+    """The settings (override keys) whose values differ among `runs`, data folders left out."""
+    keys = sorted({k for r in runs for k in r["settings"]})
+    return [k for k in keys if not k.endswith("path") and len({str(r["settings"].get(k)) for r in runs}) > 1]
+
+
+def sweep_table(runs: list[dict[str, Any]]) -> str:
+    """The completed `runs` one row each, named by the settings that vary among them
+    (`varied_settings`), with SWEEP_COLUMNS; a run that did not complete is a row saying so."""
+    varied = varied_settings(runs)
+    header = [*varied, *(c.header for c in SWEEP_COLUMNS)]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for run in sorted(runs, key=lambda r: [str(r["settings"].get(k)) for k in varied]):
+        cells = [str(run["settings"].get(k, "-")) for k in varied]
+        if run["status"] != "completed":
+            cells += [run["status"]] + [""] * (len(SWEEP_COLUMNS) - 1)
+        for column in SWEEP_COLUMNS if run["status"] == "completed" else ():
+            value = _mean([run["metrics"]], Metric(column.header, column.key, column.scale, column.digits))
+            cells.append("-" if value is None else f"{value:,.{column.digits}f}")
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
 # ------------------------------------------------------------------ where the committed runs came from
 PROVENANCE = "provenance.json"
 
@@ -336,7 +369,8 @@ def provenance_line(runs: list[dict[str, Any]]) -> str:
 
 # ------------------------------------------------------------------ the tables of a document, regenerated
 #: A generated block of a Markdown document: the opening comment names what writes it (as
-#: slamkit-report's arguments: `--paper TABLE DIR...` or `--runs DIR...`, folders relative to the
+#: slamkit-report's arguments: `--paper TABLE DIR...`, `--runs DIR...` or `--sweep DIR...` (one row
+#: per job, named by the settings its sweep varied), folders relative to the
 #: repository), the closing one ends it; everything between is rewritten.
 BLOCK_START = "<!-- slamkit-report "
 BLOCK_END = "<!-- end slamkit-report -->"
@@ -346,8 +380,9 @@ def block_text(args: list[str], root: Path) -> str:
     """What a block with arguments `args` holds: the table and where its runs came from."""
     from slamkit.cli.report import find_runs, load_run
 
-    if len(args) < 2 or args[0] not in ("--paper", "--runs") or (args[0] == "--paper" and len(args) < 3):
-        raise ValueError(f"a block's arguments are '--paper TABLE DIR...' or '--runs DIR...', got {' '.join(args)!r}")
+    if len(args) < 2 or args[0] not in ("--paper", "--runs", "--sweep") or (args[0] == "--paper" and len(args) < 3):
+        raise ValueError(f"a block's arguments are '--paper TABLE DIR...', '--runs DIR...' or '--sweep DIR...', "
+                         f"got {' '.join(args)!r}")
     dirs = [root / d for d in (args[2:] if args[0] == "--paper" else args[1:])]
     runs = [load_run(r) for r in find_runs(dirs)]
     if args[0] == "--paper":
@@ -355,7 +390,7 @@ def block_text(args: list[str], root: Path) -> str:
             raise ValueError(f"no paper table {args[1]!r} (expected one of {', '.join(NAMES)})")
         table = paper_table(args[1], runs)
     else:
-        table = runs_table(runs)
+        table = runs_table(runs) if args[0] == "--runs" else sweep_table(runs)
     return f"{table}\n{provenance_line(runs)}\n"
 
 

@@ -14,7 +14,6 @@ from slamkit.cli.report import main as report_main
 
 from support.data import REPO
 
-DOC = REPO / "docs" / "paper.md"
 RESULTS = REPO / "benchmarks" / "results" / "paper"
 
 
@@ -22,11 +21,13 @@ def blocks(text: str) -> list[str]:
     return [line for line in text.splitlines() if line.startswith(paper_tables.BLOCK_START)]
 
 
-def test_every_table_of_ours_in_the_paper_page_is_regenerated_from_the_committed_runs():
-    text = DOC.read_text()
-    assert blocks(text), "docs/paper.md has no generated tables"
+@pytest.mark.parametrize("page", ["paper.md", "results.md"])
+def test_every_generated_table_of_a_page_is_regenerated_from_the_committed_runs(page):
+    """docs/paper.md's tables of ours, and docs/results.md's sweeps (the tracker ablation)."""
+    text = (REPO / "docs" / page).read_text()
+    assert blocks(text), f"docs/{page} has no generated tables"
     regenerated = paper_tables.regenerate_document(text, REPO)
-    assert regenerated == text, "docs/paper.md differs from its runs: slamkit-report --docs docs/paper.md"
+    assert regenerated == text, f"docs/{page} differs from its runs: slamkit-report --docs docs/{page}"
     for line in blocks(text):  # each names committed runs with their provenance
         for folder in line.split()[4 if "--paper" in line else 3:-1]:
             runs = list((REPO / folder).rglob("metrics.json"))

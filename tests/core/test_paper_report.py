@@ -113,3 +113,23 @@ def test_an_unknown_table_is_refused(tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_:
         report_main([str(tmp_path), "--paper", "table9"])
     assert exit_.value.code == 2 and "table9" in capsys.readouterr().err
+
+
+def test_a_sweep_block_names_each_job_by_what_its_sweep_varied(tmp_path):
+    """`<!-- slamkit-report --sweep DIR -->`: one row per job, named by the settings that differ
+    among the runs (data folders left out), a job that failed a row saying so."""
+    from slamkit.cli import paper_tables
+
+    sweep = tmp_path / "benchmarks" / "sweep"
+    for i, (tracker, psnr) in enumerate([("kiss_icp", 17.5), ("gicp", 18.25)]):
+        fake_run(sweep, str(i), [f"tracker={tracker}", "dataset=tum", "dataset.path=/data/tum"], psnr=psnr,
+                 ate_rmse_m=0.05, num_gaussians=1234, num_keyframes=20, tracking_time_s=4.0, wall_time_s=60.0)
+    fake_run(sweep, "2", ["tracker=small_gicp", "dataset=tum", "dataset.path=/data/tum"], status="failed")
+    text = paper_tables.regenerate_document("<!-- slamkit-report --sweep benchmarks/sweep -->\nold\n"
+                                            "<!-- end slamkit-report -->\n", tmp_path)
+    header, *rows = table_rows(text)
+    assert header[:3] == ["tracker", "keyframes", "ATE RMSE [cm]"]
+    assert rows[0][:4] == ["gicp", "20", "5.000", "18.25"] and rows[0][header.index("Gaussians")] == "1,234"
+    assert rows[1][0] == "kiss_icp" and rows[2][:2] == ["small_gicp", "failed"]
+    with pytest.raises(ValueError, match="--sweep DIR"):
+        paper_tables.block_text(["--sweeps", "x"], tmp_path)

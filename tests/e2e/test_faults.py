@@ -369,7 +369,7 @@ def same_poses(case: Case, result) -> None:
 
 def replica_map(case: Case) -> None:
     case.slamkit("dataset=replica", f"dataset.path={require_data(REPLICA)}", "dataset.max_frames=5", "mapper=none",
-                 "progress=false", "hydra.run.dir={tmp}/map")
+                 "progress=false", "checkpoint.save=true", "hydra.run.dir={tmp}/map")
 
 
 def nothing_localised(case: Case, result) -> None:
@@ -1067,8 +1067,9 @@ def test_a_stop_signal_ends_the_run_within_the_bound_in_every_phase(phase, tmp_p
     env = {"PYTHONPATH": os.pathsep.join([str(site), os.environ.get("PYTHONPATH", "")])}
     if phase.startswith("localize"):  # the map it localises in: a run of the same frames
         made = subprocess.run([str(Path(sys.executable).with_name("slamkit")), "dataset=tum", f"dataset.path={data}",
-                               "mapper=none", "progress=false", f"hydra.run.dir={tmp_path / 'map'}"], cwd=tmp_path,
-                              capture_output=True, text=True, timeout=300)
+                               "mapper=none", "progress=false", "checkpoint.save=true",
+                               f"hydra.run.dir={tmp_path / 'map'}"], cwd=tmp_path, capture_output=True, text=True,
+                              timeout=300)
         assert made.returncode == 0, made.stderr[-3000:]
     args = [a.replace("{data}", str(data)).replace("{tmp}", str(tmp_path)) for a in argv] + [f"hydra.run.dir={out}"]
     status, seconds, err = signal_to_exit(args, tmp_path, env, pause_at)
