@@ -47,6 +47,8 @@ class RunContext:
     tuning: DatasetTuning = DatasetTuning()
     #: real-time mode: mapping runs beside tracking while the input streams
     realtime: bool = False
+    #: real time whose input does not wait for a late frame (drop_frames=true, a live camera)
+    drops_frames: bool = False
     #: CPU threads the tracking side may use (one in real time, where mapping has the others)
     tracking_threads: int = 1
     #: torch device of the shared map and of the mapper's training images ("cpu", "cuda")

@@ -65,6 +65,7 @@ def build(cfg: RunConfig, registry: Registry, names: dict[str, str]) -> BuiltRun
         return registry.create(role, name, None, context)
 
     context = RunContext(tuning=dataset.tuning, realtime=cfg.mode is Mode.realtime,
+                         drops_frames=cfg.mode is Mode.realtime and cfg.drop_frames,
                          tracking_threads=tracking_threads(cfg), device=str(gaussian_map.device),
                          gaussian_map=gaussian_map, build=build_default, scoring=RenderScoring(
                              cfg.eval.lpips.value, cfg.eval.lpips_backbone, cfg.eval.psnr_pixels.value))

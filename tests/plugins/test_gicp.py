@@ -459,8 +459,8 @@ def test_a_prediction_over_a_long_gap_is_capped():
 
 def test_a_frame_budget_stops_the_fallbacks():
     """The sudden stop of test_fallback_to_previous_pose_after_a_sudden_stop with a frame budget
-    already spent: the first alignment fails, no fallback starts, the frame is lost rather than late; the real-time
-    defaults bound a frame, the sequential ones do not."""
+    already spent: the first alignment fails, no fallback starts, the frame is lost rather than late. The
+    defaults bound a frame where the input does not wait (real time with drop_frames), not where it waits."""
     frame = make_frame(POSE)
     gmap = map_from_frame(frame, POSE)
     tracker = GICPTracker(tight_config(max_correspondence_distance=0.03, min_correspondences=4000,
@@ -469,8 +469,11 @@ def test_a_frame_budget_stops_the_fallbacks():
     tracker.poses = [POSE @ make_pose(so3_exp(np.radians([0, -4.0, 0])), [-0.08, 0, 0]), POSE]
     result = tracker.track(frame)
     assert result.lost and result.stats["out_of_time"] and "retried" not in result.stats, result.stats
-    realtime, sequential = GICPConfig().resolve(RunContext(realtime=True)), GICPConfig().resolve(RunContext())
-    assert realtime.frame_budget_ms > 0 and realtime.stop_stalled
+    live = GICPConfig().resolve(RunContext(realtime=True, drops_frames=True))
+    waiting = GICPConfig().resolve(RunContext(realtime=True))
+    sequential = GICPConfig().resolve(RunContext())
+    assert live.frame_budget_ms > 0 and live.stop_stalled
+    assert waiting.frame_budget_ms == 0 and waiting.stop_stalled
     assert sequential.frame_budget_ms == 0 and not sequential.stop_stalled
 
 

@@ -17,10 +17,10 @@ from slamkit.geometry.gaussians import Regularization
 from slamkit.roles import PluginConfig, RunContext, require, thread_count
 from slamkit_plugins.trackers.gicp.kernels import Kernels
 
-#: ms: no fallback of a real-time frame starts after this much of its tracking (`frame_budget_ms`):
-#: the issue's 150 ms bound less the rest of a frame. At 40 ms TUM fr1/rpy frames 0-59 in real
-#: time at 15 frames/s (no frame dropped) ended 19.7 cm ATE, a fallback that frame 52 needs not
-#: started; 100 ms kept 5.47 cm, as without a budget (on a busy machine; docs/results.md).
+#: ms: no fallback of a frame starts after this much of its tracking (`frame_budget_ms`) when the
+#: input does not wait (real time with drop_frames: a late frame costs the next ones): the issue's
+#: 150 ms bound less the rest of a frame. Where the input waits, a fallback costs latency only and
+#: a cut one costs accuracy on a slow CPU (docs/results.md).
 REALTIME_BUDGET_MS = 100.0
 
 
@@ -88,7 +88,7 @@ class GICPConfig(PluginConfig):
     min_matched_ratio: float = 0.8
     #: metres: when no alignment is trusted, FPFH + RANSAC registration to the map at this voxel, then G-ICP (0: off)
     relocalize_voxel: float = 0.05
-    #: ms from a frame's start: no fallback (nor its iterations) starts after it (null: 100 in real time; 0: none)
+    #: ms from a frame's start: no fallback (nor its iterations) starts after it (null: 100 with drop_frames; 0: none)
     frame_budget_ms: float | None = None
     #: a first alignment that fails or slides is also tried coarse to fine, from this x the distance (1: off)
     coarse_factor: float = 3.0
@@ -147,4 +147,4 @@ class GICPConfig(PluginConfig):
                                retry_unconverged=not context.realtime,
                                # a live camera does not wait: a frame's delay is bounded (issue 47)
                                stop_stalled=context.realtime,
-                               frame_budget_ms=REALTIME_BUDGET_MS if context.realtime else 0.0)
+                               frame_budget_ms=REALTIME_BUDGET_MS if context.drops_frames else 0.0)
