@@ -263,24 +263,14 @@ def _fmt(value: float | None, digits: int) -> str:
 
 
 # ------------------------------------------------------------------ a table of runs, one row each
-@dataclass(frozen=True)
-class RunColumn:
-    """A column of the runs table: its header, metrics.json's key, factor, decimals."""
-
-    header: str
-    key: str
-    scale: float = 1.0
-    digits: int = 2
-
-
 #: The real-time runs' table: the input's rate and the paper's FPS (frames over the SLAM run's
 #: time, start-up included, evaluation not) side by side, and what the map became.
 RUN_COLUMNS = (
-    RunColumn("stream frames/s", "stream_fps"), RunColumn("FPS (frames / total time, the paper's)", "fps"),
-    RunColumn("mapping steps", "mapping_steps", digits=0), RunColumn("PSNR [dB]", "psnr"),
-    RunColumn("SSIM", "ssim", digits=3), RunColumn("LPIPS", "lpips", digits=3),
-    RunColumn("ATE mean [cm]", "ate_mean_m", 100.0, 3), RunColumn("ATE RMSE [cm]", "ate_rmse_m", 100.0, 3),
-    RunColumn("Gaussians", "num_gaussians", digits=0),
+    Metric("stream frames/s", "stream_fps"), Metric("FPS (frames / total time, the paper's)", "fps"),
+    Metric("mapping steps", "mapping_steps", digits=0), Metric("PSNR [dB]", "psnr"),
+    Metric("SSIM", "ssim", digits=3), Metric("LPIPS", "lpips", digits=3),
+    Metric("ATE mean [cm]", "ate_mean_m", 100.0, 3), Metric("ATE RMSE [cm]", "ate_rmse_m", 100.0, 3),
+    Metric("Gaussians", "num_gaussians", digits=0),
 )
 
 
@@ -295,7 +285,7 @@ def runs_table(runs: list[dict[str, Any]]) -> str:
         cells = [Path(run["run"]).name, "x".join(map(str, resolution)) if resolution else "-",
                  str((m.get("settings") or {}).get("eval.psnr_pixels", "-"))]
         for column in RUN_COLUMNS:
-            value = _mean([m], Metric(column.header, column.key, column.scale, column.digits))
+            value = _mean([m], column)
             cells.append("-" if value is None else f"{value:,.{column.digits}f}")
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
@@ -304,10 +294,10 @@ def runs_table(runs: list[dict[str, Any]]) -> str:
 #: A sweep's table (sequential runs, one row per job): what the method made of the frames and
 #: what it cost, without the real-time rates.
 SWEEP_COLUMNS = (
-    RunColumn("keyframes", "num_keyframes", digits=0), RunColumn("ATE RMSE [cm]", "ate_rmse_m", 100.0, 3),
-    RunColumn("PSNR [dB]", "psnr"), RunColumn("SSIM", "ssim", digits=3), RunColumn("LPIPS", "lpips", digits=3),
-    RunColumn("Gaussians", "num_gaussians", digits=0), RunColumn("tracking [s]", "tracking_time_s", digits=1),
-    RunColumn("whole run [s]", "wall_time_s", digits=1),
+    Metric("keyframes", "num_keyframes", digits=0), Metric("ATE RMSE [cm]", "ate_rmse_m", 100.0, 3),
+    Metric("PSNR [dB]", "psnr"), Metric("SSIM", "ssim", digits=3), Metric("LPIPS", "lpips", digits=3),
+    Metric("Gaussians", "num_gaussians", digits=0), Metric("tracking [s]", "tracking_time_s", digits=1),
+    Metric("whole run [s]", "wall_time_s", digits=1),
 )
 
 
@@ -328,7 +318,7 @@ def sweep_table(runs: list[dict[str, Any]]) -> str:
         if run["status"] != "completed":
             cells += [run["status"]] + [""] * (len(SWEEP_COLUMNS) - 1)
         for column in SWEEP_COLUMNS if run["status"] == "completed" else ():
-            value = _mean([run["metrics"]], Metric(column.header, column.key, column.scale, column.digits))
+            value = _mean([run["metrics"]], column)
             cells.append("-" if value is None else f"{value:,.{column.digits}f}")
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
