@@ -116,8 +116,8 @@ def main() -> int:
         if "localize" in chosen:
             made = subprocess.run([str(Path(sys.executable).with_name("slamkit")), "dataset=tum",
                                    f"dataset.path={args.data / 'tum_fr1_rpy_first150'}", "dataset.max_frames=60",
-                                   "mapper=none", "progress=false", f"hydra.run.dir={tmp}/map"], cwd=tmp,
-                                  capture_output=True, text=True)
+                                   "mapper=none", "progress=false", "checkpoint.save=true",
+                                   f"hydra.run.dir={tmp}/map"], cwd=tmp, capture_output=True, text=True)
             if made.returncode:
                 print(f"the map for localize could not be made: {made.stderr.strip().splitlines()[-1:]}")
                 return 1
