@@ -11,6 +11,8 @@ those files and tests/core/test_paper_docs.py checks that the document agrees wi
     python benchmarks/paper_results.py run realtime /tmp/paper_runs/realtime     # ~6 min on 2 cores
     python benchmarks/paper_results.py collect /tmp/paper_runs/realtime realtime
     python benchmarks/paper_results.py run table6 /tmp/paper_runs/table6         # sequential sweeps
+    python benchmarks/paper_results.py run table7 /tmp/t7 --only tum             # one entry of a group
+    python benchmarks/paper_results.py collect /tmp/t7 table7 --only tum          # beside its others
     slamkit-report --docs docs/paper.md
 
 Frames/s depend on the machine and its load: the provenance says which; quality metrics of a
@@ -78,11 +80,14 @@ def git_commit() -> str:
     return head.stdout.strip() + (" (with uncommitted changes to slamkit/ or plugins/)" if dirty else "")
 
 
-def run_group(group: str, out: Path, data: Path) -> None:
+def run_group(group: str, out: Path, data: Path, only: str | None = None) -> None:
+    """The group's runs (`only`: its entry of that name alone) into `out`, with run_record.json."""
     slamkit = Path(sys.executable).with_name("slamkit")
     record = {"group": group, "commit": git_commit(), "machine": machine(), "runs": []}
     out.mkdir(parents=True, exist_ok=True)
     for name, arguments in GROUPS[group]:
+        if only is not None and name != only:
+            continue
         args = arguments.replace("$DATA", str(data)).split()
         where = "hydra.sweep.dir" if "-m" in args else "hydra.run.dir"
         before, started = load_average(), datetime.datetime.now(datetime.timezone.utc)
@@ -96,9 +101,13 @@ def run_group(group: str, out: Path, data: Path) -> None:
     (out / "run_record.json").write_text(json.dumps(record, indent=2) + "\n")
 
 
-def collect(src: Path, group: str, data: Path, load_note: str | None) -> Path:
-    """Copy the runs' small files into RESULTS/group and write its provenance.json."""
-    dest = RESULTS / group
+def collect(src: Path, group: str, data: Path, load_note: str | None, only: str | None = None) -> Path:
+    """Copy the runs' small files into RESULTS/group and write its provenance.json; `only`: the
+    runs of the group's entry of that name (`run --only`) into RESULTS/group/only, with a
+    provenance.json of their own there, the group's other runs kept."""
+    dest = RESULTS / group if only is None else RESULTS / group / only
+    if only is not None:
+        src = src / only
     runs = sorted(p.parent for p in src.rglob("metrics.json"))
     if not runs:
         raise SystemExit(f"{src}: no metrics.json under it (expected the folder `run` wrote)")
@@ -120,7 +129,7 @@ def collect(src: Path, group: str, data: Path, load_note: str | None) -> Path:
         if overrides.exists():
             text = overrides.read_text().replace(str(data.resolve()), "$DATA").replace(str(data), "$DATA")
             (target / ".hydra" / "overrides.yaml").write_text(text)
-    record_path = src / "run_record.json"
+    record_path = (src.parent if only is not None else src) / "run_record.json"
     record = json.loads(record_path.read_text()) if record_path.exists() else {"group": group}
     loads = [r[k] for r in record.get("runs", []) for k in ("load_before", "load_after")]
     firsts = [float(x.split()[0]) for x in loads if x != "?"]
@@ -145,16 +154,18 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("group", choices=sorted(GROUPS))
     run.add_argument("out", type=Path)
     run.add_argument("--data", type=Path, default=DEFAULT_DATA)
+    run.add_argument("--only", metavar="NAME", help="the group's entry of that name alone (e.g. tum)")
     col = sub.add_parser("collect", help="keep a group's metrics and overrides under benchmarks/results/paper/")
     col.add_argument("src", type=Path)
     col.add_argument("group", choices=sorted(GROUPS))
     col.add_argument("--data", type=Path, default=DEFAULT_DATA)
     col.add_argument("--load-note", help="what the load average means (default: a machine shared with other work)")
+    col.add_argument("--only", metavar="NAME", help="the runs of `run --only NAME`, the group's others kept")
     args = parser.parse_args(argv)
     if args.command == "run":
-        run_group(args.group, args.out, args.data)
+        run_group(args.group, args.out, args.data, args.only)
     else:
-        collect(args.src, args.group, args.data, args.load_note)
+        collect(args.src, args.group, args.data, args.load_note, args.only)
     return 0
 
 
