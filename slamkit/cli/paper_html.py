@@ -159,7 +159,7 @@ pre{background:#f6f6f6;padding:.5em;font-size:11px;overflow-x:auto}.grid{display
 
 
 def paper_html(runs: list[dict[str, Any]], out: Path, title: str = "GS-ICP SLAM's evaluation, reproduced") -> Path:
-    """Write the page (see the module docstring) for `runs` (`slamkit.cli.report.load_run`
+    """Write the page (see the module docstring) for `runs` (`slamkit.cli.run_folders.load_run`
     entries) to `out`; returns it."""
     parts = [f"<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
              f"<style>{STYLE}</style></head><body><h1>{html.escape(title)}</h1>",

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from slamkit.cli.run_folders import find_runs, load_run
 from slamkit.downloads.catalogue import PAPER_TUM, REPLICA_SCENES
 from slamkit.formats.atomic import write_atomic
 
@@ -172,7 +173,7 @@ def scene_of(settings: dict[str, str]) -> str:
 
 
 def paper_table(name: str, runs: list[dict[str, Any]], difference: bool = False) -> str:
-    """The sweep's completed `runs` (`slamkit.cli.report.load_run` entries: settings, metrics,
+    """The sweep's completed `runs` (`slamkit.cli.run_folders.load_run` entries: settings, metrics,
     status) as the paper's table `name` (one of NAMES), in Markdown, the paper's figure beside
     each of ours ("-" where the paper has none) and, with `difference`, ours minus the paper's."""
     name = ALIASES.get(name, name)
@@ -368,8 +369,6 @@ BLOCK_END = "<!-- end slamkit-report -->"
 
 def block_text(args: list[str], root: Path) -> str:
     """What a block with arguments `args` holds: the table and where its runs came from."""
-    from slamkit.cli.report import find_runs, load_run
-
     if len(args) < 2 or args[0] not in ("--paper", "--runs", "--sweep") or (args[0] == "--paper" and len(args) < 3):
         raise ValueError(f"a block's arguments are '--paper TABLE DIR...', '--runs DIR...' or '--sweep DIR...', "
                          f"got {' '.join(args)!r}")
