@@ -191,38 +191,26 @@ def paper_table(name: str, runs: list[dict[str, Any]], difference: bool = False)
         header += [metric.header] + ([f"{metric.header}, paper"] if _in_paper(table, metric) else [])
         header += [f"{metric.header}, ours - paper"] if difference and _in_paper(table, metric) else []
     lines = [f"**{table.title}**", "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    datasets = {scene_of(run["settings"]): run["settings"].get("dataset", "") for run in runs}
     for row, scene in ranked:
         column = table.columns.get(scene, MEAN)
         paper = table.paper.get((*row, column), {})
         cells = [str(v) if v is not None else "-" for v in row]
         cells += [table.labels.get(row, "-"), scene or "-", column if paper else "-", str(len(groups[row, scene]))]
-        for metric in table.metrics:
-            ours = _mean(groups[row, scene], metric)
-            cells.append(_fmt(ours, metric.digits))
-            if _in_paper(table, metric):
-                theirs = paper.get(metric.key)
-                cells.append(_fmt(theirs, metric.digits))
-                if difference:
-                    cells.append("-" if ours is None or theirs is None else f"{ours - theirs:+.{metric.digits}f}")
+        cells += _paper_cells(table, [_mean(groups[row, scene], metric) for metric in table.metrics], paper, difference)
         lines.append("| " + " | ".join(cells) + " |")
-    for row in dict.fromkeys(r for r, _ in ranked):  # the paper's "Avg.": a mean row over our scenes
-        scenes = [scene for r, scene in ranked if r == row]
+    # the paper's "Avg.": a mean row over our scenes of one dataset (a Replica and a TUM scene make none)
+    for row, dataset in dict.fromkeys((r, datasets.get(s, "")) for r, s in ranked):
+        scenes = [scene for r, scene in ranked if r == row and datasets.get(scene, "") == dataset]
         if len(scenes) < 2:
             continue
         paper = table.paper.get((*row, MEAN), {})
         cells = [str(v) if v is not None else "-" for v in row]
-        cells += [table.labels.get(row, "-"), f"mean of {len(scenes)} scenes", MEAN if paper else "-",
-                  str(sum(len(groups[row, s]) for s in scenes))]
-        for metric in table.metrics:
-            per_scene = [_mean(groups[row, s], metric) for s in scenes]
-            ours = None if None in per_scene else sum(per_scene) / len(per_scene)
-            cells.append(_fmt(ours, metric.digits))
-            if _in_paper(table, metric):
-                theirs = paper.get(metric.key)
-                cells.append(_fmt(theirs, metric.digits))
-                if difference:
-                    cells.append("-" if ours is None or theirs is None else f"{ours - theirs:+.{metric.digits}f}")
-        lines.append("| " + " | ".join(cells) + " |")
+        cells += [table.labels.get(row, "-"), f"mean of {len(scenes)} {dataset} scenes".replace("  ", " "),
+                  MEAN if paper else "-", str(sum(len(groups[row, s]) for s in scenes))]
+        per_scene = [[_mean(groups[row, s], metric) for s in scenes] for metric in table.metrics]
+        means = [None if None in values else sum(values) / len(values) for values in per_scene]
+        lines.append("| " + " | ".join(cells + _paper_cells(table, means, paper, difference)) + " |")
     if not ranked:
         lines.append("(no completed run)")
     notes = ["the paper's ATE is the reference code's mean error after alignment: beside our ate_mean_m"
@@ -236,6 +224,21 @@ def paper_table(name: str, runs: list[dict[str, Any]], difference: bool = False)
               f"{', '.join(str(run['run']) for run in mixed)}"] if mixed else []
     lines += ["", "; ".join(notes) + "."] if notes else []
     return "\n".join(lines) + "\n"
+
+
+def _paper_cells(table: PaperTable, ours: list[float | None], paper: dict[str, float],
+                 difference: bool) -> list[str]:
+    """A row's metric cells: each of `table.metrics` (`ours`, in order), the paper's figure
+    beside it where the paper has the metric, and with `difference` ours minus the paper's."""
+    cells = []
+    for metric, value in zip(table.metrics, ours):
+        cells.append(_fmt(value, metric.digits))
+        if _in_paper(table, metric):
+            theirs = paper.get(metric.key)
+            cells.append(_fmt(theirs, metric.digits))
+            if difference:
+                cells.append("-" if value is None or theirs is None else f"{value - theirs:+.{metric.digits}f}")
+    return cells
 
 
 def report(name: str, runs: list[dict[str, Any]], out: Path) -> Path:
@@ -285,11 +288,14 @@ def runs_table(runs: list[dict[str, Any]]) -> str:
         resolution = m.get("train_resolution")
         cells = [Path(run["run"]).name, "x".join(map(str, resolution)) if resolution else "-",
                  str((m.get("settings") or {}).get("eval.psnr_pixels", "-"))]
-        for column in RUN_COLUMNS:
-            value = _mean([m], column)
-            cells.append("-" if value is None else f"{value:,.{column.digits}f}")
-        lines.append("| " + " | ".join(cells) + " |")
+        lines.append("| " + " | ".join(cells + _run_cells(m, RUN_COLUMNS)) + " |")
     return "\n".join(lines) + "\n"
+
+
+def _run_cells(metrics: dict, columns: tuple[Metric, ...]) -> list[str]:
+    """One run's `metrics` in `columns`, thousands separated ("-" where a metric is missing)."""
+    values = [_mean([metrics], column) for column in columns]
+    return ["-" if v is None else f"{v:,.{c.digits}f}" for v, c in zip(values, columns)]
 
 
 #: A sweep's table (sequential runs, one row per job): what the method made of the frames and
@@ -316,11 +322,8 @@ def sweep_table(runs: list[dict[str, Any]]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for run in sorted(runs, key=lambda r: [str(r["settings"].get(k)) for k in varied]):
         cells = [str(run["settings"].get(k, "-")) for k in varied]
-        if run["status"] != "completed":
-            cells += [run["status"]] + [""] * (len(SWEEP_COLUMNS) - 1)
-        for column in SWEEP_COLUMNS if run["status"] == "completed" else ():
-            value = _mean([run["metrics"]], column)
-            cells.append("-" if value is None else f"{value:,.{column.digits}f}")
+        cells += (_run_cells(run["metrics"], SWEEP_COLUMNS) if run["status"] == "completed"
+                  else [run["status"]] + [""] * (len(SWEEP_COLUMNS) - 1))
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 

@@ -133,3 +133,18 @@ def test_a_sweep_block_names_each_job_by_what_its_sweep_varied(tmp_path):
     assert rows[1][0] == "kiss_icp" and rows[2][:2] == ["small_gicp", "failed"]
     with pytest.raises(ValueError, match="--sweep DIR"):
         paper_tables.block_text(["--sweeps", "x"], tmp_path)
+
+
+def test_the_mean_row_is_over_the_scenes_of_one_dataset(tmp_path, capsys):
+    """A table holding a TUM and a Replica half has a mean row per dataset with two scenes or more,
+    never one that averages a TUM scene with a Replica one."""
+    sweep = tmp_path / "sweep"
+    scenes = [("replica", "room0", 30.0), ("replica", "office4", 20.0), ("tum", "fr1_desk", 15.0)]
+    for i, (dataset, scene, psnr) in enumerate(scenes):
+        fake_run(sweep, str(i), ["+keyframe_variant=mapping_every10", f"dataset={dataset}",
+                                 f"dataset.path=/data/{scene}"], ate_mean_m=0.01, ate_rmse_m=0.01, psnr=psnr)
+    assert report_main([str(sweep), "--paper", "table7"]) == 0
+    header, *rows = table_rows(capsys.readouterr().out.split("**Table 7")[1])
+    scene = header.index("scene")
+    means = {r[scene]: r[header.index("PSNR [dB]")] for r in rows if r[scene].startswith("mean")}
+    assert means == {"mean of 2 replica scenes": "25.00"}
