@@ -36,9 +36,10 @@ import statistics
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
+
+from slamkit.cli.bench import signal_to_exit
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 BOUND_S = 5.0
@@ -65,35 +66,6 @@ def phases(data: Path, quick: bool) -> dict[str, tuple[list[str], str]]:
         "evaluate": ([*mapping[:-1], "final_iterations=20"], "evaluate"),
         "localize": (["mode=localize", "map={map}", *tum, "dataset.start=60"], "stream@5" if quick else "stream@30"),
     }
-
-
-def signal_to_exit(argv: list[str], cwd: Path, pause_at: str, timeout: float) -> dict:
-    """One run: `slamkit ARGV` sent SIGTERM once paused at `pause_at`; its exit status and the
-    seconds from the signal to its exit (None when it never reached the point)."""
-    exe = Path(sys.executable).with_name("slamkit")
-    proc = subprocess.Popen([str(exe), *argv], cwd=cwd, env=dict(os.environ, SLAMKIT_PAUSE_AT=pause_at),
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
-    sent: list[float] = []
-    tail: list[str] = []
-
-    def read() -> None:
-        for line in proc.stderr:
-            tail[:] = [*tail[-20:], line]
-            if not sent and f"paused at {pause_at}" in line:
-                sent.append(time.monotonic())
-                proc.send_signal(signal.SIGTERM)
-
-    reader = threading.Thread(target=read, daemon=True)
-    reader.start()
-    try:
-        proc.wait(timeout=timeout)
-    except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, signal.SIGKILL)
-        proc.wait()
-    ended = time.monotonic()
-    reader.join(timeout=10)
-    return {"returncode": proc.returncode, "seconds": ended - sent[0] if sent else None,
-            "reached": bool(sent), "stderr_tail": "".join(tail[-3:])}
 
 
 def main() -> int:
@@ -127,7 +99,8 @@ def main() -> int:
             runs = []
             for k in range(repeats):
                 out = Path(tmp) / f"{phase}-{k}"
-                run = signal_to_exit([*overrides, f"hydra.run.dir={out}"], Path(tmp), pause_at, args.timeout)
+                run = signal_to_exit([*overrides, f"hydra.run.dir={out}"], Path(tmp), pause_at, timeout=args.timeout)
+                run["stderr_tail"] = "".join(run.pop("stderr").splitlines(keepends=True)[-3:])
                 metrics = out / "metrics.json"
                 run["status"] = json.loads(metrics.read_text()).get("status") if metrics.is_file() else None
                 runs.append(run)

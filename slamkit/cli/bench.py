@@ -11,10 +11,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
+import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -51,6 +54,38 @@ def run_system(name: str, overrides: list[str], common: list[str], out_dir: Path
     else:
         record["error"] = (proc.stderr.strip().splitlines() or ["no output"])[-1]
     return record
+
+
+def signal_to_exit(argv: list[str], cwd: Path, pause_at: str, sig: int = signal.SIGTERM,
+                   env: dict[str, str] | None = None, timeout: float = 240) -> dict:
+    """`slamkit ARGV` (in `cwd`, `env` added to this process's) sent `sig` once it says it has
+    paused at `pause_at` (the run's SLAMKIT_PAUSE_AT test hook): {returncode, seconds (from the
+    signal to the exit, None when it never reached the point), reached, stderr}. A run still going
+    after `timeout` seconds is killed with its process group."""
+    exe = Path(sys.executable).with_name("slamkit")
+    proc = subprocess.Popen([str(exe), *argv], cwd=cwd, env=dict(os.environ, **(env or {}), SLAMKIT_PAUSE_AT=pause_at),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    sent: list[float] = []
+    said: list[str] = []
+
+    def read() -> None:
+        for line in proc.stderr:
+            said.append(line)
+            if not sent and f"paused at {pause_at}" in line:
+                sent.append(time.monotonic())
+                proc.send_signal(sig)
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    try:
+        proc.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    ended = time.monotonic()
+    reader.join(timeout=10)
+    return {"returncode": proc.returncode, "seconds": ended - sent[0] if sent else None, "reached": bool(sent),
+            "stderr": "".join(said)}
 
 
 def _cell(value, scale: float) -> str:

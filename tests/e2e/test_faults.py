@@ -1018,36 +1018,6 @@ SIGNAL_PHASES = {
 }
 
 
-def signal_to_exit(argv: list[str], cwd: Path, env: dict[str, str], pause_at: str,
-                   sig: signal.Signals = signal.SIGTERM, timeout: float = 240) -> tuple[int, float, str]:
-    """(exit status, seconds from the signal to the exit, stderr) of `slamkit ARGV` sent `sig` once
-    it says it has paused at `pause_at` (SLAMKIT_PAUSE_AT)."""
-    exe = Path(sys.executable).with_name("slamkit")
-    proc = subprocess.Popen([str(exe), *argv], cwd=cwd, env=dict(os.environ, **env, SLAMKIT_PAUSE_AT=pause_at),
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
-    err: list[str] = []
-    sent: list[float] = []
-
-    def read() -> None:
-        for line in proc.stderr:
-            err.append(line)
-            if not sent and f"paused at {pause_at}" in line:
-                sent.append(time.monotonic())
-                proc.send_signal(sig)
-
-    reader = threading.Thread(target=read, daemon=True)
-    reader.start()
-    try:
-        proc.wait(timeout=timeout)
-    except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, signal.SIGKILL)
-        proc.wait()
-    ended = time.monotonic()
-    reader.join(timeout=10)
-    assert sent, f"never paused at {pause_at} (exit {proc.returncode}): {''.join(err)[-3000:]}"
-    return proc.returncode, ended - sent[0], "".join(err)
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("phase", list(SIGNAL_PHASES))
 def test_a_stop_signal_ends_the_run_within_the_bound_in_every_phase(phase, tmp_path, monkeypatch):
@@ -1056,6 +1026,7 @@ def test_a_stop_signal_ends_the_run_within_the_bound_in_every_phase(phase, tmp_p
     stream are decided): the command exits 143 within SIGNAL_EXIT_BOUND_S seconds, having
     written what it had (metrics.json: interrupted; the checkpoint keeps the keyframes the loop
     closure had not taken)."""
+    from slamkit.cli.bench import signal_to_exit
     from slamkit.formats.checkpoint import read_checkpoint
 
     argv, pause_at = SIGNAL_PHASES[phase]
@@ -1072,7 +1043,9 @@ def test_a_stop_signal_ends_the_run_within_the_bound_in_every_phase(phase, tmp_p
                               timeout=300)
         assert made.returncode == 0, made.stderr[-3000:]
     args = [a.replace("{data}", str(data)).replace("{tmp}", str(tmp_path)) for a in argv] + [f"hydra.run.dir={out}"]
-    status, seconds, err = signal_to_exit(args, tmp_path, env, pause_at)
+    run = signal_to_exit(args, tmp_path, pause_at, env=env)
+    status, seconds, err = run["returncode"], run["seconds"], run["stderr"]
+    assert run["reached"], f"never paused at {pause_at} (exit {status}): {err[-3000:]}"
     assert status == 128 + signal.SIGTERM, err[-3000:]
     assert "Traceback" not in err, err[-3000:]
     assert seconds < SIGNAL_EXIT_BOUND_S, f"{phase}: {seconds:.1f} s from SIGTERM to exit"
