@@ -86,6 +86,18 @@ def download(url: str, dest: Path, *, expected_sha256: str | None = None, retrie
     return Downloaded(dest, dest.stat().st_size, digest)
 
 
+def remote_size(url: str, timeout: float = 30.0) -> int | None:
+    """The size in bytes the server gives for `url` (Content-Length of a HEAD request), or None
+    when it gives none or cannot be reached (the download itself then says what went wrong)."""
+    request = urllib.request.Request(url, method="HEAD", headers={"User-Agent": USER_AGENT})
+    try:
+        with urllib.request.urlopen(request, timeout=timeout) as response:
+            length = response.headers.get("Content-Length")
+    except (urllib.error.URLError, OSError, http.client.HTTPException):
+        return None
+    return int(length) if length and length.isdigit() else None
+
+
 def _fetch(url: str, part: Path, timeout: float, progress: bool) -> None:
     """One try: append to `part` from its current size to the end. _Cut when it stops early."""
     have = part.stat().st_size if part.is_file() else 0

@@ -12,9 +12,7 @@ import json
 import subprocess
 import sys
 import tarfile
-import threading
 import zipfile
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +21,8 @@ from PIL import Image
 
 from slamkit.cli import data as cli
 from slamkit.run.build import build_run
+
+from support.http_server import Server
 
 TUM_SEQUENCE = "rgbd_dataset_freiburg1_desk"
 TUM_URL_PATH = f"/freiburg1/{TUM_SEQUENCE}.tgz"
@@ -83,61 +83,6 @@ def replica_archive(compression: int = zipfile.ZIP_DEFLATED) -> bytes:
             z.writestr(f"Replica/{scene}/results/depth000000.png", png(np.full((680, 1200), 13107, np.uint16)))
             z.writestr(f"Replica/{scene}/traj.txt", " ".join(map(str, np.eye(4).ravel())) + "\n")
     return buf.getvalue()
-
-
-# ------------------------------------------------------------------------------ the server
-class Server:
-    """Files by URL path; `cuts[path] = (times, after)`: the next `times` responses for `path`
-    announce the full length but stop after `after` body bytes and close the connection.
-    `requests`: (path, Range header or None) of every request."""
-
-    def __init__(self):
-        self.files: dict[str, bytes] = {}
-        self.cuts: dict[str, tuple[int, int]] = {}
-        self.requests: list[tuple[str, str | None]] = []
-        server = self
-
-        class Handler(BaseHTTPRequestHandler):
-            def log_message(self, *args):  # quiet
-                pass
-
-            def do_GET(self):
-                rng = self.headers.get("Range")
-                server.requests.append((self.path, rng))
-                data = server.files.get(self.path)
-                if data is None:
-                    self.send_error(404, "Not Found")
-                    return
-                start = int(rng.split("=")[1].split("-")[0]) if rng else 0
-                if start >= len(data):
-                    self.send_response(416)
-                    self.send_header("Content-Range", f"bytes */{len(data)}")
-                    self.send_header("Content-Length", "0")
-                    self.end_headers()
-                    return
-                body = data[start:]
-                self.send_response(206 if rng else 200)
-                if rng:
-                    self.send_header("Content-Range", f"bytes {start}-{len(data) - 1}/{len(data)}")
-                self.send_header("Content-Length", str(len(body)))
-                self.end_headers()
-                times, after = server.cuts.get(self.path, (0, 0))
-                if times:
-                    server.cuts[self.path] = (times - 1, after)
-                    self.wfile.write(body[:after])
-                    self.wfile.flush()
-                    self.close_connection = True
-                    return
-                self.wfile.write(body)
-
-        self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}"
-        self.thread = threading.Thread(target=self.httpd.serve_forever, daemon=True)
-        self.thread.start()
-
-    def close(self):
-        self.httpd.shutdown()
-        self.httpd.server_close()
 
 
 @pytest.fixture()
