@@ -137,11 +137,16 @@ def open_zip(archive: Path) -> zipfile.ZipFile:
         raise DamagedArchive(f"{archive}: not a complete, readable zip archive ({_first_line(exc)})") from None
 
 
-def zip_member(z: zipfile.ZipFile, name: str, archive: Path) -> bytes:
+def zip_member(z: zipfile.ZipFile, name: str, archive: Path, dest: Path | None = None) -> bytes | None:
     """The bytes of member `name` of the open zip `z` (of the file `archive`), its CRC-32
-    checked; DamagedArchive when they do not read back whole."""
+    checked; with `dest`, they are streamed into that file instead (a large member: a nested
+    archive) and None is returned. DamagedArchive when they do not read back whole."""
     try:
-        return z.read(name)
+        if dest is None:
+            return z.read(name)
+        with z.open(name) as member, open(dest, "wb") as out:
+            shutil.copyfileobj(member, out, 1 << 20)
+        return None
     except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError) as exc:
         raise DamagedArchive(f"{archive}: member {name!r} does not read back whole ({_first_line(exc)})") from None
 

@@ -190,7 +190,7 @@ def cut_sevenscenes(archive: Path, into: Path, first: int = SEVENSCENES_FIRST, l
             raise DataError(f"{archive}: no {inner_name} in the archive (expected Microsoft's 7-Scenes "
                             f"{SEVENSCENES_SCENE}.zip, which holds {SEVENSCENES_SCENE}/{inner_name})")
         inner = into / f".{inner_name}"
-        inner.write_bytes(zip_member(z, found, archive))
+        zip_member(z, found, archive, dest=inner)
     try:
         label = Path(f"{archive}!{found}")
         with open_zip(inner) as z:
