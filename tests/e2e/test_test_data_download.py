@@ -23,7 +23,7 @@ from slamkit.downloads import excerpts
 from slamkit.run.build import build_run
 
 from support.data import REPLICA, SEVENSCENES, TUM, require_data
-from support.http_server import Server
+from support.downloads import Server, download, one_line
 
 TUM_PATH = "/freiburg1/rgbd_dataset_freiburg1_rpy.tgz"
 REPLICA_PATH, SEVENSCENES_PATH = "/Replica.zip", "/redkitchen.zip"
@@ -132,18 +132,6 @@ def server(archives):
     s.close()
 
 
-def run(capsys, *args: str) -> tuple[int, str, str]:
-    status = cli.main(["download", *args, "--no-progress"])
-    out, err = capsys.readouterr()
-    return status, out, err
-
-
-def one_line(err: str) -> str:
-    lines = err.strip().splitlines()
-    assert len(lines) == 1, err
-    return lines[0]
-
-
 def data_files(folder: Path) -> dict[str, Path]:
     return {p.relative_to(folder).as_posix(): p for p in folder.rglob("*") if p.is_file() and p.name not in RECORDS}
 
@@ -158,7 +146,7 @@ def assert_same_files(cut: Path, real: Path) -> None:
 # ----------------------------------------------------------------------------------- tests
 def test_the_excerpts_are_cut_as_the_real_ones_and_a_second_run_fetches_nothing(server, tmp_path, capsys):
     root = tmp_path / "data"
-    status, out, err = run(capsys, "test-data", "--root", str(root), "--base-url", server.url)
+    status, out, err = download(capsys, "test-data", "--root", str(root), "--base-url", server.url)
     assert status == 0, err
     for path, data in server.files.items():  # each size said before its download
         said = out.index(f"({cli.size_text(len(data))})")
@@ -189,19 +177,19 @@ def test_the_excerpts_are_cut_as_the_real_ones_and_a_second_run_fetches_nothing(
 
     assert sorted(p.name for p in root.iterdir()) == sorted([TUM.name, REPLICA.name, SEVENSCENES.name, cli.MANIFEST])
     server.requests.clear()
-    status, out, err = run(capsys, "test-data", "--root", str(root), "--base-url", server.url)
+    status, out, err = download(capsys, "test-data", "--root", str(root), "--base-url", server.url)
     assert status == 0, err
     assert out.count("already in") == 3 and server.requests == []
 
 
 def test_a_kept_archive_is_cut_again_without_a_download(server, tmp_path, capsys):
-    status, out, err = run(capsys, "test-data/replica", "--root", str(tmp_path), "--base-url", server.url,
+    status, out, err = download(capsys, "test-data/replica", "--root", str(tmp_path), "--base-url", server.url,
                            "--keep-archive")
     assert status == 0, err
     assert (tmp_path / "Replica.zip").read_bytes() == server.files[REPLICA_PATH]
     (tmp_path / REPLICA.name).rename(tmp_path / "moved")
     server.requests.clear()
-    status, out, err = run(capsys, "test-data/replica", "--root", str(tmp_path), "--base-url", server.url)
+    status, out, err = download(capsys, "test-data/replica", "--root", str(tmp_path), "--base-url", server.url)
     assert status == 0, err
     assert server.requests == [] and "kept earlier" in out
     assert_same_files(tmp_path / REPLICA.name, REPLICA)
@@ -211,7 +199,7 @@ def test_a_kept_archive_is_cut_again_without_a_download(server, tmp_path, capsys
 def test_a_part_download_resumes_and_says_what_is_there(server, tmp_path, capsys):
     served = server.files[REPLICA_PATH]
     (tmp_path / "Replica.zip.part").write_bytes(served[: len(served) // 2])
-    status, out, err = run(capsys, "test-data/replica", "--root", str(tmp_path), "--base-url", server.url)
+    status, out, err = download(capsys, "test-data/replica", "--root", str(tmp_path), "--base-url", server.url)
     assert status == 0, err
     assert f"{cli.size_text(len(served) // 2)} of it already here" in out
     assert server.requests == [(REPLICA_PATH, "HEAD"), (REPLICA_PATH, f"bytes={len(served) // 2}-")]
@@ -221,7 +209,7 @@ def test_a_part_download_resumes_and_says_what_is_there(server, tmp_path, capsys
 def test_without_root_it_goes_where_the_tests_look(server, tmp_path, capsys, monkeypatch):
     monkeypatch.delenv("SLAMKIT_DATA", raising=False)
     monkeypatch.setenv("SLAMKIT_CACHE", str(tmp_path / "cache"))
-    status, out, err = run(capsys, "test-data/replica", "--base-url", server.url)
+    status, out, err = download(capsys, "test-data/replica", "--base-url", server.url)
     assert status == 0, err
     root = tmp_path / "cache" / "test-data"
     assert excerpts.default_root() == root and (root / REPLICA.name / "traj.txt").is_file()
@@ -231,7 +219,7 @@ def test_without_root_it_goes_where_the_tests_look(server, tmp_path, capsys, mon
 def test_a_cut_archive_is_one_line_and_set_aside(server, tmp_path, capsys):
     served = server.files[SEVENSCENES_PATH]
     server.files[SEVENSCENES_PATH] = served[: len(served) // 2]
-    status, _, err = run(capsys, "test-data/7scenes", "--root", str(tmp_path), "--base-url", server.url)
+    status, _, err = download(capsys, "test-data/7scenes", "--root", str(tmp_path), "--base-url", server.url)
     line = one_line(err)
     assert status == 2 and "redkitchen.zip: not a complete, readable zip archive" in line
     assert "moved aside as redkitchen.zip.corrupt" in line and "run the same command again" in line
@@ -257,7 +245,7 @@ def _tum_with_ten_frames() -> bytes:
 ])
 def test_a_wrong_archive_is_one_line_and_set_aside(server, tmp_path, capsys, key, path, payload, message):
     server.files[path] = payload()
-    status, _, err = run(capsys, f"test-data/{key}", "--root", str(tmp_path), "--base-url", server.url)
+    status, _, err = download(capsys, f"test-data/{key}", "--root", str(tmp_path), "--base-url", server.url)
     line = one_line(err)
     file_name = path.rsplit("/", 1)[1]
     assert status == 2 and message in line and f"moved aside as {file_name}.rejected" in line
@@ -267,7 +255,7 @@ def test_a_wrong_archive_is_one_line_and_set_aside(server, tmp_path, capsys, key
 
 def test_too_little_free_space_is_one_line_before_any_download(server, tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(cli.shutil, "disk_usage", lambda _: type("Usage", (), {"free": 1000})())
-    status, _, err = run(capsys, "test-data/replica", "--root", str(tmp_path), "--base-url", server.url)
+    status, _, err = download(capsys, "test-data/replica", "--root", str(tmp_path), "--base-url", server.url)
     line = one_line(err)
     size = cli.size_text(len(server.files[REPLICA_PATH]))
     assert status == 1 and f"{tmp_path}: 1 kB free, but Replica.zip needs {size} more" in line
@@ -275,7 +263,7 @@ def test_too_little_free_space_is_one_line_before_any_download(server, tmp_path,
 
 
 def test_test_data_and_a_sequence_in_one_command_is_one_line(server, tmp_path, capsys):
-    status, _, err = run(capsys, "test-data", "replica", "--root", str(tmp_path), "--base-url", server.url)
+    status, _, err = download(capsys, "test-data", "replica", "--root", str(tmp_path), "--base-url", server.url)
     assert status == 2 and "in one command" in one_line(err) and server.requests == []
-    status, _, err = run(capsys, "test-data/scannet", "--base-url", server.url)
+    status, _, err = download(capsys, "test-data/scannet", "--base-url", server.url)
     assert status == 2 and "test-data/tum, test-data/7scenes, test-data/replica" in one_line(err)

@@ -1,10 +1,27 @@
-"""A local HTTP server for the download tests: files by URL path, Range requests (206 / 416),
-HEAD (the size), and transfers cut on demand."""
+"""What the `slamkit-data` tests share: a local HTTP server (files by URL path, Range requests
+(206 / 416), HEAD (the size), transfers cut on demand), `slamkit-data download` run in this
+process, and its one error line."""
 
 from __future__ import annotations
 
 import threading
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+from slamkit.cli import data as cli
+
+
+def download(capsys, *args: str) -> tuple[int, str, str]:
+    """(exit status, stdout, stderr) of `slamkit-data download ARGS --no-progress`, in this process."""
+    status = cli.main(["download", *args, "--no-progress"])
+    out, err = capsys.readouterr()
+    return status, out, err
+
+
+def one_line(err: str) -> str:
+    """The only line of `err` (asserted to be one)."""
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    return lines[0]
 
 
 class Server:
