@@ -65,6 +65,20 @@ def default_root() -> Path:
     return Path(env).expanduser().absolute() if env else cache_dir("test-data")
 
 
+def find_test_data(project: Path | None = None) -> Path:
+    """Where the tests read the test data: $SLAMKIT_DATA when set; else the first folder that
+    exists of `shared/data` beside the `project` checkout (the developers' copy), default_root(),
+    and `project`/.cache/slamkit/test-data (where `make test-data` puts it, for a test run outside
+    make); else default_root() (where the download would put it)."""
+    env = os.environ.get("SLAMKIT_DATA")
+    if env:
+        return Path(env).expanduser()
+    candidates = [default_root()]
+    if project is not None:
+        candidates = [project.parent / "shared" / "data", *candidates, project / ".cache" / "slamkit" / "test-data"]
+    return next((c for c in candidates if c.is_dir()), default_root())
+
+
 @dataclass(frozen=True)
 class Excerpt:
     """One excerpt: `key` (its short name: test-data/KEY), the `folder` it makes under the root,

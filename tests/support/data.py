@@ -1,34 +1,22 @@
-"""The real RGB-D data the tests read in place, the first of: $SLAMKIT_DATA; the developers'
-shared folder beside the repository (../shared/data); the folder `slamkit-data download
-test-data` fills by default (`test-data` in the project cache: $SLAMKIT_CACHE, else
-~/.cache/slamkit), or the project's .cache/slamkit/test-data, where `make test-data` puts it.
-Each holds the same sub-folders (on a GPU machine the data travels inside the repository:
+"""The real RGB-D data the tests read in place (slamkit.downloads.excerpts.find_test_data), the
+first of: $SLAMKIT_DATA; the developers' shared folder beside the repository; the folder
+`slamkit-data download test-data` fills by default (`test-data` in the project cache:
+$SLAMKIT_CACHE, else ~/.cache/slamkit); the repository's .cache/slamkit/test-data, where
+`make test-data` puts it. Each holds the same sub-folders (on a GPU machine the data travels inside the repository:
 docs/gpu.md)."""
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import pytest
 
-from slamkit.downloads.excerpts import default_root
+from slamkit.downloads.excerpts import find_test_data
 
 REPO = Path(__file__).resolve().parents[2]
-#: Where the data is looked for when $SLAMKIT_DATA is not set, in this order.
-CANDIDATES = (REPO.parent / "shared" / "data", default_root(), REPO / ".cache" / "slamkit" / "test-data")
 #: The command that fetches the data (docs/datasets.md, 'The test data').
 DOWNLOAD = "slamkit-data download test-data"
-
-
-def data_folder() -> Path:
-    """$SLAMKIT_DATA, else the first of CANDIDATES that is a folder, else where the download puts it."""
-    if os.environ.get("SLAMKIT_DATA"):
-        return Path(os.environ["SLAMKIT_DATA"])
-    return next((c for c in CANDIDATES if c.is_dir()), default_root())
-
-
-DATA = data_folder()
+DATA = find_test_data(REPO)
 TUM = DATA / "tum_fr1_rpy_first150"
 REPLICA = DATA / "replica_room0_first20"
 SEVENSCENES = DATA / "7scenes_redkitchen_300to999"
