@@ -163,7 +163,7 @@ def plan_test_data(chosen: list[excerpts.Excerpt], root: Path, base_url: str | N
             continue
         if (root / archive.file_name).is_file():
             todo[archive.file_name] = 0
-            print(f"slamkit-data: {excerpt.folder}: will be cut from {root / archive.file_name} (kept earlier)")
+            print(f"slamkit-data: {excerpt.folder}: will be cut from {root / archive.file_name} (downloaded earlier)")
             continue
         size = remote_size(archive.url(base_url))
         part = part_path(root / archive.file_name)
@@ -292,8 +292,10 @@ def main(argv: list[str] | None = None) -> int:
             print(f"slamkit-data: error: {archive.name}: {exc}", file=sys.stderr)
             status = max(status, exc.exit_status)
         except KeyboardInterrupt:
-            print(f"slamkit-data: interrupted during {archive.name}; a partial download stays in "
-                  f"{part_path(root / archive.file_name)} and resumes when the same command runs again",
+            part = part_path(root / archive.file_name)
+            kept = (f"a partial download stays in {part} and resumes" if part.is_file() else
+                    "nothing half-done is kept; it goes on")
+            print(f"slamkit-data: interrupted during {archive.name}; {kept} when the same command runs again",
                   file=sys.stderr)
             return INTERRUPTED
     if isinstance(jobs[0], excerpts.Excerpt) and status == 0:

@@ -15,7 +15,7 @@ import zlib
 from collections.abc import Callable, Iterator
 from pathlib import Path, PurePosixPath
 
-from slamkit.errors import DataError
+from slamkit.errors import DataError, OutputError
 
 
 class DamagedArchive(DataError):
@@ -140,12 +140,18 @@ def open_zip(archive: Path) -> zipfile.ZipFile:
 def zip_member(z: zipfile.ZipFile, name: str, archive: Path, dest: Path | None = None) -> bytes | None:
     """The bytes of member `name` of the open zip `z` (of the file `archive`), its CRC-32
     checked; with `dest`, they are streamed into that file instead (a large member: a nested
-    archive) and None is returned. DamagedArchive when they do not read back whole."""
+    archive) and None is returned. DamagedArchive when they do not read back whole; OutputError
+    when `dest` cannot be written (a full disk)."""
     try:
         if dest is None:
             return z.read(name)
         with z.open(name) as member, open(dest, "wb") as out:
-            shutil.copyfileobj(member, out, 1 << 20)
+            while block := member.read(1 << 20):
+                try:
+                    out.write(block)
+                except OSError as exc:
+                    raise OutputError(f"{dest}: cannot write ({_first_line(exc)}) while copying {name!r} out of "
+                                      f"{archive}") from None
         return None
     except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError) as exc:
         raise DamagedArchive(f"{archive}: member {name!r} does not read back whole ({_first_line(exc)})") from None

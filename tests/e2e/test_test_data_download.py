@@ -8,6 +8,7 @@ too-large archive is one line."""
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import re
 import tarfile
@@ -191,7 +192,7 @@ def test_a_kept_archive_is_cut_again_without_a_download(server, tmp_path, capsys
     server.requests.clear()
     status, out, err = download(capsys, "test-data/replica", "--root", str(tmp_path), "--base-url", server.url)
     assert status == 0, err
-    assert server.requests == [] and "kept earlier" in out
+    assert server.requests == [] and "downloaded earlier" in out
     assert_same_files(tmp_path / REPLICA.name, REPLICA)
     assert not (tmp_path / "Replica.zip").exists()
 
@@ -267,3 +268,25 @@ def test_test_data_and_a_sequence_in_one_command_is_one_line(server, tmp_path, c
     assert status == 2 and "in one command" in one_line(err) and server.requests == []
     status, _, err = download(capsys, "test-data/scannet", "--base-url", server.url)
     assert status == 2 and "test-data/tum, test-data/7scenes, test-data/replica" in one_line(err)
+
+
+def test_an_interrupted_cut_leaves_no_folder_and_the_next_run_cuts_without_a_download(server, tmp_path, capsys,
+                                                                                      monkeypatch):
+    replica = next(e for e in excerpts.EXCERPTS if e.key == "replica")
+
+    def interrupted(archive, into):
+        replica.cut(archive, into)
+        raise KeyboardInterrupt  # Ctrl-C once all is written, before the folder moves into place
+
+    monkeypatch.setattr(excerpts, "EXCERPTS", (dataclasses.replace(replica, cut=interrupted),))
+    status, _, err = download(capsys, "test-data/replica", "--root", str(tmp_path), "--base-url", server.url)
+    assert status == cli.INTERRUPTED and "nothing half-done is kept" in one_line(err)
+    assert not (tmp_path / REPLICA.name).exists() and not list(tmp_path.glob(".*cutting"))
+    assert (tmp_path / "Replica.zip").read_bytes() == server.files[REPLICA_PATH]  # complete: not fetched again
+
+    monkeypatch.setattr(excerpts, "EXCERPTS", (replica,))
+    server.requests.clear()
+    status, out, err = download(capsys, "test-data/replica", "--root", str(tmp_path), "--base-url", server.url)
+    assert status == 0, err
+    assert server.requests == [] and "downloaded earlier" in out
+    assert_same_files(tmp_path / REPLICA.name, REPLICA)
