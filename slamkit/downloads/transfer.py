@@ -15,9 +15,8 @@ import urllib.request
 from dataclasses import dataclass
 from pathlib import Path
 
-from tqdm import tqdm
-
 from slamkit.errors import DataError, OutputError, SlamkitError
+from slamkit.progress import Progress
 
 #: Bytes read and written at a time.
 CHUNK = 1 << 20
@@ -129,8 +128,8 @@ def _fetch(url: str, part: Path, timeout: float, progress: bool) -> None:
             have, mode = 0, "wb"
             length = response.headers.get("Content-Length")
             total = int(length) if length and length.isdigit() else None
-        with open(part, mode) as f, tqdm(total=total, initial=have, unit="B", unit_scale=True, unit_divisor=1024,
-                                         desc=Path(url).name, disable=None if progress else True) as bar:
+        with open(part, mode) as f, Progress(f"download {Path(url).name}", _mb(total), "MB", enabled=progress,
+                                             initial=_mb(have), units="MB") as bar:
             while True:
                 try:
                     chunk = response.read(CHUNK)
@@ -144,10 +143,15 @@ def _fetch(url: str, part: Path, timeout: float, progress: bool) -> None:
                 except OSError as exc:  # a full disk: the bytes so far stay in the part file
                     raise OutputError(f"{part}: cannot write ({_reason(exc)}); {have} bytes kept, run the same "
                                       f"command again to resume") from None
+                bar.update(_mb(have + len(chunk)) - _mb(have))
                 have += len(chunk)
-                bar.update(len(chunk))
     if total is not None and have != total:
         raise _Cut(f"stopped at {have} of {total} bytes")
+
+
+def _mb(n: int | None) -> int | None:
+    """Whole megabytes (10^6 bytes) in `n` bytes: the download's progress unit."""
+    return None if n is None else n // 1_000_000
 
 
 def _content_range(value: str) -> tuple[int, int | None]:

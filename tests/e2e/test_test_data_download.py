@@ -9,6 +9,7 @@ too-large archive is one line."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 import io
 import re
 import tarfile
@@ -20,7 +21,8 @@ import pytest
 from PIL import Image
 
 from slamkit.cli import data as cli
-from slamkit.downloads import excerpts
+from slamkit.downloads import excerpts, transfer
+from slamkit.progress import Progress
 from slamkit.run.build import build_run
 
 from support.data import REPLICA, SEVENSCENES, TUM, require_data
@@ -290,3 +292,19 @@ def test_an_interrupted_cut_leaves_no_folder_and_the_next_run_cuts_without_a_dow
     assert status == 0, err
     assert server.requests == [] and "downloaded earlier" in out
     assert_same_files(tmp_path / REPLICA.name, REPLICA)
+
+
+def test_a_download_not_on_a_terminal_prints_progress_lines(tmp_path, monkeypatch):
+    """A batch job's log shows where a long download is: a line every few seconds (here every
+    update), in megabytes, with the ETA."""
+    out = io.StringIO()
+    monkeypatch.setattr(transfer, "Progress", functools.partial(Progress, every_s=0, stream=out))
+    s = Server()
+    s.files["/big.bin"] = bytes(3_500_000)
+    try:
+        transfer.download(f"{s.url}/big.bin", tmp_path / "big.bin")
+    finally:
+        s.close()
+    lines = out.getvalue().splitlines()
+    assert lines[0].startswith("slamkit: download big.bin 1/3 MB (33 %), 0 s elapsed, ETA ")
+    assert lines[-1].startswith("slamkit: download big.bin 3/3 MB (100 %)")
