@@ -36,7 +36,7 @@ from pathlib import Path
 
 from slamkit.downloads import catalogue, excerpts
 from slamkit.downloads.archives import DamagedArchive, extract
-from slamkit.downloads.transfer import Downloaded, download, part_path, remote_size
+from slamkit.downloads.transfer import Downloaded, RangeReader, download, part_path, ranged, remote_size
 from slamkit.errors import DataError, OutputError, SlamkitError
 from slamkit.formats.atomic import write_atomic
 
@@ -151,13 +151,17 @@ def size_text(n: int | None) -> str:
     return f"{n} bytes"
 
 
-def plan_test_data(chosen: list[excerpts.Excerpt], root: Path, base_url: str | None) -> dict[str, int | None]:
+def plan_test_data(chosen: list[excerpts.Excerpt], root: Path, base_url: str | None,
+                   keep_archive: bool = False) -> tuple[dict[str, int | None], dict[str, int]]:
     """Say, before anything is downloaded, which excerpts are already there and how large each
-    archive still to fetch is (the server's Content-Length); returns {archive file: bytes still
-    to download (None: unknown)}."""
-    todo = {}
+    archive still to fetch is (the server's Content-Length). Returns ({archive file: bytes still
+    to download (None: unknown)}, {archive file: its size, for an archive whose excerpt is read
+    out of it where it is, by HTTP range requests}): an excerpt made `by_range` whose server
+    answers range requests, unless `keep_archive` asks for the archive."""
+    todo, remote = {}, {}
     for excerpt in chosen:
         archive = excerpt.archive
+        url = archive.url(base_url)
         if (root / excerpt.folder).is_dir():
             print(f"slamkit-data: {excerpt.folder}: already in {root}")
             continue
@@ -165,7 +169,13 @@ def plan_test_data(chosen: list[excerpts.Excerpt], root: Path, base_url: str | N
             todo[archive.file_name] = 0
             print(f"slamkit-data: {excerpt.folder}: will be cut from {root / archive.file_name} (downloaded earlier)")
             continue
-        size = remote_size(archive.url(base_url))
+        size = ranged(url) if excerpt.by_range and not keep_archive else None
+        if size is not None:
+            remote[archive.file_name] = size
+            print(f"slamkit-data: {excerpt.folder}: {excerpt.what}; its files to be read out of {archive.file_name} "
+                  f"({size_text(size)}) where it is, by HTTP range requests: only they are downloaded")
+            continue
+        size = remote_size(url)
         part = part_path(root / archive.file_name)
         have = part.stat().st_size if part.is_file() else 0
         todo[archive.file_name] = None if size is None else max(size - have, 0)
@@ -176,18 +186,23 @@ def plan_test_data(chosen: list[excerpts.Excerpt], root: Path, base_url: str | N
     if known:
         print(f"slamkit-data: {size_text(sum(known))} to download in all, one archive at a time; each archive is "
               f"deleted once its excerpt is cut (--keep-archive keeps it)")
-    return todo
+    return todo, remote
 
 
 def fetch_excerpt(excerpt: excerpts.Excerpt, root: Path, *, base_url: str | None = None, keep_archive: bool = False,
-                  retries: int = 3, progress: bool = True, remaining: int | None = None) -> Path:
+                  retries: int = 3, progress: bool = True, remaining: int | None = None,
+                  by_range: int | None = None) -> Path:
     """Download the archive of one test-data excerpt into `root`, cut the excerpt into
     ROOT/FOLDER (excerpts module) and delete the archive unless `keep_archive`; returns the
     folder. A folder already there is taken as complete. `remaining`: the bytes still to
-    download, checked against the free space first (OutputError, exit 1, when short)."""
+    download, checked against the free space first (OutputError, exit 1, when short).
+    `by_range`: the archive's size, when the excerpt is to be read out of it where it is
+    (plan_test_data) instead: nothing is downloaded whole."""
     folder = root / excerpt.folder
     if folder.is_dir():
         return folder
+    if by_range is not None:
+        return _cut_by_range(excerpt, root, base_url=base_url, size=by_range, retries=retries)
     free = shutil.disk_usage(root).free
     if remaining and free < remaining:
         raise OutputError(f"{root}: {size_text(free)} free, but {excerpt.archive.file_name} needs "
@@ -197,7 +212,7 @@ def fetch_excerpt(excerpt: excerpts.Excerpt, root: Path, *, base_url: str | None
     into = excerpts.staging(root, excerpt)
     try:
         excerpt.cut(got.path, into)
-        excerpts.finish(excerpt, into, excerpt.archive.url(base_url), got.sha256)
+        excerpts.finish(excerpt, into, excerpt.archive.url(base_url), f"archive SHA-256 {got.sha256}")
         into.replace(folder)
     except DamagedArchive as exc:
         raise _set_aside(root, got, exc) from None
@@ -210,6 +225,28 @@ def fetch_excerpt(excerpt: excerpts.Excerpt, root: Path, *, base_url: str | None
     _record(root, excerpt.archive.file_name, cut=excerpt.folder)
     print(f"slamkit-data: {excerpt.folder}: done, in {folder}")
     return folder
+
+
+def _cut_by_range(excerpt: excerpts.Excerpt, root: Path, *, base_url: str | None, size: int, retries: int) -> Path:
+    """Cut `excerpt` out of its archive where it is (`size` bytes), reading only what its
+    members need; each member's CRC is checked as it is read."""
+    url = excerpt.archive.url(base_url)
+    reader = RangeReader(url, size, retries=retries)
+    print(f"slamkit-data: {excerpt.folder}: reading its files out of {url}")
+    into = excerpts.staging(root, excerpt)
+    try:
+        excerpt.cut(reader, into)
+        excerpts.finish(excerpt, into, url, f"read where it is by HTTP range requests: {reader.fetched} of its "
+                                            f"{size} bytes")
+        into.replace(root / excerpt.folder)
+    except DataError as exc:
+        raise type(exc)(f"{exc}; nothing was kept: run the same command again") from None
+    finally:
+        shutil.rmtree(into, ignore_errors=True)
+    _record(root, excerpt.archive.file_name, url=url, bytes=size, read_by_range=reader.fetched, cut=excerpt.folder)
+    print(f"slamkit-data: {excerpt.folder}: done, in {root / excerpt.folder} ({size_text(reader.fetched)} "
+          f"read of {excerpt.archive.file_name}'s {size_text(size)})")
+    return root / excerpt.folder
 
 
 def test_data_hint(root: Path) -> str:
@@ -272,7 +309,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         root, jobs = _jobs(args)
         make_root(root)
-        todo = plan_test_data(jobs, root, args.base_url) if isinstance(jobs[0], excerpts.Excerpt) else {}
+        todo, remote = (plan_test_data(jobs, root, args.base_url, args.keep_archive)
+                        if isinstance(jobs[0], excerpts.Excerpt) else ({}, {}))
     except SlamkitError as exc:
         print(f"slamkit-data: error: {exc}", file=sys.stderr)
         return exc.exit_status
@@ -282,7 +320,8 @@ def main(argv: list[str] | None = None) -> int:
         try:
             if isinstance(job, excerpts.Excerpt):
                 fetch_excerpt(job, root, base_url=args.base_url, keep_archive=args.keep_archive, retries=args.retries,
-                              progress=args.progress, remaining=todo.get(archive.file_name))
+                              progress=args.progress, remaining=todo.get(archive.file_name),
+                              by_range=remote.get(archive.file_name))
             else:
                 fetch(job, root, base_url=args.base_url, sha256=args.sha256, keep_archive=args.keep_archive,
                       retries=args.retries, progress=args.progress)

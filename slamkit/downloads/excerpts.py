@@ -82,14 +82,17 @@ def find_test_data(project: Path | None = None) -> Path:
 @dataclass(frozen=True)
 class Excerpt:
     """One excerpt: `key` (its short name: test-data/KEY), the `folder` it makes under the root,
-    the `archive` it is cut from, one line saying `what` it is, and `cut(archive_path, into)`,
-    which writes its files into the empty folder `into`."""
+    the `archive` it is cut from, one line saying `what` it is, and `cut(archive, into)`, which
+    writes its files into the empty folder `into` from the archive (a path, or with `by_range` a
+    seekable file that reads the archive where it is: a zip whose few members can be read
+    without downloading it whole)."""
 
     key: str
     folder: str
     archive: catalogue.Archive
     what: str
     cut: Callable[[Path, Path], None]
+    by_range: bool = False
 
 
 def _write(into: Path, rel: str, data: bytes) -> None:
@@ -230,7 +233,8 @@ EXCERPTS = (
             f"Microsoft 7-Scenes {SEVENSCENES_SCENE} {SEVENSCENES_SEQUENCE}, frames {SEVENSCENES_FIRST}-"
             f"{SEVENSCENES_LAST}", cut_sevenscenes),
     Excerpt("replica", "replica_room0_first20", catalogue.REPLICA,
-            f"Replica {REPLICA_SCENE} (NICE-SLAM rendering), frames 0-{REPLICA_FRAMES - 1}", cut_replica),
+            f"Replica {REPLICA_SCENE} (NICE-SLAM rendering), frames 0-{REPLICA_FRAMES - 1}", cut_replica,
+            by_range=True),
 )
 
 
@@ -251,13 +255,13 @@ def resolve(name: str) -> list[Excerpt]:
                                     + ", ".join(f"{NAME}/{e.key}" for e in EXCERPTS))
 
 
-def finish(excerpt: Excerpt, into: Path, url: str, sha256: str) -> None:
-    """Write README.txt (what, from where) and MANIFEST.sha256 (`sha256  ./path` per file,
-    sorted) into the cut excerpt `into`."""
+def finish(excerpt: Excerpt, into: Path, url: str, how: str) -> None:
+    """Write README.txt (what, from where, `how`: e.g. the archive's SHA-256) and MANIFEST.sha256
+    (`sha256  ./path` per file, sorted) into the cut excerpt `into`."""
     _write(into, "README.txt", (
         f"{excerpt.what}\n"
         f"Cut by `slamkit-data download {NAME}/{excerpt.key}` from {url}\n"
-        f"(archive SHA-256 {sha256}); see slamkit's docs/datasets.md, 'The test data', for the layout,\n"
+        f"({how}); see slamkit's docs/datasets.md, 'The test data', for the layout,\n"
         f"the source's licence and how to cite it. For tests and benchmarks only: do not redistribute.\n").encode())
     lines = []
     for path in sorted(p for p in into.rglob("*") if p.is_file()):

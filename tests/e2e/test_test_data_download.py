@@ -32,6 +32,8 @@ TUM_PATH = "/freiburg1/rgbd_dataset_freiburg1_rpy.tgz"
 REPLICA_PATH, SEVENSCENES_PATH = "/Replica.zip", "/redkitchen.zip"
 #: 7-Scenes frames whose colour is the real image (as a PNG); the others carry a small stand-in.
 REAL_COLOUR = (300, 301, 650, 998, 999)
+#: Bytes of the rebuilt Replica.zip that stand for the scenes the excerpt does not read.
+OTHER_SCENES = 40 << 20
 #: Files of the real excerpts that record their own staging, not data.
 RECORDS = {"README.txt", "MANIFEST.sha256"}
 
@@ -95,6 +97,7 @@ def replica_archive() -> bytes:
                 .read_bytes()
     files["Replica/room0/traj.txt"] = b"".join(traj + traj[-2:])
     files["Replica/room1/traj.txt"] = traj[0]
+    files["Replica/office0/results/frame000000.jpg"] = bytes(range(256)) * (OTHER_SCENES // 256)  # the other scenes
     return zipped(files)
 
 
@@ -151,10 +154,15 @@ def test_the_excerpts_are_cut_as_the_real_ones_and_a_second_run_fetches_nothing(
     root = tmp_path / "data"
     status, out, err = download(capsys, "test-data", "--root", str(root), "--base-url", server.url)
     assert status == 0, err
-    for path, data in server.files.items():  # each size said before its download
-        said = out.index(f"({cli.size_text(len(data))})")
+    for path in (TUM_PATH, SEVENSCENES_PATH):  # each size said before its download
+        said = out.index(f"({cli.size_text(len(server.files[path]))})")
         assert said < out.index(f"cutting it from {path.rsplit('/', 1)[1]}")
-    assert "to download in all" in out
+    to_download = len(server.files[TUM_PATH]) + len(server.files[SEVENSCENES_PATH])
+    assert f"{cli.size_text(to_download)} to download in all" in out
+    # Replica.zip is read where it is: its central directory and the excerpt's members only
+    replica = len(server.files[REPLICA_PATH])
+    assert f"out of Replica.zip ({cli.size_text(replica)}) where it is, by HTTP range requests" in out
+    assert server.sent[REPLICA_PATH] < replica - OTHER_SCENES // 2 and (REPLICA_PATH, None) not in server.requests
     assert out.strip().splitlines()[-1].endswith(f"run the tests with SLAMKIT_DATA={root} (export it)")
 
     assert_same_files(root / TUM.name, TUM)
@@ -200,13 +208,13 @@ def test_a_kept_archive_is_cut_again_without_a_download(server, tmp_path, capsys
 
 
 def test_a_part_download_resumes_and_says_what_is_there(server, tmp_path, capsys):
-    served = server.files[REPLICA_PATH]
-    (tmp_path / "Replica.zip.part").write_bytes(served[: len(served) // 2])
-    status, out, err = download(capsys, "test-data/replica", "--root", str(tmp_path), "--base-url", server.url)
+    served = server.files[TUM_PATH]
+    (tmp_path / "rgbd_dataset_freiburg1_rpy.tgz.part").write_bytes(served[: len(served) // 2])
+    status, out, err = download(capsys, "test-data/tum", "--root", str(tmp_path), "--base-url", server.url)
     assert status == 0, err
     assert f"{cli.size_text(len(served) // 2)} of it already here" in out
-    assert server.requests == [(REPLICA_PATH, "HEAD"), (REPLICA_PATH, f"bytes={len(served) // 2}-")]
-    assert_same_files(tmp_path / REPLICA.name, REPLICA)
+    assert server.requests == [(TUM_PATH, "HEAD"), (TUM_PATH, f"bytes={len(served) // 2}-")]
+    assert_same_files(tmp_path / TUM.name, TUM)
 
 
 def test_without_root_it_goes_where_the_tests_look(server, tmp_path, capsys, monkeypatch):
@@ -258,11 +266,11 @@ def test_a_wrong_archive_is_one_line_and_set_aside(server, tmp_path, capsys, key
 
 def test_too_little_free_space_is_one_line_before_any_download(server, tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(cli.shutil, "disk_usage", lambda _: type("Usage", (), {"free": 1000})())
-    status, _, err = download(capsys, "test-data/replica", "--root", str(tmp_path), "--base-url", server.url)
+    status, _, err = download(capsys, "test-data/tum", "--root", str(tmp_path), "--base-url", server.url)
     line = one_line(err)
-    size = cli.size_text(len(server.files[REPLICA_PATH]))
-    assert status == 1 and f"{tmp_path}: 1 kB free, but Replica.zip needs {size} more" in line
-    assert server.requests == [(REPLICA_PATH, "HEAD")]
+    size = cli.size_text(len(server.files[TUM_PATH]))
+    assert status == 1 and f"{tmp_path}: 1 kB free, but rgbd_dataset_freiburg1_rpy.tgz needs {size} more" in line
+    assert server.requests == [(TUM_PATH, "HEAD")]
 
 
 def test_test_data_and_a_sequence_in_one_command_is_one_line(server, tmp_path, capsys):
@@ -274,24 +282,47 @@ def test_test_data_and_a_sequence_in_one_command_is_one_line(server, tmp_path, c
 
 def test_an_interrupted_cut_leaves_no_folder_and_the_next_run_cuts_without_a_download(server, tmp_path, capsys,
                                                                                       monkeypatch):
-    replica = next(e for e in excerpts.EXCERPTS if e.key == "replica")
+    tum = next(e for e in excerpts.EXCERPTS if e.key == "tum")
 
     def interrupted(archive, into):
-        replica.cut(archive, into)
+        tum.cut(archive, into)
         raise KeyboardInterrupt  # Ctrl-C once all is written, before the folder moves into place
 
-    monkeypatch.setattr(excerpts, "EXCERPTS", (dataclasses.replace(replica, cut=interrupted),))
-    status, _, err = download(capsys, "test-data/replica", "--root", str(tmp_path), "--base-url", server.url)
+    monkeypatch.setattr(excerpts, "EXCERPTS", (dataclasses.replace(tum, cut=interrupted),))
+    status, _, err = download(capsys, "test-data/tum", "--root", str(tmp_path), "--base-url", server.url)
     assert status == cli.INTERRUPTED and "nothing half-done is kept" in one_line(err)
-    assert not (tmp_path / REPLICA.name).exists() and not list(tmp_path.glob(".*cutting"))
-    assert (tmp_path / "Replica.zip").read_bytes() == server.files[REPLICA_PATH]  # complete: not fetched again
+    assert not (tmp_path / TUM.name).exists() and not list(tmp_path.glob(".*cutting"))
+    archive = tmp_path / "rgbd_dataset_freiburg1_rpy.tgz"
+    assert archive.read_bytes() == server.files[TUM_PATH]  # complete: not fetched again
 
-    monkeypatch.setattr(excerpts, "EXCERPTS", (replica,))
+    monkeypatch.setattr(excerpts, "EXCERPTS", (tum,))
     server.requests.clear()
-    status, out, err = download(capsys, "test-data/replica", "--root", str(tmp_path), "--base-url", server.url)
+    status, out, err = download(capsys, "test-data/tum", "--root", str(tmp_path), "--base-url", server.url)
     assert status == 0, err
     assert server.requests == [] and "downloaded earlier" in out
+    assert_same_files(tmp_path / TUM.name, TUM)
+    assert not archive.exists()
+
+
+def test_a_server_without_ranges_gets_replica_downloaded_whole(server, tmp_path, capsys):
+    server.ranges = False
+    status, out, err = download(capsys, "test-data/replica", "--root", str(tmp_path), "--base-url", server.url)
+    assert status == 0, err
+    assert f"to be cut from Replica.zip ({cli.size_text(len(server.files[REPLICA_PATH]))})" in out
+    assert server.sent[REPLICA_PATH] >= len(server.files[REPLICA_PATH])
     assert_same_files(tmp_path / REPLICA.name, REPLICA)
+    assert not (tmp_path / "Replica.zip").exists()
+
+
+def test_a_damaged_member_read_by_range_is_one_line_and_keeps_nothing(server, tmp_path, capsys):
+    payload = bytearray(server.files[REPLICA_PATH])
+    payload[payload.find(b"JFIF") + 100] ^= 0xFF  # inside the first JPEG (stored: its bytes as they are)
+    server.files[REPLICA_PATH] = bytes(payload)
+    status, _, err = download(capsys, "test-data/replica", "--root", str(tmp_path), "--base-url", server.url)
+    line = one_line(err)
+    assert status == 2 and f"{server.url}/Replica.zip: member 'Replica/room0/results/frame" in line
+    assert "does not read back whole" in line and "nothing was kept: run the same command again" in line
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
 
 
 def test_a_download_not_on_a_terminal_prints_progress_lines(tmp_path, monkeypatch):

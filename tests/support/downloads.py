@@ -27,13 +27,16 @@ def one_line(err: str) -> str:
 class Server:
     """Files by URL path; `cuts[path] = (times, after)`: the next `times` responses for `path`
     announce the full length but stop after `after` body bytes and close the connection.
-    `requests`: (path, Range header or None, or "HEAD") of every request. Serves on 127.0.0.1
-    (a thread) from `url` until `close()`."""
+    `requests`: (path, Range header or None, or "HEAD") of every request; `sent`: body bytes
+    sent, by path. `ranges = False` serves the whole file whatever the Range header asks, as a
+    server without range support does. Serves on 127.0.0.1 (a thread) from `url` until `close()`."""
 
     def __init__(self):
         self.files: dict[str, bytes] = {}
         self.cuts: dict[str, tuple[int, int]] = {}
         self.requests: list[tuple[str, str | None]] = []
+        self.sent: dict[str, int] = {}
+        self.ranges = True
         server = self
 
         class Handler(BaseHTTPRequestHandler):
@@ -57,17 +60,20 @@ class Server:
                 if data is None:
                     self.send_error(404, "Not Found")
                     return
-                start = int(rng.split("=")[1].split("-")[0]) if rng else 0
+                rng = rng if server.ranges else None
+                first, _, last = rng.split("=")[1].partition("-") if rng else ("0", "", "")
+                start = int(first)
+                end = min(int(last), len(data) - 1) if last else len(data) - 1
                 if start >= len(data):
                     self.send_response(416)
                     self.send_header("Content-Range", f"bytes */{len(data)}")
                     self.send_header("Content-Length", "0")
                     self.end_headers()
                     return
-                body = data[start:]
+                body = data[start:end + 1]
                 self.send_response(206 if rng else 200)
                 if rng:
-                    self.send_header("Content-Range", f"bytes {start}-{len(data) - 1}/{len(data)}")
+                    self.send_header("Content-Range", f"bytes {start}-{end}/{len(data)}")
                 self.send_header("Content-Length", str(len(body)))
                 self.end_headers()
                 times, after = server.cuts.get(self.path, (0, 0))
@@ -75,9 +81,11 @@ class Server:
                     server.cuts[self.path] = (times - 1, after)
                     self.wfile.write(body[:after])
                     self.wfile.flush()
+                    server.sent[self.path] = server.sent.get(self.path, 0) + min(after, len(body))
                     self.close_connection = True
                     return
                 self.wfile.write(body)
+                server.sent[self.path] = server.sent.get(self.path, 0) + len(body)
 
         self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
         self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}"
