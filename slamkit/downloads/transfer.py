@@ -22,7 +22,7 @@ from slamkit.progress import Progress
 #: Bytes read and written at a time.
 CHUNK = 1 << 20
 #: The least a RangeReader asks for at a time: a zip member's header and its name in one request.
-READ_AHEAD = 256 << 10
+READ_AHEAD = 64 << 10
 USER_AGENT = "slamkit-data"
 
 
