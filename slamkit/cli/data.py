@@ -19,9 +19,10 @@ read (slamkit.downloads.excerpts: TUM fr1/rpy, 7-Scenes redkitchen, Replica room
 else `test-data` in the project cache, where the tests look. It says each archive's size
 before downloading, fetches them one at a time (resuming a part file, skipping an excerpt
 already cut), cuts each excerpt and deletes the archive (unless `--keep-archive`; a kept
-archive is cut again without a download), and ends saying where the tests find the data. An
-archive that is not the one expected is moved aside as FILE.rejected. docs/datasets.md, "The
-test data".
+archive is cut again without a download), and ends saying where the tests find the data. Of
+Replica.zip (~12 GB) only the excerpt's members are read, by HTTP range requests, where its
+server answers them and no `--keep-archive` asks for the archive. An archive that is not the one
+expected is moved aside as FILE.rejected. docs/datasets.md, "The test data".
 """
 
 from __future__ import annotations
