@@ -339,3 +339,13 @@ def test_a_download_not_on_a_terminal_prints_progress_lines(tmp_path, monkeypatc
     lines = out.getvalue().splitlines()
     assert lines[0].startswith("slamkit: download big.bin 1/3 MB (33 %), 0 s elapsed, ETA ")
     assert lines[-1].startswith("slamkit: download big.bin 3/3 MB (100 %)")
+
+
+def test_a_cut_range_request_is_tried_again(server, tmp_path, capsys):
+    server.cuts[REPLICA_PATH] = (2, 10)  # the range probe (1 byte: whole) and the first read, cut after 10 bytes
+    status, _, err = download(capsys, "test-data/replica", "--root", str(tmp_path), "--base-url", server.url)
+    assert status == 0, err
+    assert server.cuts[REPLICA_PATH] == (0, 10)
+    first_read = server.requests[1]
+    assert first_read[1] != "bytes=0-0" and server.requests[2] == first_read  # the cut read, asked again
+    assert_same_files(tmp_path / REPLICA.name, REPLICA)
