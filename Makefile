@@ -4,6 +4,10 @@
 # and the quick loop while working:
 #   make test-fast   the same set-up, then only the tests not marked slow (tests/core and
 #                    tests/plugins: no console script, no process; tests/README.md)
+# The data-driven tests need three short real sequences (skipped, with a loud last line, without):
+#   make test-data   download them from their publishers and cut the excerpts into
+#                    .cache/slamkit/test-data, where the tests look (docs/datasets.md, "The test data";
+#                    DATA_ARGS="--root DIR" puts them elsewhere, then SLAMKIT_DATA=DIR make test)
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
@@ -24,7 +28,7 @@ MESH_DEBS ?= libusb-1.0-0 libgl1 libx11-6 libudev1 libgomp1
 TEST_DEBS ?= clang chromium
 APT ?= yes
 
-.PHONY: run test test-fast setup setup-test system-libs clean gpu-wheels gpu-data
+.PHONY: run test test-fast test-data setup setup-test system-libs clean gpu-wheels gpu-data
 
 run: setup
 	$(VENV)/bin/slamkit $(ARGS)
@@ -35,6 +39,9 @@ test: setup-test
 
 test-fast: setup-test
 	$(PY) -m pytest -m "not slow" $(PYTEST_ARGS)
+
+test-data: setup
+	$(VENV)/bin/slamkit-data download test-data $(DATA_ARGS)
 
 setup: $(VENV)/.installed
 setup-test: system-libs $(VENV)/.installed-test
@@ -96,5 +103,9 @@ gpu-wheels:
 gpu-data:
 	$(PYTHON) benchmarks/gpu_data.py $(GPU_DATA_ARGS)
 
+# Keeps the downloaded test data (.cache/slamkit/test-data: fetching it again downloads its archives,
+# Replica.zip alone ~12 GB); delete that folder by hand to fetch it again.
 clean:
-	rm -rf $(VENV) .cache outputs multirun
+	rm -rf $(VENV) outputs multirun
+	[ ! -d .cache ] || find .cache -mindepth 1 -maxdepth 2 -not -path .cache/slamkit \
+	  -not -path .cache/slamkit/test-data -exec rm -rf {} +

@@ -40,13 +40,15 @@ def duration(seconds: float) -> str:
 class Progress:
     """Progress through `total` units of one phase (`initial` done before, e.g. a resumed run's
     frames). enabled=False shows nothing (None: as `configure` said, the run's `progress`); `stream` is where it shows
-    (stderr); `every_s` the interval between two lines where that is not a terminal."""
+    (stderr); `every_s` the interval between two lines where that is not a terminal; `units` the
+    unit's plural in a line (default `unit` + "s": `MB` for a unit `MB`)."""
 
     def __init__(self, phase: str, total: int | None, unit: str, enabled: bool | None = None, initial: int = 0,
-                 every_s: float = EVERY_S, stream: TextIO | None = None):
+                 every_s: float = EVERY_S, stream: TextIO | None = None, units: str | None = None):
         from tqdm import tqdm
 
         self.phase, self.total, self.unit, self.every_s = phase, total, unit, every_s
+        self.units = units or f"{unit}s"
         self.stream = stream if stream is not None else sys.stderr
         enabled = ENABLED if enabled is None else enabled
         terminal = enabled and _isatty(self.stream)
@@ -72,7 +74,7 @@ class Progress:
     def line(self) -> str:
         """The progress line as it stands."""
         elapsed = time.monotonic() - self.start
-        count = f"{self.done}/{self.total} {self.unit}s" if self.total else f"{self.done} {self.unit}s"
+        count = f"{self.done}/{self.total} {self.units}" if self.total else f"{self.done} {self.units}"
         if self.total:
             count += f" ({100 * self.done / self.total:.0f} %)"
         text = f"{self.phase} {count}, {duration(elapsed)} elapsed"

@@ -12,9 +12,10 @@ import shutil
 import tarfile
 import zipfile
 import zlib
+from collections.abc import Callable, Iterator
 from pathlib import Path, PurePosixPath
 
-from slamkit.errors import DataError
+from slamkit.errors import DataError, OutputError
 
 
 class DamagedArchive(DataError):
@@ -106,6 +107,54 @@ def _extract_tar(archive: Path, staging: Path) -> None:
                 pass
     except (tarfile.TarError, gzip.BadGzipFile, zlib.error, EOFError, OSError) as exc:
         raise DamagedArchive(f"{archive}: not a complete, readable tar archive ({_first_line(exc)})") from None
+
+
+def tar_files(archive: Path, wanted: Callable[[str], bool]) -> Iterator[tuple[str, bytes]]:
+    """(member name, bytes) of each regular file of a .tgz / .tar.gz / .tar whose name `wanted`
+    accepts, in archive order, in one streaming pass; the rest of a gzip stream is then read so
+    that its CRC and length are checked. DamagedArchive when the stream is cut or damaged (a
+    consumer that stops early skips only the end-of-stream check)."""
+    archive = Path(archive)
+    compressed = archive.name.lower().endswith((".tgz", ".gz"))
+    try:
+        with (gzip.open if compressed else open)(archive, "rb") as stream:
+            with tarfile.open(fileobj=stream, mode="r|") as t:
+                for member in t:
+                    if member.isfile() and wanted(member.name):
+                        yield member.name, t.extractfile(member).read()
+            while stream.read(1 << 20):
+                pass
+    except (tarfile.TarError, gzip.BadGzipFile, zlib.error, EOFError, OSError) as exc:
+        raise DamagedArchive(f"{archive}: not a complete, readable tar archive ({_first_line(exc)})") from None
+
+
+def open_zip(archive: Path) -> zipfile.ZipFile:
+    """The zip archive `archive`, opened for reading single members with `zip_member`;
+    DamagedArchive when it has no readable central directory (cut short, not a zip)."""
+    try:
+        return zipfile.ZipFile(archive)
+    except (zipfile.BadZipFile, OSError, ValueError) as exc:
+        raise DamagedArchive(f"{archive}: not a complete, readable zip archive ({_first_line(exc)})") from None
+
+
+def zip_member(z: zipfile.ZipFile, name: str, archive: Path, dest: Path | None = None) -> bytes | None:
+    """The bytes of member `name` of the open zip `z` (of the file `archive`), its CRC-32
+    checked; with `dest`, they are streamed into that file instead (a large member: a nested
+    archive) and None is returned. DamagedArchive when they do not read back whole; OutputError
+    when `dest` cannot be written (a full disk)."""
+    try:
+        if dest is None:
+            return z.read(name)
+        with z.open(name) as member, open(dest, "wb") as out:
+            while block := member.read(1 << 20):
+                try:
+                    out.write(block)
+                except OSError as exc:
+                    raise OutputError(f"{dest}: cannot write ({_first_line(exc)}) while copying {name!r} out of "
+                                      f"{archive}") from None
+        return None
+    except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError) as exc:
+        raise DamagedArchive(f"{archive}: member {name!r} does not read back whole ({_first_line(exc)})") from None
 
 
 def _first_line(exc: BaseException) -> str:

@@ -20,6 +20,8 @@ from slamkit.errors import SlamkitError
 #: Where the archives are by default (a base URL given instead replaces both).
 TUM_BASE_URL = "https://cvg.cit.tum.de/rgbd/dataset"
 REPLICA_BASE_URL = "https://cvg-data.inf.ethz.ch/nice-slam/data"
+#: Microsoft Research's 7-Scenes: one SCENE.zip per scene, holding SCENE/seq-NN.zip per sequence.
+SEVENSCENES_BASE_URL = "https://download.microsoft.com/download/2/8/5/28564B23-0828-408F-8631-23B1EFF1DAC8"
 #: The Replica scenes of NICE-SLAM's archive (paper Tables 1, 3, 6-8).
 REPLICA_SCENES = ("room0", "room1", "room2", "office0", "office1", "office2", "office3", "office4")
 #: The paper's TUM sequences under the names its tables use (Tables 2, 4, 5).
@@ -75,6 +77,13 @@ def tum(sequence: str) -> Archive:
 
 REPLICA = Archive("replica", "Replica.zip", REPLICA_BASE_URL, "replica",
                   tuple(f"Replica/{s}" for s in REPLICA_SCENES), ("results", "traj.txt"), ("Replica/cam_params.json",))
+
+
+def sevenscenes(scene: str) -> Archive:
+    """Microsoft's 7-Scenes archive of one scene (`redkitchen`, ...): SCENE/seq-NN.zip inside,
+    each holding seq-NN/frame-%06d.color.png, .depth.png and .pose.txt. Its sequences are nested
+    zips, so only `slamkit-data download test-data` reads it (the redkitchen excerpt)."""
+    return Archive(scene, f"{scene}.zip", SEVENSCENES_BASE_URL, "sevenscenes", (scene,), ("seq-01.zip",))
 
 
 def known() -> str:

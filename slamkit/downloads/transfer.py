@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import http.client
+import io
 import re
 import time
 import urllib.error
@@ -15,12 +16,13 @@ import urllib.request
 from dataclasses import dataclass
 from pathlib import Path
 
-from tqdm import tqdm
-
 from slamkit.errors import DataError, OutputError, SlamkitError
+from slamkit.progress import Progress
 
 #: Bytes read and written at a time.
 CHUNK = 1 << 20
+#: The least a RangeReader asks for at a time: a zip member's header and its name in one request.
+READ_AHEAD = 64 << 10
 USER_AGENT = "slamkit-data"
 
 
@@ -86,6 +88,106 @@ def download(url: str, dest: Path, *, expected_sha256: str | None = None, retrie
     return Downloaded(dest, dest.stat().st_size, digest)
 
 
+def remote_size(url: str, timeout: float = 30.0) -> int | None:
+    """The size in bytes the server gives for `url` (Content-Length of a HEAD request), or None
+    when it gives none or cannot be reached (the download itself then says what went wrong)."""
+    request = urllib.request.Request(url, method="HEAD", headers={"User-Agent": USER_AGENT})
+    try:
+        with urllib.request.urlopen(request, timeout=timeout) as response:
+            length = response.headers.get("Content-Length")
+    except (urllib.error.URLError, OSError, http.client.HTTPException):
+        return None
+    return int(length) if length and length.isdigit() else None
+
+
+class RangeReader(io.RawIOBase):
+    """The file at `url`, `size` bytes long, read where it is by HTTP Range requests: a seekable
+    binary file for zipfile, so that single members of a large zip can be read without
+    downloading it whole. `str()` is the URL. A read outside the last block received asks for
+    the bytes it needs, READ_AHEAD at least; a cut or failed request is tried `retries` more
+    times, then a DownloadError (exit 1); a server that answers a range with anything but those
+    bytes is a DownloadError too. `fetched`: the bytes received so far."""
+
+    def __init__(self, url: str, size: int, *, timeout: float = 60.0, retries: int = 3):
+        super().__init__()
+        self.url, self.size, self.timeout, self.retries = url, size, timeout, retries
+        self.pos = self.fetched = self._block_start = 0
+        self._block = b""
+
+    def __str__(self) -> str:
+        return self.url
+
+    def readable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def tell(self) -> int:
+        return self.pos
+
+    def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
+        base = {io.SEEK_SET: 0, io.SEEK_CUR: self.pos, io.SEEK_END: self.size}[whence]
+        if base + offset < 0:
+            raise ValueError(f"negative seek position {base + offset}")
+        self.pos = base + offset
+        return self.pos
+
+    def readinto(self, buffer) -> int:
+        want = min(len(buffer), self.size - self.pos)
+        if want <= 0:
+            return 0
+        start = self.pos - self._block_start
+        if not (0 <= start and start + want <= len(self._block)):  # not all in the last block: ask for it
+            last = min(self.size, self.pos + max(want, READ_AHEAD)) - 1
+            for attempt in range(self.retries + 1):
+                try:
+                    self._block, self._block_start = self._range(self.pos, last), self.pos
+                    break
+                except _Cut as cut:
+                    if attempt == self.retries:
+                        raise DownloadError(f"{self.url}: {cut}; run the same command again") from None
+                    time.sleep(2**attempt)
+            self.fetched += len(self._block)
+            start = 0
+        buffer[:want] = self._block[start:start + want]
+        self.pos += want
+        return want
+
+    def _range(self, first: int, last: int) -> bytes:
+        headers = {"User-Agent": USER_AGENT, "Range": f"bytes={first}-{last}"}
+        try:
+            with urllib.request.urlopen(urllib.request.Request(self.url, headers=headers),
+                                        timeout=self.timeout) as response:
+                if response.status != 206 or _content_range(response.headers.get("Content-Range", ""))[0] != first:
+                    raise DownloadError(f"{self.url}: the server did not answer the range request for bytes "
+                                        f"{first}-{last} with them (HTTP {response.status})")
+                data = response.read(last - first + 1)
+        except urllib.error.HTTPError as exc:
+            if exc.code >= 500 or exc.code == 429:
+                raise _Cut(f"HTTP {exc.code} {exc.reason}") from None
+            raise DataError(f"{self.url}: HTTP {exc.code} {exc.reason}") from None
+        except (urllib.error.URLError, OSError, http.client.HTTPException) as exc:
+            raise _Cut(f"no connection ({_reason(exc)})") from None
+        if len(data) != last - first + 1:
+            raise _Cut(f"bytes {first}-{last} stopped after {len(data)}")
+        return data
+
+
+def ranged(url: str, timeout: float = 30.0) -> int | None:
+    """The size in bytes of the file at `url` when its server answers Range requests (a probe
+    for its first byte comes back 206 with the total), else None: then it can only be
+    downloaded whole."""
+    request = urllib.request.Request(url, headers={"User-Agent": USER_AGENT, "Range": "bytes=0-0"})
+    try:
+        with urllib.request.urlopen(request, timeout=timeout) as response:
+            if response.status != 206:
+                return None
+            return _content_range(response.headers.get("Content-Range", ""))[1]
+    except (urllib.error.URLError, OSError, http.client.HTTPException, _Cut):
+        return None
+
+
 def _fetch(url: str, part: Path, timeout: float, progress: bool) -> None:
     """One try: append to `part` from its current size to the end. _Cut when it stops early."""
     have = part.stat().st_size if part.is_file() else 0
@@ -117,8 +219,8 @@ def _fetch(url: str, part: Path, timeout: float, progress: bool) -> None:
             have, mode = 0, "wb"
             length = response.headers.get("Content-Length")
             total = int(length) if length and length.isdigit() else None
-        with open(part, mode) as f, tqdm(total=total, initial=have, unit="B", unit_scale=True, unit_divisor=1024,
-                                         desc=Path(url).name, disable=None if progress else True) as bar:
+        with open(part, mode) as f, Progress(f"download {Path(url).name}", _mb(total), "MB", enabled=progress,
+                                             initial=_mb(have), units="MB") as bar:
             while True:
                 try:
                     chunk = response.read(CHUNK)
@@ -132,10 +234,15 @@ def _fetch(url: str, part: Path, timeout: float, progress: bool) -> None:
                 except OSError as exc:  # a full disk: the bytes so far stay in the part file
                     raise OutputError(f"{part}: cannot write ({_reason(exc)}); {have} bytes kept, run the same "
                                       f"command again to resume") from None
+                bar.update(_mb(have + len(chunk)) - _mb(have))
                 have += len(chunk)
-                bar.update(len(chunk))
     if total is not None and have != total:
         raise _Cut(f"stopped at {have} of {total} bytes")
+
+
+def _mb(n: int | None) -> int | None:
+    """Whole megabytes (10^6 bytes) in `n` bytes: the download's progress unit."""
+    return None if n is None else n // 1_000_000
 
 
 def _content_range(value: str) -> tuple[int, int | None]:

@@ -12,9 +12,7 @@ import json
 import subprocess
 import sys
 import tarfile
-import threading
 import zipfile
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +21,8 @@ from PIL import Image
 
 from slamkit.cli import data as cli
 from slamkit.run.build import build_run
+
+from support.downloads import Server, download, one_line
 
 TUM_SEQUENCE = "rgbd_dataset_freiburg1_desk"
 TUM_URL_PATH = f"/freiburg1/{TUM_SEQUENCE}.tgz"
@@ -85,61 +85,6 @@ def replica_archive(compression: int = zipfile.ZIP_DEFLATED) -> bytes:
     return buf.getvalue()
 
 
-# ------------------------------------------------------------------------------ the server
-class Server:
-    """Files by URL path; `cuts[path] = (times, after)`: the next `times` responses for `path`
-    announce the full length but stop after `after` body bytes and close the connection.
-    `requests`: (path, Range header or None) of every request."""
-
-    def __init__(self):
-        self.files: dict[str, bytes] = {}
-        self.cuts: dict[str, tuple[int, int]] = {}
-        self.requests: list[tuple[str, str | None]] = []
-        server = self
-
-        class Handler(BaseHTTPRequestHandler):
-            def log_message(self, *args):  # quiet
-                pass
-
-            def do_GET(self):
-                rng = self.headers.get("Range")
-                server.requests.append((self.path, rng))
-                data = server.files.get(self.path)
-                if data is None:
-                    self.send_error(404, "Not Found")
-                    return
-                start = int(rng.split("=")[1].split("-")[0]) if rng else 0
-                if start >= len(data):
-                    self.send_response(416)
-                    self.send_header("Content-Range", f"bytes */{len(data)}")
-                    self.send_header("Content-Length", "0")
-                    self.end_headers()
-                    return
-                body = data[start:]
-                self.send_response(206 if rng else 200)
-                if rng:
-                    self.send_header("Content-Range", f"bytes {start}-{len(data) - 1}/{len(data)}")
-                self.send_header("Content-Length", str(len(body)))
-                self.end_headers()
-                times, after = server.cuts.get(self.path, (0, 0))
-                if times:
-                    server.cuts[self.path] = (times - 1, after)
-                    self.wfile.write(body[:after])
-                    self.wfile.flush()
-                    self.close_connection = True
-                    return
-                self.wfile.write(body)
-
-        self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}"
-        self.thread = threading.Thread(target=self.httpd.serve_forever, daemon=True)
-        self.thread.start()
-
-    def close(self):
-        self.httpd.shutdown()
-        self.httpd.server_close()
-
-
 @pytest.fixture()
 def server():
     s = Server()
@@ -147,18 +92,6 @@ def server():
     s.files["/Replica.zip"] = replica_archive()
     yield s
     s.close()
-
-
-def run(capsys, *args: str) -> tuple[int, str, str]:
-    status = cli.main(["download", *args, "--no-progress"])
-    out, err = capsys.readouterr()
-    return status, out, err
-
-
-def one_line(err: str) -> str:
-    lines = err.strip().splitlines()
-    assert len(lines) == 1, err
-    return lines[0]
 
 
 def open_dataset(name: str, folder: Path):
@@ -170,7 +103,7 @@ def open_dataset(name: str, folder: Path):
 # ----------------------------------------------------------------------------------- tests
 def test_a_tum_sequence_downloads_into_the_layout_dataset_tum_opens(server, tmp_path, capsys):
     root = tmp_path / "data"
-    status, out, err = run(capsys, "fr1/desk", "--root", str(root), "--base-url", server.url)
+    status, out, err = download(capsys, "fr1/desk", "--root", str(root), "--base-url", server.url)
     assert status == 0, err
     folder = root / TUM_SEQUENCE
     assert f"dataset.path={folder}" in out
@@ -186,13 +119,13 @@ def test_a_tum_sequence_downloads_into_the_layout_dataset_tum_opens(server, tmp_
     np.testing.assert_allclose(frame.gt_pose[:3, 3], [1.0, 0.5, 1.5], atol=1e-9)
     # a second run finds it complete and downloads nothing
     n = len(server.requests)
-    status, out, _ = run(capsys, TUM_SEQUENCE, "--root", str(root), "--base-url", server.url)
+    status, out, _ = download(capsys, TUM_SEQUENCE, "--root", str(root), "--base-url", server.url)
     assert status == 0 and "already" in out and len(server.requests) == n
 
 
 def test_replica_downloads_into_the_nice_slam_layout_dataset_replica_opens(server, tmp_path, capsys, monkeypatch):
     monkeypatch.setenv(cli.BASE_URL_ENV, server.url)  # the environment's base URL
-    status, _, err = run(capsys, "replica", "--root", str(tmp_path), "--keep-archive")
+    status, _, err = download(capsys, "replica", "--root", str(tmp_path), "--keep-archive")
     assert status == 0, err
     assert (tmp_path / "Replica.zip").read_bytes() == server.files["/Replica.zip"]
     for scene in ("room0", "office4"):
@@ -206,7 +139,7 @@ def test_a_cut_download_resumes_within_the_run_and_on_the_next_run(server, tmp_p
     served = server.files[TUM_URL_PATH]
     after = len(served) // 3
     server.cuts[TUM_URL_PATH] = (1, after)
-    status, _, err = run(capsys, "fr1/desk", "--root", str(tmp_path / "a"), "--base-url", server.url,
+    status, _, err = download(capsys, "fr1/desk", "--root", str(tmp_path / "a"), "--base-url", server.url,
                          "--retries", "1")
     assert status == 0, err
     assert server.requests[-2:] == [(TUM_URL_PATH, None), (TUM_URL_PATH, f"bytes={after}-")]
@@ -215,13 +148,13 @@ def test_a_cut_download_resumes_within_the_run_and_on_the_next_run(server, tmp_p
     server.requests.clear()
     server.cuts[TUM_URL_PATH] = (1, after)
     root = tmp_path / "b"
-    status, _, err = run(capsys, "fr1/desk", "--root", str(root), "--base-url", server.url, "--retries", "0")
+    status, _, err = download(capsys, "fr1/desk", "--root", str(root), "--base-url", server.url, "--retries", "0")
     line = one_line(err)
     assert status == 1 and f"stopped at {after} of {len(served)} bytes" in line and "resume" in line
     part = root / f"{TUM_SEQUENCE}.tgz.part"
     assert part.read_bytes() == served[:after]  # kept
     assert not (root / TUM_SEQUENCE).exists()
-    status, _, err = run(capsys, "fr1/desk", "--root", str(root), "--base-url", server.url, "--retries", "0")
+    status, _, err = download(capsys, "fr1/desk", "--root", str(root), "--base-url", server.url, "--retries", "0")
     assert status == 0, err
     assert server.requests == [(TUM_URL_PATH, None), (TUM_URL_PATH, f"bytes={after}-")]
     record = json.loads((root / cli.MANIFEST).read_text())[f"{TUM_SEQUENCE}.tgz"]
@@ -233,7 +166,7 @@ def test_a_complete_part_file_is_not_fetched_again(server, tmp_path, capsys):
     """An earlier run that stopped after the last byte: the server answers 416 to the range."""
     served = server.files[TUM_URL_PATH]
     (tmp_path / f"{TUM_SEQUENCE}.tgz.part").write_bytes(served)
-    status, _, err = run(capsys, "fr1/desk", "--root", str(tmp_path), "--base-url", server.url)
+    status, _, err = download(capsys, "fr1/desk", "--root", str(tmp_path), "--base-url", server.url)
     assert status == 0, err
     assert server.requests == [(TUM_URL_PATH, f"bytes={len(served)}-")]
     assert (tmp_path / TUM_SEQUENCE / "depth.txt").is_file()
@@ -242,17 +175,17 @@ def test_a_complete_part_file_is_not_fetched_again(server, tmp_path, capsys):
 def test_a_checksum_mismatch_is_one_line_and_extracts_nothing(server, tmp_path, capsys):
     served = server.files[TUM_URL_PATH]
     wrong = "0" * 64
-    status, _, err = run(capsys, "fr1/desk", "--root", str(tmp_path), "--base-url", server.url, "--sha256", wrong)
+    status, _, err = download(capsys, "fr1/desk", "--root", str(tmp_path), "--base-url", server.url, "--sha256", wrong)
     line = one_line(err)
     assert status == 2 and wrong in line and hashlib.sha256(served).hexdigest() in line
     assert (tmp_path / f"{TUM_SEQUENCE}.tgz.corrupt").read_bytes() == served and not (tmp_path / TUM_SEQUENCE).exists()
 
     # the SHA-256 recorded at the first download is what a later download must match
     root = tmp_path / "again"
-    assert run(capsys, "fr1/desk", "--root", str(root), "--base-url", server.url)[0] == 0
+    assert download(capsys, "fr1/desk", "--root", str(root), "--base-url", server.url)[0] == 0
     (root / TUM_SEQUENCE).rename(root / "moved_away")
     server.files[TUM_URL_PATH] = tum_archive(depth_m=2.5)  # the server's file changed
-    status, _, err = run(capsys, "fr1/desk", "--root", str(root), "--base-url", server.url)
+    status, _, err = download(capsys, "fr1/desk", "--root", str(root), "--base-url", server.url)
     assert status == 2 and "SHA-256" in one_line(err) and hashlib.sha256(served).hexdigest() in err
 
 
@@ -261,7 +194,7 @@ def test_a_damaged_archive_is_one_line_and_leaves_no_folder(server, tmp_path, ca
     damaged = bytearray(good)
     damaged[len(good) // 2] ^= 0xFF  # one flipped byte inside the gzip stream
     server.files[TUM_URL_PATH] = bytes(damaged)
-    status, _, err = run(capsys, "fr1/desk", "--root", str(tmp_path), "--base-url", server.url, "--keep-archive")
+    status, _, err = download(capsys, "fr1/desk", "--root", str(tmp_path), "--base-url", server.url, "--keep-archive")
     line = one_line(err)
     assert status == 2 and f"{TUM_SEQUENCE}.tgz" in line and "not a complete, readable tar archive" in line
     assert not (tmp_path / TUM_SEQUENCE).exists() and not list(tmp_path.glob(".*extracting"))
@@ -269,7 +202,7 @@ def test_a_damaged_archive_is_one_line_and_leaves_no_folder(server, tmp_path, ca
     payload = bytearray(replica_archive(zipfile.ZIP_STORED))
     payload[payload.find(b"1.0 0.0 0.0 0.0")] ^= 0x01  # the first scene's traj.txt
     server.files["/Replica.zip"] = bytes(payload)
-    status, _, err = run(capsys, "replica", "--root", str(tmp_path / "r"), "--base-url", server.url)
+    status, _, err = download(capsys, "replica", "--root", str(tmp_path / "r"), "--base-url", server.url)
     line = one_line(err)
     assert status == 2 and "Replica.zip" in line and "CRC" in line and not (tmp_path / "r" / "Replica").exists()
 
@@ -283,13 +216,13 @@ def test_an_archive_member_outside_its_folder_refuses_the_archive(server, tmp_pa
             tar.addfile(info, io.BytesIO(b"x"))
     server.files[TUM_URL_PATH] = buf.getvalue()
     root = tmp_path / "root"
-    status, _, err = run(capsys, "fr1/desk", "--root", str(root), "--base-url", server.url)
+    status, _, err = download(capsys, "fr1/desk", "--root", str(root), "--base-url", server.url)
     assert status == 2 and "'../outside.txt'" in one_line(err) and "outside" in err
     assert not (tmp_path / "outside.txt").exists() and not (root / TUM_SEQUENCE).exists()
 
 
 def test_unknown_names_list_the_known_ones_and_download_nothing(server, tmp_path, capsys):
-    status, _, err = run(capsys, "fr1/desk", "scannet", "--root", str(tmp_path), "--base-url", server.url)
+    status, _, err = download(capsys, "fr1/desk", "scannet", "--root", str(tmp_path), "--base-url", server.url)
     line = one_line(err)
     assert status == 2 and "'scannet'" in line
     assert all(k in line for k in ("replica", "fr1/desk", "fr2/xyz", "fr3/office", "rgbd_dataset_freiburg"))
@@ -297,7 +230,7 @@ def test_unknown_names_list_the_known_ones_and_download_nothing(server, tmp_path
 
 
 def test_an_http_error_is_one_line_and_the_other_names_still_download(server, tmp_path, capsys):
-    status, _, err = run(capsys, "fr2/no_such_sequence", "fr1/desk", "--root", str(tmp_path), "--base-url",
+    status, _, err = download(capsys, "fr2/no_such_sequence", "fr1/desk", "--root", str(tmp_path), "--base-url",
                          server.url)
     line = one_line(err)
     assert status == 2 and "HTTP 404" in line and "rgbd_dataset_freiburg2_no_such_sequence.tgz" in line
@@ -317,7 +250,7 @@ def test_the_console_script(server, tmp_path):
 def test_a_truncated_archive_is_moved_aside_and_the_next_run_downloads_it_again(server, tmp_path, capsys):
     good = server.files[TUM_URL_PATH]
     server.files[TUM_URL_PATH] = good[: len(good) // 2]  # the server's file cut short (its length says so too)
-    status, _, err = run(capsys, "fr1/desk", "--root", str(tmp_path), "--base-url", server.url)
+    status, _, err = download(capsys, "fr1/desk", "--root", str(tmp_path), "--base-url", server.url)
     line = one_line(err)
     assert status == 2 and "not a complete, readable tar archive" in line
     assert f"moved aside as {TUM_SEQUENCE}.tgz.corrupt" in line and "run the same command again" in line
@@ -326,7 +259,7 @@ def test_a_truncated_archive_is_moved_aside_and_the_next_run_downloads_it_again(
     assert f"{TUM_SEQUENCE}.tgz" not in json.loads((tmp_path / cli.MANIFEST).read_text())  # its checksum forgotten
 
     server.files[TUM_URL_PATH] = good  # the server serves the right file again: the same command succeeds
-    status, _, err = run(capsys, "fr1/desk", "--root", str(tmp_path), "--base-url", server.url)
+    status, _, err = download(capsys, "fr1/desk", "--root", str(tmp_path), "--base-url", server.url)
     assert status == 0, err
     assert open_dataset("tum", tmp_path / TUM_SEQUENCE)[1].depth is not None
     assert json.loads((tmp_path / cli.MANIFEST).read_text())[f"{TUM_SEQUENCE}.tgz"]["sha256"] == \
@@ -339,7 +272,7 @@ def test_a_root_that_is_no_folder_is_one_line_before_any_request(server, tmp_pat
     root, expected, message = {"a file": (tmp_path / "file", 2, "is a file, expected a folder"),
                                "under a file": (tmp_path / "file" / "data", 2, "is a file, expected a folder"),
                                "not creatable": (Path("/proc/slamkit-nope"), 1, "cannot create the folder")}[kind]
-    status, _, err = run(capsys, "fr1/desk", "--root", str(root), "--base-url", server.url)
+    status, _, err = download(capsys, "fr1/desk", "--root", str(root), "--base-url", server.url)
     line = one_line(err)
     assert status == expected and line.startswith(f"slamkit-data: error: --root {root}: ") and message in line
     assert server.requests == [] and (tmp_path / "file").read_text() == "not a folder"

@@ -18,6 +18,7 @@ import torch
 import yaml
 
 from slamkit.config import RunContext
+from slamkit.downloads.excerpts import find_test_data
 from slamkit.errors import ConfigError
 from slamkit.map.gaussian_map import GaussianMap, GaussianRows
 from slamkit.registry.discovery import default_registry, discover
@@ -25,8 +26,9 @@ from slamkit.tuning import DatasetTuning
 from slamkit.types import Camera, Frame, KeyframeKind
 from slamkit_mcmc import MCMCConfig, MCMCStrategy, scale_factor, shared_opacity
 
-# The shared real data beside the slamkit checkout (override with SLAMKIT_DATA).
-DATA = Path(os.environ.get("SLAMKIT_DATA", Path(__file__).resolve().parents[3].parent / "shared" / "data"))
+# The real test data: $SLAMKIT_DATA, else the shared folder beside the slamkit checkout, else where
+# `slamkit-data download test-data` puts it.
+DATA = find_test_data(Path(__file__).resolve().parents[3])
 REPLICA = DATA / "replica_room0_first20"
 
 CAM = Camera(40, 30, 30.0, 30.0, 19.5, 14.5)
@@ -218,7 +220,8 @@ def test_the_strategy_sweep_selects_every_strategy_it_names():
 @pytest.mark.slow
 def test_slamkit_runs_mcmc_on_replica(tmp_path):
     if not REPLICA.is_dir():
-        pytest.skip(f"shared data not found at {REPLICA} (set SLAMKIT_DATA)")
+        pytest.skip(f"shared data not found at {REPLICA} (`slamkit-data download test-data` fetches it, or set "
+                    f"SLAMKIT_DATA)")
     out = tmp_path / "run"
     slamkit = Path(sys.executable).with_name("slamkit")
     proc = subprocess.run(

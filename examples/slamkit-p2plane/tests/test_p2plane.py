@@ -4,7 +4,6 @@ registration, and a real run of the `slamkit` command on TUM fr1/rpy."""
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 from importlib.metadata import entry_points
@@ -14,6 +13,7 @@ import numpy as np
 import pytest
 
 from slamkit.config import RunContext
+from slamkit.downloads.excerpts import find_test_data
 from slamkit.errors import ConfigError
 from slamkit.formats.tum import read_tum_trajectory
 from slamkit.geometry.transforms import invert_pose, make_pose, rotation_angle_deg, so3_exp, transform_points
@@ -21,8 +21,9 @@ from slamkit.registry.discovery import discover
 from slamkit.tuning import DatasetTuning
 from slamkit_p2plane import Model, P2PlaneConfig, P2PlaneTracker, point_to_plane
 
-# The shared real data beside the slamkit checkout (override with SLAMKIT_DATA).
-DATA = Path(os.environ.get("SLAMKIT_DATA", Path(__file__).resolve().parents[3].parent / "shared" / "data"))
+# The real test data: $SLAMKIT_DATA, else the shared folder beside the slamkit checkout, else where
+# `slamkit-data download test-data` puts it.
+DATA = find_test_data(Path(__file__).resolve().parents[3])
 TUM = DATA / "tum_fr1_rpy_first150"
 
 
@@ -67,7 +68,8 @@ def test_registered_through_the_entry_point():
 @pytest.mark.slow
 def test_slamkit_runs_p2plane_on_tum(tmp_path):
     if not TUM.is_dir():
-        pytest.skip(f"shared data not found at {TUM} (set SLAMKIT_DATA)")
+        pytest.skip(f"shared data not found at {TUM} (`slamkit-data download test-data` fetches it, or set "
+                    f"SLAMKIT_DATA)")
     out = tmp_path / "run"
     slamkit = Path(sys.executable).with_name("slamkit")
     proc = subprocess.run(
