@@ -206,7 +206,7 @@ def paper_table(name: str, runs: list[dict[str, Any]], difference: bool = False)
             continue
         paper = table.paper.get((*row, MEAN), {})
         cells = [str(v) if v is not None else "-" for v in row]
-        cells += [table.labels.get(row, "-"), f"mean of {len(scenes)} {dataset} scenes".replace("  ", " "),
+        cells += [table.labels.get(row, "-"), f"mean of {len(scenes)} {dataset + ' ' if dataset else ''}scenes",
                   MEAN if paper else "-", str(sum(len(groups[row, s]) for s in scenes))]
         per_scene = [[_mean(groups[row, s], metric) for s in scenes] for metric in table.metrics]
         means = [None if None in values else sum(values) / len(values) for values in per_scene]
