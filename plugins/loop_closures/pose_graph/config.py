@@ -55,7 +55,7 @@ class PoseGraphConfig(PluginConfig):
     #: degrees added to max_correction_deg per metre of camera path between the two keyframes.
     correction_deg_per_path: float = 0.5
     #: the loop's point-to-plane information per point along its weakest direction, at least (1/3 a box; 0 a wall)
-    min_constraint: float = 0.02
+    min_constraint: float = 0.05
     #: the pose-graph optimiser: gtsam | open3d.
     backend: Backend = Backend.gtsam
     #: metres: standard deviation of an odometry edge along its best-constrained direction.
