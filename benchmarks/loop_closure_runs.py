@@ -56,7 +56,7 @@ SEQUENCES = {
 #: The synthetic paths that come back (issue 46), frames each, with the structured-light sensor:
 #: exact ground truth, odometry that drifts as a Kinect's does.
 SYNTHETIC = {"room_loop": 600, "figure_eight": 720, "return": 900, "revisit_rotated": 900}
-SEQUENCES.update({f"synthetic_{path}": ["dataset=synthetic", f"dataset.trajectory={path}", f"dataset.num_frames={n}",
+SEQUENCES.update({f"synthetic_{path}": ["dataset=synthetic", f"dataset.camera_path={path}", f"dataset.num_frames={n}",
                                         "dataset.depth_model=structured_light"] for path, n in SYNTHETIC.items()})
 #: A loop is **exact** (issue 46's acceptance on the synthetic paths) within these of the truth.
 EXACT_M, EXACT_DEG = 0.02, 1.0

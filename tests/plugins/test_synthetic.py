@@ -52,7 +52,7 @@ def test_motion_is_hand_held_like(default_ds):
 
 @pytest.mark.parametrize("seed", [0, 1, 2, 7])
 def test_camera_keeps_clear_of_surfaces(seed):
-    poses = synthetic.camera_path(900, seed)
+    poses = synthetic.handheld_path(900, seed)
     lo, hi = synthetic.PATH_BOUNDS
     assert np.all(poses[:, :3, 3] >= lo) and np.all(poses[:, :3, 3] <= hi)
     assert synthetic.scene_clearance(poses[:, :3, 3]).min() >= 0.5
@@ -256,8 +256,8 @@ def test_the_return_path_ends_at_its_first_pose_and_revisit_rotated_turns_its_se
 
 
 def test_an_unknown_path_is_refused_in_one_line():
-    with pytest.raises(ConfigError, match="dataset.trajectory"):
-        SyntheticConfig(trajectory="spiral")
+    with pytest.raises(ConfigError, match="dataset.camera_path"):
+        SyntheticConfig(camera_path="spiral")
     with pytest.raises(ValueError, match="spiral"):
         synthetic.loop_path("spiral", 10)
 
@@ -310,11 +310,11 @@ def test_structured_light_loses_depth_at_edges_grazing_and_dark_surfaces():
 
 
 def test_a_structured_light_sequence_is_the_same_every_load(tmp_path):
-    cfg = SyntheticConfig(cache_dir=str(tmp_path), depth_model="structured_light", trajectory="room_loop", **SMALL)
+    cfg = SyntheticConfig(cache_dir=str(tmp_path), depth_model="structured_light", camera_path="room_loop", **SMALL)
     a, b = SyntheticDataset(cfg), SyntheticDataset(cfg)
     np.testing.assert_array_equal(a[3].depth, b[3].depth)
     np.testing.assert_array_equal(a[3].rgb, b[3].rgb)
-    clean = SyntheticDataset(SyntheticConfig(cache_dir=str(tmp_path), depth_noise=0.0, trajectory="room_loop",
+    clean = SyntheticDataset(SyntheticConfig(cache_dir=str(tmp_path), depth_noise=0.0, camera_path="room_loop",
                                              **SMALL))
     np.testing.assert_array_equal(a[3].gt_pose, clean[3].gt_pose)
     assert 0 < (a[3].depth == 0).mean() < 0.2 and not np.array_equal(a[3].rgb, clean[3].rgb)

@@ -30,7 +30,7 @@ from slamkit.errors import DataError
 from slamkit.roles import Dataset, DatasetConfig, DatasetTuning, RunContext, require
 from slamkit.types import Camera, Frame
 from slamkit_plugins.datasets.synthetic import sensor
-from slamkit_plugins.datasets.synthetic.path import FPS, LOOP_PATHS, camera_path, loop_path
+from slamkit_plugins.datasets.synthetic.path import FPS, LOOP_PATHS, handheld_path, loop_path
 from slamkit_plugins.datasets.synthetic.raycast import render
 from slamkit_plugins.datasets.synthetic.sensor import SensorModel
 
@@ -62,7 +62,7 @@ class SyntheticConfig(DatasetConfig):
     #: handheld: multiplies the camera's linear and angular speeds (a path that comes back spans num_frames)
     speed: float = 1.0
     #: camera path: handheld (a seeded wander) or one that comes back: room_loop, figure_eight, return, revisit_rotated
-    trajectory: str = "handheld"
+    camera_path: str = "handheld"
     #: depth errors: gaussian (depth_noise, depth_dropout) or structured_light (the sensor_* fields, and colour noise)
     depth_model: str = "gaussian"
     #: gaussian: metres of Gaussian depth noise at 1 m, growing with z^2 (0: exact; 1.5 mm is a Kinect v1's)
@@ -107,8 +107,8 @@ class SyntheticConfig(DatasetConfig):
         require(0.0 < self.speed <= 10.0, "dataset.speed", "a factor in (0, 10]", self.speed)
         require(self.depth_noise >= 0.0, "dataset.depth_noise", ">= 0 metres", self.depth_noise)
         require(0.0 <= self.depth_dropout < 1.0, "dataset.depth_dropout", "a fraction in [0, 1)", self.depth_dropout)
-        require(self.trajectory in ("handheld", *LOOP_PATHS), "dataset.trajectory",
-                f"one of handheld, {', '.join(LOOP_PATHS)}", self.trajectory)
+        require(self.camera_path in ("handheld", *LOOP_PATHS), "dataset.camera_path",
+                f"one of handheld, {', '.join(LOOP_PATHS)}", self.camera_path)
         require(self.depth_model in ("gaussian", "structured_light"), "dataset.depth_model",
                 "gaussian or structured_light", self.depth_model)
         for name in ("sensor_axial_sigma_m", "sensor_axial_sigma_per_m2", "sensor_disparity_step_px",
@@ -172,7 +172,7 @@ class SyntheticDataset(Dataset):
             "seed": int(c.seed),
             "speed": float(c.speed),
             # the default path keeps the key of before, so that its caches stay valid
-            **({} if c.trajectory == "handheld" else {"trajectory": c.trajectory}),
+            **({} if c.camera_path == "handheld" else {"camera_path": c.camera_path}),
         }
 
     def cache_key(self) -> str:
@@ -235,8 +235,8 @@ class SyntheticDataset(Dataset):
         """Yield (name, array): meta, poses, then rgb_%05d (uint8) and depth_%05d (uint16,
         DEPTH_SCALE units per metre) per frame."""
         c = self.cfg
-        poses = camera_path(c.num_frames, c.seed, c.speed) if c.trajectory == "handheld" else \
-            loop_path(c.trajectory, c.num_frames, c.seed)
+        poses = handheld_path(c.num_frames, c.seed, c.speed) if c.camera_path == "handheld" else \
+            loop_path(c.camera_path, c.num_frames, c.seed)
         yield "meta", np.array(meta)
         yield "poses", poses
         # Frames are independent: render a chunk at a time on a few threads (numpy releases

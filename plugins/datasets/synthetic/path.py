@@ -36,7 +36,7 @@ FPS = 30.0
 PATH_BOUNDS = (np.array([-0.70, -0.55, 1.20]), np.array([0.70, 0.55, 1.70]))
 
 
-#: The paths `loop_path` draws, besides the default `handheld` (`camera_path`).
+#: The paths `loop_path` draws, besides the default `handheld` (`handheld_path`).
 LOOP_PATHS = ("room_loop", "figure_eight", "return", "revisit_rotated")
 #: The paths' ellipse (metres, semi-axes along x and y) around the free zone's centre height.
 _ELLIPSE = (0.6, 0.45)
@@ -81,7 +81,7 @@ def _poses(pos: np.ndarray, heading: np.ndarray, pitch: np.ndarray, jitter: np.n
     return poses
 
 
-def camera_path(num_frames: int, seed: int = 0, speed: float = 1.0, fps: float = FPS) -> np.ndarray:
+def handheld_path(num_frames: int, seed: int = 0, speed: float = 1.0, fps: float = FPS) -> np.ndarray:
     """(num_frames, 4, 4) camera-to-world poses of a smooth hand-held-like path."""
     t = np.arange(num_frames) / fps * speed
     s = _Terms(seed, t)
@@ -123,7 +123,7 @@ def loop_path(kind: str, num_frames: int, seed: int = 0, fps: float = FPS) -> np
         return _poses(pos, heading, pitch, s.jitter())
     if kind == "return":
         wander = int(round(0.75 * num_frames))
-        out = camera_path(wander, seed, fps=fps)
+        out = handheld_path(wander, seed, fps=fps)
         w = u[: num_frames - wander + 1] / u[num_frames - wander]  # 0..1 over the way back
         w = w * w * (3 - 2 * w)  # smoothstep: no jerk where the wander ends or at the start pose
         first, last = out[0], out[-1]
