@@ -10,6 +10,10 @@ Cases (`--cases`, comma-separated):
   seconds per keyframe.
 - `mapper`: 7-Scenes with the 3DGS mapper, sequential, at `MAPPER_SEQUENTIAL` (fewer steps than
   the defaults, so that a run takes minutes on 2 cores): ATE, PSNR (every 10th frame), loops.
+- `synthetic`: tracking only, sequential, on the synthetic paths that come back (room loop,
+  figure eight, return to the start, revisit from another direction) with the structured-light
+  sensor model: ATE with and without, the loops, how many are right and how many within 2 cm and
+  1 degree of the exact ground truth.
 - `realtime`: real time at 30 frames/s input (`mode=realtime fps_limit=30`) with the mapper:
   7-Scenes (ATE, PSNR, loops) and TUM fr1/rpy (stream frames/s, mapping steps in the stream,
   ATE). Wall-clock figures: run it alone on a quiet machine.
@@ -25,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import hashlib
 import json
 import platform
 import sys
@@ -48,6 +53,13 @@ SEQUENCES = {
     "tum": ["dataset=tum", f"dataset.path={DATA / 'tum_fr1_rpy_first150'}"],
     "replica": ["dataset=replica", f"dataset.path={DATA / 'replica_room0_first20'}"],
 }
+#: The synthetic paths that come back (issue 46), frames each, with the structured-light sensor:
+#: exact ground truth, odometry that drifts as a Kinect's does.
+SYNTHETIC = {"room_loop": 600, "figure_eight": 720, "return": 900, "revisit_rotated": 900}
+SEQUENCES.update({f"synthetic_{path}": ["dataset=synthetic", f"dataset.camera_path={path}", f"dataset.num_frames={n}",
+                                        "dataset.depth_model=structured_light"] for path, n in SYNTHETIC.items()})
+#: A loop is **exact** (issue 46's acceptance on the synthetic paths) within these of the truth.
+EXACT_M, EXACT_DEG = 0.02, 1.0
 #: The 3DGS mapper's settings for sequential 7-Scenes (700 frames): half the default steps a
 #: frame, the default refinement and training resolution (320x240), PSNR over every 10th frame.
 MAPPER_SEQUENTIAL = ["mapper=gaussian_splatting", "iterations_per_frame=5", "final_iterations=400",
@@ -58,6 +70,7 @@ CASES = {  # case -> [(sequence, overrides)]
     "tracking": [("7scenes", ["mapper=none"]), ("tum", ["mapper=none"]), ("replica", ["mapper=none"])],
     "mapper": [("7scenes", MAPPER_SEQUENTIAL)],
     "realtime": [("7scenes", [*MAPPER_REALTIME, "mapper.eval_every=10"]), ("tum", MAPPER_REALTIME)],
+    "synthetic": [(f"synthetic_{path}", ["mapper=none"]) for path in SYNTHETIC],
 }
 CLOSURES = ("none", "pose_graph")
 
@@ -72,7 +85,8 @@ def loops_against_truth(run_dir: Path) -> dict:
     gt_stamps, gt = read_tum_trajectory(run_dir / "groundtruth.txt")
     truth = dict(zip(np.round(gt_stamps, 6), orthonormal(gt)))
     with open(path) as f:
-        accepted = [r for r in csv.DictReader(f) if r["accepted"] == "True"]
+        rows = list(csv.DictReader(f))
+    accepted = [r for r in rows if r["accepted"] == "True"]
     errors = []
     for r in accepted:
         q = np.array([float(r[k]) for k in ("qw", "qx", "qy", "qz")])
@@ -81,7 +95,10 @@ def loops_against_truth(run_dir: Path) -> dict:
         if a is not None and b is not None:
             errors.append(pose_difference(found, relative_pose(a, b)))
     right = [e for e in errors if e[0] <= RIGHT_M and e[1] <= RIGHT_DEG]
+    exact = [e for e in errors if e[0] <= EXACT_M and e[1] <= EXACT_DEG]
     return {"loops": len(accepted), "loops_with_truth": len(errors), "loops_right": len(right),
+            "loops_exact": len(exact), "candidates": len(rows), "rejected_by_consistency": sum(
+                r["accepted"] != "True" and r["reason"].startswith("inconsistent") for r in rows),
             "loop_error_max_m": max((e[0] for e in errors), default=None),
             "loop_error_max_deg": max((e[1] for e in errors), default=None),
             "loop_frames": [f"{r['frame']}->{r['match_frame']}" for r in accepted]}
@@ -91,13 +108,31 @@ def run(case: str, sequence: str, overrides: list[str], closure: str, runs_dir: 
         timeout: float) -> dict:
     name = f"{case}_{sequence}_{closure}_{repeat}"
     record = run_system(name, [*overrides, f"loop_closure={closure}"], SEQUENCES[sequence], runs_dir, timeout)
-    record.update(case=case, sequence=sequence, closure=closure, repeat=repeat, **loops_against_truth(runs_dir / name))
+    record.update(case=case, sequence=sequence, closure=closure, repeat=repeat, **loops_against_truth(runs_dir / name),
+                  digests=digests(runs_dir / name))
     return record
+
+
+#: The outputs that must be the same, byte for byte, in every sequential run (issue 46).
+REPRODUCED = ("trajectory.txt", "keyframes.txt", "loops.csv", "pose_graph.g2o")
+
+
+def digests(run_dir: Path) -> dict[str, str]:
+    """SHA-256 of each of the run's REPRODUCED files that it wrote."""
+    return {f: hashlib.sha256((run_dir / f).read_bytes()).hexdigest() for f in REPRODUCED if (run_dir / f).is_file()}
+
+
+def identical(records: list[dict]) -> dict[str, bool]:
+    """'sequence/closure' -> whether every repeat of it wrote the same REPRODUCED files (byte for byte)."""
+    groups: dict[str, list[dict]] = {}
+    for r in records:
+        groups.setdefault(f"{r['sequence']}/{r['closure']}", []).append(r.get("digests"))
+    return {key: len(d) > 1 and all(x == d[0] for x in d) for key, d in groups.items()}
 
 
 COLUMNS = [("sequence", "sequence", None), ("closure", "loop_closure", None), ("ate_rmse_m", "ATE cm", 100),
            ("ate_change", "ATE change", None), ("psnr", "PSNR dB", 1), ("loops", "loops", 1),
-           ("loops_right", "right", 1), ("loop_corrections", "corrections", 1),
+           ("loops_right", "right", 1), ("loops_exact", "within 2cm 1deg", 1), ("loop_corrections", "corrections", 1),
            ("loop_closure_cpu_s_per_keyframe", "LC CPU s/keyframe", 1), ("num_keyframes", "keyframes", 1),
            ("stream_fps", "stream frames/s", 1), ("mapping_iterations", "mapping steps", 1),
            ("dropped_frames", "dropped", 1), ("process_s", "process s", 1)]
@@ -145,11 +180,15 @@ def main() -> None:
                 print_table(list(pair.values()))
         print(f"\n{case}:")
         print_table(rows)
+        if args.repeats > 1:
+            print("identical to the byte over the repeats:", identical(rows))
         records += rows
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({"machine": platform.platform(), "when": time.strftime("%Y-%m-%d %H:%M"),
                                     "command": "python benchmarks/loop_closure_runs.py " + " ".join(sys.argv[1:]),
-                                    "runs_dir": str(runs_dir), "records": records}, indent=1, default=float) + "\n")
+                                    "runs_dir": str(runs_dir),
+                                    "identical": identical(records) if args.repeats > 1 else None,
+                                    "records": records}, indent=1, default=float) + "\n")
     print(f"wrote {args.out}; runs in {runs_dir}")
 
 

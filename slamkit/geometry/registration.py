@@ -3,7 +3,12 @@
 Both clouds are voxel-downsampled (`voxel`, metres), given normals (radius 2 voxels) and FPFH
 features (radius 5 voxels; Rusu et al. 2009); RANSAC over feature matches (3 points, mutual
 matches, edge-length and distance checks, open3d's `registration_ransac_based_on_feature_matching`)
-finds a coarse pose, which open3d's generalized ICP refines (distance 1 voxel). A cloud's
+finds a coarse pose, which open3d's generalized ICP refines (distance 1 voxel). Both run with
+OpenMP pinned to one thread (`single_threaded`): open3d's RANSAC draws its random choices from
+one seeded generator in whatever order its threads come, and G-ICP sums over threads in varying
+order, so with threads the same two clouds give poses that differ from one call to the next
+(in the last bits, or in the pose RANSAC kept), and a loop's decision near a threshold with them.
+Pinned, the same clouds and seed give the same pose to the bit. A cloud's
 features are computed once, when first needed (`FeatureCloud`), so that one cloud can be
 registered with many.
 Needs open3d (the optional extra `mesh`).
@@ -122,14 +127,38 @@ class FeatureCloud:
         return len(self.cloud.points)
 
 
+_THREADPOOLS: Any = None
+
+
+def single_threaded():
+    """A context in which OpenMP (open3d's) runs on one thread in the calling thread, so that
+    open3d's registration is deterministic (see the module docstring)."""
+    global _THREADPOOLS
+    if _THREADPOOLS is None:
+        try:
+            from threadpoolctl import ThreadpoolController
+        except ImportError as exc:
+            raise SlamkitError(f"threadpoolctl is not installed ({exc}); install it with pip install -e '.[loop]'") \
+                from None
+        _THREADPOOLS = ThreadpoolController()  # finds the loaded OpenMP runtimes once (open3d's among them)
+    return _THREADPOOLS.limit(limits=1, user_api="openmp")
+
+
 def register(source: FeatureCloud, target: FeatureCloud, ransac_iterations: int = 100000,
              ransac_confidence: float = 0.999, seed: int = 0, refine_iterations: int = 50) -> Registration:
     """The pose of `source` in `target`'s frame: FPFH + RANSAC (random choices from `seed`),
     then generalized ICP; distances in units of `target.voxel`. Identity with fitness 0 when
-    either cloud is empty."""
+    either cloud is empty. Deterministic: the same clouds and seed give the same result."""
     if len(source) == 0 or len(target) == 0:
         return Registration(np.eye(4), 0.0, 0.0, 0)
     o3d = import_open3d()
+    _ = source.features, target.features  # computed here, threaded: per point, the same on any thread count
+    with single_threaded():
+        return _register(o3d, source, target, ransac_iterations, ransac_confidence, seed, refine_iterations)
+
+
+def _register(o3d, source: FeatureCloud, target: FeatureCloud, ransac_iterations: int, ransac_confidence: float,
+              seed: int, refine_iterations: int) -> Registration:
     reg = o3d.pipelines.registration
     voxel = target.voxel
     o3d.utility.random.seed(int(seed))

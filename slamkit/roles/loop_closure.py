@@ -87,7 +87,8 @@ class LoopCheck:
     feature matches RANSAC's pose agreed with. inlier_rmse_m: RMS distance of the fitness's
     point pairs. correction_m, correction_deg: how far `relative_pose` is from the odometry's
     relative pose (inv(T_match) @ T_keyframe as tracked), translation and angle. accepted: the
-    loop is a constraint of the pose graph. reason: why not ("" when accepted).
+    loop is a constraint of the pose graph. reason: why it was left, or why it was kept (a loop
+    closure may leave it "" when accepted).
     """
 
     keyframe_id: int

@@ -22,7 +22,7 @@ import numpy as np
 from slamkit.formats.atomic import write_atomic
 from slamkit.formats.checkpoint import CHECKPOINT_NAME
 from slamkit.formats.g2o import to_g2o
-from slamkit.formats.loops import write_loops_csv
+from slamkit.formats.loops import GROUND_TRUTH_COLUMNS, with_ground_truth, write_loops_csv
 from slamkit.formats.tum import write_tum_trajectory
 from slamkit.metrics import trajectory as evaluation
 from slamkit.registry.schema import RunConfig
@@ -103,8 +103,17 @@ class RunOutputs:
         closer, out = self.slam.loop_closer, self.out_dir
         if not closer.active:
             return
-        self.keep("loops.csv", lambda: write_loops_csv(out / "loops.csv", LOOPS_COLUMNS, closer.rows()))
+        self.keep("loops.csv", lambda: write_loops_csv(out / "loops.csv", (*LOOPS_COLUMNS, *GROUND_TRUTH_COLUMNS),
+                                                       [with_ground_truth(r, *self._keyframe_truth(r))
+                                                        for r in closer.rows()]))
         self.keep("pose_graph.g2o", lambda: write_atomic(out / "pose_graph.g2o", to_g2o(closer.pose_graph())))
+
+    def _keyframe_truth(self, row: dict) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """The ground-truth poses of a loops.csv row's keyframe and match (None where unknown):
+        keyframe ids count the run's keyframes, `keyframe_rows` holds their trajectory rows."""
+        rows, gt = self.state.keyframe_rows, self.state.gt_poses
+        return tuple(gt[rows[k]] if 0 <= k < len(rows) and rows[k] < len(gt) else None
+                     for k in (int(row["keyframe"]), int(row["match_keyframe"])))
 
     def save_map(self) -> None:
         """The map trained so far (the mapper's `save_map`: map.ply), once the mapper has stopped

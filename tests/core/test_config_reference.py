@@ -30,6 +30,7 @@ EXPLICIT = {
     "viewer.application_id": "slamkit-test", "dataset.cache_dir": "{tmp}/cache", "mapper.rasterizer.prefer": ["torch"],
     "dataset.camera": "fr1", "dataset.max_frames": 5, "dataset.start": 2, "dataset.stride": 2,
     "dataset.path": "{data}", "dataset=tum:dataset.gt_path": "{data}/groundtruth.txt",
+    "dataset.camera_path": "room_loop", "dataset.depth_model": "structured_light",
     "dataset.fx": 500.0, "dataset.fy": 500.0,  # plausible for every dataset's image size (Camera.implausible)
     "resume": "{tmp}/run", "map": "{tmp}/run",
     "dataset.color_topic": "/camera/rgb/image_color", "dataset.depth_topic": "/camera/depth/image",

@@ -11,6 +11,7 @@ import pytest
 
 from slamkit.formats.g2o import read_g2o, to_g2o
 from slamkit.geometry import backproject, make_pose, nearest_rotation, se3_exp, so3_exp
+from slamkit.geometry.registration import FeatureCloud, register
 from slamkit.registry import default_registry
 from slamkit.roles.loop_closure import (
     LoopCheck,
@@ -183,6 +184,17 @@ def keyframes(kitchen, numbers, poses=None) -> list[LoopKeyframe]:
 DRIFT = np.r_[0.0, np.radians(1.5), 0.0, 0.03, 0.0, 0.0]
 
 
+def test_registration_gives_the_same_pose_to_the_bit_every_call(kitchen):
+    """open3d's RANSAC and G-ICP are threaded; pinned to one thread, the same clouds and seed
+    give the same pose, fitness and inliers every call (fresh clouds each time)."""
+    results = []
+    for _ in range(3):
+        source, target = (FeatureCloud(kitchen[n][0], 0.025) for n in (985, 300))
+        found = register(source, target, 20000, 0.999, seed=3)
+        results.append((found.pose.tobytes(), found.fitness, found.rmse_m, found.ransac_inliers))
+    assert results[0][3] > 0 and results.count(results[0]) == len(results)
+
+
 def test_a_wrong_candidate_is_rejected_by_verification(kitchen):
     """Frames 425 and 675 look at different parts of the kitchen (no overlap in the ground truth);
     keyframe 675 is given frame 425's pose, so it is 425's candidate by place: rejected."""
@@ -225,6 +237,7 @@ def test_an_accepted_loop_on_real_keyframes_is_right_and_corrects_the_drift(kitc
         truth = relative_pose(kitchen[loop.match_frame_index][2], kitchen[loop.frame_index][2])
         error_m, error_deg = pose_difference(loop.relative_pose, truth)
         assert error_m <= 0.05 and error_deg <= 3.0, (loop.frame_index, loop.match_frame_index, error_m, error_deg)
+        assert loop.reason.startswith("consistent: "), loop.reason  # loops.csv says why it was kept
     before = pose_difference(drifted[3], kitchen[995][2])[0]
     after = pose_difference(decision.keyframe_poses[3], kitchen[995][2])[0]
     assert after < 0.75 * before
@@ -260,9 +273,11 @@ def test_the_state_round_trips_through_state_dict(kitchen):
         np.testing.assert_allclose(decisions[0].keyframe_poses[k], decisions[1].keyframe_poses[k], atol=1e-12)
 
 
-def test_a_wrong_loop_that_passed_verification_is_dropped_by_the_pose_graph(kitchen, monkeypatch):
+@pytest.mark.parametrize("gate", ["chi-square", "residual"])
+def test_a_wrong_loop_that_passed_verification_is_kept_out_of_the_pose_graph(kitchen, monkeypatch, gate):
     """The first accepted loop is moved by 25 cm and 10 degrees as if verification had been
-    fooled: the optimised graph finds it inconsistent with odometry, drops it (saying why), and
+    fooled: the graph optimised with it fails the chi-square test and it never enters (saying
+    why); with that test let through, the optimised graph's residual check drops it. Either way
     the decision's poses are those of the right loops alone."""
     from slamkit_plugins.loop_closures.pose_graph import closure as closure_module
 
@@ -277,6 +292,8 @@ def test_a_wrong_loop_that_passed_verification_is_dropped_by_the_pose_graph(kitc
         return check, information
 
     monkeypatch.setattr(closure_module.verification, "verify", fooled_once)
+    if gate == "residual":  # every loop passes the chi-square test
+        monkeypatch.setattr(closure_module.optimisation, "chi_square_6_quantile", lambda confidence: np.inf)
     closure = PoseGraphLoopClosure(PoseGraphConfig(**TEST_CONFIG))
     numbers = [300, 310, 985, 995]
     for keyframe in keyframes(kitchen, numbers, [kitchen[n][2] @ se3_exp(DRIFT * (n > 900)) for n in numbers]):
@@ -284,6 +301,7 @@ def test_a_wrong_loop_that_passed_verification_is_dropped_by_the_pose_graph(kitc
     decision = closure.detect_and_optimise()
     assert fooled
     wrong = next(c for c in decision.checks if (c.keyframe_id, c.match_id) == fooled[0])
-    assert not wrong.accepted and "inconsistent with the pose graph" in wrong.reason
+    expected = {"chi-square": "inconsistent with the graph: loop edge", "residual": "inconsistent with the pose graph"}
+    assert not wrong.accepted and wrong.reason.startswith(expected[gate]), wrong.reason
     assert fooled[0] not in {(c.keyframe_id, c.match_id) for c in closure.loops()}
     assert sum(e.kind == "loop" for e in closure.pose_graph().edges) == len(closure.loops())

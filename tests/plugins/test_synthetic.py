@@ -8,7 +8,7 @@ import pytest
 from slamkit.errors import ConfigError
 from slamkit.geometry.transforms import backproject, invert_pose, rotation_angle_deg, transform_points
 from slamkit_plugins.datasets import synthetic
-from slamkit_plugins.datasets.synthetic import SyntheticConfig, SyntheticDataset
+from slamkit_plugins.datasets.synthetic import SyntheticConfig, SyntheticDataset, sensor
 
 SMALL = dict(num_frames=8, width=96, height=72)
 
@@ -52,7 +52,7 @@ def test_motion_is_hand_held_like(default_ds):
 
 @pytest.mark.parametrize("seed", [0, 1, 2, 7])
 def test_camera_keeps_clear_of_surfaces(seed):
-    poses = synthetic.camera_path(900, seed)
+    poses = synthetic.handheld_path(900, seed)
     lo, hi = synthetic.PATH_BOUNDS
     assert np.all(poses[:, :3, 3] >= lo) and np.all(poses[:, :3, 3] <= hi)
     assert synthetic.scene_clearance(poses[:, :3, 3]).min() >= 0.5
@@ -218,3 +218,103 @@ def test_unwritable_cache_falls_back_to_memory(tmp_path):
     ref = SyntheticDataset(SyntheticConfig(cache_dir=str(tmp_path / "ok"), **SMALL))
     np.testing.assert_array_equal(ds[4].rgb, ref[4].rgb)
     np.testing.assert_array_equal(ds[4].depth, ref[4].depth)
+
+
+# -- paths that come back and the structured-light sensor (issue 46) ---------------------------------
+
+LOOP_FRAMES = {"room_loop": 600, "figure_eight": 720, "return": 900, "revisit_rotated": 900}
+
+
+@pytest.mark.parametrize("kind", synthetic.LOOP_PATHS)
+def test_a_loop_path_stays_clear_moves_like_a_hand_and_comes_back(kind):
+    """Each path keeps to the free zone, at hand-held speeds (under 1 m/s and 45 deg/s), travels
+    metres, and its last frames look again at what its first frames saw: some frame of the last
+    tenth has its place (centre + 2 m along its axis) within 0.5 m of a frame's of the first
+    tenth and its axis within 45 degrees of that frame's."""
+    poses = synthetic.loop_path(kind, LOOP_FRAMES[kind], seed=3)
+    lo, hi = synthetic.PATH_BOUNDS
+    assert np.all(poses[:, :3, 3] >= lo) and np.all(poses[:, :3, 3] <= hi)
+    assert synthetic.scene_clearance(poses[:, :3, 3]).min() >= 0.5
+    step = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
+    turn = rotation_angle_deg(np.einsum("nji,njk->nik", poses[:-1, :3, :3], poses[1:, :3, :3]))
+    assert step.max() * synthetic.FPS < 1.0 and turn.max() * synthetic.FPS < 45.5
+    assert step.sum() > 3.0
+    places = poses[:, :3, 3] + 2.0 * poses[:, :3, 2]
+    first, last = slice(0, len(poses) // 10), slice(int(0.9 * len(poses)), None)
+    near = np.linalg.norm(places[last, None] - places[None, first], axis=2) < 0.5
+    aligned = poses[last, :3, 2] @ poses[first, :3, 2].T > np.cos(np.radians(45.0))
+    assert np.any(near & aligned)
+
+
+def test_the_return_path_ends_at_its_first_pose_and_revisit_rotated_turns_its_second_lap():
+    back = synthetic.loop_path("return", 300, seed=1)
+    np.testing.assert_allclose(back[-1], back[0], atol=1e-9)
+    rotated = synthetic.loop_path("revisit_rotated", 300, seed=1)
+    # the same angle round the ellipse on the way out and back: 25 degrees apart in heading
+    out, home = rotated[30], rotated[-31]
+    assert 20.0 < rotation_angle_deg(out[:3, :3].T @ home[:3, :3]) < 30.0
+
+
+def test_an_unknown_path_is_refused_in_one_line():
+    with pytest.raises(ConfigError, match="dataset.camera_path"):
+        SyntheticConfig(camera_path="spiral")
+    with pytest.raises(ValueError, match="spiral"):
+        synthetic.loop_path("spiral", 10)
+
+
+def _sensor_frame(depth, rgb=None, **fields):
+    cfg = SyntheticConfig(**fields)
+    rgb = np.full(depth.shape + (3,), 128, np.uint8) if rgb is None else rgb
+    h, w = depth.shape
+    return sensor.apply(depth, rgb, 200.0, 200.0, (w - 1) / 2, (h - 1) / 2, cfg.sensor_model(),
+                        np.random.default_rng(0))
+
+
+def test_structured_light_noise_grows_with_the_square_of_the_distance_and_is_quantised():
+    """A wall facing the camera at 1 m and at 3 m: the depth error's spread follows
+    a + b (z - 0.4)^2 (within the quantisation's share), and every depth is f b / (k step)."""
+    cfg = SyntheticConfig()
+    fb = cfg.sensor_focal_px * cfg.sensor_baseline_m
+    spreads = {}
+    for z in (1.0, 3.0):
+        depth, _ = _sensor_frame(np.full((200, 200), z, np.float32))
+        valid = depth > 0
+        assert valid.mean() > 0.97  # a flat frontal wall loses only the border's ring
+        steps = fb / depth[valid] / cfg.sensor_disparity_step_px
+        np.testing.assert_allclose(steps, np.round(steps), atol=1e-3)
+        spreads[z] = float(np.std(depth[valid] - z))
+        sigma = cfg.sensor_axial_sigma_m + cfg.sensor_axial_sigma_per_m2 * (z - 0.4) ** 2
+        quantum = z * z * cfg.sensor_disparity_step_px / fb
+        assert 0.8 * sigma < spreads[z] < np.hypot(sigma, quantum / np.sqrt(12)) * 1.2
+    assert spreads[3.0] > 5 * spreads[1.0]
+
+
+def test_structured_light_loses_depth_at_edges_grazing_and_dark_surfaces():
+    h, w = 120, 160
+    v, u = np.mgrid[0:h, 0:w]
+    # a box 1 m away in front of a wall 2.5 m away; a floor seen at grazing incidence below
+    depth = np.full((h, w), 2.5)
+    box = (abs(u - 80) < 20) & (abs(v - 40) < 20)
+    depth[box] = 1.0
+    rows = np.arange(h)[:, None] >= 100
+    depth = np.where(rows, 2.5 + (v - 99) * 0.6, depth)  # steep: the floor recedes fast
+    rgb = np.full((h, w, 3), 128, np.uint8)
+    rgb[:30, :30] = 0  # a black patch on the wall
+    out, colour = _sensor_frame(depth.astype(np.float32), rgb)
+    ring = box & ~((abs(u - 80) < 18) & (abs(v - 40) < 18))
+    assert (out[ring] == 0).mean() > 0.15  # the box's outline
+    assert (out[(abs(u - 80) < 15) & (abs(v - 40) < 15)] > 0).all()  # its inside
+    assert (out[105:, :] == 0).mean() > 0.9  # grazing
+    assert (out[2:28, 2:28] == 0).all() and (out[60:90, 2:28] > 0).all()  # dark, not grey
+    assert 1.5 < np.std(colour.astype(float) - rgb) < 2.5
+
+
+def test_a_structured_light_sequence_is_the_same_every_load(tmp_path):
+    cfg = SyntheticConfig(cache_dir=str(tmp_path), depth_model="structured_light", camera_path="room_loop", **SMALL)
+    a, b = SyntheticDataset(cfg), SyntheticDataset(cfg)
+    np.testing.assert_array_equal(a[3].depth, b[3].depth)
+    np.testing.assert_array_equal(a[3].rgb, b[3].rgb)
+    clean = SyntheticDataset(SyntheticConfig(cache_dir=str(tmp_path), depth_noise=0.0, camera_path="room_loop",
+                                             **SMALL))
+    np.testing.assert_array_equal(a[3].gt_pose, clean[3].gt_pose)
+    assert 0 < (a[3].depth == 0).mean() < 0.2 and not np.array_equal(a[3].rgb, clean[3].rgb)

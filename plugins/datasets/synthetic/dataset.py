@@ -3,8 +3,9 @@
 The sequence is generated once and cached as one compressed .npz per parameter set (rgb uint8,
 depth uint16 at 0.2 mm) in `cache_dir`, recorded with its size and hash (`slamkit.cache.record`);
 later constructions open the cache if it matches its record (else it is generated again, with a
-warning) and decode frames on demand. Depth noise and dropout are applied at load time
-(deterministic per seed and frame), so they share the noise-free cache.
+warning) and decode frames on demand. The sensor's errors (`depth_model`: Gaussian noise and
+dropout, or the structured-light model of `sensor`) are applied at load time (deterministic per
+seed and frame), so they share the noise-free cache.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import threading
 import time
 import zipfile
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -28,8 +29,10 @@ from slamkit.cache import cache_dir, damage, record
 from slamkit.errors import DataError
 from slamkit.roles import Dataset, DatasetConfig, DatasetTuning, RunContext, require
 from slamkit.types import Camera, Frame
-from slamkit_plugins.datasets.synthetic.path import FPS, camera_path
+from slamkit_plugins.datasets.synthetic import sensor
+from slamkit_plugins.datasets.synthetic.path import FPS, LOOP_PATHS, handheld_path, loop_path
 from slamkit_plugins.datasets.synthetic.raycast import render
+from slamkit_plugins.datasets.synthetic.sensor import SensorModel
 
 log = logging.getLogger(__name__)
 
@@ -56,12 +59,36 @@ class SyntheticConfig(DatasetConfig):
     fov_deg: float = 64.0
     #: draws the camera path (the scene is fixed)
     seed: int = 0
-    #: multiplies the camera's linear and angular speeds (the same path, traversed faster)
+    #: handheld: multiplies the camera's linear and angular speeds (a path that comes back spans num_frames)
     speed: float = 1.0
-    #: metres of Gaussian depth noise at 1 m, growing with z^2 (0: exact; 1.5 mm is a Kinect v1's)
+    #: camera path: handheld (a seeded wander) or one that comes back: room_loop, figure_eight, return, revisit_rotated
+    camera_path: str = "handheld"
+    #: depth errors: gaussian (depth_noise, depth_dropout) or structured_light (the sensor_* fields, and colour noise)
+    depth_model: str = "gaussian"
+    #: gaussian: metres of Gaussian depth noise at 1 m, growing with z^2 (0: exact; 1.5 mm is a Kinect v1's)
     depth_noise: float = 0.0015
-    #: fraction of pixels whose depth is set invalid (0) at random
+    #: gaussian: fraction of pixels whose depth is set invalid (0) at random
     depth_dropout: float = 0.0
+    #: structured_light: metres of axial noise, a in a + b (z - 0.4)^2 (Nguyen, Izadi, Lovell 2012: Kinect v1)
+    sensor_axial_sigma_m: float = 0.0012
+    #: structured_light: b in a + b (z - 0.4)^2, metres per square metre of depth (Nguyen et al. 2012)
+    sensor_axial_sigma_per_m2: float = 0.0019
+    #: structured_light: pixels, the IR camera's focal length (Khoshelham and Elberink 2012: Kinect v1, 580)
+    sensor_focal_px: float = 580.0
+    #: structured_light: metres from projector to IR camera (Khoshelham and Elberink 2012: 7.5 cm)
+    sensor_baseline_m: float = 0.075
+    #: structured_light: pixels, the disparity's quantisation step (Khoshelham and Elberink 2012: 1/8)
+    sensor_disparity_step_px: float = 0.125
+    #: structured_light: a depth step between neighbouring pixels larger than this fraction of the depth is an edge
+    sensor_edge_jump: float = 0.05
+    #: structured_light: pixels of depth lost on each side of an edge (the projector's shadow, the matching window)
+    sensor_edge_band_px: int = 1
+    #: structured_light: degrees of incidence beyond which a surface gives no depth (Nguyen et al. 2012: ~70-80)
+    sensor_max_incidence_deg: float = 75.0
+    #: structured_light: grey level (0-1) below which depth goes missing at random, surely at black (little IR back)
+    sensor_dark_level: float = 0.08
+    #: structured_light: standard deviation of the colour noise, 8-bit levels per channel
+    sensor_colour_sigma: float = 2.0
     #: folder of the cached sequences (null: $SLAMKIT_CACHE/synthetic, else ~/.cache/slamkit/synthetic)
     cache_dir: str | None = None
 
@@ -80,6 +107,21 @@ class SyntheticConfig(DatasetConfig):
         require(0.0 < self.speed <= 10.0, "dataset.speed", "a factor in (0, 10]", self.speed)
         require(self.depth_noise >= 0.0, "dataset.depth_noise", ">= 0 metres", self.depth_noise)
         require(0.0 <= self.depth_dropout < 1.0, "dataset.depth_dropout", "a fraction in [0, 1)", self.depth_dropout)
+        require(self.camera_path in ("handheld", *LOOP_PATHS), "dataset.camera_path",
+                f"one of handheld, {', '.join(LOOP_PATHS)}", self.camera_path)
+        require(self.depth_model in ("gaussian", "structured_light"), "dataset.depth_model",
+                "gaussian or structured_light", self.depth_model)
+        for name in ("sensor_axial_sigma_m", "sensor_axial_sigma_per_m2", "sensor_disparity_step_px",
+                     "sensor_edge_band_px", "sensor_dark_level", "sensor_colour_sigma"):
+            require(getattr(self, name) >= 0, f"dataset.{name}", ">= 0", getattr(self, name))
+        for name in ("sensor_focal_px", "sensor_baseline_m", "sensor_edge_jump"):
+            require(getattr(self, name) > 0, f"dataset.{name}", "> 0", getattr(self, name))
+        require(0 < self.sensor_max_incidence_deg <= 90, "dataset.sensor_max_incidence_deg", "in (0, 90] degrees",
+                self.sensor_max_incidence_deg)
+
+    def sensor_model(self) -> SensorModel:
+        """The structured-light model of these fields."""
+        return SensorModel(*(getattr(self, f"sensor_{f.name}") for f in fields(SensorModel)))
 
 
 def _write_npz(f, arrays) -> None:
@@ -98,7 +140,8 @@ def default_cache_dir() -> Path:
 
 class SyntheticDataset(Dataset):
     """The generated furnished-room sequence (see the module docstring). Frames: rgb HxWx3
-    uint8, depth HxW float32 metres (exact unless depth_noise / depth_dropout), gt_pose
+    uint8, depth HxW float32 metres (exact unless depth_noise / depth_dropout or the
+    structured-light model), gt_pose
     camera-to-world, timestamp raw_index / 30 s."""
 
     # small frames (320x240 by default) of a 6 x 5 x 3 m room: a dense sample stride
@@ -111,6 +154,7 @@ class SyntheticDataset(Dataset):
         fx = (cfg.width / 2.0) / math.tan(math.radians(cfg.fov_deg) / 2.0)
         self._camera = Camera(cfg.width, cfg.height, fx, fx, (cfg.width - 1) / 2.0, (cfg.height - 1) / 2.0)
         self._lock = threading.Lock()
+        self.sensor = cfg.sensor_model()
         self._store = None  # NpzFile or dict: rgb_%05d (uint8), depth_%05d (uint16), poses
         self.cache_path = Path(cfg.cache_dir).expanduser() if cfg.cache_dir else default_cache_dir()
         self.cache_path = self.cache_path / f"synthetic_{self.cache_key()[:20]}.npz"
@@ -127,6 +171,8 @@ class SyntheticDataset(Dataset):
             "fov_deg": float(c.fov_deg),
             "seed": int(c.seed),
             "speed": float(c.speed),
+            # the default path keeps the key of before, so that its caches stay valid
+            **({} if c.camera_path == "handheld" else {"camera_path": c.camera_path}),
         }
 
     def cache_key(self) -> str:
@@ -189,7 +235,8 @@ class SyntheticDataset(Dataset):
         """Yield (name, array): meta, poses, then rgb_%05d (uint8) and depth_%05d (uint16,
         DEPTH_SCALE units per metre) per frame."""
         c = self.cfg
-        poses = camera_path(c.num_frames, c.seed, c.speed)
+        poses = handheld_path(c.num_frames, c.seed, c.speed) if c.camera_path == "handheld" else \
+            loop_path(c.camera_path, c.num_frames, c.seed)
         yield "meta", np.array(meta)
         yield "poses", poses
         # Frames are independent: render a chunk at a time on a few threads (numpy releases
@@ -238,7 +285,11 @@ class SyntheticDataset(Dataset):
                             "file to generate it again") from None
         depth = depth_raw.astype(np.float32) / np.float32(DEPTH_SCALE)
         c = self.cfg
-        if c.depth_noise > 0 or c.depth_dropout > 0:
+        if c.depth_model == "structured_light":
+            cam = self._camera
+            depth, rgb = sensor.apply(depth, rgb, cam.fx, cam.fy, cam.cx, cam.cy, self.sensor,
+                                      np.random.default_rng([c.seed, raw_index, 0x5E]))
+        elif c.depth_noise > 0 or c.depth_dropout > 0:
             rng = np.random.default_rng([c.seed, raw_index, 0xDE])
             valid = depth > 0
             if c.depth_noise > 0:

@@ -8,8 +8,11 @@ Per `detect_and_optimise` call, for each keyframe added since the last one, in o
    odometry_sigma_m^2);
 2. candidates: earlier keyframes (not the last `exclude_recent`, at least `min_path_m` of path
    back) near its place and similar in appearance (`detection`), at most `max_candidates`;
-3. each is verified (`verification`); an accepted loop becomes a loop edge (information over
-   loop_sigma_m^2), robust in the optimiser.
+3. each is verified (`verification`); a loop that passes is tried in the graph (`_consistent`):
+   the graph is optimised with it, and it stays only if every edge, odometry and loop alike,
+   is then within the chi-square test (`consistency_confidence`); otherwise it is left out, and
+   the graph is as it was. A kept loop is a loop edge (information over loop_sigma_m^2), robust
+   in the optimiser. loops.csv's reason says which test kept or left each candidate.
 Then, if a loop was accepted, the graph is optimised (`optimisation`); a loop whose whitened
 residual stays above `max_loop_residual` is taken out as inconsistent and the graph optimised
 again without it.
@@ -17,7 +20,7 @@ again without it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -164,11 +167,36 @@ class PoseGraphLoopClosure(LoopClosure):
             check, information = verification.verify(node.cloud, match.cloud, odometry, float(path[query] - path[j]),
                                                      cfg, ids, cfg.seed + node.keyframe_id)
             if check.accepted:
-                self.edges.append(PoseGraphEdge("loop", match.keyframe_id, node.keyframe_id, check.relative_pose,
-                                                information))
-                self.accepted.append(check)
+                check = self._consistent(check, PoseGraphEdge("loop", match.keyframe_id, node.keyframe_id,
+                                                              check.relative_pose, information))
             checks.append(check)
         return checks
+
+    def _consistent(self, check: LoopCheck, edge: PoseGraphEdge) -> LoopCheck:
+        """`check` (verified) with its reason: its loop `edge` joins the graph when, optimised
+        with it, every edge's chi-square (squared whitened residual, 6 degrees of freedom) is
+        within the `consistency_confidence` quantile: the loop agrees with odometry and the
+        loops already there. A wrong loop that passed verification bends the graph, and the
+        edges it bends (or itself, when the robust kernel lets it go) fail; a right one's
+        correction spreads over the odometry edges within their noise. Else the edge is left out."""
+        self.edges.append(edge)
+        graph = self.pose_graph()
+        chi2 = optimisation.whitened_residuals(graph, optimisation.optimise(graph, self.cfg.backend,
+                                                                             self.cfg.robust_width)) ** 2
+        bound = optimisation.chi_square_6_quantile(self.cfg.consistency_confidence)
+        worst = {kind: max(((float(c), e) for c, e in zip(chi2, self.edges) if e.kind == kind),
+                           key=lambda pair: pair[0], default=(0.0, None)) for kind in ("odometry", "loop")}
+        figures = ", ".join(f"{kind} {c:.1f}" for kind, (c, _) in worst.items())
+        failed = [(c, e) for c, e in worst.values() if c > bound]
+        if failed:
+            self.edges.pop()
+            c, e = failed[0]
+            return check.rejected(f"inconsistent with the graph: {e.kind} edge {e.source}->{e.target} chi-square "
+                                  f"{c:.1f} > {bound:.1f} once optimised with it (largest: {figures})")
+        kept = replace(check, reason=f"consistent: largest chi-square once optimised with it: {figures} "
+                                     f"<= {bound:.1f}")
+        self.accepted.append(kept)
+        return kept
 
     def _optimise(self) -> dict[tuple[int, int], LoopCheck]:
         """Optimise the graph, dropping inconsistent loops one at a time; the nodes take the

@@ -55,7 +55,7 @@ class PoseGraphConfig(PluginConfig):
     #: degrees added to max_correction_deg per metre of camera path between the two keyframes.
     correction_deg_per_path: float = 0.5
     #: the loop's point-to-plane information per point along its weakest direction, at least (1/3 a box; 0 a wall)
-    min_constraint: float = 0.02
+    min_constraint: float = 0.05
     #: the pose-graph optimiser: gtsam | open3d.
     backend: Backend = Backend.gtsam
     #: metres: standard deviation of an odometry edge along its best-constrained direction.
@@ -64,6 +64,8 @@ class PoseGraphConfig(PluginConfig):
     loop_sigma_m: float = 0.01
     #: whitened residual at which a loop edge's robust kernel halves its weight (gtsam: Cauchy; open3d: pruned there)
     robust_width: float = 3.0
+    #: a new loop enters the graph only if, optimised with it, every edge's chi-square (6 dof) is below this quantile
+    consistency_confidence: float = 0.999
     #: an optimised loop's whitened residual (sqrt chi-square) above which it is dropped and the graph solved again
     max_loop_residual: float = 10.0
     #: seed of RANSAC's random choices.
@@ -86,4 +88,6 @@ class PoseGraphConfig(PluginConfig):
                 self.ransac_iterations)
         require(0 < self.ransac_confidence < 1, "loop_closure.ransac_confidence", "in (0, 1)", self.ransac_confidence)
         require(self.min_inliers >= 3, "loop_closure.min_inliers", "an integer >= 3", self.min_inliers)
+        require(0 < self.consistency_confidence < 1, "loop_closure.consistency_confidence", "in (0, 1)",
+                self.consistency_confidence)
         require(0 < self.min_fitness <= 1, "loop_closure.min_fitness", "in (0, 1]", self.min_fitness)

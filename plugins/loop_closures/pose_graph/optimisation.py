@@ -52,6 +52,18 @@ def whitened_residuals(graph: PoseGraph, poses: np.ndarray) -> np.ndarray:
     return np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", e, info, e), 0.0))
 
 
+def chi_square_6_quantile(confidence: float) -> float:
+    """x with P(chi-square, 6 degrees of freedom <= x) = confidence, for confidence in (0, 1).
+    The distribution's survival function has a closed form for an even number of degrees of
+    freedom, exp(-x/2) (1 + x/2 + (x/2)^2 / 2), decreasing in x: bisection finds x to 1e-9."""
+    lo, hi = 0.0, 1000.0
+    for _ in range(100):
+        x = 0.5 * (lo + hi)
+        h = 0.5 * x
+        lo, hi = (x, hi) if np.exp(-h) * (1.0 + h + 0.5 * h * h) > 1.0 - confidence else (lo, x)
+    return 0.5 * (lo + hi)
+
+
 def optimise(graph: PoseGraph, backend: Backend, robust_width: float) -> np.ndarray:
     """(K,4,4) optimised camera-to-world poses of `graph`'s nodes (its poses are the start)."""
     if len(graph.keyframe_ids) < 2 or not graph.edges:
