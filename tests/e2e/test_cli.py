@@ -132,3 +132,14 @@ def test_the_command_exits_2_with_one_line_for_each(tmp_path):
         assert proc.returncode == 2, (bad, proc.stderr[-500:])
         last = proc.stderr.strip().splitlines()[-1]
         assert last.startswith("slamkit: error: ") and named in last and "Traceback" not in proc.stderr
+
+
+def test_hydras_own_options_behave_as_in_any_hydra_app(tmp_path):
+    """--cfg job prints the composed config, --info what Hydra knows, --help the app's help; no run."""
+    job = _ok(run_slamkit("--cfg", "job", "tracker=kiss_icp", cwd=tmp_path))
+    assert "\ntracker:" in job.stdout and "\nmode: sequential" in job.stdout
+    info = _ok(run_slamkit("--info", "config", cwd=tmp_path))
+    assert "Config search path" in info.stdout
+    helped = _ok(run_slamkit("--help", cwd=tmp_path))
+    assert "Powered by Hydra" in helped.stdout
+    assert not (tmp_path / "outputs").exists()
