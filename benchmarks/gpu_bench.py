@@ -211,7 +211,7 @@ def tracking(name: str, device: str, data: Path, frames: list) -> dict:
     slam.initialize(frames[0].gt_pose)
     poses, tracking_s = [], 0.0
     for frame in frames:
-        step = slam.step(frame)
+        step = slam.process(frame)
         tracking_s += step.tracking_time_s
         poses.append(step.tracking.pose)
     ate = evaluation.ate(np.array(poses), [f.gt_pose for f in frames])
@@ -255,7 +255,7 @@ def phases(name: str, variant: str, data: Path) -> dict:
                                   "progress=false"])
     slam.initialize(dataset[0].gt_pose)
     for i in range(len(dataset)):
-        slam.step(dataset[i])
+        slam.process(dataset[i])
     mapper = slam.mapper
     sync = torch.cuda.synchronize if device == "cuda" else None
     time_steps(mapper, PHASE_WARMUP, sync)

@@ -69,7 +69,7 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|---|---|")
     start = time.perf_counter()
     for i in range(len(dataset)):
-        slam.step(dataset[i])
+        slam.process(dataset[i])
         if (i + 1) % args.every == 0:
             elapsed = time.perf_counter() - start
             gc.collect()

@@ -125,7 +125,7 @@ def track(dataset: str, path: Path, max_frames: int | None = None, extra: tuple[
         frame = data[i]
         if i == 0:
             slam.initialize(frame.gt_pose if frame.gt_pose is not None else np.eye(4))
-        step = slam.step(frame)
+        step = slam.process(frame)
         pose = step.tracking.pose
         poses.append(pose)
         gts.append(frame.gt_pose if frame.gt_pose is not None else np.full((4, 4), np.nan))

@@ -71,7 +71,7 @@ def track_with_colours(cache: Path | None):
         frame = data[i]
         if i == 0:
             slam.initialize(frame.gt_pose)
-        step = slam.step(frame)
+        step = slam.process(frame)
         poses.append(step.tracking.pose)
         gts.append(frame.gt_pose)
         g = step.tracking.gaussians

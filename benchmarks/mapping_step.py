@@ -45,7 +45,7 @@ def build_map(sequence: str, overrides: list[str]):
     dataset, slam, _ = build_run([*base, f"dataset.max_frames={frames}", "mapper=gaussian_splatting", *overrides])
     slam.initialize(dataset[0].gt_pose)
     for i in range(len(dataset)):
-        slam.step(dataset[i])
+        slam.process(dataset[i])
     return dataset, slam
 
 

@@ -60,7 +60,7 @@ def run_system(system: str, sequence: str, frames) -> dict:
     poses, per_frame, split, lost = [], [], {k: 0.0 for k in SPLIT}, 0
     cpu_start = time.thread_time()
     for frame in frames:
-        step = slam.step(frame)
+        step = slam.process(frame)
         lost += step.tracking.lost
         poses.append(step.tracking.pose)
         per_frame.append(step.tracking_time_s)

@@ -86,10 +86,9 @@ class Command:
 
     def _start(self, argv: list[str]) -> None:
         pause_point("startup")
-        import hydra
-
+        from slamkit.cli.hydra_app import SingleRun, run_hydra
         from slamkit.cli.scenes import present_scenes
-        from slamkit.registry.compose import CONFIG_MODULE, CONFIG_NAME, check_spellings, register
+        from slamkit.registry.compose import check_spellings, register
         from slamkit.registry.discovery import discover
         from slamkit.run.checkpoint import resume_arguments
 
@@ -114,6 +113,7 @@ class Command:
         self.registry = discover()
         register(self.registry)
         self.startup.hold()  # Hydra and OmegaConf cut by a KeyboardInterrupt report another error: hold it
+        single = None
         try:
             if not any(f not in ("-m", "--multirun") for f in flags):
                 argv = present_scenes(argv)  # a scene sweep (+experiment=paper_tum): the scenes under data_root
@@ -121,15 +121,19 @@ class Command:
             if run:
                 _check_output_dir(overrides, multirun=bool(flags))
                 _check_plugin_choices(self.registry, overrides)
-                _check_jobs(self.registry, overrides, sweep=bool(flags) or _is_sweep(overrides))
+            if run and not flags and not _is_sweep(overrides):
+                single = SingleRun(self.task, overrides, self.registry)  # the run's one composition, checked
+            elif run:
+                _check_jobs(self.registry, overrides)
         except SlamkitError as exc:
             if os.environ.get("SLAMKIT_DEBUG"):
                 raise
             _fail(str(exc))
-        sys.argv[1:] = argv
-        app = hydra.main(version_base=None, config_path=f"pkg://{CONFIG_MODULE}", config_name=CONFIG_NAME)(self.task)
         try:
-            app()
+            if single is not None and not single.sweep:
+                single.run()
+            else:  # a sweep, --help, --cfg, --info ...: Hydra's own command line
+                run_hydra(self.task, argv)
         finally:
             self.startup.release()  # --help, --cfg: no task
 
@@ -178,13 +182,13 @@ class Command:
         return _score(run_cfg, metrics)
 
 
-def _check_jobs(registry, overrides: Sequence[str], sweep: bool) -> None:
-    """Every run's config composed and checked before any work: the single run's, or each job's
-    of a sweep (Hydra's basic sweeper), so that a combination that cannot compose is refused in
-    one line naming the job before the first one runs (ConfigError)."""
+def _check_jobs(registry, overrides: Sequence[str]) -> None:
+    """Every job of a sweep composed and checked before any work (Hydra's basic sweeper; a
+    single run's one composition is checked by `SingleRun`), so that a combination that cannot
+    compose is refused in one line naming the job before the first one runs (ConfigError)."""
     from slamkit.registry.compose import compose_run, parse_overrides, sweep_jobs
 
-    jobs = sweep_jobs(overrides) if sweep else [list(overrides)]
+    jobs = sweep_jobs(overrides)
     swept = {o.key_or_group for o in parse_overrides(overrides) if o.is_sweep_override()}
     for number, job in enumerate(jobs or [], start=1):
         try:

@@ -10,8 +10,9 @@ folder.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
-from typing import Sequence
+from typing import Any, Callable, Sequence
 
 from slamkit.errors import ConfigError
 from slamkit.registry.discovery import Registry, default_registry, register_configs
@@ -200,22 +201,41 @@ def compose_run(overrides: Sequence[str] = (), registry: Registry | None = None)
     """The validated run config for `overrides` and the plugin chosen for each role and part
     (`chosen_plugins`). ConfigError (one line naming the value) for a bad override or value."""
     from hydra import compose, initialize_config_module
-    from omegaconf import open_dict
 
-    register(registry or default_registry())
+    registry = registry or default_registry()
+    register(registry)
     check_spellings(overrides)
-    try:
+
+    def hydra_compose():
         with initialize_config_module(CONFIG_MODULE, version_base=None):
-            cfg = compose(CONFIG_NAME, overrides=list(overrides), return_hydra_config=True)
+            return compose(CONFIG_NAME, overrides=list(overrides), return_hydra_config=True)
+
+    return validated(composed(hydra_compose, overrides, registry), overrides)
+
+
+def composed(compose: Callable[[], Any], overrides: Sequence[str], registry: Registry):
+    """`compose()`, a Hydra composition of `overrides` (its `hydra` node included), with Hydra's
+    override and type errors as one line naming the value (ConfigError)."""
+    try:
+        return compose()
     except Exception as exc:  # Hydra's override and type errors: name the value, one line
         orphan = _part_without_owner(overrides, exc) or _key_of_a_choice(overrides)
         if orphan:
             raise ConfigError(orphan) from None
-        raise ConfigError(composition_error(exc, overrides, registry or default_registry())) from exc
+        raise ConfigError(composition_error(exc, overrides, registry)) from exc
+
+
+def validated(cfg, overrides: Sequence[str]) -> tuple[RunConfig, dict[str, str]]:
+    """The run config of a composed config `cfg` (its `hydra` node included, left as it is) and
+    the plugin chosen for each role and part; ConfigError (one line) for a value out of range or
+    a plugin the mode does not use."""
+    from omegaconf import open_dict
+
     names = chosen_plugins(cfg.hydra.runtime.choices)
-    with open_dict(cfg):
-        del cfg["hydra"]
-    run_cfg = validate_config(cfg, parse_overrides(overrides))
+    task = copy.deepcopy(cfg)  # the run's own keys, as Hydra gives them to a job (run_job)
+    with open_dict(task):
+        del task["hydra"]
+    run_cfg = validate_config(task, parse_overrides(overrides))
     check_mode_uses(run_cfg, names)
     return run_cfg, names
 

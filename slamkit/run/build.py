@@ -21,6 +21,7 @@ from slamkit.registry.discovery import Registry, default_registry
 from slamkit.registry.schema import Mode, RunConfig
 from slamkit.roles import Dataset, Tracker, Viewer
 from slamkit.run.boundary import PluginBoundary
+from slamkit.run.handover import KeyframeHandovers
 from slamkit.run.loop_closing import LoopCloser
 from slamkit.run.loop_process import LoopClosureProcess
 from slamkit.run.slam import SLAM
@@ -83,8 +84,10 @@ def build(cfg: RunConfig, registry: Registry, names: dict[str, str]) -> BuiltRun
         raise ConfigError(f"loop_closure={names['loop_closure']}: tracker={names['tracker']} cannot follow a loop "
                           "closure's corrections (it does not implement Tracker.move_world); use loop_closure=none "
                           "or tracker=gicp")
+    realtime = cfg.mode is Mode.realtime  # the real-time runner's workers train and detect beside `process`
     slam = SLAM(tracker, create("keyframe", cfg.keyframe), create("mapper", cfg.mapper, **parts), gaussian_map,
-                cfg.growth, cfg.iterations_per_frame, boundary, loop_closer)
+                cfg.growth, cfg.iterations_per_frame, boundary, loop_closer, beside=realtime,
+                handovers=KeyframeHandovers() if realtime and cfg.keyframe_thread else None)
     return BuiltRun(dataset, slam, create("viewer", cfg.viewer), cfg)
 
 

@@ -2,7 +2,7 @@
 `slamkit.roles.loop_closure.LoopClosure`, has it decide (`detect_and_optimise`) in the tracking
 thread after the keyframe (sequential mode: deterministic) or, in real time, in a process of its
 own at the mapping thread's priority (`slamkit.run.loop_process`) that a thread of this one waits
-on (`LoopThread`), and hands the decisions to the
+on (`slamkit.run.workers.LoopThread`), and hands the decisions to the
 tracking thread as one `Correction` between two frames (`SLAM.correct` applies it: the map's
 Gaussians and the mapper's keyframes move, the tracker follows; the run's trajectory follows
 through `Correction.follow`).
@@ -350,43 +350,3 @@ class LoopCloser:
         pairs = [(r["match_keyframe"], r["keyframe"]) for r in self.rows() if r["accepted"]]
         pairs = [(m, k) for m, k in pairs if m in self._centres and k in self._centres]
         self.loop_segments = np.array([[self._centres[m], self._centres[k]] for m, k in pairs]).reshape(-1, 2, 3)
-
-
-class LoopThread(threading.Thread):
-    """Runs `closer.detect()` whenever keyframes are queued, beside tracking (real-time mode):
-    tracking never waits for it, and what it decides is applied by the tracking thread between
-    two frames (`LoopCloser.take`). The work itself is the loop closure's process's, at the
-    mapping thread's priority (`slamkit.run.loop_process`); this thread only hands it the
-    keyframes and waits for its answer, at normal priority (holding the GIL at a lower one
-    while it pickles a keyframe would make tracking wait for a thread that waits for a CPU).
-    It hands the keyframes over one call each, as sequential mode does, so that `stop()` (a
-    stop signal) waits for one keyframe's detection at most, never for a backlog: the keyframes
-    not taken stay queued (a checkpoint keeps them).
-    An exception in the loop closure stops the thread and is re-raised by `check()` / `stop()`.
-    `stop()` lets the call in progress end."""
-
-    def __init__(self, closer: LoopCloser):
-        super().__init__(name="slamkit-loop-closure", daemon=True)
-        self.closer = closer
-        self.error: BaseException | None = None
-        self._stop_event = threading.Event()
-
-    def run(self) -> None:
-        try:
-            while not self._stop_event.is_set():
-                if not self.closer.detect(limit=1):
-                    self.closer.wait_for_keyframes(0.05)
-        except BaseException as exc:  # handed to the tracking thread
-            self.error = exc
-
-    def check(self) -> None:
-        """Re-raise a loop-closure failure in the calling (tracking) thread."""
-        if self.error is not None:
-            raise self.error
-
-    def stop(self) -> None:
-        self._stop_event.set()
-        self.closer.wake()
-        if self.is_alive():
-            self.join()
-        self.check()

@@ -11,7 +11,7 @@ shares nothing with tracking but the CPUs.
 
 `LoopClosureProcess` is a `LoopClosure` that forwards every call to the plugin built in the
 child process (`spawn`: a fresh interpreter, no copy of the parent's threads or map) and waits
-for its answer; `slamkit.run.loop_closing.LoopThread` is the parent's thread that waits. The
+for its answer; `slamkit.run.workers.LoopThread` is the parent's thread that waits. The
 child ignores SIGINT and SIGTERM (the run decides when it stops: it still asks the child for its
 graph and its state after a signal), and exits when its pipe closes (the run ended, or died).
 """

@@ -2,10 +2,7 @@
 
 from __future__ import annotations
 
-import sys
-import threading
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -15,9 +12,9 @@ from slamkit.map.gaussian_map import GaussianMap, GaussianRows
 from slamkit.map.growth import MapGrowthConfig, frame_gaussians, new_gaussians
 from slamkit.roles import KeyframeDecision, KeyframePolicy, Mapper, Tracker
 from slamkit.run.boundary import PluginBoundary
+from slamkit.run.handover import KeyframeHandovers
 from slamkit.run.heap import release_free_memory
 from slamkit.run.loop_closing import Correction, LoopCloser
-from slamkit.scheduling import ThreadPriority, lower_calling_thread, thread_schedule
 from slamkit.types import Frame, KeyframeKind, TrackingResult
 
 
@@ -46,41 +43,45 @@ class StepResult:
 
 
 class SLAM:
-    """GS-ICP SLAM: a tracker and a mapper sharing one GaussianMap (sequential mode).
+    """GS-ICP SLAM: a tracker and a mapper sharing one GaussianMap. `process(frame)` is its one
+    per-frame method, in every mode.
 
     Each frame is tracked against the map; a keyframe's Gaussians that the mapper admits enter
     the map (a tracking keyframe also rebuilds the tracker's target from the map, which by then
-    holds the mapper's optimised values); then the mapper runs a fixed number of iterations, so
-    the run is deterministic. Every keyframe goes to the loop closure (`loop_closer`); when it
-    corrects the keyframes, the map's Gaussians and the mapper's keyframes move with them and the
-    tracker follows (`correct`). After each keyframe the C heap's free pages go back to the OS
-    (`slamkit.run.heap`), so that a long run's resident memory follows what it holds. Every call
-    into a plugin passes `boundary`, which names the plugin a failure came from.
+    holds the mapper's optimised values); every keyframe goes to the loop closure
+    (`loop_closer`), and when it corrects the keyframes, the map's Gaussians and the mapper's
+    keyframes move with them and the tracker follows (`correct`). After each keyframe the C
+    heap's free pages go back to the OS (`slamkit.run.heap`), so that a long run's resident
+    memory follows what it holds. Every call into a plugin passes `boundary`, which names the
+    plugin a failure came from.
 
-    In real time (`track(frame, defer_keyframe=True)`) the mapper takes a keyframe in a thread of
-    its own (`KeyframeHandover`) while the next frames are tracked; a tracking keyframe's growth
-    and the tracker's new target stay on the tracking thread, so the next frame aligns to the map
-    with the keyframe in it. `handover_time_s` sums the handovers' seconds, `handover_wait_s` the
-    tracking thread's waits for one (`settle`).
+    What else a frame's call does is fixed by the constructor. Sequential mode
+    (`beside=False`): the loop closure decides on the frame's keyframe at once and the mapper
+    then runs `iterations_per_frame` steps, so the run is deterministic. Real time
+    (`beside=True`): the map is trained and loops decided by the workers of
+    `slamkit.run.runner.RealtimeRunner` beside tracking, and with `handovers` the mapper takes a
+    keyframe in a thread of its own (`KeyframeHandovers`) while the next frames are tracked; a
+    tracking keyframe's growth and the tracker's new target stay on the tracking thread, so the
+    next frame aligns to the map with the keyframe in it.
     """
 
     def __init__(self, tracker: Tracker, keyframe_policy: KeyframePolicy, mapper: Mapper, gaussian_map: GaussianMap,
                  growth: MapGrowthConfig, iterations_per_frame: int = 0, boundary: PluginBoundary | None = None,
-                 loop_closer: LoopCloser | None = None):
+                 loop_closer: LoopCloser | None = None, beside: bool = False,
+                 handovers: KeyframeHandovers | None = None):
         self.tracker = tracker
         self.keyframe_policy = keyframe_policy
         self.mapper = mapper
         self.gaussian_map = gaussian_map
         self.growth = growth
         self.iterations_per_frame = iterations_per_frame
+        self.beside = beside  # real time: mapping and loop detection run beside `process`, not in it
+        self.handovers = handovers  # None: the mapper takes each keyframe on the calling thread
         self.boundary = boundary or PluginBoundary({})
         self.loop_closer = loop_closer or LoopCloser(boundary=self.boundary)
         self.num_keyframes = 0
         self.keyframes_in_target = 0  # keyframes (ids below this) whose Gaussians the tracker's target was built with
         self.last_pose: np.ndarray | None = None
-        self.handover: KeyframeHandover | None = None  # the last keyframe going to the mapper beside tracking
-        self.handover_time_s = 0.0
-        self.handover_wait_s = 0.0
 
     def initialize(self, first_pose: np.ndarray) -> None:
         """Set the pose (camera-to-world) the trajectory starts from."""
@@ -88,26 +89,13 @@ class SLAM:
             self.tracker.initialize(first_pose)
         self.last_pose = first_pose
 
-    def step(self, frame: Frame) -> StepResult:
-        """Track one frame, have the loop closure decide on its keyframe at once and apply the
-        decision, then run this frame's mapping iterations (sequential mode)."""
-        step = self.track(frame)
-        self.loop_closer.detect()
-        step = self.close_loops(step)
-        start = time.perf_counter()
-        step.mapping_iterations = self.optimize(self.iterations_per_frame)
-        step.mapping_time_s = time.perf_counter() - start
-        return step
-
-    def optimize(self, iterations: int) -> int:
-        """Up to `iterations` mapping steps; the steps done."""
-        with self.boundary("mapper", "optimize"):
-            return self.mapper.optimize(iterations)
-
-    def track(self, frame: Frame, defer_keyframe: bool = False) -> StepResult:
-        """Track one frame and, if it is a keyframe, grow the map (real-time mode maps in
-        another thread: see `MappingThread`); defer_keyframe: the mapper takes the keyframe in
-        a thread of its own (`add_keyframe`)."""
+    def process(self, frame: Frame) -> StepResult:
+        """One frame: tracked (the first one placed at its ground-truth pose, else the origin),
+        its keyframe, if it is one, into the map, the mapper and the loop closure, the loop
+        closure's decisions made by now applied; in sequential mode the loop closure then
+        decides on the keyframe and the mapper trains `iterations_per_frame` steps."""
+        if self.last_pose is None:  # the run's first frame (a resumed run has its last pose)
+            self.initialize(frame.gt_pose if frame.gt_pose is not None else np.eye(4))
         start = time.perf_counter()
         with self.boundary("tracker", "track"):
             result = self.tracker.track(frame)
@@ -121,8 +109,21 @@ class SLAM:
             with self.boundary("keyframe", "decide"):
                 decision = self.keyframe_policy.decide(frame, result)
         if decision.kind:
-            self.add_keyframe(frame, result, decision.kind, defer_keyframe)
-        return self.close_loops(StepResult(result, decision, time.perf_counter() - start, 0.0, 0))
+            self.add_keyframe(frame, result, decision.kind)
+        step = self.close_loops(StepResult(result, decision, time.perf_counter() - start, 0.0, 0))
+        if self.beside:
+            return step
+        self.loop_closer.detect()
+        step = self.close_loops(step)
+        start = time.perf_counter()
+        step.mapping_iterations = self.optimize(self.iterations_per_frame)
+        step.mapping_time_s = time.perf_counter() - start
+        return step
+
+    def optimize(self, iterations: int) -> int:
+        """Up to `iterations` mapping steps; the steps done."""
+        with self.boundary("mapper", "optimize"):
+            return self.mapper.optimize(iterations)
 
     def close_loops(self, step: StepResult) -> StepResult:
         """`step` after the loop closure's decisions made by now are applied (`correct`)."""
@@ -150,11 +151,11 @@ class SLAM:
         self.loop_closer.cost.apply_s += time.perf_counter() - start
         return correction
 
-    def add_keyframe(self, frame: Frame, result: TrackingResult, kind: KeyframeKind, defer: bool = False) -> None:
+    def add_keyframe(self, frame: Frame, result: TrackingResult, kind: KeyframeKind) -> None:
         """The keyframe's Gaussians enter the map (`grow_map`: the trackable ones, and those of
         the others that the mapper admits), a tracking keyframe rebuilds the tracker's target, the
-        mapper and the loop closure take the keyframe. defer: what the next frames' tracking does
-        not need runs in a `KeyframeHandover` thread beside it: the mapper taking the keyframe
+        mapper and the loop closure take the keyframe. With `handovers`, what the next frames'
+        tracking does not need runs in a thread beside it: the mapper taking the keyframe
         (`Mapper.add_keyframe`: a training view, the memory cap); for a tracking keyframe the
         admission of its Gaussians that are not trackable (its trackable ones, the tracker's next
         target, enter first on the tracking thread); for a mapping-only keyframe its whole growth
@@ -162,8 +163,9 @@ class SLAM:
         loop correction and a checkpoint wait for it (`settle`)."""
         self.settle()  # keyframes reach the map and the mapper in order, each before the next one's admission
         keyframe_id = self.num_keyframes
+        defer = self.handovers is not None
         if defer and kind is KeyframeKind.MAPPING_ONLY:  # Gaussians the tracker did not hand over: made there too
-            self._start_handover(lambda: self._hand_over(frame, result.pose, kind, self.grow_map(
+            self.handovers.start(lambda: self._hand_over(frame, result.pose, kind, self.grow_map(
                 frame, self.with_gaussians(frame, result), kind, keyframe_id)))
         elif defer and kind is KeyframeKind.TRACKING:
             new = self.candidate_rows(frame, self.with_gaussians(frame, result), kind, keyframe_id)
@@ -176,13 +178,13 @@ class SLAM:
                 if tracked is not None and rows.start == tracked.stop > tracked.start:
                     rows = slice(tracked.start, rows.stop)  # nothing entered between: one keyframe's rows
                 self._hand_over(frame, result.pose, kind, rows)
-            self._start_handover(hand_over)
+            self.handovers.start(hand_over)
         else:
             rows = self.grow_map(frame, self.with_gaussians(frame, result), kind, keyframe_id)
             if kind is KeyframeKind.TRACKING:
                 self._update_target(keyframe_id)
             if defer:
-                self._start_handover(lambda: self._hand_over(frame, result.pose, kind, rows))
+                self.handovers.start(lambda: self._hand_over(frame, result.pose, kind, rows))
             else:
                 self._hand_over(frame, result.pose, kind, rows)
         self.loop_closer.add_keyframe(keyframe_id, frame, result.pose, result.gaussians)  # what the tracker handed over
@@ -194,10 +196,6 @@ class SLAM:
             self.tracker.update_target(self.gaussian_map)
         self.keyframes_in_target = keyframe_id + 1
 
-    def _start_handover(self, hand_over: Callable[[], None]) -> None:
-        self.handover = KeyframeHandover(hand_over)
-        self.handover.start()
-
     def _hand_over(self, frame: Frame, pose: np.ndarray, kind: KeyframeKind, rows: slice) -> None:
         """The mapper takes the keyframe; then the C heap's free pages go back to the OS."""
         with self.boundary("mapper", "add_keyframe"):
@@ -207,16 +205,8 @@ class SLAM:
     def settle(self) -> None:
         """Wait for the keyframe going to the mapper beside tracking, if one is; raise its
         failure here (on the tracking thread)."""
-        handover = self.handover
-        if handover is None:
-            return
-        start = time.perf_counter()
-        handover.join()  # an interrupt here leaves it to the next settle()
-        self.handover = None
-        self.handover_wait_s += time.perf_counter() - start
-        self.handover_time_s += handover.seconds
-        if handover.error is not None:
-            raise handover.error
+        if self.handovers is not None:
+            self.handovers.settle()
 
     def finish(self) -> None:
         """The mapper's wrap-up after the stream and the refinement."""
@@ -290,140 +280,3 @@ class SLAM:
             admitted = np.asarray(torch.as_tensor(admitted).cpu(), dtype=bool) | new.trackable.cpu().numpy()
         entering = (new if admitted is None else new.select(admitted)).computed()  # outside the lock
         return gm.append(entering)
-
-
-class KeyframeHandover(threading.Thread):
-    """A keyframe's work that tracking does not wait for (`SLAM.add_keyframe(..., defer=True)`):
-    `hand_over()` in a thread of its own, at the tracking thread's priority (the mapping
-    thread's lower one would let training hold up the next keyframe). `error`: what it raised,
-    for `SLAM.settle` to raise on the tracking thread; `seconds`: how long it took."""
-
-    def __init__(self, hand_over: Callable[[], None]):
-        super().__init__(name="slamkit-keyframe", daemon=True)
-        self.hand_over = hand_over
-        self.error: BaseException | None = None
-        self.seconds = 0.0
-
-    def run(self) -> None:
-        start = time.perf_counter()
-        try:
-            self.hand_over()
-        except BaseException as exc:  # raised again by SLAM.settle on the tracking thread
-            self.error = exc
-        finally:
-            self.seconds = time.perf_counter() - start
-
-
-@dataclass
-class MappingThrottle:
-    """What held the real-time mapping thread back, in seconds of the stream: `cpu_wait_s`
-    runnable but waiting for a CPU (threads of higher priority, tracking and reading, or other
-    processes went first), `no_keyframe_s` waiting for a first keyframe to train on, `blocked_s`
-    the rest of its steps' time not on a CPU (the GIL, the map's lock, the kernels' workers),
-    `yielded_s` paused for a late tracker. `priority` is what it ran at ("same" where the OS
-    refused a lower one)."""
-
-    priority: str
-    cpu_wait_s: float | None = None
-    no_keyframe_s: float = 0.0
-    blocked_s: float | None = None
-    yielded_s: float = 0.0  # paused between steps while tracking was late (`MappingThread.tracking_deadline`)
-
-
-#: The longest a mapping thread waits for a late tracker at a time (it is woken when tracking is
-#: done with the frame, or stopped).
-YIELD_WAIT_S = 0.05
-
-
-class MappingThread(threading.Thread):
-    """Runs `slam.optimize(1)` in a loop beside tracking (real-time mode), at `priority`
-    (`slamkit.scheduling`; the threads and the compiled kernels' pools it uses run at it too),
-    so that the tracker and the frame reader get the CPU first and mapping takes what is left.
-
-    The mapper changes the shared map only under `gaussian_map.lock` and the tracker reads it
-    only through `tracking_target()` copies, so no copy of the whole map is made per frame.
-    An exception in the mapper stops the loop and is re-raised by `check()` / `stop()`.
-    While tracking is late on a frame (past `tracking_deadline`) no step starts, so that a slow
-    frame has both CPUs until it is tracked (`yield_to_tracking`).
-    While it runs, Python's thread switch interval is `switch_interval_s` (how long a thread
-    waiting for the GIL may wait; restored by `stop()`).
-    """
-
-    def __init__(self, slam: SLAM, switch_interval_s: float, priority: ThreadPriority = ThreadPriority.idle):
-        super().__init__(name="slamkit-mapping", daemon=True)
-        self.slam = slam
-        self.switch_interval_s = switch_interval_s
-        self.priority = ThreadPriority(priority)
-        self._saved_switch_interval: float | None = None
-        self.iterations = 0
-        self.busy_time_s = 0.0
-        self.cpu_time_s = 0.0  # the thread's CPU seconds (steps, waits' overhead), when it ends
-        self.throttle = MappingThrottle(self.priority.value)  # complete when it ends
-        self.error: BaseException | None = None
-        self._stop_event = threading.Event()
-        self.tracking_deadline: float | None = None  # time.perf_counter() past which tracking is late
-        self._tracking_done = threading.Event()  # set while tracking is not on a frame
-        self._tracking_done.set()
-
-    def start(self) -> None:
-        self._saved_switch_interval = sys.getswitchinterval()
-        sys.setswitchinterval(self.switch_interval_s)
-        super().start()
-
-    def run(self) -> None:
-        lowered = lower_calling_thread(self.priority)
-        schedule_start = thread_schedule()
-        wall_start, cpu_start = time.perf_counter(), time.thread_time()
-        try:
-            while not self._stop_event.is_set():
-                start = time.perf_counter()
-                deadline = self.tracking_deadline
-                if deadline is not None and start > deadline:  # a frame is waiting: tracking first
-                    self._tracking_done.wait(YIELD_WAIT_S)
-                    self.throttle.yielded_s += time.perf_counter() - start
-                    continue
-                done = self.slam.optimize(1)
-                self.iterations += done
-                if done:
-                    self.busy_time_s += time.perf_counter() - start
-                else:  # nothing to train on yet
-                    self._stop_event.wait(0.005)
-                    self.throttle.no_keyframe_s += time.perf_counter() - start
-        except BaseException as exc:  # handed to the tracking thread
-            self.error = exc
-        finally:
-            self.cpu_time_s = time.thread_time() - cpu_start
-            self._account(lowered, schedule_start, time.perf_counter() - wall_start)
-
-    def _account(self, lowered: bool, schedule_start, wall_s: float) -> None:
-        throttle = self.throttle
-        throttle.priority = self.priority.value if lowered else ThreadPriority.same.value
-        schedule_end = thread_schedule()
-        if schedule_start is not None and schedule_end is not None:
-            throttle.cpu_wait_s = schedule_end.cpu_wait_s - schedule_start.cpu_wait_s
-            waits = throttle.no_keyframe_s + throttle.yielded_s + throttle.cpu_wait_s
-            throttle.blocked_s = max(0.0, wall_s - waits - self.cpu_time_s)
-
-    def yield_to_tracking(self, deadline: float | None) -> None:
-        """Tracking is on a frame and late past `deadline` (time.perf_counter() seconds; None:
-        tracking is done with the frame, or has no input rate). Past it, no step starts."""
-        self.tracking_deadline = deadline
-        if deadline is None:
-            self._tracking_done.set()
-        else:
-            self._tracking_done.clear()
-
-    def check(self) -> None:
-        """Re-raise a mapper failure in the calling (tracking) thread."""
-        if self.error is not None:
-            raise self.error
-
-    def stop(self) -> None:
-        self._stop_event.set()
-        self._tracking_done.set()
-        if self.is_alive():
-            self.join()
-        if self._saved_switch_interval is not None:
-            sys.setswitchinterval(self._saved_switch_interval)
-            self._saved_switch_interval = None
-        self.check()

@@ -17,7 +17,8 @@ import numpy as np
 
 from slamkit.run.lifecycle import Phase
 from slamkit.run.loop_closing import Correction
-from slamkit.run.slam import MappingThrottle, StepResult
+from slamkit.run.slam import StepResult
+from slamkit.run.workers import MappingThrottle
 from slamkit.types import Frame
 
 #: metrics.json's `status`: what became of the run.

@@ -103,3 +103,28 @@ def test_the_modules_import_time_graph_has_no_cycle():
         if node not in state:
             visit(node)
     assert not cycles, "import cycles:\n" + "\n".join(cycles)
+
+
+#: Inside `run`, the algorithm (SLAM and what it calls) imports neither what feeds it frames (the
+#: runners and their workers) nor the run around it (the pipeline, outputs, checkpoints); the
+#: runners do not import the pipeline. Each room may import the rooms before it.
+RUN_ROOMS = [
+    ("algorithm", {"slamkit.run.slam", "slamkit.run.handover", "slamkit.run.loop_closing",
+                   "slamkit.run.loop_process", "slamkit.run.boundary", "slamkit.run.heap"}),
+    ("runners", {"slamkit.run.runner", "slamkit.run.workers"}),
+    ("pipeline", {"slamkit.run.pipeline"}),
+]
+
+
+def test_the_runs_rooms_import_one_way():
+    room_of = {module: level for level, (_, modules) in enumerate(RUN_ROOMS) for module in modules}
+    sources = {module_name(p): p for p in SOURCES}
+    assert set(room_of) <= set(sources), f"rooms list modules that are gone: {sorted(set(room_of) - set(sources))}"
+    offending = []
+    for module, level in room_of.items():
+        for line, imported in imports(sources[module], top_level_only=False):
+            target = next((m for m in room_of if imported == m or imported.startswith(m + ".")), None)
+            if target is not None and room_of[target] > level:
+                offending.append(f"{module}:{line} ({RUN_ROOMS[level][0]}) imports {imported} "
+                                 f"({RUN_ROOMS[room_of[target]][0]})")
+    assert not offending, "\n".join(offending)

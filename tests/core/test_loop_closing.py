@@ -86,7 +86,7 @@ def _trained_slam(optimizer: str):
                                   "mapper.strategy.prune_every=0", "mapper.view_cache_mb=0"])
     slam.initialize(dataset[0].gt_pose)
     for i in range(len(dataset)):
-        slam.step(dataset[i])
+        slam.process(dataset[i])
     return slam
 
 

@@ -162,7 +162,7 @@ def grow_once(gm, **admission) -> tuple[int, object]:
     slam.initialize(np.eye(4))
     frame = render_frame(create_rasterizer("torch"), make_map(*plane_scene()), np.eye(4))
     before, structure = len(gm), gm.structure_version
-    slam.step(frame)
+    slam.process(frame)
     assert gm.structure_version == structure  # decided before appending: nothing added and removed
     return len(gm) - before, mapper
 
@@ -243,7 +243,7 @@ def test_gaussians_the_target_lacks_yet_are_not_made_trackable_twice():
     frame = render_frame(create_rasterizer("torch"), make_map(*plane_scene()), np.eye(4))
     kinds, sizes = [], []
     for i in range(5):
-        kinds.append(slam.step(dataclasses.replace(frame, index=i)).keyframe.value)
+        kinds.append(slam.process(dataclasses.replace(frame, index=i)).keyframe.value)
         sizes.append(len(gm))
     assert kinds == ["tracking", "mapping_only", "mapping_only", "tracking", "mapping_only"]
     # frame 1: the target lacks nothing yet (frame 0's rows are in it), so all 40 are new

@@ -201,7 +201,7 @@ def test_guarded_replica_run_stays_under_the_cap_keeps_the_most_opaque_and_track
     poses, gts = [], []
     for i in range(len(dataset)):
         frame = dataset[i]
-        step = slam.step(frame)
+        step = slam.process(frame)
         poses.append(step.tracking.pose)
         gts.append(frame.gt_pose)
         assert len(gm) <= cap, f"frame {i}: {len(gm)} Gaussians"
@@ -244,6 +244,6 @@ def test_slam_releases_free_memory_at_each_keyframe(monkeypatch, rasterizer):
     frame = render_frame(rasterizer, start_map(), np.eye(4))
     slam.initialize(np.eye(4))
     for i in range(5):
-        slam.step(frame.__class__(i, float(i), frame.rgb, frame.depth, frame.camera, frame.gt_pose))
+        slam.process(frame.__class__(i, float(i), frame.rgb, frame.depth, frame.camera, frame.gt_pose))
         assert len(slam.gaussian_map) <= 100
     assert slam.num_keyframes == 3 and len(calls) == 3

@@ -107,7 +107,7 @@ def _mapping_only_rows(trackable: bool, tum_path) -> tuple[torch.Tensor, torch.T
                                   "mapper.keep_untrackable=true", "keyframe.mapping_every=3",
                                   f"growth.mapping_only_trackable={trackable}"])
     slam.initialize(dataset[0].gt_pose)
-    kinds = [k for k in (slam.step(dataset[i]).keyframe for i in range(len(dataset))) if k]
+    kinds = [k for k in (slam.process(dataset[i]).keyframe for i in range(len(dataset))) if k]
     gm = slam.gaussian_map
     mapping_only = torch.tensor([kinds[int(k)] is KeyframeKind.MAPPING_ONLY for k in gm.keyframe_id])
     assert mapping_only.any() and (~mapping_only).any()
@@ -190,7 +190,7 @@ def test_the_mappers_evaluation_scores_with_the_runs_lpips_and_psnr_pixels(tum_p
                                       "mapper.eval_every=5", "mapper.save_images=0", "eval.lpips=on",
                                       f"eval.lpips_backbone={backbone}", f"eval.psnr_pixels={pixels}"])
         slam.initialize(dataset[0].gt_pose)
-        poses = [slam.step(dataset[i]).tracking.pose for i in range(len(dataset))]
+        poses = [slam.process(dataset[i]).tracking.pose for i in range(len(dataset))]
         scores[pixels] = slam.evaluate(dataset, poses, tmp_path)
     valid_fraction = float((torch.as_tensor(np.asarray(dataset[0].depth)) > 0).float().mean())
     assert scores["valid"]["eval_frames"] == 1 and valid_fraction < 0.99

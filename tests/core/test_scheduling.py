@@ -43,7 +43,7 @@ def test_a_thread_lowers_its_own_priority_only(priority, policy, nice_steps):
 
 @linux_only
 def test_the_mapping_thread_runs_at_its_priority_and_says_what_held_it_back():
-    from slamkit.run.slam import MappingThread
+    from slamkit.run.workers import MappingThread
 
     class Mapper:
         def __init__(self):

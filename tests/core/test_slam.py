@@ -15,7 +15,7 @@ def _run(keep_untrackable: bool, frames: int = 30):
     dataset, slam, _ = build_run(["dataset=synthetic", f"dataset.num_frames={frames}", "tracker=gicp",
                                   "keyframe=overlap", "mapper=none", f"mapper.keep_untrackable={keep_untrackable}"])
     slam.initialize(dataset[0].gt_pose)
-    poses = [slam.step(dataset[i]).tracking.pose for i in range(len(dataset))]
+    poses = [slam.process(dataset[i]).tracking.pose for i in range(len(dataset))]
     return np.array(poses), slam
 
 
@@ -57,7 +57,7 @@ def test_the_mapping_thread_shortens_the_gil_switch_interval_while_it_runs():
     import sys
     import threading
 
-    from slamkit.run.slam import MappingThread
+    from slamkit.run.workers import MappingThread
 
     class Recorder:
         def __init__(self):
@@ -80,14 +80,16 @@ def test_the_mapping_thread_shortens_the_gil_switch_interval_while_it_runs():
 
 def _keyframe_run(defer: bool, frames: int = 12):
     """A synthetic run with tracking and mapping-only keyframes, each frame tracked with
-    `slam.track` (as the real-time loop does), the keyframes' work beside tracking or not; the
+    `slam.process` of a SLAM built for real time, the keyframes' work beside tracking or not
+    (`keyframe_thread`); the
     mapper's `add_keyframe` made slow (30 ms) and every call of `admit` / `add_keyframe` logged
     with its start and end, so that an overlap would show."""
     import time
 
     dataset, slam, _ = build_run(["dataset=synthetic", f"dataset.num_frames={frames}", "dataset.width=64",
                                   "dataset.height=48", "tracker=gicp", "keyframe=every_n", "keyframe.tracking_every=4",
-                                  "keyframe.mapping_every=2", "mapper=gaussian_splatting", "mode=realtime"])
+                                  "keyframe.mapping_every=2", "mapper=gaussian_splatting", "mode=realtime",
+                                  f"keyframe_thread={defer}"])
     calls = []
 
     def logged(name, method, pause=0.0):
@@ -103,7 +105,7 @@ def _keyframe_run(defer: bool, frames: int = 12):
     slam.mapper.admit = logged("admit", slam.mapper.admit)
     slam.mapper.add_keyframe = logged("add_keyframe", slam.mapper.add_keyframe, pause=0.03)
     slam.initialize(dataset[0].gt_pose)
-    steps = [slam.track(dataset[i], defer_keyframe=defer) for i in range(len(dataset))]
+    steps = [slam.process(dataset[i]) for i in range(len(dataset))]
     slam.settle()
     return slam, steps, calls
 
@@ -131,7 +133,7 @@ def test_keyframes_handed_over_beside_tracking_give_the_same_run():
     # the same rows; a tracking keyframe's trackable ones enter first beside tracking (the tracker's
     # next target), the rest after the mapper's admission in the handover thread
     np.testing.assert_array_equal(_rows(beside), _rows(waited))
-    assert beside.handover_time_s > 0 and waited.handover_time_s == 0
+    assert beside.handovers.time_s > 0 and waited.handovers is None
     assert beside.optimize(2) == waited.optimize(2) == 2  # the mapper has every keyframe to train on
 
 
@@ -144,7 +146,7 @@ def test_a_failure_beside_tracking_is_raised_on_the_tracking_thread_naming_the_p
 
     monkeypatch.setattr(slam.mapper, "add_keyframe", broken)
     slam.initialize(dataset[0].gt_pose)
-    step = slam.track(dataset[0], defer_keyframe=True)  # returns before the mapper has it
+    step = slam.process(dataset[0])  # returns before the mapper has it
     assert step.keyframe is KeyframeKind.TRACKING
     with pytest.raises(PluginError, match=r"^mapper plugin 'gaussian_splatting' failed in add_keyframe\(\): "
                                           r"RuntimeError: no room for the view$"):
@@ -158,7 +160,7 @@ def test_mapping_starts_no_step_while_tracking_is_late():
     import threading
     import time
 
-    from slamkit.run.slam import MappingThread
+    from slamkit.run.workers import MappingThread
     from slamkit.scheduling import ThreadPriority
 
     class Recorder:
@@ -183,3 +185,42 @@ def test_mapping_starts_no_step_while_tracking_is_late():
     thread.stop()
     assert late_steps == 0 and mapper.steps > 0
     assert thread.throttle.yielded_s >= 0.05
+
+
+def test_one_frame_goes_pipeline_runner_slam_then_the_roles_in_order(tmp_path):
+    """The first frame of a run, followed through its calls: the pipeline hands it to the
+    runner, the runner to `SLAM.process`, which tracks it, decides on a keyframe, grows the map
+    (the mapper's admission), hands the keyframe to the mapper, then trains (sequential mode)."""
+    from slamkit.registry.compose import compose_run
+    from slamkit.registry.discovery import default_registry
+    from slamkit.run.lifecycle import StopSignals
+    from slamkit.run.pipeline import Pipeline
+
+    registry = default_registry()
+    cfg, names = compose_run(["dataset=synthetic", "dataset.num_frames=2", "dataset.width=64", "dataset.height=48",
+                              "mapper=gaussian_splatting", "final_iterations=0", "progress=false",
+                              "eval.plot=false"], registry)
+    pipeline = Pipeline(cfg, registry, names, tmp_path, StopSignals())
+    calls = []
+
+    def logged(owner, attribute, name):
+        method = getattr(owner, attribute)
+
+        def call(*args, **kwargs):
+            calls.append(name)
+            return method(*args, **kwargs)
+        setattr(owner, attribute, call)
+
+    slam = pipeline.slam
+    logged(pipeline.runner, "process", "runner")
+    logged(slam, "process", "slam")
+    logged(slam.tracker, "track", "tracker.track")
+    logged(slam.keyframe_policy, "decide", "keyframe.decide")
+    logged(slam.mapper, "admit", "mapper.admit")
+    logged(slam.mapper, "add_keyframe", "mapper.add_keyframe")
+    logged(slam.mapper, "optimize", "mapper.optimize")
+    with StopSignals().installed():
+        pipeline.run()
+    first = calls[:calls.index("mapper.optimize") + 1]
+    assert first == ["runner", "slam", "tracker.track", "keyframe.decide", "mapper.admit", "mapper.add_keyframe",
+                     "mapper.optimize"]

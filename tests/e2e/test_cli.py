@@ -132,3 +132,53 @@ def test_the_command_exits_2_with_one_line_for_each(tmp_path):
         assert proc.returncode == 2, (bad, proc.stderr[-500:])
         last = proc.stderr.strip().splitlines()[-1]
         assert last.startswith("slamkit: error: ") and named in last and "Traceback" not in proc.stderr
+
+
+def test_hydras_own_options_behave_as_in_any_hydra_app(tmp_path):
+    """--cfg job prints the composed config, --info what Hydra knows, --help the app's help; no run."""
+    job = _ok(run_slamkit("--cfg", "job", "tracker=kiss_icp", cwd=tmp_path))
+    assert "\ntracker:" in job.stdout and "\nmode: sequential" in job.stdout
+    info = _ok(run_slamkit("--info", "config", cwd=tmp_path))
+    assert "Config search path" in info.stdout
+    helped = _ok(run_slamkit("--help", cwd=tmp_path))
+    assert "Powered by Hydra" in helped.stdout
+    assert not (tmp_path / "outputs").exists()
+
+
+#: The slamkit command in a fresh process, every composition of the configuration counted (Hydra
+#: composes through `ConfigLoaderImpl.load_configuration`, whoever asks: the command, a check, Hydra).
+COUNTING = """
+import sys
+from hydra._internal.config_loader_impl import ConfigLoaderImpl
+from slamkit.cli.main import Command
+
+calls = []
+load = ConfigLoaderImpl.load_configuration
+def counted(self, *args, **kwargs):
+    calls.append(1)
+    return load(self, *args, **kwargs)
+ConfigLoaderImpl.load_configuration = counted
+try:
+    Command().main(sys.argv[1:])
+finally:
+    print(f"compositions: {len(calls)}", file=sys.stderr)
+"""
+
+
+def test_a_run_and_its_resume_compose_the_configuration_once(tmp_path):
+    import subprocess
+    import sys
+
+    run_dir = tmp_path / "run"
+
+    def slamkit(*args):
+        return _ok(subprocess.run([sys.executable, "-c", COUNTING, *args], cwd=tmp_path, capture_output=True,
+                                  text=True, timeout=600))
+
+    first = slamkit("dataset.num_frames=12", "dataset.max_frames=6", "progress=false", "eval.plot=false",
+                    "checkpoint.save=true", f"hydra.run.dir={run_dir}")
+    assert first.stderr.strip().splitlines()[-1] == "compositions: 1", first.stderr
+    assert (run_dir / ".hydra" / "config.yaml").is_file() and (run_dir / "metrics.json").is_file()
+    resumed = slamkit(f"resume={run_dir}", "dataset.max_frames=12")
+    assert resumed.stderr.strip().splitlines()[-1] == "compositions: 1", resumed.stderr
+    assert json.loads((run_dir / "metrics.json").read_text())["num_frames"] == 12

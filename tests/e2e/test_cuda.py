@@ -123,7 +123,7 @@ def keyframe_scene(replica_path: Path, seed: int = 0):
                                   "mapper=none", "mapping_device=cpu", "progress=false"])
     frame = dataset[0]
     slam.initialize(frame.gt_pose)
-    slam.step(frame)
+    slam.process(frame)
     gm = slam.gaussian_map
     g = torch.Generator().manual_seed(seed)
     opacities = 0.3 + 0.65 * torch.rand(len(gm), generator=g, dtype=F64)
@@ -209,7 +209,7 @@ def test_mapping_step_phases_on_cuda(backend, replica_path):
                                   "iterations_per_frame=0", "progress=false"])
     slam.initialize(dataset[0].gt_pose)
     for i in range(len(dataset)):
-        slam.step(dataset[i])
+        slam.process(dataset[i])
     mapper = step_phases.unwrapped(slam.mapper)
     gm = slam.gaussian_map
     assert gm.means.device.type == "cuda" and len(mapper.trainer.keyframes) > 0

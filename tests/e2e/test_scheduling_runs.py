@@ -29,7 +29,8 @@ POOL_SCRIPT = textwrap.dedent("""
         "mapper.rasterizer.num_threads=2", "mapper.loss.num_threads=2", "mode=realtime"])
     slam.initialize(dataset[0].gt_pose)
     for i in range(len(dataset)):
-        slam.track(dataset[i])
+        slam.process(dataset[i])
+    slam.settle()  # the keyframes handed over beside tracking are the mapper's
     assert slam.optimize(2) == 2  # the main thread first: the pools' workers at normal priority
     before = {t.tid: t for t in process_threads()}
     def mapping():

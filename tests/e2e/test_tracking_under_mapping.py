@@ -31,7 +31,7 @@ def _run(mapper: str, *overrides: str):
     dataset, slam, _ = build_run(["dataset=tum", f"dataset.path={require_data(TUM)}", f"dataset.max_frames={FRAMES}",
                                   "tracker=gicp", "keyframe=overlap", f"mapper={mapper}", *extra, *overrides])
     slam.initialize(dataset[0].gt_pose)
-    poses = np.array([slam.step(dataset[i]).tracking.pose for i in range(len(dataset))])
+    poses = np.array([slam.process(dataset[i]).tracking.pose for i in range(len(dataset))])
     return poses, slam
 
 

@@ -132,7 +132,7 @@ def test_run_config_reaches_gsplat_as_documented(fake_cuda):
     assert len(calls) == 1  # the probe, at construction
     slam.initialize(dataset[0].gt_pose)
     for i in range(len(dataset)):
-        slam.step(dataset[i])
+        slam.process(dataset[i])
     assert slam.mapper.trainer.steps > 0 and len(calls) > 1
     kw = calls[-1]
     cam = slam.mapper.trainer.keyframes.training_camera(dataset.camera)

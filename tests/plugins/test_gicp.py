@@ -493,7 +493,7 @@ def test_an_oscillating_alignment_stops():
                                       "tracker=gicp", "keyframe=overlap", "mapper=none",
                                       "tracker.retry_unconverged=false", f"tracker.stop_stalled={stop}"])
         slam.initialize(dataset[0].gt_pose)
-        result = [slam.track(dataset[i]).tracking for i in range(51)][-1]
+        result = [slam.process(dataset[i]).tracking for i in range(51)][-1]
         poses[stop], stats[stop] = result.pose, result.stats
     assert stats[False]["iterations"] == 64 and not stats[False].get("stalled"), stats[False]
     assert stats[True]["stalled"] and stats[True]["iterations"] < 32, stats[True]
@@ -657,7 +657,7 @@ def test_after_a_dropped_frame_an_alignment_that_went_as_far_as_the_gap_is_kept(
         dataset, slam, _ = build_run(["dataset=tum", f"dataset.path={tum_path}", "dataset.max_frames=55",
                                       "tracker=gicp", "keyframe=overlap", "mapper=none"])
         slam.initialize(dataset[0].gt_pose)
-        return [slam.track(dataset[i]).tracking for i in range(55) if i not in skip][-1]
+        return [slam.process(dataset[i]).tracking for i in range(55) if i not in skip][-1]
 
     dropped, sequential = track({53}), track(set())
     assert "retried" not in dropped.stats, dropped.stats

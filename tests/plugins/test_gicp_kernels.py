@@ -288,5 +288,5 @@ def test_compiled_tracking_equals_numpy_tracking_on_real_frames(tum_frames):
                     registry.create("mapper", "none", registry.get("mapper", "none").config()), GaussianMap(),
                     MapGrowthConfig())
         slam.initialize(frames[0].gt_pose)
-        poses[kernels] = np.array([slam.step(f).tracking.pose for f in frames])
+        poses[kernels] = np.array([slam.process(f).tracking.pose for f in frames])
     np.testing.assert_allclose(poses["compiled"], poses["numpy"], atol=1e-9)

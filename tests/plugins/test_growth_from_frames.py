@@ -32,7 +32,7 @@ def test_a_tracker_that_hands_no_gaussians_over_grows_the_map_near_the_first_key
     dataset, slam, _ = build_run(["dataset=tum", f"dataset.path={tum_path}", "dataset.max_frames=12",
                                   "tracker=kiss_icp", "mapper=gaussian_splatting", "iterations_per_frame=1"])
     slam.initialize(dataset[0].gt_pose)
-    steps = [slam.step(dataset[i]) for i in range(len(dataset))]
+    steps = [slam.process(dataset[i]) for i in range(len(dataset))]
     assert all(s.tracking.gaussians is None for s in steps)  # KISS-ICP keeps its own voxel map
     gm = slam.gaussian_map
     assert slam.num_keyframes >= 2 and len(gm) > 1000

@@ -89,7 +89,8 @@ def test_training_resolution_left_null_depends_on_the_mode(tum_path, overrides, 
     dataset, slam, _ = build_run(["dataset=tum", f"dataset.path={tum_path}", "dataset.max_frames=1",
                                   "mapper=gaussian_splatting", *overrides])
     slam.initialize(dataset[0].gt_pose)
-    slam.step(dataset[0])
+    slam.process(dataset[0])
+    slam.settle()  # real time: the keyframe goes to the mapper beside tracking
     assert slam.mapper.state_dict()["keyframes"]["rgb"].shape[1:3] == size
 
 
@@ -100,12 +101,13 @@ def test_a_resumed_mapper_trains_new_keyframes_at_its_checkpoints_resolution(tum
               "keyframe=every_n", "keyframe.tracking_every=1"]
     dataset, slam, _ = build_run([*common, "mode=realtime"])
     slam.initialize(dataset[0].gt_pose)
-    slam.step(dataset[0])
+    slam.process(dataset[0])
+    slam.settle()  # real time: the keyframe goes to the mapper beside tracking
     state = slam.mapper.state_dict()
     dataset, resumed, _ = build_run(common)
     resumed.initialize(dataset[0].gt_pose)
     resumed.mapper.load_state_dict(state)
-    resumed.step(dataset[1])
+    resumed.process(dataset[1])
     rgb = resumed.mapper.state_dict()["keyframes"]["rgb"]
     assert rgb.shape[0] == 2 and rgb.shape[1:3] == (120, 160)
 
@@ -368,7 +370,7 @@ def test_a_tracking_keyframe_takes_the_target_geometry_it_asks_for(truth_frames,
     frames = [truth_frames[0], truth_frames[0], truth_frames[1]]
     snapshots = []
     for i, f in enumerate(frames):
-        step = slam.step(Frame(i, float(i), f.rgb, f.depth, f.camera, f.gt_pose))
+        step = slam.process(Frame(i, float(i), f.rgb, f.depth, f.camera, f.gt_pose))
         if i == 0:
             n0 = len(gm)
         assert step.mapping_iterations == 6

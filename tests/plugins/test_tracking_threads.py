@@ -13,7 +13,7 @@ def _poses(tum_path, threads: int, frames: int = 20) -> np.ndarray:
                                   "tracker=gicp", "tracker.kernels=compiled", f"tracker.num_threads={threads}",
                                   "keyframe=overlap", "mapper=none"])
     slam.initialize(dataset[0].gt_pose)
-    return np.array([slam.step(dataset[i]).tracking.pose for i in range(len(dataset))])
+    return np.array([slam.process(dataset[i]).tracking.pose for i in range(len(dataset))])
 
 
 def test_a_real_sequence_tracks_the_same_on_one_thread_and_on_two(tum_path):

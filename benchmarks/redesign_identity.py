@@ -1,0 +1,192 @@
+"""Identity of a refactoring's outputs (issue 42's acceptance): the same runs made by two versions
+of slamkit must give byte-identical `trajectory.txt` and `map.ply` (and `keyframes.txt`,
+`loops.csv`) and the same `metrics.json` once its timings (and the process's peak memory) are
+set aside.
+
+`run` makes the fixed set of runs below through the public command line (the `slamkit` console
+script beside this Python), each its own process, into OUT/<case>. With `--rev REV` the runs use
+a snapshot of that git revision (`git archive` into OUT/src, put first on PYTHONPATH, so that the
+code being changed in the working tree does not leak into the reference); without it, the
+installed (editable) slamkit. `compare` prints one table row a case and writes JSON.
+
+    python benchmarks/redesign_identity.py run /tmp/ref --rev main       # before
+    python benchmarks/redesign_identity.py run /tmp/new                   # after (the working tree)
+    python benchmarks/redesign_identity.py compare /tmp/ref /tmp/new      # table + JSON
+
+Cases (sequential mode: results independent of the machine's speed): TUM fr1/rpy and Replica
+room0 with the 3DGS mapper, 7-Scenes redkitchen with the pose-graph loop closure, a mapped TUM
+run stopped after 20 frames and resumed to 40, and a localisation of TUM frames 40-59 in that
+resumed run's map. `--tum-frames`, `--sevenscenes-frames` shorten the long ones on a slow machine
+(the JSON records the counts used).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import io
+import json
+import os
+import re
+import subprocess
+import sys
+import tarfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = Path(os.environ.get("SLAMKIT_DATA", REPO.parent / "shared" / "data"))
+TUM = ["dataset=tum", f"dataset.path={DATA / 'tum_fr1_rpy_first150'}"]
+REPLICA = ["dataset=replica", f"dataset.path={DATA / 'replica_room0_first20'}"]
+SEVENSCENES = ["dataset=sevenscenes", f"dataset.path={DATA / '7scenes_redkitchen_300to999'}"]
+QUIET = ["progress=false", "eval.plot=false"]
+#: metrics.json keys that measure time or the process's memory, not the result: left out of the
+#: comparison (matched on the last part of the dotted key).
+TIMING = re.compile(r"(_s|_ms|fps|_cpu_s|peak_memory_mb)$|^delay_|^mapping_step_ms$|_s_per_")
+#: metrics.json keys that name a path of the run's inputs (the map a localisation reads): they
+#: differ between two output folders by construction.
+PATHS = {"map"}
+#: Two floats this close (relative) are "equal to rounding": a figure computed from identical
+#: files (the ATE of an identical trajectory) may differ in its last bit with BLAS's threading.
+ROUNDING = 1e-12
+OUTPUTS = ("trajectory.txt", "map.ply", "metrics.json", "keyframes.txt", "loops.csv")
+
+
+def cases(tum_frames: int, sevenscenes_frames: int) -> list[tuple[str, list[str]]]:
+    """(case, overrides) in run order; `resume` continues `resumed`, `localize` uses its map."""
+    mapped = ["mode=sequential", "mapper=gaussian_splatting"]
+    return [
+        ("tum_mapped", [*TUM, *mapped, f"dataset.max_frames={tum_frames}"]),
+        ("replica_mapped", [*REPLICA, *mapped]),
+        ("sevenscenes_loop", [*SEVENSCENES, "mode=sequential", "mapper=none", "loop_closure=pose_graph",
+                              f"dataset.max_frames={sevenscenes_frames}"]),
+        ("resumed", [*TUM, *mapped, "dataset.max_frames=20", "checkpoint.save=true"]),
+        ("resume", ["dataset.max_frames=40"]),  # resume=OUT/resumed, added at run time
+        ("localize", [*TUM, "mode=localize", "dataset.start=40", "dataset.max_frames=20"]),
+    ]
+
+
+def snapshot(rev: str, dest: Path) -> Path:
+    """The revision's tree under dest, importable as `slamkit` and `slamkit_plugins`."""
+    dest.mkdir(parents=True, exist_ok=True)
+    blob = subprocess.run(["git", "-C", str(REPO), "archive", rev], check=True, capture_output=True).stdout
+    with tarfile.open(fileobj=io.BytesIO(blob)) as tar:
+        tar.extractall(dest, filter="data")
+    link = dest / "slamkit_plugins"  # the wheel's package-dir mapping (plugins/ -> slamkit_plugins)
+    if not link.exists():
+        link.symlink_to("plugins")
+    return dest
+
+
+def run(out: Path, rev: str | None, tum_frames: int, sevenscenes_frames: int) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    env = dict(os.environ)
+    if rev:
+        src = snapshot(rev, out / "src")
+        env["PYTHONPATH"] = os.pathsep.join([str(src), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+    exe = Path(sys.executable).with_name("slamkit")
+    log = {"rev": rev, "tum_frames": tum_frames, "sevenscenes_frames": sevenscenes_frames, "runs": {}}
+    for name, overrides in cases(tum_frames, sevenscenes_frames):
+        extra = {"resume": [f"resume={out / 'resumed'}"], "localize": [f"map={out / 'resumed'}"]}.get(name, [])
+        run_dir = out / ("resumed" if name == "resume" else name)
+        # a resume writes into the folder it continues; hydra.run.dir must not be given then
+        where = [] if name == "resume" else [f"hydra.run.dir={run_dir}"]
+        cmd = [str(exe), *extra, *overrides, *QUIET, *where]
+        start = time.perf_counter()
+        proc = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=out)
+        log["runs"][name] = {"command": " ".join(cmd), "returncode": proc.returncode,
+                             "process_s": round(time.perf_counter() - start, 1),
+                             "last_line": (proc.stderr.strip().splitlines() or [""])[-1]}
+        print(f"{name}: exit {proc.returncode}, {log['runs'][name]['process_s']} s", flush=True)
+        if name == "resumed":  # keep the first session's outputs apart: the resume extends them
+            _copy_outputs(run_dir, out / "resumed_first")
+    (out / "runs.json").write_text(json.dumps(log, indent=2))
+
+
+def _copy_outputs(src: Path, dest: Path) -> None:
+    dest.mkdir(parents=True, exist_ok=True)
+    for name in OUTPUTS:
+        if (src / name).exists():
+            (dest / name).write_bytes((src / name).read_bytes())
+
+
+def _flat(d: dict, prefix: str = "") -> dict:
+    flat = {}
+    for key, value in d.items():
+        if TIMING.search(key):  # a timing, or a dict of them (mapping_step_ms)
+            continue
+        if isinstance(value, dict):
+            flat.update(_flat(value, f"{prefix}{key}."))
+        else:
+            flat[prefix + key] = value
+    return flat
+
+
+def _rounding(a, b) -> bool:
+    """Both floats, within ROUNDING of each other (relative)."""
+    return (isinstance(a, float) and isinstance(b, float)
+            and abs(a - b) <= ROUNDING * max(abs(a), abs(b), 1e-300))
+
+
+def compare_dirs(a: Path, b: Path) -> dict:
+    """Per output: 'identical', 'equal to rounding (keys)' (metrics.json), 'differs (...)', or
+    'missing ...'."""
+    result = {}
+    for name in OUTPUTS:
+        fa, fb = a / name, b / name
+        if not fa.exists() and not fb.exists():
+            continue
+        if not (fa.exists() and fb.exists()):
+            result[name] = "missing in " + ("before" if not fa.exists() else "after")
+        elif name == "metrics.json":
+            ma, mb = _flat(json.loads(fa.read_text())), _flat(json.loads(fb.read_text()))
+            diff = sorted(k for k in ma.keys() | mb.keys()
+                          if k not in PATHS and ma.get(k, "<absent>") != mb.get(k, "<absent>"))
+            real = [k for k in diff if not _rounding(ma.get(k), mb.get(k))]
+            result[name] = ("identical" if not diff else f"differs ({', '.join(real[:6])})" if real
+                            else f"equal to rounding ({', '.join(diff[:6])})")
+        else:
+            ha, hb = (hashlib.sha256(f.read_bytes()).hexdigest() for f in (fa, fb))
+            result[name] = "identical" if ha == hb else "differs"
+    return result
+
+
+def compare(before: Path, after: Path, out_json: Path) -> bool:
+    names = [n for n, _ in cases(0, 0) if n != "resume"] + ["resumed_first"]
+    rows, same = {}, True
+    print(f"{'case':<18} {'trajectory.txt':<16} {'map.ply':<16} {'keyframes.txt':<14} {'loops.csv':<12} "
+          "metrics.json (timings aside)")
+    for name in names:
+        rows[name] = compare_dirs(before / name, after / name)
+        same &= all(not v.startswith(("differs", "missing")) for v in rows[name].values()) and bool(rows[name])
+        r = rows[name]
+        print(f"{name:<18} {r.get('trajectory.txt', '-'):<16} {r.get('map.ply', '-'):<16} "
+              f"{r.get('keyframes.txt', '-'):<14} {r.get('loops.csv', '-'):<12} {r.get('metrics.json', '-')}")
+    runs = {side: json.loads((d / "runs.json").read_text()) for side, d in (("before", before), ("after", after))}
+    out_json.parent.mkdir(parents=True, exist_ok=True)
+    out_json.write_text(json.dumps({"identical": same, "cases": rows, "runs": runs}, indent=2))
+    print(f"{'all identical' if same else 'NOT identical'}; {out_json}")
+    return same
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    p_run = sub.add_parser("run", help="make the fixed set of runs into OUT")
+    p_run.add_argument("out", type=Path)
+    p_run.add_argument("--rev", help="a git revision to run from a snapshot (default: the installed slamkit)")
+    p_run.add_argument("--tum-frames", type=int, default=150)
+    p_run.add_argument("--sevenscenes-frames", type=int, default=700)
+    p_cmp = sub.add_parser("compare", help="compare two OUT folders")
+    p_cmp.add_argument("before", type=Path)
+    p_cmp.add_argument("after", type=Path)
+    p_cmp.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "redesign_identity.json")
+    args = parser.parse_args(argv)
+    if args.command == "run":
+        run(args.out, args.rev, args.tum_frames, args.sevenscenes_frames)
+        return 0
+    return 0 if compare(args.before, args.after, args.out) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
