@@ -28,6 +28,7 @@ from slamkit.run import checkpoint
 from slamkit.run.build import build
 from slamkit.run.frame_log import FrameLog
 from slamkit.run.lifecycle import Phase, StopSignals, pause_point
+from slamkit.run.live import LiveClock
 from slamkit.run.loop_closing import LoopThread
 from slamkit.run.metrics import folder_mb, summary
 from slamkit.run.outputs import RunOutputs
@@ -240,10 +241,10 @@ def _loop(cfg: RunConfig, dataset, slam: SLAM, state: RunState, frames_log: Fram
     frames.csv and shown, the checkpoint written every N keyframes; a signal stops it between
     two frames."""
     realtime = cfg.mode is Mode.realtime
-    clock = InputClock(cfg.fps_limit if realtime else None)
+    clock = LiveClock(dataset) if getattr(dataset, "live", False) else InputClock(cfg.fps_limit if realtime else None)
     mapping = MappingThread(slam, cfg.switch_interval, cfg.mapping_priority) if realtime else None
     loops = LoopThread(slam.loop_closer) if realtime and slam.loop_closer.active else None
-    bar = Progress("stream", len(dataset), "frame", initial=first)
+    bar = Progress("stream", None if getattr(dataset, "live", False) else len(dataset), "frame", initial=first)
     start, cpu_start, loading = time.perf_counter(), time.thread_time(), LoadCost()
     process_cpu_start = time.process_time()  # every thread: the kernels' workers too
     schedule_start = thread_schedule()
