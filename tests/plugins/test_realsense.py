@@ -23,8 +23,11 @@ rs = pytest.importorskip("pyrealsense2", reason="pyrealsense2 is the optional ex
                          "Intel publishes no wheel for this platform")
 
 from slamkit_plugins.datasets.folder import FolderConfig, FolderDataset  # noqa: E402
-from slamkit_plugins.datasets.realsense import RealSenseConfig, RealSenseDataset  # noqa: E402
-from slamkit_plugins.datasets.realsense import sdk  # noqa: E402
+from slamkit_plugins.datasets.realsense import (  # noqa: E402
+    RealSenseConfig,
+    RealSenseDataset,
+    sdk,  # noqa: E402
+)
 from slamkit_plugins.datasets.tum import TUMConfig, TUMDataset  # noqa: E402
 
 from support.realsense_writer import write_tum_recording  # noqa: E402

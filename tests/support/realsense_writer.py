@@ -1,8 +1,10 @@
 """RealSense recordings of the real TUM frames, made with no camera: `pyrealsense2`'s
 `software_device` with a depth and a colour sensor (the TUM fr1 camera's intrinsics, the same
 for both, the identity between them: depth registered to colour, as TUM's is), a `recorder`
-writing the .db3 that SDK 2.59 records, and one `software_video_frame` per image at its TUM
-timestamp. `dataset=realsense dataset.path=FILE` plays it back."""
+writing the .db3 that SDK 2.59 records, and one `software_video_frame` per image, a colour
+image and the depth image TUM associates with it both at the colour's TUM timestamp (as a
+D400's synchronised pair: the SDK's syncer pairs a colour and a depth frame by time, and TUM's
+are up to 20 ms apart). `dataset=realsense dataset.path=FILE` plays it back."""
 
 from __future__ import annotations
 
@@ -32,7 +34,8 @@ def _profile(rs, sensor, kind, fmt, bpp: int, uid: int, camera, fps: int):
 
 def write_tum_recording(tum: Path, path: Path, n: int, fps: int = 30) -> Path:
     """A RealSense .db3 recording at `path` of the first `n` associated colour + depth frames of
-    the TUM folder `tum` (colour rgb8, depth z16 in TUM's units, device timestamps = TUM's)."""
+    the TUM folder `tum` (colour rgb8, depth z16 in TUM's units, device timestamps = TUM's colour
+    timestamps)."""
     import pyrealsense2 as rs
 
     rgb_ts, rgb_files = read_tum_list(tum / "rgb.txt")
@@ -56,7 +59,7 @@ def write_tum_recording(tum: Path, path: Path, n: int, fps: int = 30) -> Path:
     color_sensor.start(sink)
     for k, (c, d) in enumerate(zip(ic[:n], idepth[:n])):
         images = (
-            (depth_sensor, depth, np.asarray(Image.open(tum / depth_files[d])).astype(np.uint16), 2, depth_ts[d]),
+            (depth_sensor, depth, np.asarray(Image.open(tum / depth_files[d])).astype(np.uint16), 2, rgb_ts[c]),
             (color_sensor, color, np.asarray(Image.open(tum / rgb_files[c]).convert("RGB")), 3, rgb_ts[c]),
         )
         for sensor, profile, pixels, bpp, stamp in images:

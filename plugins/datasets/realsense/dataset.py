@@ -200,9 +200,14 @@ class RealSenseDataset(Dataset):
                 arrival = time.perf_counter()
                 if frames is None:  # a recording's end
                     break
-                if last_number is not None and frames.number > last_number + 1:
-                    self._dropped_at_source(frames.number - last_number - 1, "the camera or the USB link")
-                last_number = frames.number
+                if self.path is not None:  # a recording: its frame sets before this one that did not come
+                    number = int(np.searchsorted(self.file_stamps, frames.timestamp - 1e-7))
+                    last_number = -1 if last_number is None else last_number
+                else:  # a camera: the gaps in its frame counter
+                    number = frames.number
+                if last_number is not None and number > last_number + 1:
+                    self._dropped_at_source(number - last_number - 1, "the camera, the USB link or the playback")
+                last_number = number
                 with self._taken:
                     if len(self._frames) >= self.cfg.queue:
                         self._dropped_at_source(1, f"the run's queue of {self.cfg.queue} frames being full")

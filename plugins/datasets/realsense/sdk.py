@@ -7,6 +7,7 @@ camera asked for, a stream mode the camera does not have, a recording it cannot 
 
 from __future__ import annotations
 
+import datetime
 import importlib
 import time
 from dataclasses import dataclass
@@ -23,6 +24,8 @@ REQUIREMENT = "pyrealsense2==2.59.1.11053"
 RECORDING_SUFFIXES = (".bag", ".db3")
 #: Milliseconds between two looks at a recording's playback status while waiting for its next frame set.
 POLL_MS = 100
+#: Milliseconds a recording read to its end is still waited on for its last frame sets.
+END_DRAIN_MS = 1000
 
 
 def sdk():
@@ -127,14 +130,19 @@ class Stream:
                       "dataset.height, dataset.fps)")
             raise DataError(f"cannot start {self.where}: {_first_line(exc)}{wanted}") from None
         self.running = True
+        self.last_timestamp_ms: float | None = None  # a recording's last colour timestamp given
         device = profile.get_device()
         self.playback = device.as_playback() if path is not None else None
         if self.playback is not None:
             # real_time: at the recorded pace, frame sets not taken in time dropped (as a camera);
             # else every frame set, at the pace they are taken
             self.playback.set_real_time(real_time)
-            if real_time:
-                self.playback.pause()  # until the reader is ready (`resume`): no frame set played unseen
+            # the pipeline started playing before this: from the start again (`next` skips a frame
+            # set given twice), so that none is played unseen
+            self.playback.pause()
+            self.playback.seek(datetime.timedelta(0))
+            if not real_time:  # at its recorded pace: paused until the reader is ready (`resume`)
+                self.playback.resume()
         try:
             color = profile.get_stream(rs.stream.color).as_video_stream_profile()
             depth = profile.get_stream(rs.stream.depth).as_video_stream_profile()
@@ -172,7 +180,11 @@ class Stream:
             if ok or self.playback is None or time.monotonic() > deadline:
                 break
             if self.playback.current_status() == self.rs.playback_status.stopped:
-                return None  # the recording's end
+                # the file is read to its end; the last frame sets may still be on their way
+                ok, frames = self.pipeline.try_wait_for_frames(END_DRAIN_MS)
+                if not ok:
+                    return None  # the recording's end
+                break
         if not ok:
             why = "did it end early?" if self.playback is not None else "is it still connected?"
             raise DataError(f"{self.where} gave no frame in {timeout_s:g} s (expected one every 1/{self.fps} s; "
@@ -182,6 +194,10 @@ class Stream:
         color, depth = frames.get_color_frame(), frames.get_depth_frame()
         if not color or not depth:
             return self.next(timeout_s)  # a set without its pair (the start of a recording): the next one
+        if self.playback is not None:  # one played before the seek to the start, and again after it
+            if self.last_timestamp_ms is not None and color.get_timestamp() <= self.last_timestamp_ms:
+                return self.next(timeout_s)
+            self.last_timestamp_ms = color.get_timestamp()
         rgb = np.asanyarray(color.get_data())
         fmt = self.color_format
         if fmt in (self.rs.format.bgr8, self.rs.format.bgra8):
