@@ -87,6 +87,10 @@ class RealSenseDataset(Dataset):
     the recording file, else from `record` (a camera's are kept in a temporary folder when the
     run has max_frames, for its evaluation), else is gone."""
 
+    #: a hand-held D400 indoors: its stereo depth error grows with the square of the distance, so
+    #: tracking uses depth within 3 m (as TUM's Kinect); the generic profile otherwise
+    default_tuning = DatasetTuning(depth_trunc=3.0)
+
     def __init__(self, cfg: RealSenseConfig, context: RunContext = RunContext()):
         super().__init__(cfg)
         self._lock = threading.RLock()
@@ -107,7 +111,7 @@ class RealSenseDataset(Dataset):
         self.where = self.stream.where
         self._camera = self.stream.camera
         self.units_per_metre = 1.0 / self.stream.depth_scale
-        self.default_tuning = dataclasses.replace(DatasetTuning(), depth_scale=self.units_per_metre)
+        self.default_tuning = dataclasses.replace(self.default_tuning, depth_scale=self.units_per_metre)
         log.info("%s: %dx%d at %d frames/s, depth scale %.6g m, depth %s", self.where, self._camera.width,
                  self._camera.height, self.stream.fps, self.stream.depth_scale,
                  "aligned to colour by the SDK" if self.stream.aligned else "already in the colour camera")
@@ -273,7 +277,8 @@ class RealSenseDataset(Dataset):
         if frames is None:  # passed: from the recording folder
             rgb, depth = self.recorder.read(raw_index)
         else:
-            rgb, depth = frames.rgb, frames.depth_raw.astype(np.float32) * np.float32(self.stream.depth_scale)
+            depth = frames.depth_raw.astype(np.float32)  # metres = raw / units per metre, as every 16-bit depth
+            rgb, depth = frames.rgb, np.divide(depth, np.float32(self.units_per_metre), out=depth)
         timestamp = float(self.timestamps[raw_index])
         gt = None
         if self.gt is not None:

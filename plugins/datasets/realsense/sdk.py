@@ -152,7 +152,7 @@ class Stream:
             raise DataError(f"{self.where} has no colour and depth stream pair (it has: {kinds}; expected both)") \
                 from None
         sensor = device.first_depth_sensor()
-        self.depth_scale = float(sensor.get_depth_scale())
+        self.depth_scale = decimal(sensor.get_depth_scale())
         self.fps = int(color.fps())
         self.camera = _camera(color.get_intrinsics())
         self.color_format = color.format()
@@ -221,9 +221,15 @@ class Stream:
                 pass
 
 
+def decimal(value: float) -> float:
+    """A float32 the SDK gives (an intrinsic, the depth scale) as the shortest decimal that is that
+    float32: 517.3, not 517.2999877929688; 0.001 m, not 0.0010000000474974513."""
+    return float(str(np.float32(value)))
+
+
 def _camera(intrinsics) -> Camera:
-    return Camera(int(intrinsics.width), int(intrinsics.height), float(intrinsics.fx), float(intrinsics.fy),
-                  float(intrinsics.ppx), float(intrinsics.ppy))
+    return Camera(int(intrinsics.width), int(intrinsics.height), decimal(intrinsics.fx), decimal(intrinsics.fy),
+                  decimal(intrinsics.ppx), decimal(intrinsics.ppy))
 
 
 def _same_camera(depth, color) -> bool:
