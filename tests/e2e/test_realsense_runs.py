@@ -79,7 +79,8 @@ def test_at_its_recorded_pace_a_recording_is_a_live_source_the_viewers_follow(tm
     (_, _), m_viser, out_viser = _run(tmp_path, "viser", "dataset=realsense", f"dataset.path={recording}",
                                       "dataset.recorded_pace=true", "viewer=viser", "viewer.port=0")
     stats = json.loads((out_viser / "viser.json").read_text())
-    assert stats["updates"]["image"]["count"] == m_viser["num_frames"] - m_viser["dropped_frames"] >= 2
+    # viser's worker sends the newest view when it is free (it skips views while busy): at least one
+    assert 1 <= stats["updates"]["image"]["count"] <= m_viser["num_frames"] - m_viser["dropped_frames"]
 
 
 @pytest.mark.slow

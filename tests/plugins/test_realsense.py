@@ -129,8 +129,24 @@ def test_a_live_camera_runs_in_real_time_with_drops_unless_told():
     assert cfg.mode is Mode.sequential and not cfg.drop_frames
     cfg, _ = compose_run(["dataset=realsense", "dataset.path=x.db3"])
     assert not cfg.dataset.live() and cfg.mode is Mode.sequential and not cfg.drop_frames
-    with pytest.raises(ConfigError, match=r"dataset.stride: expected 1 for a live camera"):
-        compose_run(["dataset=realsense", "dataset.stride=2"])
+
+
+def test_start_and_stride_select_a_live_sources_frames(recording):
+    """At the recorded pace, start=1 stride=2: the run's frame k is the source's frame 1 + 2k,
+    arriving when it did; passes other than 1 are refused for a live source."""
+    ds = RealSenseDataset(RealSenseConfig(path=str(recording), recorded_pace=True, start=1, stride=2))
+    try:
+        frames = []
+        with pytest.raises(SourceEnded):
+            while True:
+                frames.append(ds[len(frames)])
+        assert 1 <= len(frames) <= N // 2
+        for k, frame in enumerate(frames):
+            assert frame.timestamp == ds.timestamps[1 + 2 * k] and ds.arrival(k) == ds.arrivals[1 + 2 * k]
+    finally:
+        ds.close()
+    with pytest.raises(ConfigError, match=r"dataset.passes: expected 1 for a live source"):
+        RealSenseDataset(RealSenseConfig(path=str(recording), recorded_pace=True, passes=2))
 
 
 def test_device_enumeration_and_the_missing_camera_line():

@@ -25,7 +25,7 @@ from slamkit_plugins.datasets.realsense.sdk import RECORDING_SUFFIXES, FrameSet,
 
 log = logging.getLogger(__name__)
 
-#: The frames a live source without dataset.max_frames offers the run: it ends on a signal (Ctrl-C).
+#: The raw frames of a live source: without dataset.max_frames it ends on a signal (Ctrl-C).
 LIVE_FRAMES = sys.maxsize
 
 
@@ -33,6 +33,8 @@ LIVE_FRAMES = sys.maxsize
 class RealSenseConfig(DatasetConfig):
     """Options of a RealSense source (`path`: a .bag or .db3 recording; empty: the camera, live)."""
 
+    #: a .bag or .db3 RealSense recording (empty: the camera, live)
+    path: str = ""
     #: the camera's serial number (null: the only RealSense camera connected); live only
     serial: str | None = None
     #: pixels; the colour and depth streams' width (live only; a recording has its own)
@@ -64,11 +66,6 @@ class RealSenseConfig(DatasetConfig):
         require(self.timeout_s > 0, "dataset.timeout_s", "> 0 seconds", self.timeout_s)
         require(self.queue >= 1, "dataset.queue", "an integer >= 1 frames", self.queue)
         require(self.gt_tolerance > 0, "dataset.gt_tolerance", "> 0 seconds", self.gt_tolerance)
-        if not self.path:
-            for key, value, default in (("start", self.start, 0), ("stride", self.stride, 1),
-                                        ("passes", self.passes, 1)):
-                require(value == default, f"dataset.{key}", f"{default} for a live camera (set dataset.path to "
-                        "play a recording)", value)
 
     def live(self) -> bool:
         """A camera, or a recording at its recorded pace: frames come whether the run is ready or not."""
@@ -93,6 +90,8 @@ class RealSenseDataset(Dataset):
 
     def __init__(self, cfg: RealSenseConfig, context: RunContext = RunContext()):
         super().__init__(cfg)
+        require(not cfg.live() or cfg.passes == 1, "dataset.passes", "1 for a live source (a camera, or a "
+                "recording at its recorded_pace)", cfg.passes)
         self._lock = threading.RLock()
         self.path = None if not cfg.path else self._recording(cfg.path)
         self.file_stamps: list[float] = []  # a recording: the colour timestamp of each of its frame sets
@@ -126,6 +125,7 @@ class RealSenseDataset(Dataset):
             self._error: DataError | None = None
             self._ended = False
             self._running = True
+            self._asked = threading.Event()  # the run has asked for its first frame
             self._capture = threading.Thread(target=self._capture_all, name="slamkit-realsense", daemon=True)
             self._capture.start()
 
@@ -192,12 +192,18 @@ class RealSenseDataset(Dataset):
 
     # -- live capture ---------------------------------------------------------------------------
     def _capture_all(self) -> None:
-        """The capture thread: every frame set the camera gives, numbered in order, until the run
-        has all it asked for (max_frames) or `close`; frame sets the queue has no room for, and
-        the gaps in the camera's frame counter, are counted in `source_dropped`."""
+        """The capture thread: from the run's first request on, every frame set the camera gives
+        (a recording's playback starts then), numbered in order (the raw
+        frames: the run takes those `start` and `stride` select), until the run has all it asked
+        for (max_frames) or `close`; frame sets the queue has no room for, and the gaps in the
+        camera's frame counter, are counted in `source_dropped`."""
         last_number = None
-        limit = self.num_available()
+        cfg = self.cfg
+        limit = LIVE_FRAMES if cfg.max_frames is None else self.raw_indices()[-1] + 1
         try:
+            while not self._asked.wait(0.1):  # from the run's first frame on, as it is ready for them
+                if not self._running:
+                    return
             self.stream.resume()
             while self._running and len(self.arrivals) < limit:
                 frames = self.stream.next(self.cfg.timeout_s)
@@ -213,15 +219,17 @@ class RealSenseDataset(Dataset):
                     self._dropped_at_source(number - last_number - 1, "the camera, the USB link or the playback")
                 last_number = number
                 with self._taken:
-                    if len(self._frames) >= self.cfg.queue:
-                        self._dropped_at_source(1, f"the run's queue of {self.cfg.queue} frames being full")
-                        continue
                     index = len(self.arrivals)
-                    self._frames[index] = frames
+                    taken = index >= cfg.start and (index - cfg.start) % cfg.stride == 0
+                    if taken and len(self._frames) >= cfg.queue:
+                        self._dropped_at_source(1, f"the run's queue of {cfg.queue} frames being full")
+                        continue
+                    if taken:
+                        self._frames[index] = frames
                     self.timestamps.append(frames.timestamp)
                     self.arrivals.append(arrival)
                     self._taken.notify_all()
-                if self.recorder is not None:
+                if taken and self.recorder is not None:
                     self.recorder.add(index, frames.timestamp, frames.rgb, frames.depth_raw)
         except DataError as exc:
             with self._taken:
@@ -251,12 +259,12 @@ class RealSenseDataset(Dataset):
         return self.cfg.live()
 
     def arrival(self, i: int) -> float | None:
-        """Live: time.perf_counter() seconds when frame i was taken from the camera (None: not
-        yet). A recording: None (the run paces it, `fps_limit`)."""
+        """Live: time.perf_counter() seconds when frame i of the run (raw frame start + i * stride)
+        was taken from the camera (None: not yet). A recording: None (the run paces it, `fps_limit`)."""
         if not self.cfg.live():
             return None
-        arrivals = self.arrivals
-        return arrivals[i] if i < len(arrivals) else None
+        raw, arrivals = self.cfg.start + i * self.cfg.stride, self.arrivals
+        return arrivals[raw] if raw < len(arrivals) else None
 
     # -- the Dataset role -------------------------------------------------------------------------
     @property
@@ -264,9 +272,7 @@ class RealSenseDataset(Dataset):
         return self._camera
 
     def num_available(self) -> int:
-        if self.cfg.live():
-            return self.cfg.max_frames if self.cfg.max_frames is not None else LIVE_FRAMES
-        return len(self.file_stamps)
+        return LIVE_FRAMES if self.cfg.live() else len(self.file_stamps)
 
     def raw_timestamp(self, raw_index: int) -> float:
         stamps = self.timestamps
@@ -311,6 +317,7 @@ class RealSenseDataset(Dataset):
     def _live(self, i: int) -> FrameSet | None:
         """Frame set i of a live source: waits for it. One the run has passed: from the
         recording file, else None when `record` has it; SourceEnded past a recording's end."""
+        self._asked.set()
         deadline = time.monotonic() + self.cfg.timeout_s
         with self._taken:
             while i not in self._frames and i >= len(self.arrivals):
