@@ -293,4 +293,19 @@ def validate_config(cfg: DictConfig, overrides: Sequence[Any] = ()) -> RunConfig
         if not is_dataclass(getattr(run, r.key)):
             raise ConfigError(f"{r.key}: no plugin selected (use {r.key}=NAME)")
     check_values(run)
+    return live_input_defaults(run, overrides)
+
+
+def live_input_defaults(run: RunConfig, overrides: Sequence[Any] = ()) -> RunConfig:
+    """`run` for a live source (a camera: `DatasetConfig.live`): real time with drop_frames, a
+    camera not waiting for the run, unless the overrides (Hydra's parsed `Override`s) set
+    `mode` or `drop_frames` themselves. Other sources: `run` as it is."""
+    live = getattr(run.dataset, "live", None)
+    if live is None or not live():
+        return run
+    given = {getattr(o, "key_or_group", None) for o in overrides}
+    if "mode" not in given and run.mode is Mode.sequential:
+        run.mode = Mode.realtime
+    if "drop_frames" not in given:
+        run.drop_frames = True
     return run

@@ -6,7 +6,7 @@ the parts it names in `Mapper.parts`). The mapper's parts (rasteriser, sampler, 
 optimiser, loss) are the 3DGS trainer's contracts, in `slamkit.splatting`, re-exported here."""
 
 from slamkit.config import PluginConfig, RunContext, check_values, require, thread_count, unlimited
-from slamkit.roles.dataset import Dataset, DatasetConfig, OnError
+from slamkit.roles.dataset import Dataset, DatasetConfig, OnError, SourceEnded
 from slamkit.roles.loop_closure import (
                                         LoopCheck,
                                         LoopClosure,
@@ -41,7 +41,7 @@ DensifyStrategy = Strategy
 __all__ = [
     "ROLES", "ROLE_KEYS", "RUN_ROLES", "PARTS", "Role", "role", "role_of",
     "PluginConfig", "RunContext", "require", "thread_count", "unlimited", "check_values", "DatasetTuning",
-    "Dataset", "DatasetConfig", "OnError",
+    "Dataset", "DatasetConfig", "OnError", "SourceEnded",
     "Tracker", "KeyframePolicy", "KeyframeDecision", "KeyframeHistory",
     "Mapper", "Rasterizer", "RenderOutput", "KeyframeSampler", "Strategy", "StrategyConfig", "MapOptimizer",
     "MappingLoss", "TrainingView", "KeyframeView", "StepInfo",

@@ -48,6 +48,12 @@ class DatasetConfig(PluginConfig):
     #: a frame that cannot be read: raise stops the run naming the file; skip makes it a lost frame
     on_error: OnError = OnError["raise"]
 
+    def live(self) -> bool:
+        """Whether this config opens a source that does not wait for the run (a camera): it then
+        runs in real time with drop_frames unless the command line says otherwise
+        (`slamkit.registry.schema.validate_config`). The default: a recording, False."""
+        return False
+
     def validate(self) -> None:
         require(self.start >= 0, "dataset.start", "an integer >= 0", self.start)
         require(self.stride >= 1, "dataset.stride", "an integer >= 1", self.stride)
@@ -62,6 +68,12 @@ class DatasetConfig(PluginConfig):
         for name in ("cx", "cy"):
             v = getattr(self, name)
             require(v is None or v >= 0, f"dataset.{name}", "null or >= 0 pixels", v)
+
+
+class SourceEnded(Exception):
+    """Raised by a live source's `load(i)` when it has no frame i and never will (a recording
+    played at its recorded pace has reached its end): the run's stream ends there, as a
+    recording's ends after its last frame."""
 
 
 class BackAndForth(Sequence[int]):
@@ -117,6 +129,18 @@ class Dataset(ABC):
     @abstractmethod
     def load(self, raw_index: int) -> Frame:
         """Read raw frame `raw_index` (0-based over the whole sequence) from disk."""
+
+    @property
+    def live(self) -> bool:
+        """A source that does not wait for the run (a camera, `DatasetConfig.live`): frame i
+        arrives on its own clock (`arrival`), and a frame the run has passed may not be read again."""
+        return False
+
+    def arrival(self, i: int) -> float | None:
+        """A live source: time.perf_counter() seconds when frame i arrived, None while it has not;
+        the run drops frame i when frame i + 1 has arrived (drop_frames). A recording: None (the
+        run paces it with fps_limit)."""
+        return None
 
     @property
     def camera(self) -> Camera:

@@ -32,7 +32,8 @@ from slamkit.run.lifecycle import Phase, StopSignals, pause_point
 from slamkit.run.metrics import folder_mb, summary
 from slamkit.run.outputs import RunOutputs
 from slamkit.run.prefetch import LoadCost, UnreadableFrame, prefetched
-from slamkit.run.runner import RealtimeRunner, Runner
+from slamkit.run.live import LiveClock
+from slamkit.run.runner import InputClock, RealtimeRunner, Runner
 from slamkit.run.state import COMPLETED, FAILED, INTERRUPTED, RunState
 from slamkit.run.viewing import ViewerFeed
 from slamkit.scheduling import thread_schedule
@@ -91,9 +92,11 @@ class Pipeline:
         checkpoints = checkpoint.CheckpointWriter(self.cfg, names, self.slam, self.state, self.dataset, out_dir)
         self.outputs = RunOutputs(self.cfg, self.slam, self.state, out_dir, checkpoints, stop)
         cfg = self.cfg
-        self.runner = (RealtimeRunner(self.slam, cfg.fps_limit, cfg.switch_interval, cfg.mapping_priority,
-                                      cfg.mapping_yields)
-                       if cfg.mode is Mode.realtime else Runner(self.slam))
+        realtime = cfg.mode is Mode.realtime
+        # a live source's frames arrive on its own clock; a recording's at fps_limit in real time
+        clock = LiveClock(self.dataset) if self.dataset.live else InputClock(cfg.fps_limit if realtime else None)
+        self.runner = (RealtimeRunner(self.slam, clock, cfg.switch_interval, cfg.mapping_priority, cfg.mapping_yields)
+                       if realtime else Runner(self.slam, clock))
 
     def run(self) -> dict[str, Any]:
         """The phases, then the outputs (whatever stopped them) and the summary line; the metrics."""
@@ -196,7 +199,7 @@ class Pipeline:
         given to the SLAM by the runner, logged to frames.csv and shown, the checkpoint written
         every N keyframes; a signal stops it between two frames."""
         cfg, state, runner, first = self.cfg, self.state, self.runner, self.first
-        bar = Progress("stream", len(self.dataset), "frame", initial=first)
+        bar = Progress("stream", None if self.dataset.live else len(self.dataset), "frame", initial=first)
         start, cpu_start, loading = time.perf_counter(), time.thread_time(), LoadCost()
         process_cpu_start = time.process_time()  # every thread: the kernels' workers too
         schedule_start = thread_schedule()

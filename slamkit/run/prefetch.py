@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from typing import Iterator
 
 from slamkit.errors import DataError
-from slamkit.roles import Dataset
+from slamkit.roles import Dataset, SourceEnded
 from slamkit.types import Frame
 
 
@@ -33,7 +33,8 @@ def prefetched(dataset: Dataset, ahead: int = 8, skip_errors: bool = False,
                first: int = 0, cost: LoadCost | None = None) -> Iterator[Frame | UnreadableFrame]:
     """Yield dataset[first], dataset[first + 1], ... while up to `ahead` later frames load in the
     background (image decoding releases the GIL). A DataError is raised at that frame's turn,
-    after the frames before it, or yielded as an UnreadableFrame when `skip_errors`. The loading
+    after the frames before it, or yielded as an UnreadableFrame when `skip_errors`; a live source's
+    SourceEnded ends the frames there. The loading
     thread's CPU time is added to `cost`."""
     cost = cost if cost is not None else LoadCost()
 
@@ -57,6 +58,8 @@ def prefetched(dataset: Dataset, ahead: int = 8, skip_errors: bool = False,
                     next_index += 1
                 try:
                     frame = future.result()
+                except SourceEnded:  # a live source has no more frames: the stream ends here
+                    return
                 except DataError as exc:
                     if not skip_errors:
                         raise

@@ -1,7 +1,7 @@
 """How a run feeds frames to its `SLAM`: `Runner` (sequential mode) calls `SLAM.process` on each
 frame as it is read; `RealtimeRunner` makes the same call on each frame at its time on an input
-clock (`InputClock`, `fps_limit`) while its workers (`slamkit.run.workers`) train the map and
-decide on loops beside tracking, the mapping worker at a lower priority and out of the way of a
+clock (`InputClock` at `fps_limit`, or a live source's own, `slamkit.run.live.LiveClock`) while
+its workers (`slamkit.run.workers`) train the map and decide on loops beside tracking, the mapping worker at a lower priority and out of the way of a
 late frame (`mapping_yields`), and the mapper takes each keyframe beside tracking
 (`SLAM.handovers`, built by `slamkit.run.build`). There is one per-frame path, the SLAM's; a
 runner adds only when a frame is taken and what runs beside it.
@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import time
 
+from slamkit.run.live import LiveClock
 from slamkit.run.slam import SLAM, StepResult
 from slamkit.run.state import RunState
 from slamkit.run.workers import LoopThread, MappingThread
@@ -59,7 +60,7 @@ class Runner:
     """Sequential mode: each frame is processed when the stream reads it, the mapping steps and
     the loop closure's decision inside `SLAM.process` (no input rate, no worker)."""
 
-    def __init__(self, slam: SLAM, clock: InputClock | None = None):
+    def __init__(self, slam: SLAM, clock: InputClock | LiveClock | None = None):
         self.slam = slam
         self.clock = clock or InputClock(None)
 
@@ -101,17 +102,17 @@ class Runner:
 
 
 class RealtimeRunner(Runner):
-    """Real time: frames taken at their time on an input clock at `fps` (None: as fast as
-    tracking goes), a `MappingThread` training the map at `mapping_priority` (Python's switch
+    """Real time: frames taken at their time on `clock` (`InputClock` at `fps_limit`, None: as
+    fast as tracking goes; a live source's `LiveClock`), a `MappingThread` training the map at `mapping_priority` (Python's switch
     interval `switch_interval_s` while it runs) that starts no step while tracking is late on a
     frame (`mapping_yields`), and a `LoopThread` for a loop closure that closes loops. The SLAM
     must be built for it (`beside=True`: its `process` neither trains nor detects)."""
 
-    def __init__(self, slam: SLAM, fps: float | None, switch_interval_s: float,
+    def __init__(self, slam: SLAM, clock: InputClock | LiveClock, switch_interval_s: float,
                  mapping_priority: ThreadPriority, mapping_yields: bool):
         if not slam.beside:
             raise ValueError("RealtimeRunner: the SLAM must be built with beside=True (its workers train and detect)")
-        super().__init__(slam, InputClock(fps))
+        super().__init__(slam, clock)
         self.mapping = MappingThread(slam, switch_interval_s, mapping_priority)
         self.loops = LoopThread(slam.loop_closer) if slam.loop_closer.active else None
         self.mapping_yields = mapping_yields

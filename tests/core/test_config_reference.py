@@ -6,6 +6,7 @@ status 2 and one line naming the key."""
 from __future__ import annotations
 
 import enum
+import importlib.util
 import math
 import re
 from pathlib import Path
@@ -38,17 +39,21 @@ EXPLICIT = {
     "objective.metric": "psnr", "viewer.host": "0.0.0.0", "viewer.map_as": "ellipsoids",
     "preset": "paper", "data_root": "{tmp}", "scene": "room0",  # preset: a config group option that sets the key
     "eval.lpips_backbone": "{tmp}/alexnet-owt-7be5be79.pth",
+    "dataset=realsense:dataset.groundtruth": "{data_dir}/groundtruth.txt", "dataset.serial": "215122251234",
+    "dataset.record": "{tmp}/realsense-record",
 }
 
 
 def candidates(key: str, type_: str, default: str, tmp: Path, data: Path | None = None, section: str = "") -> list:
     """Values to try, in order, for a key: its explicit value, else by its type ({tmp}: a
-    temporary folder, {data}: the dataset's folder)."""
+    temporary folder, {data}: the dataset's folder or file, {data_dir}: the folder it lies in)."""
     section_key = f"{section}:{key}"
     if section_key in EXPLICIT or key in EXPLICIT:
         value = EXPLICIT.get(section_key, EXPLICIT.get(key))
         if isinstance(value, str):
+            folder = data if data is None or data.is_dir() else data.parent  # {data_dir}: where a data file lies
             value = value.replace("{tmp}", str(tmp)).replace("{data}", str(data or tmp))
+            value = value.replace("{data_dir}", str(folder or tmp))
         return [value]
     kinds = [t.strip() for t in type_.split("|")]
     if "bool" in kinds:
@@ -134,8 +139,15 @@ def data(tmp_path_factory) -> dict[str, Path]:
     make_sevenscenes(root / "chess" / "seq-01", n=8)
     bag = write_tum_bag(require_data(TUM), root / "fr1_mcap", 6, "mcap")  # a ROS2 bag folder
     shutil.copy(TUM / "groundtruth.txt", bag / "groundtruth.txt")
-    return {"tum": require_data(TUM), "replica": require_data(REPLICA), "folder": folder,
+    data = {"tum": require_data(TUM), "replica": require_data(REPLICA), "folder": folder,
             "sevenscenes": root / "chess" / "seq-01", "rosbag": bag}
+    if importlib.util.find_spec("pyrealsense2") is not None:  # else its section is skipped (the `realsense` extra)
+        from support.realsense_writer import write_tum_recording
+
+        (root / "realsense").mkdir()
+        data["realsense"] = write_tum_recording(TUM, root / "realsense" / "fr1.db3", 6)
+        shutil.copy(TUM / "groundtruth.txt", root / "realsense" / "groundtruth.txt")
+    return data
 
 
 def valid_value(section: str, key: str, type_: str, default: str, tmp: Path, data: dict[str, Path]):
@@ -171,6 +183,8 @@ def test_every_key_in_the_reference_reaches_the_object_the_run_builds(data, tmp_
                                 "mapper.memory_cap.max_gaussians"} <= {k for _, k, _, _ in rows}
     sections: dict[str, dict[str, object]] = {}
     for section, key, type_, default in rows:
+        if section == "dataset=realsense" and "realsense" not in data:
+            continue  # pyrealsense2 (the `realsense` extra) has no wheel here: tests/plugins/test_realsense.py skips
         if section != "mapper/rasterizer=gsplat":  # needs CUDA: built against a stand-in gsplat in its own tests
             sections.setdefault(section, {})[key] = valid_value(section, key, type_, default, tmp_path, data)
     missed = []

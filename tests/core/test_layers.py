@@ -111,7 +111,7 @@ def test_the_modules_import_time_graph_has_no_cycle():
 RUN_ROOMS = [
     ("algorithm", {"slamkit.run.slam", "slamkit.run.handover", "slamkit.run.loop_closing",
                    "slamkit.run.loop_process", "slamkit.run.boundary", "slamkit.run.heap"}),
-    ("runners", {"slamkit.run.runner", "slamkit.run.workers"}),
+    ("runners", {"slamkit.run.runner", "slamkit.run.live", "slamkit.run.workers"}),
     ("pipeline", {"slamkit.run.pipeline"}),
 ]
 

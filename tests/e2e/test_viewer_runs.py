@@ -5,33 +5,13 @@ tests/plugins/test_viewer.py."""
 from __future__ import annotations
 
 import json
-from collections import Counter
-from pathlib import Path
 
 import pytest
 import yaml
 
 from support.commands import run_slamkit
 from support.plugins import make_plugin_dist
-
-
-def _rrd_rows(path: Path) -> tuple[Counter, dict[int, int]]:
-    """Rows logged per entity (non-static), and the number of map points logged at each frame."""
-    from rerun.chunk import RrdReader
-
-    rows: Counter = Counter()
-    map_sizes: dict[int, int] = {}
-    for chunk in RrdReader(str(path)).stream().to_chunks():
-        if chunk.is_static:
-            rows[chunk.entity_path + " (static)"] += chunk.num_rows
-            continue
-        rows[chunk.entity_path] += chunk.num_rows
-        if chunk.entity_path == "/world/map":
-            batch = chunk.to_record_batch()
-            frames = batch.column(batch.schema.names.index("frame")).to_pylist()
-            positions = batch.column(batch.schema.names.index("GaussianSplats3D:centers")).to_pylist()
-            map_sizes.update({f: len(p) for f, p in zip(frames, positions)})
-    return rows, map_sizes
+from support.rerun_rows import rrd_rows
 
 
 @pytest.mark.slow
@@ -49,7 +29,7 @@ def test_rerun_records_a_tum_run_to_rrd(tmp_path, tum_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert rrd.is_file() and rrd.stat().st_size > 10_000
     assert not (out / "recording.rrd").exists()
-    rows, map_sizes = _rrd_rows(rrd)
+    rows, map_sizes = rrd_rows(rrd)
     assert rows["/world/camera/image (static)"] == 1  # the pinhole
     for entity in ("/world/camera", "/world/camera/image/rgb", "/world/camera/image/depth"):
         assert rows[entity] == 8, entity
@@ -73,7 +53,7 @@ def test_default_viewer_is_none_and_rerun_defaults_to_the_run_folder(tmp_path):
     assert not list((tmp_path / "plain").rglob("*.rrd"))
     proc = run_slamkit(*common, "viewer=rerun", f"hydra.run.dir={tmp_path}/rec", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    rows, _ = _rrd_rows(tmp_path / "rec" / "recording.rrd")
+    rows, _ = rrd_rows(tmp_path / "rec" / "recording.rrd")
     assert rows["/world/camera"] == 4 and "/render/rgb" not in rows  # mapper=none cannot render
 
 

@@ -1,0 +1,184 @@
+"""`dataset=realsense` without a camera: a RealSense recording (.db3, written with pyrealsense2's
+software device from the real TUM frames, tests/support/realsense_writer.py) read back as the
+TUM dataset reads the folder, frame by frame and at its recorded pace; `dataset.record` keeping
+the frames in the TUM layout; the device enumeration and the one-line errors (no camera, no
+library, bad files). From the command line: tests/e2e/test_realsense_runs.py."""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import pytest
+
+from slamkit.errors import ConfigError, DataError
+from slamkit.registry.compose import compose_run
+from slamkit.registry.discovery import discover
+from slamkit.registry.schema import Mode
+from slamkit.roles import Dataset, SourceEnded
+
+from support.data import TUM, require_data
+
+rs = pytest.importorskip("pyrealsense2", reason="pyrealsense2 is the optional extra `realsense` (in `test`); "
+                         "Intel publishes no wheel for this platform")
+
+from slamkit_plugins.datasets.folder import FolderConfig, FolderDataset  # noqa: E402
+from slamkit_plugins.datasets.realsense import (  # noqa: E402
+    RealSenseConfig,
+    RealSenseDataset,
+    sdk,  # noqa: E402
+)
+from slamkit_plugins.datasets.tum import TUMConfig, TUMDataset  # noqa: E402
+
+from support.realsense_writer import write_tum_recording  # noqa: E402
+
+N = 8
+#: metres: both read depth as raw / 5000 (the device scale read as its shortest decimal, 0.0002 m)
+DEPTH_ROUNDING = 0.0
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    return write_tum_recording(require_data(TUM), tmp_path_factory.mktemp("realsense") / "fr1.db3", N)
+
+
+def _tum(**kw) -> TUMDataset:
+    return TUMDataset(TUMConfig(path=str(TUM), max_frames=N, **kw))
+
+
+def _same_frame(got, want) -> None:
+    assert got.timestamp == pytest.approx(want.timestamp, abs=1e-6)
+    np.testing.assert_array_equal(np.asarray(got.rgb), np.asarray(want.rgb))
+    np.testing.assert_allclose(got.depth, want.depth, atol=DEPTH_ROUNDING, rtol=0)
+    np.testing.assert_allclose(got.gt_pose, want.gt_pose, atol=1e-9)
+
+
+def test_realsense_is_a_registered_dataset():
+    spec = discover().get("dataset", "realsense")
+    assert issubclass(spec.cls, Dataset) and spec.config is RealSenseConfig
+
+
+def test_recording_frames_equal_the_tum_folder_frames(recording):
+    """Intrinsics and depth scale from the recording, every frame set in order, then an earlier
+    frame again (played from the start)."""
+    ds = RealSenseDataset(RealSenseConfig(path=str(recording), groundtruth=str(TUM / "groundtruth.txt")))
+    ref = _tum()
+    try:
+        assert not ds.live and len(ds) == len(ref) == N
+        cam, want = ds.camera, ref.camera
+        assert (cam.width, cam.height) == (want.width, want.height)
+        assert (cam.fx, cam.fy, cam.cx, cam.cy) == (want.fx, want.fy, want.cx, want.cy)  # the float32s as decimals
+        assert ds.units_per_metre == 5000.0
+        assert not ds.stream.aligned  # registered to colour in the recording: used as it is
+        for i in (*range(N), 2, 0):
+            _same_frame(ds[i], ref[i])
+    finally:
+        ds.close()
+
+
+def test_recorded_pace_gives_frames_as_they_come_and_ends(recording, tmp_path):
+    """recorded_pace: a live source (frames arrive in order on the recording's clock); each
+    frame is the TUM frame of its timestamp; after the last one, SourceEnded; a passed frame is
+    read again from the file; record=DIR keeps them in the TUM layout, which dataset=folder
+    reads back."""
+    ds = RealSenseDataset(RealSenseConfig(path=str(recording), recorded_pace=True, record=str(tmp_path / "rec"),
+                                          groundtruth=str(TUM / "groundtruth.txt")))
+    ref = _tum()
+    by_time = {round(ref.timestamp(i), 6): i for i in range(len(ref))}
+    try:
+        assert ds.live
+        frames = []
+        with pytest.raises(SourceEnded):
+            while True:
+                frames.append(ds[len(frames)])
+        assert len(frames) + ds.source_dropped == N  # the SDK drops a frame set only where it counts it
+        assert len(frames) >= N // 2
+        arrivals = [ds.arrival(i) for i in range(len(frames))]
+        assert all(a is not None for a in arrivals) and arrivals == sorted(arrivals)
+        span = ref.timestamp(by_time[round(frames[-1].timestamp, 6)]) - ref.timestamp(by_time[round(
+            frames[0].timestamp, 6)])
+        assert arrivals[-1] - arrivals[0] >= 0.5 * span  # paced by the recording, not as fast as read
+        for frame in frames:
+            _same_frame(frame, ref[by_time[round(frame.timestamp, 6)]])
+        _same_frame(ds[0], ref[by_time[round(frames[0].timestamp, 6)]])  # passed: read again from the file
+    finally:
+        ds.close()
+    kept = FolderDataset(FolderConfig(path=str(tmp_path / "rec")))
+    assert len(kept) == len(frames)
+    for i, frame in enumerate(frames):
+        got = kept[i]
+        assert got.timestamp == pytest.approx(frame.timestamp, abs=1e-6)
+        np.testing.assert_array_equal(np.asarray(got.rgb), np.asarray(frame.rgb))
+        np.testing.assert_allclose(got.depth, frame.depth, atol=DEPTH_ROUNDING, rtol=0)
+
+
+def test_record_refuses_a_folder_holding_a_recording(recording, tmp_path):
+    cfg = RealSenseConfig(path=str(recording), record=str(tmp_path / "rec"))
+    ds = RealSenseDataset(cfg)
+    ds[0]
+    ds.close()
+    with pytest.raises(DataError, match=r"already holds a recording \(expected a new or empty folder\)"):
+        RealSenseDataset(cfg)
+
+
+def test_a_live_camera_runs_in_real_time_with_drops_unless_told():
+    """Composing the config opens no camera: dataset=realsense without a path is live."""
+    cfg, _ = compose_run(["dataset=realsense"])
+    assert cfg.dataset.live() and cfg.mode is Mode.realtime and cfg.drop_frames
+    cfg, _ = compose_run(["dataset=realsense", "mode=sequential", "drop_frames=false"])
+    assert cfg.mode is Mode.sequential and not cfg.drop_frames
+    cfg, _ = compose_run(["dataset=realsense", "dataset.path=x.db3"])
+    assert not cfg.dataset.live() and cfg.mode is Mode.sequential and not cfg.drop_frames
+
+
+def test_start_and_stride_select_a_live_sources_frames(recording):
+    """At the recorded pace, start=1 stride=2: the run's frame k is the source's frame 1 + 2k,
+    arriving when it did; passes other than 1 are refused for a live source."""
+    ds = RealSenseDataset(RealSenseConfig(path=str(recording), recorded_pace=True, start=1, stride=2))
+    try:
+        frames = []
+        with pytest.raises(SourceEnded):
+            while True:
+                frames.append(ds[len(frames)])
+        assert 1 <= len(frames) <= N // 2
+        for k, frame in enumerate(frames):
+            assert frame.timestamp == ds.timestamps[1 + 2 * k] and ds.arrival(k) == ds.arrivals[1 + 2 * k]
+    finally:
+        ds.close()
+    with pytest.raises(ConfigError, match=r"dataset.passes: expected 1 for a live source"):
+        RealSenseDataset(RealSenseConfig(path=str(recording), recorded_pace=True, passes=2))
+
+
+def test_device_enumeration_and_the_missing_camera_line():
+    """This machine has no RealSense camera: the enumeration is empty and opening one says so."""
+    if sdk.list_devices():
+        pytest.skip("a RealSense camera is connected here")
+    with pytest.raises(DataError) as info:
+        RealSenseDataset(RealSenseConfig())
+    line = str(info.value)
+    assert line.startswith("no RealSense camera connected (expected a D400-series camera") and "\n" not in line
+
+
+def test_the_missing_library_line(monkeypatch):
+    monkeypatch.setitem(sys.modules, "pyrealsense2", None)  # import fails as where it is not installed
+    with pytest.raises(DataError) as info:
+        RealSenseDataset(RealSenseConfig())
+    line = str(info.value)
+    assert "needs Intel's RealSense library, which is not installed" in line and sdk.REQUIREMENT in line
+    assert "\n" not in line
+
+
+@pytest.mark.parametrize("name, content, message", [
+    ("absent.db3", None, "not found (expected a .bag or .db3 file"),
+    ("frames.mp4", b"x", "a .mp4 file (expected .bag or .db3)"),
+    ("broken.db3", b"not an sqlite file" * 100, "cannot"),
+    ("broken.bag", b"#ROSBAG V2.0\n" + b"\0" * 64, "cannot"),
+])
+def test_bad_recordings_fail_in_one_line(tmp_path, name, content, message):
+    path = tmp_path / name
+    if content is not None:
+        path.write_bytes(content)
+    with pytest.raises(DataError) as info:
+        RealSenseDataset(RealSenseConfig(path=str(path)))
+    line = str(info.value)
+    assert message in line and str(path) in line and "\n" not in line
