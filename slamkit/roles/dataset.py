@@ -142,6 +142,10 @@ class Dataset(ABC):
         run paces it with fps_limit)."""
         return None
 
+    def close(self) -> None:
+        """Release what the dataset holds open (files, a camera's stream, a recording being
+        written); the run calls it once its outputs are written. Again is a no-op."""
+
     @property
     def camera(self) -> Camera:
         c = self.cfg

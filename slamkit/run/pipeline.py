@@ -101,6 +101,7 @@ class Pipeline:
     def run(self) -> dict[str, Any]:
         """The phases, then the outputs (whatever stopped them) and the summary line; the metrics."""
         if self.done is not None:
+            self.dataset.close()
             return self.done
         state, outputs = self.state, self.outputs
         try:
@@ -126,6 +127,8 @@ class Pipeline:
                 finally:
                     self.viewer.close()
                     self.slam.loop_closer.close()
+                    # a camera's or a recording's threads stopped here, not at interpreter exit
+                    self.dataset.close()
         if outputs.unwritten:
             name, why = next(iter(outputs.unwritten.items()))
             more = f" (and {len(outputs.unwritten) - 1} more)" if len(outputs.unwritten) > 1 else ""
