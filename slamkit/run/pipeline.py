@@ -29,10 +29,10 @@ from slamkit.run import checkpoint
 from slamkit.run.build import build
 from slamkit.run.frame_log import FrameLog
 from slamkit.run.lifecycle import Phase, StopSignals, pause_point
+from slamkit.run.live import LiveClock
 from slamkit.run.metrics import folder_mb, summary
 from slamkit.run.outputs import RunOutputs
 from slamkit.run.prefetch import LoadCost, UnreadableFrame, prefetched
-from slamkit.run.live import LiveClock
 from slamkit.run.runner import InputClock, RealtimeRunner, Runner
 from slamkit.run.state import COMPLETED, FAILED, INTERRUPTED, RunState
 from slamkit.run.viewing import ViewerFeed
