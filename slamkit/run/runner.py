@@ -3,8 +3,9 @@ frame as it is read; `RealtimeRunner` makes the same call on each frame at its t
 clock (`InputClock` at `fps_limit`, or a live source's own, `slamkit.run.live.LiveClock`) while
 its workers (`slamkit.run.workers`) train the map and decide on loops beside tracking, the
 mapping worker at a lower priority and out of the way of a late frame (`mapping_yields`), and
-the mapper takes each keyframe beside tracking (`SLAM.handovers`, built by `slamkit.run.build`). There is one per-frame path, the SLAM's; a
-runner adds only when a frame is taken and what runs beside it.
+the mapper takes each keyframe beside tracking (`SLAM.handovers`, built by `slamkit.run.build`).
+There is one per-frame path, the SLAM's; a runner adds only when a frame is taken and what runs
+beside it.
 
 The pipeline (`slamkit.run.pipeline.Pipeline`) drives a runner: `start`, then for each frame
 `wait`, `arrival`, `process`, `frame_done`, then `stop` (whatever ended the stream).
@@ -105,8 +106,9 @@ class RealtimeRunner(Runner):
     """Real time: frames taken at their time on `clock` (`InputClock` at `fps_limit`, None: as
     fast as tracking goes; a live source's `LiveClock`), a `MappingThread` training the map at
     `mapping_priority` (Python's switch interval `switch_interval_s` while it runs) that starts
-    no step while tracking is late on a frame (`mapping_yields`), and a `LoopThread` for a loop closure that closes loops. The SLAM
-    must be built for it (`beside=True`: its `process` neither trains nor detects)."""
+    no step while tracking is late on a frame (`mapping_yields`), and a `LoopThread` for a loop
+    closure that closes loops. The SLAM must be built for it (`beside=True`: its `process`
+    neither trains nor detects)."""
 
     def __init__(self, slam: SLAM, clock: InputClock | LiveClock, switch_interval_s: float,
                  mapping_priority: ThreadPriority, mapping_yields: bool):
