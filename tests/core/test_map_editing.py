@@ -10,8 +10,8 @@ import torch
 
 from slamkit.map.gaussian_map import PARAMETERS
 from slamkit.splatting.ops import MapEdit
-from slamkit_plugins.optimizers.adam import AdamConfig, TorchAdam
-from slamkit_plugins.optimizers.visible_adam import VisibleAdam, VisibleAdamConfig
+from slamkit_plugins.mappers.gaussian_splatting.optimizer.adam import AdamConfig, TorchAdam
+from slamkit_plugins.mappers.gaussian_splatting.optimizer.visible_adam import VisibleAdam, VisibleAdamConfig
 
 from support.mapping_scenes import N, plane_scene, rows, start_map
 

@@ -122,7 +122,7 @@ def test_mapping_only_keyframes_gaussians_never_enter_the_target_when_switched_o
 
 
 def test_loss_with_pixels_without_depth_zeroed_counts_every_pixel_as_the_reference_code():
-    from slamkit_plugins.losses.fused_rgbd_loss import torch_rgbd_loss
+    from slamkit_plugins.mappers.gaussian_splatting.loss.fused_rgbd_loss import torch_rgbd_loss
 
     g = torch.Generator().manual_seed(0)
     color, image = torch.rand(16, 20, 3, generator=g), torch.rand(16, 20, 3, generator=g)
@@ -150,8 +150,8 @@ def test_the_compiled_loss_refuses_the_reference_codes_pixels_in_one_line():
 def test_no_pruning_after_the_last_step_when_prune_at_finish_is_off():
     from slamkit.map.gaussian_map import GaussianMap, GaussianRows
     from slamkit.splatting import MapEdit
-    from slamkit_plugins.optimizers.adam import AdamConfig, TorchAdam
-    from slamkit_plugins.strategies.gsicp import PruneConfig, PruneStrategy
+    from slamkit_plugins.mappers.gaussian_splatting.optimizer.adam import AdamConfig, TorchAdam
+    from slamkit_plugins.mappers.gaussian_splatting.strategy.gsicp import PruneConfig, PruneStrategy
 
     def finished(prune_at_finish: bool) -> int:
         gm = GaussianMap()

@@ -34,7 +34,7 @@ from slamkit.run import pipeline
 from slamkit.run.build import build_run
 from slamkit.splatting.keyframes import resize_rgbd
 from slamkit.types import Camera
-from slamkit_plugins.rasterizers.torch_rasterizer import TorchRasterizer
+from slamkit_plugins.mappers.gaussian_splatting.rasterizer.torch_rasterizer import TorchRasterizer
 
 from support.data import REPLICA, REPO, require_data
 from support.render_scenes import F64, a_pose, as_tuple, random_scene, random_weights, weighted_loss

@@ -12,12 +12,12 @@ import threading
 import pytest
 import torch
 
-import slamkit_plugins.rasterizers.cpu_rasterizer as cpu_module
+import slamkit_plugins.mappers.gaussian_splatting.rasterizer.cpu_rasterizer as cpu_module
 from slamkit.errors import ConfigError
 from slamkit.registry.discovery import create_rasterizer
 from slamkit.types import Camera
-from slamkit_plugins.rasterizers.cpu_rasterizer import CPURasterizer, CPURasterizerConfig
-from slamkit_plugins.rasterizers.torch_rasterizer import TorchRasterizer
+from slamkit_plugins.mappers.gaussian_splatting.rasterizer.cpu_rasterizer import CPURasterizer, CPURasterizerConfig
+from slamkit_plugins.mappers.gaussian_splatting.rasterizer.torch_rasterizer import TorchRasterizer
 
 from support.hard_scenes import CAM, hard_scene, rel_err, render_and_grads
 

@@ -24,7 +24,7 @@ from slamkit.splatting.keyframes import resize_rgbd
 from slamkit.types import Camera, Frame, KeyframeKind
 from slamkit_plugins.keyframes.every_n import EveryNKeyframeConfig, EveryNKeyframePolicy
 from slamkit_plugins.mappers.gaussian_splatting import GaussianSplattingConfig
-from slamkit_plugins.samplers.keyframe_samplers import CovisibleSampler
+from slamkit_plugins.mappers.gaussian_splatting.sampler.keyframe_samplers import CovisibleSampler
 
 from support.mapping_scenes import (
     GroundTruthTracker,

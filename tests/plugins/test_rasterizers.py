@@ -9,13 +9,13 @@ import math
 import pytest
 import torch
 
-import slamkit_plugins.rasterizers.gsplat_rasterizer as gsplat_module
-import slamkit_plugins.rasterizers.torch_rasterizer as torch_module
+import slamkit_plugins.mappers.gaussian_splatting.rasterizer.gsplat_rasterizer as gsplat_module
+import slamkit_plugins.mappers.gaussian_splatting.rasterizer.torch_rasterizer as torch_module
 from slamkit.errors import ConfigError
 from slamkit.geometry.transforms import covariance_from_scales
 from slamkit.registry.discovery import Registry, create_rasterizer
 from slamkit.types import Camera
-from slamkit_plugins.rasterizers.torch_rasterizer import TorchRasterizer, TorchRasterizerConfig
+from slamkit_plugins.mappers.gaussian_splatting.rasterizer.torch_rasterizer import TorchRasterizer, TorchRasterizerConfig
 
 from support.render_scenes import F64, a_pose, as_tuple, random_scene, random_weights, weighted_loss
 
@@ -211,7 +211,7 @@ def test_config_is_validated():
 
 
 def _registry_with_backends() -> Registry:
-    from slamkit_plugins.rasterizers import auto as auto_module
+    from slamkit_plugins.mappers.gaussian_splatting.rasterizer import auto as auto_module
 
     registry = Registry()
     registry.add_module(torch_module, "torch_rasterizer (test)")
@@ -221,7 +221,7 @@ def _registry_with_backends() -> Registry:
 
 
 def test_auto_takes_the_first_backend_it_can_build(monkeypatch):
-    from slamkit_plugins.rasterizers.auto import AutoRasterizer, AutoRasterizerConfig
+    from slamkit_plugins.mappers.gaussian_splatting.rasterizer.auto import AutoRasterizer, AutoRasterizerConfig
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     registry = _registry_with_backends()
