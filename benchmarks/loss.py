@@ -32,7 +32,12 @@ from pathlib import Path
 
 import torch
 
-from slamkit_plugins.mappers.gaussian_splatting.loss.fused_rgbd_loss import available, fused_rgbd_loss, kernel_rgbd_loss, torch_rgbd_loss
+from slamkit_plugins.mappers.gaussian_splatting.loss.fused_rgbd_loss import (
+    available,
+    fused_rgbd_loss,
+    kernel_rgbd_loss,
+    torch_rgbd_loss,
+)
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "loss.json"
 WEIGHTS = dict(w_l1=0.8, w_ssim=0.2, w_depth=0.1, depth_unit=10.0)

@@ -22,9 +22,9 @@ _os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 #: gives `slamkit.map.gaussian_map` (docs/CHANGELOG.md).
 MOVED_MODULES = {
     "slamkit.gaussian_map": "slamkit.map.gaussian_map",
-    "slamkit.rendering": "slamkit.splatting.rendering",
-    "slamkit.map.rendering": "slamkit.splatting.rendering",
-    "slamkit.map.editing": "slamkit.splatting.ops",
+    "slamkit.rendering": "slamkit.roles.rendering",
+    "slamkit.map.rendering": "slamkit.roles.rendering",
+    "slamkit.map.editing": "slamkit.roles.map_edit",
     "slamkit.map.coverage": "slamkit.splatting.coverage",
     "slamkit.roles.config": "slamkit.config",
     "slamkit.gaussian_geometry": "slamkit.geometry.gaussians",

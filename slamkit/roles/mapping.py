@@ -12,7 +12,7 @@ import torch
 
 from slamkit.config import PluginConfig, RunContext
 from slamkit.map.gaussian_map import GaussianMap, GaussianRows
-from slamkit.splatting.rendering import RenderOutput
+from slamkit.roles.rendering import RenderOutput
 from slamkit.types import Camera, Frame, KeyframeKind
 
 

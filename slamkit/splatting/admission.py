@@ -13,8 +13,8 @@ import torch
 
 from slamkit.config import PluginConfig, RunContext, require
 from slamkit.map.gaussian_map import GaussianRows
+from slamkit.roles.rendering import RenderOutput
 from slamkit.splatting.coverage import DepthTolerance, covered_by_render, occupied_by_centres
-from slamkit.splatting.rendering import RenderOutput
 from slamkit.types import Camera
 
 

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from slamkit.geometry.transforms import project_points
-from slamkit.splatting.rendering import RenderOutput
+from slamkit.roles.rendering import RenderOutput
 from slamkit.types import Camera
 
 

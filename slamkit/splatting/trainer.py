@@ -31,17 +31,17 @@ import torch
 from slamkit.config import PluginConfig, RunContext, require
 from slamkit.geometry.transforms import invert_pose
 from slamkit.map.gaussian_map import GaussianMap, GaussianRows
+from slamkit.roles.loss import MappingLoss
+from slamkit.roles.map_edit import MapEdit
+from slamkit.roles.optimizer import MapOptimizer
+from slamkit.roles.rendering import Rasterizer, RenderOutput, render_map
+from slamkit.roles.sampler import KeyframeSampler
+from slamkit.roles.strategy import StepInfo, Strategy
+from slamkit.roles.training_view import TrainingView
 from slamkit.splatting.admission import Admission, AdmissionConfig, KeyframeView
 from slamkit.splatting.keyframes import KeyframeStorage, KeyframeStore
-from slamkit.splatting.loss import MappingLoss
 from slamkit.splatting.memory_cap import MemoryCap, MemoryCapConfig
-from slamkit.splatting.ops import MapEdit
-from slamkit.splatting.optimizer import MapOptimizer
-from slamkit.splatting.rendering import Rasterizer, RenderOutput, render_map
-from slamkit.splatting.sampler import KeyframeSampler
-from slamkit.splatting.strategy import StepInfo, Strategy
 from slamkit.splatting.timing import PhaseTimer
-from slamkit.splatting.views import TrainingView
 from slamkit.types import Camera, Frame, KeyframeKind
 
 log = logging.getLogger(__name__)

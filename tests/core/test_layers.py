@@ -16,8 +16,8 @@ LAYERS = [
     {"types", "errors", "tuning", "config", "plugin", "scheduling", "progress", "conf", "experiments"},  # vocabulary
     {"geometry"},
     {"map", "metrics", "formats", "cache", "native", "downloads"},
-    {"splatting"},
     {"roles"},
+    {"splatting"},
     {"registry"},
     {"run"},
     {"cli"},

@@ -17,10 +17,10 @@ from slamkit.map.gaussian_map import GaussianMap
 from slamkit.map.growth import MapGrowthConfig
 from slamkit.registry.discovery import create_rasterizer
 from slamkit.roles import Tracker
+from slamkit.roles.rendering import RenderOutput
 from slamkit.run.slam import SLAM
 from slamkit.splatting import AdmissionConfig, CoverageTest
 from slamkit.splatting.coverage import DepthTolerance, covered_by_render, occupied_by_centres
-from slamkit.splatting.rendering import RenderOutput
 from slamkit.tuning import DatasetTuning
 from slamkit.types import FrameGaussians, TrackingResult
 from slamkit_plugins.keyframes.every_n import EveryNKeyframeConfig, EveryNKeyframePolicy

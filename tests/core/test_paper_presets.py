@@ -149,7 +149,7 @@ def test_the_compiled_loss_refuses_the_reference_codes_pixels_in_one_line():
 
 def test_no_pruning_after_the_last_step_when_prune_at_finish_is_off():
     from slamkit.map.gaussian_map import GaussianMap, GaussianRows
-    from slamkit.splatting import MapEdit
+    from slamkit.roles import MapEdit
     from slamkit_plugins.mappers.gaussian_splatting.optimizer.adam import AdamConfig, TorchAdam
     from slamkit_plugins.mappers.gaussian_splatting.strategy.gsicp import PruneConfig, PruneStrategy
 
@@ -201,8 +201,8 @@ def test_the_mappers_evaluation_scores_with_the_runs_lpips_and_psnr_pixels(tum_p
 
 def test_renders_too_small_for_lpips_record_it_as_null_instead_of_failing(tum_path, caplog):
     from slamkit.metrics.lpips_network import min_image_side
+    from slamkit.roles.rendering import RenderOutput
     from slamkit.splatting.evaluation import evaluate_renders
-    from slamkit.splatting.rendering import RenderOutput
 
     dataset, slam, _ = build_run(["dataset=tum", f"dataset.path={tum_path}", "dataset.max_frames=1"])
     frames = [dataset[0]]

@@ -16,7 +16,11 @@ import torch.nn.functional as F
 import slamkit_plugins.mappers.gaussian_splatting.loss.fused_rgbd_loss as loss_module
 from slamkit.formats.images import read_depth, read_rgb
 from slamkit.native import NativeLibrary
-from slamkit_plugins.mappers.gaussian_splatting.loss.fused_rgbd_loss import fused_rgbd_loss, kernel_rgbd_loss, torch_rgbd_loss
+from slamkit_plugins.mappers.gaussian_splatting.loss.fused_rgbd_loss import (
+    fused_rgbd_loss,
+    kernel_rgbd_loss,
+    torch_rgbd_loss,
+)
 
 from support.data import REPLICA, TUM, require_data
 from support.loss_inputs import loss_and_grads, random_inputs

@@ -8,7 +8,7 @@ import torch
 from pytorch_msssim import ssim
 
 from slamkit.roles import TrainingView
-from slamkit.splatting.rendering import RenderOutput
+from slamkit.roles.rendering import RenderOutput
 from slamkit.types import Camera
 from slamkit_plugins.mappers.gaussian_splatting.loss.l1_ssim_depth import L1SSIMDepthConfig, L1SSIMDepthLoss
 

@@ -15,14 +15,17 @@ from slamkit.errors import ConfigError
 from slamkit.geometry.transforms import covariance_from_scales
 from slamkit.registry.discovery import Registry, create_rasterizer
 from slamkit.types import Camera
-from slamkit_plugins.mappers.gaussian_splatting.rasterizer.torch_rasterizer import TorchRasterizer, TorchRasterizerConfig
+from slamkit_plugins.mappers.gaussian_splatting.rasterizer.torch_rasterizer import (
+    TorchRasterizer,
+    TorchRasterizerConfig,
+)
 
 from support.render_scenes import F64, a_pose, as_tuple, random_scene, random_weights, weighted_loss
 
 
 def brute_force_render(means, quats, scales, opacities, colors, w2c, cam, background):
     """Every pixel against every Gaussian, composited in a Python loop over depth order, with
-    plain autograd: the conventions of `slamkit.splatting.rendering` written as directly as possible."""
+    plain autograd: the conventions of `slamkit.roles.rendering` written as directly as possible."""
     R, t = w2c[:3, :3], w2c[:3, 3]
     x, y, z = (means @ R.T + t).unbind(-1)
     u, v = cam.fx * x / z + cam.cx, cam.fy * y / z + cam.cy

@@ -17,8 +17,8 @@ from slamkit.config import RunContext
 from slamkit.formats.ply import save_ply
 from slamkit.metrics.images import PsnrPixels
 from slamkit.metrics.lpips import lpips_for_evaluation
-from slamkit.roles import KeyframeSampler, MapOptimizer, Mapper, MappingLoss, Rasterizer, Strategy
-from slamkit.splatting import RenderOutput, Trainer
+from slamkit.roles import KeyframeSampler, MapOptimizer, Mapper, MappingLoss, Rasterizer, RenderOutput, Strategy
+from slamkit.splatting import Trainer
 from slamkit.splatting.evaluation import evaluate_renders
 from slamkit.types import Camera
 from slamkit_plugins.mappers.gaussian_splatting.config import GaussianSplattingConfig

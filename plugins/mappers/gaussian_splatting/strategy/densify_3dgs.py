@@ -18,8 +18,7 @@ from dataclasses import dataclass
 import torch
 
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import RunContext, StepInfo, require
-from slamkit.splatting import MapEdit
+from slamkit.roles import MapEdit, RunContext, StepInfo, require
 from slamkit_plugins.mappers.gaussian_splatting.strategy.gsicp import PruneConfig, PruneStrategy
 
 #: A split Gaussian's children have its scales divided by this (3DGS).

@@ -19,9 +19,9 @@ from typing import Any
 import torch
 
 from slamkit.config import PluginConfig, RunContext
-from slamkit.splatting.ops import MapEdit
-from slamkit.splatting.rendering import RenderOutput
-from slamkit.splatting.views import TrainingView
+from slamkit.roles.map_edit import MapEdit
+from slamkit.roles.rendering import RenderOutput
+from slamkit.roles.training_view import TrainingView
 
 
 @dataclass
