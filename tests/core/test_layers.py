@@ -17,7 +17,6 @@ LAYERS = [
     {"geometry"},
     {"map", "metrics", "formats", "cache", "native", "downloads"},
     {"roles"},
-    {"splatting"},
     {"registry"},
     {"run"},
     {"cli"},

@@ -202,7 +202,7 @@ def test_the_mappers_evaluation_scores_with_the_runs_lpips_and_psnr_pixels(tum_p
 def test_renders_too_small_for_lpips_record_it_as_null_instead_of_failing(tum_path, caplog):
     from slamkit.metrics.lpips_network import min_image_side
     from slamkit.roles.rendering import RenderOutput
-    from slamkit.splatting.evaluation import evaluate_renders
+    from slamkit_plugins.mappers.gaussian_splatting.evaluation import evaluate_renders
 
     dataset, slam, _ = build_run(["dataset=tum", f"dataset.path={tum_path}", "dataset.max_frames=1"])
     frames = [dataset[0]]

@@ -127,15 +127,15 @@ def test_run_config_reaches_gsplat_as_documented(fake_cuda):
     fake_cuda(fake_gsplat(calls))
     dataset, slam, _ = build_run(["dataset.max_frames=2", "mapper=gaussian_splatting", "mapper/rasterizer=gsplat",
                                   "mapper.rasterizer.tile_size=8", "mapping_device=cpu", "iterations_per_frame=2"])
-    rasterizer = slam.mapper.trainer.rasterizer
+    rasterizer = slam.mapper.rasterizer
     assert isinstance(rasterizer, GsplatRasterizer) and rasterizer.cfg.tile_size == 8
     assert len(calls) == 1  # the probe, at construction
     slam.initialize(dataset[0].gt_pose)
     for i in range(len(dataset)):
         slam.process(dataset[i])
-    assert slam.mapper.trainer.steps > 0 and len(calls) > 1
+    assert slam.mapper.steps > 0 and len(calls) > 1
     kw = calls[-1]
-    cam = slam.mapper.trainer.keyframes.training_camera(dataset.camera)
+    cam = slam.mapper.keyframes.training_camera(dataset.camera)
     expected_K = torch.tensor([[cam.fx, 0, cam.cx + 0.5], [0, cam.fy, cam.cy + 0.5], [0, 0, 1]])
     torch.testing.assert_close(kw["Ks"], expected_K[None])
     assert (kw["width"], kw["height"]) == (cam.width, cam.height)

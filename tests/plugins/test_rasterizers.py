@@ -254,7 +254,7 @@ def test_max_pairs_per_chunk_bounds_the_bands_without_changing_the_image():
     outs, bands = [], []
     for limit in (2_000_000, 1024):
         rast = build_run(["mapper=gaussian_splatting", "mapper/rasterizer=torch",
-                          f"mapper.rasterizer.max_pairs_per_chunk={limit}"])[1].mapper.trainer.rasterizer
+                          f"mapper.rasterizer.max_pairs_per_chunk={limit}"])[1].mapper.rasterizer
         outs.append(rast.render(*scene, a_pose(), cam))
         bands.append(rast.last_num_bands)
     assert bands[0] == 1 and bands[1] > 5

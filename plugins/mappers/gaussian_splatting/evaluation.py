@@ -24,8 +24,8 @@ from slamkit.metrics import images as image_metrics
 from slamkit.metrics.lpips_network import LPIPS, min_image_side
 from slamkit.progress import Progress
 from slamkit.roles.rendering import RenderOutput
-from slamkit.splatting.keyframes import resize_rgbd
 from slamkit.types import Camera
+from slamkit_plugins.mappers.gaussian_splatting.keyframes import resize_rgbd
 
 log = logging.getLogger(__name__)
 
