@@ -414,3 +414,21 @@ def test_evaluate_reports_train_and_test_views_and_writes_outputs(truth_frames, 
     assert len(load_ply(tmp_path / "map.ply")) == m["num_gaussians"] == len(mapper.gaussian_map)
     half = make_mapper(mapper.gaussian_map, mapper={"eval_resolution_scale": 0.5})
     assert half.evaluate(truth_frames, poses, None)["eval_frames"] == 2
+
+
+def test_the_mappers_built_in_parts_sit_in_the_folder_of_their_config_group():
+    """The folder tree reads like the config tree: a built-in plugin of the part `mapper/<key>`
+    is a module of `slamkit_plugins.mappers.gaussian_splatting.<key>`, and the mapper is its
+    trainer (a subclass, not an object it forwards to)."""
+    from slamkit.registry.discovery import default_registry
+    from slamkit.roles import PARTS, Mapper
+    from slamkit_plugins.mappers.gaussian_splatting import GaussianSplattingMapper
+    from slamkit_plugins.mappers.gaussian_splatting.trainer import Trainer
+
+    registry = default_registry()
+    for part in PARTS:
+        modules = {r.spec.cls.__module__ for r in registry.plugins[part.key].values()}
+        built_in = {m for m in modules if m.startswith("slamkit_plugins.")}
+        assert built_in, part.key
+        assert all(m.startswith(f"slamkit_plugins.mappers.gaussian_splatting.{part.key}.") for m in built_in), built_in
+    assert issubclass(GaussianSplattingMapper, Trainer) and issubclass(Trainer, Mapper)
