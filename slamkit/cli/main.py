@@ -86,7 +86,7 @@ class Command:
 
     def _start(self, argv: list[str]) -> None:
         pause_point("startup")
-        from slamkit.cli.hydra_app import SingleRun, run_hydra
+        from slamkit.cli.hydra_app import SingleRun, Sweep, run_hydra
         from slamkit.cli.scenes import present_scenes
         from slamkit.registry.compose import check_spellings, register
         from slamkit.registry.discovery import discover
@@ -113,7 +113,7 @@ class Command:
         self.registry = discover()
         register(self.registry)
         self.startup.hold()  # Hydra and OmegaConf cut by a KeyboardInterrupt report another error: hold it
-        single = None
+        started = None  # the run or the sweep, composed once and checked
         try:
             if not any(f not in ("-m", "--multirun") for f in flags):
                 argv = present_scenes(argv)  # a scene sweep (+experiment=paper_tum): the scenes under data_root
@@ -122,17 +122,17 @@ class Command:
                 _check_output_dir(overrides, multirun=bool(flags))
                 _check_plugin_choices(self.registry, overrides)
             if run and not flags and not _is_sweep(overrides):
-                single = SingleRun(self.task, overrides, self.registry)  # the run's one composition, checked
-            elif run:
-                _check_jobs(self.registry, overrides)
+                started = SingleRun(self.task, overrides, self.registry)  # the run's one composition, checked
+            if run and (started is None or started.sweep):  # -m, a swept value, an experiment's sweep
+                started = Sweep(self.task, overrides, self.registry, multirun=bool(flags))
         except SlamkitError as exc:
             if os.environ.get("SLAMKIT_DEBUG"):
                 raise
             _fail(str(exc))
         try:
-            if single is not None and not single.sweep:
-                single.run()
-            else:  # a sweep, --help, --cfg, --info ...: Hydra's own command line
+            if isinstance(started, SingleRun) or (started is not None and started.sweep):
+                started.run()
+            else:  # --help, --cfg, --info ...: Hydra's own command line
                 run_hydra(self.task, argv)
         finally:
             self.startup.release()  # --help, --cfg: no task
@@ -180,33 +180,6 @@ class Command:
             else:
                 sys.exit(TRACKING_FAILED)
         return _score(run_cfg, metrics)
-
-
-def _check_jobs(registry, overrides: Sequence[str]) -> None:
-    """Every job of a sweep composed and checked before any work (Hydra's basic sweeper; a
-    single run's one composition is checked by `SingleRun`), so that a combination that cannot
-    compose is refused in one line naming the job before the first one runs (ConfigError)."""
-    from slamkit.registry.compose import compose_run, parse_overrides, sweep_jobs
-
-    jobs = sweep_jobs(overrides)
-    swept = {o.key_or_group for o in parse_overrides(overrides) if o.is_sweep_override()}
-    for number, job in enumerate(jobs or [], start=1):
-        try:
-            compose_run([o for o in job if not _is_hydra_setting(o) or o.startswith("hydra.searchpath")], registry)
-        except ConfigError as exc:
-            if len(jobs) == 1:
-                raise
-            varied = [o for o in job if o.split("=", 1)[0] in swept]
-            raise ConfigError(f"job {number} of {len(jobs)} of the sweep ({' '.join(varied) or 'as given'}): "
-                              f"{exc}") from None
-
-
-def _is_hydra_setting(override: str) -> bool:
-    """An override of Hydra's own config (`hydra.run.dir=...`, `hydra/launcher=ray`)."""
-    from slamkit.registry.compose import parse_overrides
-
-    key = parse_overrides([override])[0].key_or_group
-    return key == "hydra" or key.startswith(("hydra.", "hydra/"))
 
 
 def _is_sweep(overrides: Sequence[str]) -> bool:
