@@ -14,6 +14,9 @@
   basic sweeper once, checked before the first job starts (one line naming the job), and the
   sweeper and its launcher are given those compositions (`_ComposedJobs`) instead of composing
   them again, as `Hydra.multirun` runs a sweep otherwise.
+- `composition`: the command's one composition step for a run or a sweep: a resume's arguments
+  from its checkpoint, old spellings, a scene sweep's scenes under data_root, the output folder
+  and the plugin choices, then `SingleRun` or `Sweep`.
 - `run_hydra`: everything else (`--cfg job`, `--info`, `--help`, ...) as any Hydra app, its
   arguments given to Hydra's own parser.
 
@@ -24,7 +27,10 @@ slamkit pins hydra-core (pyproject.toml), and tests/e2e/test_cli.py runs both pa
 from __future__ import annotations
 
 import copy
+import os
+import tempfile
 import warnings
+from pathlib import Path
 from typing import Any, Callable, Sequence
 
 from hydra import version
@@ -138,21 +144,20 @@ class Sweep:
     Hydra's basic sweeper composed and checked in the constructor (ConfigError, one line naming
     the job), then `run()` runs the sweep with those compositions as `Hydra.multirun` runs it.
     `sweep` False: the overrides sweep but neither `-m` (`multirun`) nor the configuration's
-    `hydra.mode` asks for a sweep, for `run_hydra` to refuse as Hydra does; `run()` must not be
-    called then."""
+    `hydra.mode` asks for a sweep: `run()` gives them to `run_hydra`, to be refused as Hydra does."""
 
     def __init__(self, task: Callable[[Any], Any], overrides: Sequence[str], registry: Registry, multirun: bool):
-        self.task = task
+        self.task, self.overrides = task, list(overrides)
         self.hydra = _hydra(task)  # Hydra's global state is this sweep's until `run()` ends
         try:
-            self.cfg = composed(lambda: self.hydra.compose_config(CONFIG_NAME, list(overrides),
-                                                                  run_mode=RunMode.MULTIRUN, with_log_configuration=True),
-                                overrides, registry)
+            mode = RunMode.MULTIRUN
+            self.cfg = composed(lambda: self.hydra.compose_config(CONFIG_NAME, list(overrides), run_mode=mode,
+                                                                  with_log_configuration=True), overrides, registry)
             self.sweep = multirun or self.cfg.hydra.mode == RunMode.MULTIRUN
             if self.sweep and self.cfg.hydra.mode != RunMode.MULTIRUN:  # what Hydra's entry point adds for -m
                 if self.cfg.hydra.mode == RunMode.RUN:
-                    warnings.warn(message="\n\tRunning Hydra app with --multirun, overriding with `hydra.mode=MULTIRUN`.",
-                                  category=UserWarning)
+                    warnings.warn(category=UserWarning, message="\n\tRunning Hydra app with --multirun, "
+                                  "overriding with `hydra.mode=MULTIRUN`.")
                 with open_dict(self.cfg):
                     self.cfg.hydra.mode = RunMode.MULTIRUN
                     self.cfg.hydra.overrides.hydra.append("hydra.mode=MULTIRUN")
@@ -190,6 +195,8 @@ class Sweep:
         from hydra._internal.callbacks import Callbacks
         from hydra.core.plugins import Plugins
 
+        if not self.sweep:
+            return run_hydra(self.task, self.overrides)
         cfg = self.cfg
 
         def sweep() -> None:
@@ -213,6 +220,83 @@ def _is_hydra_setting(override: str) -> bool:
     return key == "hydra" or key.startswith(("hydra.", "hydra/"))
 
 
+def composition(task: Callable[[Any], Any], overrides: Sequence[str], registry: Registry,
+                multirun: bool) -> SingleRun | Sweep:
+    """The command's one composition step for a run or a sweep (`overrides`: its arguments but
+    `-m`, `multirun` whether it was given): a resume's arguments from its checkpoint
+    (`slamkit.run.checkpoint.resume_arguments`), an old spelling refused, a scene sweep restricted
+    to the scenes under data_root (`slamkit.cli.scenes.present_scenes`), the output folder and the
+    plugin choices checked, then the configuration composed once and checked: `SingleRun`, or
+    `Sweep` for `-m`, a swept value or an experiment that sweeps. A SlamkitError, one line, for
+    what is refused."""
+    from slamkit.cli.scenes import present_scenes
+    from slamkit.run.checkpoint import resume_arguments
+
+    overrides = resume_arguments(list(overrides))
+    check_spellings(overrides)
+    overrides = present_scenes(overrides)  # a scene sweep (+experiment=paper_tum): the scenes under data_root
+    _check_output_dir(overrides, multirun=multirun)
+    _check_plugin_choices(registry, overrides)
+    if not multirun and not _is_sweep(overrides):
+        single = SingleRun(task, overrides, registry)  # the run's one composition, checked
+        if not single.sweep:
+            return single
+    return Sweep(task, overrides, registry, multirun=multirun)
+
+
+def _is_sweep(overrides: Sequence[str]) -> bool:
+    """Whether any override sweeps (a,b / range(...) / choice(...) / glob(...))."""
+    return any(o.is_sweep_override() for o in parse_overrides(overrides))
+
+
+def _check_plugin_choices(registry, overrides: Sequence[str]) -> None:
+    """PluginError listing the available plugins for an override choosing an unknown one
+    (`tracker=nope`, `mapper/rasterizer=cpu,nope`)."""
+    from slamkit.roles import ROLES
+
+    by_group = {r.group: r.key for r in ROLES}
+    for override in parse_overrides(overrides):
+        key = by_group.get(override.key_or_group)
+        if key is None or override.is_delete():
+            continue
+        choices = override.sweep_string_iterator() if override.is_sweep_override() else [override.value()]
+        for name in choices:
+            if isinstance(name, str) and name.strip():
+                registry.get(key, name.strip())
+
+
+def _check_output_dir(overrides: Sequence[str], multirun: bool) -> None:
+    """The folder the run (or the sweep) writes into must be a folder, or creatable: ConfigError
+    naming it otherwise (a file, under a file, a read-only file system), before Hydra creates
+    it. Checked up to its first interpolation (`${now:...}`), without creating it."""
+    key = "hydra.sweep.dir" if multirun else "hydra.run.dir"
+    given = [str(o.value()) for o in parse_overrides(overrides) if o.key_or_group == key]
+    value = given[-1] if given else _default_dir(key)
+    literal = value.split("${")[0]
+    folder = Path(literal if "${" not in value or literal.endswith("/") else Path(literal).parent).absolute()
+    existing = next(p for p in (folder, *folder.parents) if p.exists())
+    if not existing.is_dir():
+        raise ConfigError(f"{key}={value}: {existing} is a file, expected a folder (or a path that can be "
+                          f"created) for the run's outputs")
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".slamkit-check-", dir=existing))
+    except OSError as exc:
+        raise ConfigError(f"{key}={value}: cannot create a folder in {existing} ({exc.strerror or exc}); "
+                          f"expected a writable place for the run's outputs") from None
+
+
+def _default_dir(key: str) -> str:
+    """The folder `key` (hydra.run.dir, hydra.sweep.dir) names in the shipped config.yaml."""
+    from importlib.resources import files
+
+    import yaml
+
+    node = yaml.safe_load(files(CONFIG_MODULE).joinpath(f"{CONFIG_NAME}.yaml").read_text())
+    for part in key.split("."):
+        node = node.get(part, {}) if isinstance(node, dict) else {}
+    return node if isinstance(node, str) else "."
+
+
 def run_hydra(task: Callable[[Any], Any], argv: Sequence[str]) -> None:
     """Hydra's command line (`-m`, `--cfg`, `--info`, `--help`, overrides) with `argv`."""
     version.setbase(None)  # as hydra.main(version_base=None) does
@@ -221,4 +305,4 @@ def run_hydra(task: Callable[[Any], Any], argv: Sequence[str]) -> None:
                config_name=CONFIG_NAME)
 
 
-__all__ = ["SingleRun", "Sweep", "run_hydra"]
+__all__ = ["SingleRun", "Sweep", "composition", "run_hydra"]
