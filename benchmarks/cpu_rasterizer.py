@@ -42,7 +42,11 @@ from rasterizer import SCENES, make_scene  # noqa: E402  (the same scenes)
 from slamkit.errors import ConfigError  # noqa: E402
 from slamkit.formats.checkpoint import read_checkpoint  # noqa: E402
 from slamkit.types import Camera  # noqa: E402
-from slamkit_plugins.rasterizers.cpu_rasterizer import TIME_KEYS, CPURasterizer, CPURasterizerConfig  # noqa: E402
+from slamkit_plugins.mappers.gaussian_splatting.rasterizer.cpu_rasterizer import (  # noqa: E402
+    TIME_KEYS,
+    CPURasterizer,
+    CPURasterizerConfig,
+)
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "cpu_rasterizer.json"
 

@@ -259,13 +259,13 @@ def phases(name: str, variant: str, data: Path) -> dict:
     mapper = slam.mapper
     sync = torch.cuda.synchronize if device == "cuda" else None
     time_steps(mapper, PHASE_WARMUP, sync)
-    first_loss = mapper.trainer.last_loss
+    first_loss = mapper.last_loss
     timer = time_steps(mapper, PHASE_STEPS, sync)
-    cam = mapper.trainer.keyframes[mapper.trainer.keyframes.ids[0]].camera
-    return {"sequence": name, "variant": variant, "frames": len(dataset), "keyframes": len(mapper.trainer.keyframes),
+    cam = mapper.keyframes[mapper.keyframes.ids[0]].camera
+    return {"sequence": name, "variant": variant, "frames": len(dataset), "keyframes": len(mapper.keyframes),
             "gaussians": len(slam.gaussian_map), "resolution": f"{cam.width}x{cam.height}", "steps": timer.steps,
             "ms": timer.per_step_ms(), "cpu_ms": {k: 1e3 * v / max(timer.steps, 1) for k, v in timer.cpu.items()},
-            "first_loss": first_loss, "last_loss": mapper.trainer.last_loss}
+            "first_loss": first_loss, "last_loss": mapper.last_loss}
 
 
 def realtime(name: str, variant: str, data: Path, runs_dir: Path) -> dict:

@@ -1,5 +1,5 @@
 """The mapping loss, forward + backward: the torch path (pytorch_msssim + autograd) against the
-fused compiled kernel (`slamkit_plugins.losses.fused_rgbd_loss`).
+fused compiled kernel (`slamkit_plugins.mappers.gaussian_splatting.loss.fused_rgbd_loss`).
 
     python benchmarks/loss.py [--sizes 320x240,600x340] [--threads 1,2] [--repeats 50]
                               [--out benchmarks/results/loss.json]
@@ -32,7 +32,12 @@ from pathlib import Path
 
 import torch
 
-from slamkit_plugins.losses.fused_rgbd_loss import available, fused_rgbd_loss, kernel_rgbd_loss, torch_rgbd_loss
+from slamkit_plugins.mappers.gaussian_splatting.loss.fused_rgbd_loss import (
+    available,
+    fused_rgbd_loss,
+    kernel_rgbd_loss,
+    torch_rgbd_loss,
+)
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "loss.json"
 WEIGHTS = dict(w_l1=0.8, w_ssim=0.2, w_depth=0.1, depth_unit=10.0)

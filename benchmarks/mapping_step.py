@@ -53,10 +53,10 @@ def train_psnr(slam, dataset) -> float:
     """Mean PSNR over the keyframes at the training resolution (a quick quality check)."""
     mapper = slam.mapper
     values = []
-    for kf in mapper.trainer.keyframes.values():
+    for kf in mapper.keyframes.values():
         view = kf.view(slam.gaussian_map.device)
         with torch.no_grad():
-            out = mapper.trainer.render(view.world_to_camera, view.camera)
+            out = mapper.render(view.world_to_camera, view.camera)
         values.append(psnr(out.color.clamp(0, 1), view.image, view.depth > 0))
     return float(np.mean(values))
 
@@ -64,18 +64,18 @@ def train_psnr(slam, dataset) -> float:
 def time_steps(sequence: str, name: str, overrides: list[str], steps: int) -> dict:
     dataset, slam = build_map(sequence, overrides)
     mapper = slam.mapper
-    mapper.trainer.timer.reset()
+    mapper.timer.reset()
     cpu0, wall0 = time.thread_time(), time.perf_counter()
     mapper.optimize(steps)
     wall, cpu = time.perf_counter() - wall0, time.thread_time() - cpu0
-    n = max(mapper.trainer.timer.steps, 1)
-    phases = {p: 1e3 * mapper.trainer.timer.wall[p] / n for p in mapper.trainer.timer.wall}
-    phases_cpu = {p: 1e3 * mapper.trainer.timer.cpu[p] / n for p in mapper.trainer.timer.cpu}
-    camera = mapper.trainer.keyframes.values()[0].camera
+    n = max(mapper.timer.steps, 1)
+    phases = {p: 1e3 * mapper.timer.wall[p] / n for p in mapper.timer.wall}
+    phases_cpu = {p: 1e3 * mapper.timer.cpu[p] / n for p in mapper.timer.cpu}
+    camera = mapper.keyframes.values()[0].camera
     return {
         "sequence": sequence, "variant": name, "overrides": overrides, "steps": n,
         "resolution": f"{camera.width}x{camera.height}", "gaussians": len(slam.gaussian_map),
-        "pairs": getattr(mapper.trainer.rasterizer, "last_num_pairs", None),
+        "pairs": getattr(mapper.rasterizer, "last_num_pairs", None),
         "ms_per_step": 1e3 * wall / n, "cpu_ms_per_step": 1e3 * cpu / n, "steps_per_s": n / wall,
         "phases_ms": phases, "phases_cpu_ms": phases_cpu, "train_psnr": train_psnr(slam, dataset),
     }

@@ -19,8 +19,8 @@ from pathlib import Path
 
 import torch
 
-from slamkit_plugins.optimizers.adam import AdamConfig, TorchAdam
-from slamkit_plugins.optimizers.visible_adam import Kernels, VisibleAdam, VisibleAdamConfig
+from slamkit_plugins.mappers.gaussian_splatting.optimizer.adam import AdamConfig, TorchAdam
+from slamkit_plugins.mappers.gaussian_splatting.optimizer.visible_adam import Kernels, VisibleAdam, VisibleAdamConfig
 
 SHAPES = {"means": (3,), "quats": (4,), "log_scales": (3,), "opacity_logits": (), "colors": (3,)}
 OPTIMIZERS = {

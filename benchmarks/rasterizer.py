@@ -208,7 +208,7 @@ def _load(avg) -> str:
 
 
 def _count_pairs(scene) -> int:
-    from slamkit_plugins.rasterizers.torch_rasterizer import TorchRasterizer
+    from slamkit_plugins.mappers.gaussian_splatting.rasterizer.torch_rasterizer import TorchRasterizer
 
     r = TorchRasterizer()
     with torch.no_grad():

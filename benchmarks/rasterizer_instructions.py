@@ -39,13 +39,13 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from cpu_rasterizer import cpu_ghz, map_views  # noqa: E402
 
-import slamkit_plugins.rasterizers.cpu_rasterizer as raster_module  # noqa: E402
+import slamkit_plugins.mappers.gaussian_splatting.rasterizer.cpu_rasterizer as raster_module  # noqa: E402
 from slamkit.errors import SlamkitError  # noqa: E402
 from slamkit.native import BASE_FLAGS, NativeLibrary  # noqa: E402
 
 CHILD = "SLAMKIT_INSTRUCTIONS_CHILD"  # set in the run under valgrind: where to write the render's stats
 # the rasteriser's sources and the shared headers (callgrind names them absolute or relative to the build)
-OUR_FILES = re.compile(r"(^|/)(plugins/rasterizers|slamkit)/csrc/")
+OUR_FILES = re.compile(r"(^|/)(plugins/mappers/gaussian_splatting/rasterizer|slamkit)/csrc/")
 # callgrind_annotate's per-function lines: "  43,071,764 ( 0.75%)  FILE:FUNCTION [OBJECT]"
 LINE = re.compile(r"^\s*([\d,]+)\s+\(\s*[\d.]+%\)\s+(\S+?):(.*?)(?:\s+\[(.*)\])?$")
 

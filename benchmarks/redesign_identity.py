@@ -34,6 +34,8 @@ import tarfile
 import time
 from pathlib import Path
 
+import tomllib
+
 REPO = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("SLAMKIT_DATA", REPO.parent / "shared" / "data"))
 TUM = ["dataset=tum", f"dataset.path={DATA / 'tum_fr1_rpy_first150'}"]
@@ -67,14 +69,26 @@ def cases(tum_frames: int, sevenscenes_frames: int) -> list[tuple[str, list[str]
 
 
 def snapshot(rev: str, dest: Path) -> Path:
-    """The revision's tree under dest, importable as `slamkit` and `slamkit_plugins`."""
+    """The revision's tree under dest, importable as `slamkit` and `slamkit_plugins`, with the
+    revision's own entry points (its plugins' module paths may differ from the installed ones)."""
     dest.mkdir(parents=True, exist_ok=True)
     blob = subprocess.run(["git", "-C", str(REPO), "archive", rev], check=True, capture_output=True).stdout
     with tarfile.open(fileobj=io.BytesIO(blob)) as tar:
         tar.extractall(dest, filter="data")
-    link = dest / "slamkit_plugins"  # the wheel's package-dir mapping (plugins/ -> slamkit_plugins)
-    if not link.exists():
-        link.symlink_to("plugins")
+    project = tomllib.loads((dest / "pyproject.toml").read_text())
+    # the wheel's package-dir mapping (plugins/ -> slamkit_plugins, and conf/ -> slamkit/conf where
+    # the revision has one), as links
+    for package, folder in project["tool"]["setuptools"].get("package-dir", {}).items():
+        link = dest / package.replace(".", "/")
+        if not link.exists():
+            link.symlink_to(os.path.relpath(dest / folder, link.parent))
+    # first on PYTHONPATH, this distribution's entry points are the ones importlib.metadata reads
+    info = dest / "slamkit-0.0.0.dist-info"
+    info.mkdir(exist_ok=True)
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: slamkit\nVersion: 0.0.0\n")
+    points = project["project"]["entry-points"]
+    (info / "entry_points.txt").write_text("".join(
+        f"[{group}]\n" + "".join(f"{k} = {v}\n" for k, v in eps.items()) for group, eps in points.items()))
     return dest
 
 

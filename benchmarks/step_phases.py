@@ -15,7 +15,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from contextlib import contextmanager
 
-from slamkit.splatting.timing import PhaseTimer
+from slamkit_plugins.mappers.gaussian_splatting.timing import PhaseTimer
 
 #: The phases every timed step goes through (view: only when the mapper picks the keyframe;
 #: lock: waiting for the map's lock).
@@ -43,15 +43,15 @@ def time_steps(mapper, steps: int, sync: Callable[[], None] | None = None, view=
     around each phase: the mapper's own `optimize` (it picks the keyframes), or its trainer's
     `step(view)` on one TrainingView when `view` is given. The trainer's timer is restored
     afterwards; returns the one that timed them."""
-    saved, timer = mapper.trainer.timer, SyncedPhaseTimer(sync)
-    mapper.trainer.timer = timer
+    saved, timer = mapper.timer, SyncedPhaseTimer(sync)
+    mapper.timer = timer
     try:
         if view is None:
             mapper.optimize(steps)
         else:
             for _ in range(steps):
-                mapper.trainer.step(view)
+                mapper.step(view)
                 timer.steps += 1
     finally:
-        mapper.trainer.timer = saved
+        mapper.timer = saved
     return timer

@@ -2,9 +2,9 @@
 
 What a plugin imports: `slamkit.plugin` (PluginSpec, hookimpl), `slamkit.roles` (the base
 classes), `slamkit.config` (the config base, the run context), `slamkit.types`,
-`slamkit.errors`, `slamkit.map` (the Gaussian map), `slamkit.splatting` (the 3DGS trainer and
-its parts' contracts), `slamkit.geometry` and `slamkit.native` (compiled helpers). The rest is
-grouped by concern: `metrics`, `formats`, `registry`, `run`, `cli` (docs/architecture.md).
+`slamkit.errors`, `slamkit.map` (the Gaussian map), `slamkit.geometry` and `slamkit.native`
+(compiled helpers). The rest is grouped by concern: `metrics`, `formats`, `registry`, `run`,
+`cli` (docs/architecture.md).
 """
 
 import importlib as _importlib
@@ -18,14 +18,13 @@ import sys as _sys
 _os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 #: Module paths that plugins used before 0.2 grouped the package by concern and 0.3 gave the 3DGS
-#: trainer its package, and where those modules are now: `import slamkit.gaussian_map` still
-#: gives `slamkit.map.gaussian_map` (docs/CHANGELOG.md).
+#: trainer's contracts a package, and where those modules are now: `import slamkit.gaussian_map`
+#: still gives `slamkit.map.gaussian_map` (docs/CHANGELOG.md).
 MOVED_MODULES = {
     "slamkit.gaussian_map": "slamkit.map.gaussian_map",
-    "slamkit.rendering": "slamkit.splatting.rendering",
-    "slamkit.map.rendering": "slamkit.splatting.rendering",
-    "slamkit.map.editing": "slamkit.splatting.ops",
-    "slamkit.map.coverage": "slamkit.splatting.coverage",
+    "slamkit.rendering": "slamkit.roles.rendering",
+    "slamkit.map.rendering": "slamkit.roles.rendering",
+    "slamkit.map.editing": "slamkit.roles.map_edit",
     "slamkit.roles.config": "slamkit.config",
     "slamkit.gaussian_geometry": "slamkit.geometry.gaussians",
     "slamkit.image_metrics": "slamkit.metrics.images",

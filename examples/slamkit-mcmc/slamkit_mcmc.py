@@ -67,8 +67,7 @@ import torch
 from slamkit.geometry.transforms import quat_to_rotmat
 from slamkit.map.gaussian_map import GaussianRows
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import RunContext, StepInfo, Strategy, StrategyConfig, require
-from slamkit.splatting import MapEdit
+from slamkit.roles import MapEdit, RunContext, StepInfo, Strategy, StrategyConfig, require
 
 log = logging.getLogger(__name__)
 

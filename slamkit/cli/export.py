@@ -245,7 +245,7 @@ def _world_to_camera(pose: np.ndarray) -> np.ndarray:
 def _render_rgbd(o3d, backend, gaussian_map, pose: np.ndarray, camera: Camera, min_alpha: float, depth_trunc: float):
     """open3d RGBD image of the map rendered from `pose` (camera-to-world): expected colour
     (uint8) and expected depth (float32 metres, 0 where alpha < min_alpha)."""
-    from slamkit.splatting import render_map
+    from slamkit.roles.rendering import render_map
 
     out = render_map(backend, gaussian_map, pose, camera)
     depth = np.ascontiguousarray(out.expected_depth(min_alpha).cpu().numpy().astype(np.float32))

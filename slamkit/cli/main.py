@@ -16,13 +16,11 @@ import logging
 import math
 import os
 import sys
-import tempfile
 import warnings
 from pathlib import Path
-from typing import Sequence
 
 from slamkit.cli import streams
-from slamkit.errors import ConfigError, SlamkitError
+from slamkit.errors import SlamkitError
 from slamkit.run.lifecycle import StopSignals, exit_status, pause_point
 
 log = logging.getLogger("slamkit")
@@ -86,24 +84,14 @@ class Command:
 
     def _start(self, argv: list[str]) -> None:
         pause_point("startup")
-        from slamkit.cli.hydra_app import SingleRun, run_hydra
-        from slamkit.cli.scenes import present_scenes
-        from slamkit.registry.compose import check_spellings, register
+        from slamkit.cli.hydra_app import composition, run_hydra
+        from slamkit.registry.compose import register
         from slamkit.registry.discovery import discover
-        from slamkit.run.checkpoint import resume_arguments
 
         _escape_unencodable_output()
         flags = [a for a in argv if a.startswith("-")]
         # --help, --cfg job, --info ...: Hydra's own options (some take a value), no run to check
         run = all(f in ("-m", "--multirun") for f in flags)
-        try:
-            if run:
-                argv = resume_arguments(argv)
-                check_spellings([a for a in argv if not a.startswith("-")])
-        except SlamkitError as exc:
-            if os.environ.get("SLAMKIT_DEBUG"):
-                raise
-            _fail(str(exc), exc.exit_status)
         # hydra/launcher=ray: a local Ray cluster writes no token under the home folder
         # (conf/hydra/launcher/ray.yaml); a cluster that uses tokens needs RAY_AUTH_MODE=token.
         os.environ.setdefault("RAY_AUTH_MODE", "disabled")
@@ -113,26 +101,19 @@ class Command:
         self.registry = discover()
         register(self.registry)
         self.startup.hold()  # Hydra and OmegaConf cut by a KeyboardInterrupt report another error: hold it
-        single = None
+        started = None  # the run or the sweep, composed once and checked
         try:
-            if not any(f not in ("-m", "--multirun") for f in flags):
-                argv = present_scenes(argv)  # a scene sweep (+experiment=paper_tum): the scenes under data_root
-            overrides = [a for a in argv if not a.startswith("-")]
             if run:
-                _check_output_dir(overrides, multirun=bool(flags))
-                _check_plugin_choices(self.registry, overrides)
-            if run and not flags and not _is_sweep(overrides):
-                single = SingleRun(self.task, overrides, self.registry)  # the run's one composition, checked
-            elif run:
-                _check_jobs(self.registry, overrides)
+                started = composition(self.task, [a for a in argv if not a.startswith("-")], self.registry,
+                                      multirun=bool(flags))
         except SlamkitError as exc:
             if os.environ.get("SLAMKIT_DEBUG"):
                 raise
-            _fail(str(exc))
+            _fail(str(exc), exc.exit_status)
         try:
-            if single is not None and not single.sweep:
-                single.run()
-            else:  # a sweep, --help, --cfg, --info ...: Hydra's own command line
+            if started is not None:
+                started.run()
+            else:  # --help, --cfg, --info ...: Hydra's own command line
                 run_hydra(self.task, argv)
         finally:
             self.startup.release()  # --help, --cfg: no task
@@ -180,93 +161,6 @@ class Command:
             else:
                 sys.exit(TRACKING_FAILED)
         return _score(run_cfg, metrics)
-
-
-def _check_jobs(registry, overrides: Sequence[str]) -> None:
-    """Every job of a sweep composed and checked before any work (Hydra's basic sweeper; a
-    single run's one composition is checked by `SingleRun`), so that a combination that cannot
-    compose is refused in one line naming the job before the first one runs (ConfigError)."""
-    from slamkit.registry.compose import compose_run, parse_overrides, sweep_jobs
-
-    jobs = sweep_jobs(overrides)
-    swept = {o.key_or_group for o in parse_overrides(overrides) if o.is_sweep_override()}
-    for number, job in enumerate(jobs or [], start=1):
-        try:
-            compose_run([o for o in job if not _is_hydra_setting(o) or o.startswith("hydra.searchpath")], registry)
-        except ConfigError as exc:
-            if len(jobs) == 1:
-                raise
-            varied = [o for o in job if o.split("=", 1)[0] in swept]
-            raise ConfigError(f"job {number} of {len(jobs)} of the sweep ({' '.join(varied) or 'as given'}): "
-                              f"{exc}") from None
-
-
-def _is_hydra_setting(override: str) -> bool:
-    """An override of Hydra's own config (`hydra.run.dir=...`, `hydra/launcher=ray`)."""
-    from slamkit.registry.compose import parse_overrides
-
-    key = parse_overrides([override])[0].key_or_group
-    return key == "hydra" or key.startswith(("hydra.", "hydra/"))
-
-
-def _is_sweep(overrides: Sequence[str]) -> bool:
-    """Whether any override sweeps (a,b / range(...) / choice(...) / glob(...))."""
-    from slamkit.registry.compose import parse_overrides
-
-    return any(o.is_sweep_override() for o in parse_overrides(overrides))
-
-
-def _check_plugin_choices(registry, overrides: Sequence[str]) -> None:
-    """PluginError listing the available plugins for an override choosing an unknown one
-    (`tracker=nope`, `mapper/rasterizer=cpu,nope`)."""
-    from slamkit.registry.compose import parse_overrides
-    from slamkit.roles import ROLES
-
-    by_group = {r.group: r.key for r in ROLES}
-    for override in parse_overrides(overrides):
-        key = by_group.get(override.key_or_group)
-        if key is None or override.is_delete():
-            continue
-        choices = override.sweep_string_iterator() if override.is_sweep_override() else [override.value()]
-        for name in choices:
-            if isinstance(name, str) and name.strip():
-                registry.get(key, name.strip())
-
-
-def _check_output_dir(overrides: Sequence[str], multirun: bool) -> None:
-    """The folder the run (or the sweep) writes into must be a folder, or creatable: ConfigError
-    naming it otherwise (a file, under a file, a read-only file system), before Hydra creates
-    it. Checked up to its first interpolation (`${now:...}`), without creating it."""
-    from slamkit.registry.compose import parse_overrides
-
-    key = "hydra.sweep.dir" if multirun else "hydra.run.dir"
-    given = [str(o.value()) for o in parse_overrides(overrides) if o.key_or_group == key]
-    value = given[-1] if given else _default_dir(key)
-    literal = value.split("${")[0]
-    folder = Path(literal if "${" not in value or literal.endswith("/") else Path(literal).parent).absolute()
-    existing = next(p for p in (folder, *folder.parents) if p.exists())
-    if not existing.is_dir():
-        raise ConfigError(f"{key}={value}: {existing} is a file, expected a folder (or a path that can be "
-                          f"created) for the run's outputs")
-    try:
-        os.rmdir(tempfile.mkdtemp(prefix=".slamkit-check-", dir=existing))
-    except OSError as exc:
-        raise ConfigError(f"{key}={value}: cannot create a folder in {existing} ({exc.strerror or exc}); "
-                          f"expected a writable place for the run's outputs") from None
-
-
-def _default_dir(key: str) -> str:
-    """The folder `key` (hydra.run.dir, hydra.sweep.dir) names in the shipped config.yaml."""
-    from importlib.resources import files
-
-    import yaml
-
-    from slamkit.registry.compose import CONFIG_MODULE, CONFIG_NAME
-
-    node = yaml.safe_load(files(CONFIG_MODULE).joinpath(f"{CONFIG_NAME}.yaml").read_text())
-    for part in key.split("."):
-        node = node.get(part, {}) if isinstance(node, dict) else {}
-    return node if isinstance(node, str) else "."
 
 
 def _escape_unencodable_output() -> None:

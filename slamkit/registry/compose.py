@@ -173,20 +173,19 @@ def composition_error(exc: BaseException, overrides: Sequence[str], registry: Re
 BASIC_SWEEPER = "hydra._internal.core_plugins.basic_sweeper.BasicSweeper"
 
 
-def sweep_jobs(overrides: Sequence[str]) -> list[list[str]] | None:
-    """The overrides of each job of the sweep `overrides` would launch (the config's
-    hydra.sweeper.params, e.g. an experiment's, then the command line's, as Hydra's basic sweeper
-    combines them), or None for a sweeper that chooses its jobs as it goes."""
-    from hydra import compose, initialize_config_module
+def sweep_jobs(cfg) -> list[list[str]] | None:
+    """The overrides of each job of the sweep whose composed config (its `hydra` node included)
+    is `cfg`: its hydra.sweeper.params (e.g. an experiment's), then the command line's overrides,
+    as Hydra's basic sweeper combines them; None for a sweeper that chooses its jobs as it goes."""
     from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from omegaconf import OmegaConf
 
-    fixed = [o for o, parsed in zip(overrides, parse_overrides(overrides)) if not parsed.is_sweep_override()]
-    with initialize_config_module(CONFIG_MODULE, version_base=None):
-        sweeper = compose(CONFIG_NAME, overrides=fixed, return_hydra_config=True).hydra.sweeper
+    sweeper = cfg.hydra.sweeper
     if sweeper.get("_target_") != BASIC_SWEEPER:
         return None
     params = [f"{key}={value}" for key, value in (sweeper.get("params") or {}).items()]
-    return [job for batch in BasicSweeper.split_arguments(parse_overrides([*params, *overrides]), None)
+    task = list(OmegaConf.to_container(cfg.hydra.overrides.task, resolve=False))
+    return [job for batch in BasicSweeper.split_arguments(parse_overrides([*params, *task]), None)
             for job in batch]
 
 

@@ -3,7 +3,9 @@ of roles (`ROLES`). A plugin provides a subclass of one base and a config datacl
 from `PluginConfig`; the registry fills the config's null fields from the run
 (`PluginConfig.resolve`) and builds the subclass as `cls(config, context)` (a mapper also gets
 the parts it names in `Mapper.parts`). The mapper's parts (rasteriser, sampler, strategy,
-optimiser, loss) are the 3DGS trainer's contracts, in `slamkit.splatting`, re-exported here."""
+optimiser, loss) have theirs here too, one module each, with what they are handed: a training
+step's target (`training_view`) and the row operations a strategy edits the map through
+(`map_edit`)."""
 
 from slamkit.config import PluginConfig, RunContext, check_values, require, thread_count, unlimited
 from slamkit.roles.dataset import Dataset, DatasetConfig, OnError, SourceEnded
@@ -16,22 +18,17 @@ from slamkit.roles.loop_closure import (
                                         PoseGraphEdge,
                                         follow_keyframes,
 )
+from slamkit.roles.loss import MappingLoss
+from slamkit.roles.map_edit import MapEdit
 from slamkit.roles.mapping import Mapper
+from slamkit.roles.optimizer import MapOptimizer
+from slamkit.roles.rendering import Rasterizer, RenderOutput
+from slamkit.roles.sampler import KeyframeSampler
+from slamkit.roles.strategy import StepInfo, Strategy, StrategyConfig
 from slamkit.roles.table import PARTS, ROLE_KEYS, ROLES, RUN_ROLES, Role, role, role_of
 from slamkit.roles.tracking import KeyframeDecision, KeyframeHistory, KeyframePolicy, Tracker
+from slamkit.roles.training_view import TrainingView
 from slamkit.roles.viewer import MapGaussians, MapPoints, Viewer, ViewerConfig, ViewerFrame
-from slamkit.splatting import (
-                                        KeyframeSampler,
-                                        KeyframeView,
-                                        MapOptimizer,
-                                        MappingLoss,
-                                        Rasterizer,
-                                        RenderOutput,
-                                        StepInfo,
-                                        Strategy,
-                                        StrategyConfig,
-                                        TrainingView,
-)
 from slamkit.tuning import DatasetTuning
 
 #: Names of 0.2 kept for plugins written against it (docs/CHANGELOG.md): removed in 0.4.
@@ -44,7 +41,7 @@ __all__ = [
     "Dataset", "DatasetConfig", "OnError", "SourceEnded",
     "Tracker", "KeyframePolicy", "KeyframeDecision", "KeyframeHistory",
     "Mapper", "Rasterizer", "RenderOutput", "KeyframeSampler", "Strategy", "StrategyConfig", "MapOptimizer",
-    "MappingLoss", "TrainingView", "KeyframeView", "StepInfo",
+    "MappingLoss", "TrainingView", "StepInfo", "MapEdit",
     "LoopClosure", "LoopKeyframe", "LoopDecision", "LoopCheck", "PoseGraph", "PoseGraphEdge", "follow_keyframes",
     "Viewer", "ViewerConfig", "ViewerFrame", "MapPoints", "MapGaussians",
     "SensorProfile", "DensifyStrategy",

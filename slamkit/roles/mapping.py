@@ -1,6 +1,7 @@
 """The mapper role: optimises the shared Gaussian map from keyframe images. A mapper may be
-composed of parts (`Mapper.parts`: the 3DGS trainer's, `slamkit.splatting`), each a plugin kind
-of its own whose config group is nested under the mapper's (`mapper/rasterizer=cpu`)."""
+composed of parts (`Mapper.parts`: the 3DGS mapper's rasteriser, sampler, strategy, optimiser,
+loss), each a plugin kind of its own whose config group is nested under the mapper's
+(`mapper/rasterizer=cpu`)."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ import torch
 
 from slamkit.config import PluginConfig, RunContext
 from slamkit.map.gaussian_map import GaussianMap, GaussianRows
-from slamkit.splatting.rendering import RenderOutput
+from slamkit.roles.rendering import RenderOutput
 from slamkit.types import Camera, Frame, KeyframeKind
 
 

@@ -9,14 +9,14 @@ from dataclasses import dataclass
 from slamkit.errors import PluginError
 from slamkit.roles.dataset import Dataset
 from slamkit.roles.loop_closure import LoopClosure
+from slamkit.roles.loss import MappingLoss
 from slamkit.roles.mapping import Mapper
+from slamkit.roles.optimizer import MapOptimizer
+from slamkit.roles.rendering import Rasterizer
+from slamkit.roles.sampler import KeyframeSampler
+from slamkit.roles.strategy import Strategy
 from slamkit.roles.tracking import KeyframePolicy, Tracker
 from slamkit.roles.viewer import Viewer
-from slamkit.splatting.loss import MappingLoss
-from slamkit.splatting.optimizer import MapOptimizer
-from slamkit.splatting.rendering import Rasterizer
-from slamkit.splatting.sampler import KeyframeSampler
-from slamkit.splatting.strategy import Strategy
 
 
 @dataclass(frozen=True)

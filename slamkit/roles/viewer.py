@@ -13,7 +13,7 @@ from slamkit.config import PluginConfig, require
 from slamkit.geometry.transforms import covariance_from_scales
 from slamkit.map.gaussian_map import GaussianMap
 from slamkit.roles.mapping import Mapper
-from slamkit.splatting.rendering import RenderOutput
+from slamkit.roles.rendering import RenderOutput
 from slamkit.types import Camera, Frame, KeyframeKind
 
 

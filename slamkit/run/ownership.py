@@ -8,7 +8,7 @@
   program's files, stops in one line (`existing_outputs=clean` empties a slamkit run folder
   first); a folder holding only what a refused run left (`.hydra/`, `slamkit.log`) counts as new.
 - `check_localization_folder`: localisation never writes into its map's folder.
-- `unique_suffix`: default folders (`${slamkit.run:}` in slamkit/conf/config.yaml) are unique per
+- `unique_suffix`: default folders (`${slamkit.run:}` in conf/config.yaml) are unique per
   run, even for runs started in the same second.
 Hydra's callbacks (`slamkit.cli.hydra_hooks`) apply these before Hydra writes `.hydra/`.
 """

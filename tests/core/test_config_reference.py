@@ -95,7 +95,7 @@ def built_config(key: str, run, slam, viewer, dataset):
     objects = {"dataset": dataset, "tracker": slam.tracker, "keyframe": slam.keyframe_policy,
                "mapper": slam.mapper, "viewer": viewer, "loop_closure": slam.loop_closer.closure}
     if path[0] == "mapper" and len(path) > 1 and path[1] in PARTS:
-        return getattr(slam.mapper.trainer, path[1]).cfg
+        return getattr(slam.mapper, path[1]).cfg
     cfg = objects[path[0]].cfg
     for name in path[1:]:  # a config nested in the plugin's (mapper.admission)
         cfg = getattr(cfg, name)

@@ -13,10 +13,9 @@ import slamkit
 ROOT = Path(slamkit.__file__).resolve().parent
 #: The layers, bottom up: a package may import its own layer and those below.
 LAYERS = [
-    {"types", "errors", "tuning", "config", "plugin", "scheduling", "progress", "conf", "experiments"},  # vocabulary
+    {"types", "errors", "tuning", "config", "plugin", "scheduling", "progress"},  # vocabulary
     {"geometry"},
     {"map", "metrics", "formats", "cache", "native", "downloads"},
-    {"splatting"},
     {"roles"},
     {"registry"},
     {"run"},

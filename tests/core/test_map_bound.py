@@ -1,5 +1,5 @@
 """A map bounded by the scene (issue 20, point 4): the coverage tests a keyframe's new Gaussians
-go through (`slamkit.splatting.coverage`, `mapper.admission.skip_covered`). A looped real
+go through (`slamkit_plugins.mappers.gaussian_splatting.coverage`, `mapper.admission.skip_covered`). A looped real
 sequence whose map stops growing after the first pass: tests/e2e/test_map_bound_runs.py."""
 
 from __future__ import annotations
@@ -17,13 +17,13 @@ from slamkit.map.gaussian_map import GaussianMap
 from slamkit.map.growth import MapGrowthConfig
 from slamkit.registry.discovery import create_rasterizer
 from slamkit.roles import Tracker
+from slamkit.roles.rendering import RenderOutput
 from slamkit.run.slam import SLAM
-from slamkit.splatting import AdmissionConfig, CoverageTest
-from slamkit.splatting.coverage import DepthTolerance, covered_by_render, occupied_by_centres
-from slamkit.splatting.rendering import RenderOutput
 from slamkit.tuning import DatasetTuning
 from slamkit.types import FrameGaussians, TrackingResult
 from slamkit_plugins.keyframes.every_n import EveryNKeyframeConfig, EveryNKeyframePolicy
+from slamkit_plugins.mappers.gaussian_splatting.admission import AdmissionConfig, CoverageTest
+from slamkit_plugins.mappers.gaussian_splatting.coverage import DepthTolerance, covered_by_render, occupied_by_centres
 
 from support.mapping_scenes import CAM, N, make_mapper, plane_scene, render_frame
 from support.mapping_scenes import make_map as make_scene_map
@@ -186,7 +186,7 @@ def test_skip_covered_admits_the_uncovered_and_the_trackable(coverage):
     new = gm.means.detach()[N:]
     assert int((new[:, 2] < 1.5).sum()) == 10  # the floating ones
     assert int(gm.trackable[N:].sum()) == 5
-    assert mapper.trainer.admission.skipped == 20
+    assert mapper.admission.skipped == 20
 
 
 @pytest.mark.parametrize("coverage", ["centres", "render"])
@@ -202,7 +202,7 @@ def test_the_strategy_takes_the_quadratic_depth_tolerance(coverage):
 def test_without_skip_covered_every_keyframe_gaussian_enters():
     gm = make_map(*plane_scene(opacity=0.99))
     added, mapper = grow_once(gm, skip_covered=False)
-    assert added == 35 and mapper.trainer.admission.skipped == 0
+    assert added == 35 and mapper.admission.skipped == 0
 
 
 def test_centres_explain_an_untrained_map_where_the_render_does_not():
@@ -252,4 +252,4 @@ def test_gaussians_the_target_lacks_yet_are_not_made_trackable_twice():
     # rebuilds the target from the map, so at frame 4 it lacks nothing again
     assert sizes == [40, 80, 80, 80, 120]
     assert int(gm.trackable.sum()) == 120
-    assert mapper.trainer.admission.skipped == 80
+    assert mapper.admission.skipped == 80

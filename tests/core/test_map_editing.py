@@ -1,4 +1,4 @@
-"""The shared row operations (slamkit.splatting.ops.MapEdit) keep the optimiser's and the strategy's
+"""The shared row operations (slamkit.roles.map_edit.MapEdit) keep the optimiser's and the strategy's
 per-row state aligned with the map, whatever the optimiser."""
 
 from __future__ import annotations
@@ -9,9 +9,9 @@ import pytest
 import torch
 
 from slamkit.map.gaussian_map import PARAMETERS
-from slamkit.splatting.ops import MapEdit
-from slamkit_plugins.optimizers.adam import AdamConfig, TorchAdam
-from slamkit_plugins.optimizers.visible_adam import VisibleAdam, VisibleAdamConfig
+from slamkit.roles.map_edit import MapEdit
+from slamkit_plugins.mappers.gaussian_splatting.optimizer.adam import AdamConfig, TorchAdam
+from slamkit_plugins.mappers.gaussian_splatting.optimizer.visible_adam import VisibleAdam, VisibleAdamConfig
 
 from support.mapping_scenes import N, plane_scene, rows, start_map
 

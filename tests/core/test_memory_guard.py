@@ -16,8 +16,8 @@ from slamkit.metrics import trajectory as evaluation
 from slamkit.registry.discovery import create_rasterizer
 from slamkit.run.build import build_run
 from slamkit.run.slam import SLAM
-from slamkit.splatting import MemoryCapConfig
-from slamkit.splatting.keyframes import KEYFRAME_DEPTH_STEP, KeyframeStorage
+from slamkit_plugins.mappers.gaussian_splatting.keyframes import KEYFRAME_DEPTH_STEP, KeyframeStorage
+from slamkit_plugins.mappers.gaussian_splatting.memory_cap import MemoryCapConfig
 
 from support.mapping_scenes import (
     N,
@@ -62,7 +62,7 @@ def test_guard_prunes_the_least_opaque_down_to_the_margin_and_spares_new_rows(ra
     mapper = make_mapper(gm, strategy=("gsicp", {"prune_every": 0}), mapper=capped(320, 0.2))
     add(mapper, frame)
     mapper.optimize(3)
-    assert len(gm) == N and mapper.trainer.memory_cap.prunings == 0  # within the cap
+    assert len(gm) == N and mapper.memory_cap.prunings == 0  # within the cap
     # a keyframe adds 40 Gaussians: 340 > 320, so the guard prunes down to 0.8 x 320 = 256
     before = gm.opacities.detach().clone()
     new = gm.append(rows(*plane_scene(seed=5, n=40)[:4], 0.1, keyframe_id=1))
@@ -70,12 +70,12 @@ def test_guard_prunes_the_least_opaque_down_to_the_margin_and_spares_new_rows(ra
     version = gm.version
     add(mapper, frame, new_rows=new)
     assert len(gm) == 256 and gm.version > version
-    assert mapper.trainer.memory_cap.metrics() == {"pruned_by_memory_guard": 84, "memory_guard_prunings": 1}
+    assert mapper.memory_cap.metrics() == {"pruned_by_memory_guard": 84, "memory_guard_prunings": 1}
     torch.testing.assert_close(gm.means.detach()[-40:], new_means, rtol=0, atol=0)  # the new rows stay
     old = before[:N]
     kept = torch.sort(old, descending=True).values[:216]
     torch.testing.assert_close(torch.sort(gm.opacities.detach()[:216], descending=True).values, kept)
-    assert mapper.optimize(2) == 2 and np.isfinite(mapper.trainer.last_loss)
+    assert mapper.optimize(2) == 2 and np.isfinite(mapper.last_loss)
     state_follows_map(mapper)
     assert mapper.evaluate([frame], [frame.gt_pose], None)["pruned_by_memory_guard"] == 84
 
@@ -85,7 +85,7 @@ def test_guard_prunes_new_rows_only_when_the_old_ones_cannot_make_room(rasterize
     mapper = make_mapper(gm, mapper=capped(50, 0.0))
     new = gm.append(rows(*plane_scene(seed=5, n=80)[:4], 0.1, keyframe_id=1))
     add(mapper, frame, new_rows=new)
-    assert len(gm) == 50 and mapper.trainer.memory_cap.pruned == N + 30
+    assert len(gm) == 50 and mapper.memory_cap.pruned == N + 30
     assert bool((gm.keyframe_id == 1).all())  # every old row went first
     mapper.optimize(1)
     state_follows_map(mapper)
@@ -97,7 +97,7 @@ def test_densification_respects_the_cap(rasterizer, frame):
                          mapper=capped(N + 10, 0.0))
     add(mapper, frame)
     mapper.optimize(3)
-    assert len(gm) <= N + 10 and mapper.trainer.memory_cap.prunings >= 1
+    assert len(gm) <= N + 10 and mapper.memory_cap.prunings >= 1
     state_follows_map(mapper)
 
 
@@ -106,7 +106,7 @@ def test_keyframe_images_are_quantised_and_stored(rasterizer, frame, storage, tm
     folder = tmp_path / "kf"
     mapper = make_mapper(mapper={"keyframe_storage": KeyframeStorage(storage), "keyframe_dir": str(folder)})
     add(mapper, frame)
-    view = mapper.trainer.keyframes[0].view()
+    view = mapper.keyframes[0].view()
     image, depth = view.image, view.depth
     assert image.dtype == depth.dtype == torch.float32 and image.shape == (30, 40, 3)
     torch.testing.assert_close(image, torch.as_tensor(frame.rgb) / 255.0, rtol=0, atol=1e-6)
@@ -117,11 +117,11 @@ def test_keyframe_images_are_quantised_and_stored(rasterizer, frame, storage, tm
     on_disk = sorted(p.name for p in folder.glob("*.npy")) if folder.exists() else []
     if storage == "disk":
         assert on_disk == ["keyframe_000000_depth.npy", "keyframe_000000_rgb.npy"]
-        assert mapper.trainer.keyframes.memory_bytes() == 0
+        assert mapper.keyframes.memory_bytes() == 0
     else:
-        assert on_disk == [] and mapper.trainer.keyframes.memory_bytes() == 30 * 40 * (3 + 2)
+        assert on_disk == [] and mapper.keyframes.memory_bytes() == 30 * 40 * (3 + 2)
     mapper.optimize(3)
-    assert np.isfinite(mapper.trainer.last_loss)
+    assert np.isfinite(mapper.last_loss)
 
 
 def test_disk_storage_trains_exactly_as_memory_storage(rasterizer, frame):
@@ -130,9 +130,9 @@ def test_disk_storage_trains_exactly_as_memory_storage(rasterizer, frame):
         mapper = make_mapper(mapper={"keyframe_storage": storage})
         add(mapper, frame)
         mapper.optimize(4)
-        losses[storage] = (mapper.trainer.last_loss, mapper.gaussian_map.colors.detach().clone())
+        losses[storage] = (mapper.last_loss, mapper.gaussian_map.colors.detach().clone())
         if storage is KeyframeStorage.disk:
-            folder = mapper.trainer.keyframes.folder
+            folder = mapper.keyframes.folder
             assert folder.is_dir()
             del mapper
             import gc
@@ -182,7 +182,7 @@ def test_guarded_replica_run_stays_under_the_cap_keeps_the_most_opaque_and_track
     recorder = slam.tracker = RecordingTracker(slam.tracker)
 
     prunings, kept_masks = [], []
-    guard, remove = mapper.trainer.memory_cap.enforce, mapper.trainer.edit.remove
+    guard, remove = mapper.memory_cap.enforce, mapper.edit.remove
 
     def guard_spy(edit, protect=None):
         logits, version, n, first = gm.opacity_logits.detach().clone(), gm.version, len(gm), len(kept_masks)
@@ -195,7 +195,7 @@ def test_guarded_replica_run_stays_under_the_cap_keeps_the_most_opaque_and_track
         kept_masks.append(~drop.clone())
         return remove(drop)
 
-    mapper.trainer.memory_cap.enforce, mapper.trainer.edit.remove = guard_spy, remove_spy
+    mapper.memory_cap.enforce, mapper.edit.remove = guard_spy, remove_spy
 
     slam.initialize(dataset[0].gt_pose)
     poses, gts = [], []
@@ -208,7 +208,7 @@ def test_guarded_replica_run_stays_under_the_cap_keeps_the_most_opaque_and_track
         state_follows_map(mapper)
         assert not step.tracking.lost
 
-    assert len(prunings) >= 2 and mapper.trainer.memory_cap.pruned == sum(p[3] for p in prunings)
+    assert len(prunings) >= 2 and mapper.memory_cap.pruned == sum(p[3] for p in prunings)
     for logits, protect, n, removed, mask, v_before, v_after in prunings:
         assert len(mask) == n and int((~mask).sum()) == removed
         old = torch.ones(n, dtype=torch.bool)
@@ -225,7 +225,7 @@ def test_guarded_replica_run_stays_under_the_cap_keeps_the_most_opaque_and_track
     ate = evaluation.ate(np.array(poses), gts)
     assert ate.rmse_m < 0.01
     metrics = mapper.evaluate(dataset, poses, None)
-    assert metrics["pruned_by_memory_guard"] == mapper.trainer.memory_cap.pruned > 0
+    assert metrics["pruned_by_memory_guard"] == mapper.memory_cap.pruned > 0
     assert metrics["num_gaussians"] == len(gm) <= cap and math.isfinite(metrics["psnr"])
     assert metrics["keyframe_memory_mb"] > 0
 

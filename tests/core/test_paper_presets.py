@@ -122,7 +122,7 @@ def test_mapping_only_keyframes_gaussians_never_enter_the_target_when_switched_o
 
 
 def test_loss_with_pixels_without_depth_zeroed_counts_every_pixel_as_the_reference_code():
-    from slamkit_plugins.losses.fused_rgbd_loss import torch_rgbd_loss
+    from slamkit_plugins.mappers.gaussian_splatting.loss.fused_rgbd_loss import torch_rgbd_loss
 
     g = torch.Generator().manual_seed(0)
     color, image = torch.rand(16, 20, 3, generator=g), torch.rand(16, 20, 3, generator=g)
@@ -149,9 +149,9 @@ def test_the_compiled_loss_refuses_the_reference_codes_pixels_in_one_line():
 
 def test_no_pruning_after_the_last_step_when_prune_at_finish_is_off():
     from slamkit.map.gaussian_map import GaussianMap, GaussianRows
-    from slamkit.splatting import MapEdit
-    from slamkit_plugins.optimizers.adam import AdamConfig, TorchAdam
-    from slamkit_plugins.strategies.gsicp import PruneConfig, PruneStrategy
+    from slamkit.roles import MapEdit
+    from slamkit_plugins.mappers.gaussian_splatting.optimizer.adam import AdamConfig, TorchAdam
+    from slamkit_plugins.mappers.gaussian_splatting.strategy.gsicp import PruneConfig, PruneStrategy
 
     def finished(prune_at_finish: bool) -> int:
         gm = GaussianMap()
@@ -201,8 +201,8 @@ def test_the_mappers_evaluation_scores_with_the_runs_lpips_and_psnr_pixels(tum_p
 
 def test_renders_too_small_for_lpips_record_it_as_null_instead_of_failing(tum_path, caplog):
     from slamkit.metrics.lpips_network import min_image_side
-    from slamkit.splatting.evaluation import evaluate_renders
-    from slamkit.splatting.rendering import RenderOutput
+    from slamkit.roles.rendering import RenderOutput
+    from slamkit_plugins.mappers.gaussian_splatting.evaluation import evaluate_renders
 
     dataset, slam, _ = build_run(["dataset=tum", f"dataset.path={tum_path}", "dataset.max_frames=1"])
     frames = [dataset[0]]

@@ -154,31 +154,49 @@ from slamkit.cli.main import Command
 
 calls = []
 load = ConfigLoaderImpl.load_configuration
-def counted(self, *args, **kwargs):
-    calls.append(1)
-    return load(self, *args, **kwargs)
+def counted(self, config_name, overrides, *args, **kwargs):
+    calls.append(" ".join(overrides))
+    return load(self, config_name, overrides, *args, **kwargs)
 ConfigLoaderImpl.load_configuration = counted
 try:
     Command().main(sys.argv[1:])
 finally:
+    for call in calls:
+        print(f"composed: {call}", file=sys.stderr)
     print(f"compositions: {len(calls)}", file=sys.stderr)
 """
 
 
-def test_a_run_and_its_resume_compose_the_configuration_once(tmp_path):
+def _counted(*args, cwd):
+    """The slamkit command run with `args`, every composition counted (`COUNTING`)."""
     import subprocess
     import sys
 
+    return _ok(subprocess.run([sys.executable, "-c", COUNTING, *args], cwd=cwd, capture_output=True, text=True,
+                              timeout=600))
+
+
+def test_a_run_and_its_resume_compose_the_configuration_once(tmp_path):
     run_dir = tmp_path / "run"
-
-    def slamkit(*args):
-        return _ok(subprocess.run([sys.executable, "-c", COUNTING, *args], cwd=tmp_path, capture_output=True,
-                                  text=True, timeout=600))
-
-    first = slamkit("dataset.num_frames=12", "dataset.max_frames=6", "progress=false", "eval.plot=false",
-                    "checkpoint.save=true", f"hydra.run.dir={run_dir}")
+    first = _counted("dataset.num_frames=12", "dataset.max_frames=6", "progress=false", "eval.plot=false",
+                     "checkpoint.save=true", f"hydra.run.dir={run_dir}", cwd=tmp_path)
     assert first.stderr.strip().splitlines()[-1] == "compositions: 1", first.stderr
     assert (run_dir / ".hydra" / "config.yaml").is_file() and (run_dir / "metrics.json").is_file()
-    resumed = slamkit(f"resume={run_dir}", "dataset.max_frames=12")
+    resumed = _counted(f"resume={run_dir}", "dataset.max_frames=12", cwd=tmp_path)
     assert resumed.stderr.strip().splitlines()[-1] == "compositions: 1", resumed.stderr
     assert json.loads((run_dir / "metrics.json").read_text())["num_frames"] == 12
+
+
+def test_a_sweep_composes_each_job_once(tmp_path):
+    """`-m` with two values: the sweep's configuration composed once and each job's once (checked
+    before the first job starts, then run from that composition), not again by Hydra's sweeper
+    and launcher; both jobs run."""
+    sweep_dir = tmp_path / "sweep"
+    proc = _counted("-m", "dataset.num_frames=6", "dataset.max_frames=3,4", "progress=false", "eval.plot=false",
+                    "checkpoint.save=false", f"hydra.sweep.dir={sweep_dir}", cwd=tmp_path)
+    composed = [line for line in proc.stderr.splitlines() if line.startswith("composed: ")]
+    for value in ("dataset.max_frames=3", "dataset.max_frames=4"):
+        assert sum(value in line.split() for line in composed) == 1, proc.stderr
+    assert proc.stderr.strip().splitlines()[-1] == "compositions: 3", proc.stderr  # the sweep's, and a job's each
+    frames = sorted(json.loads(m.read_text())["num_frames"] for m in sweep_dir.glob("*/metrics.json"))
+    assert frames == [3, 4]

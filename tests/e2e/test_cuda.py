@@ -32,9 +32,9 @@ from slamkit.registry.compose import compose_run
 from slamkit.registry.discovery import create_rasterizer, default_registry
 from slamkit.run import pipeline
 from slamkit.run.build import build_run
-from slamkit.splatting.keyframes import resize_rgbd
+from slamkit_plugins.mappers.gaussian_splatting.keyframes import resize_rgbd
 from slamkit.types import Camera
-from slamkit_plugins.rasterizers.torch_rasterizer import TorchRasterizer
+from slamkit_plugins.mappers.gaussian_splatting.rasterizer.torch_rasterizer import TorchRasterizer
 
 from support.data import REPLICA, REPO, require_data
 from support.render_scenes import F64, a_pose, as_tuple, random_scene, random_weights, weighted_loss
@@ -212,18 +212,18 @@ def test_mapping_step_phases_on_cuda(backend, replica_path):
         slam.process(dataset[i])
     mapper = step_phases.unwrapped(slam.mapper)
     gm = slam.gaussian_map
-    assert gm.means.device.type == "cuda" and len(mapper.trainer.keyframes) > 0
-    view = mapper.trainer.keyframes[mapper.trainer.keyframes.ids[-1]].view("cuda")
+    assert gm.means.device.type == "cuda" and len(mapper.keyframes) > 0
+    view = mapper.keyframes[mapper.keyframes.ids[-1]].view("cuda")
     losses = []
     for _ in range(6):
         timer = step_phases.time_steps(mapper, 1, torch.cuda.synchronize, view)
-        losses.append(mapper.trainer.last_loss)
+        losses.append(mapper.last_loss)
         assert all(timer.wall[phase] > 0 for phase in step_phases.STEP_PHASES), dict(timer.wall)
     assert all(math.isfinite(v) for v in losses) and losses[-1] < losses[0]  # the same view, trained on
     timer = step_phases.time_steps(mapper, 4, torch.cuda.synchronize)  # the mapper's own choice of views
     ms = timer.per_step_ms()
     assert timer.steps == 4 and ms["view"] > 0 and ms["step"] >= sum(ms[p] for p in step_phases.STEP_PHASES)
-    assert mapper.trainer.steps == 10 and all(torch.isfinite(p).all() for p in gm.parameters().values())
+    assert mapper.steps == 10 and all(torch.isfinite(p).all() for p in gm.parameters().values())
     assert all(p.device.type == "cuda" for p in gm.parameters().values())
 
 

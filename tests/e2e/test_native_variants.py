@@ -15,8 +15,8 @@ import pytest
 import torch
 
 from slamkit.native import BASE_FLAGS, INCLUDE_DIR, NativeLibrary
-from slamkit_plugins.losses.fused_rgbd_loss import SOURCE as LOSS_SOURCE
-from slamkit_plugins.rasterizers.cpu_rasterizer import SOURCE as RASTERIZER_SOURCE
+from slamkit_plugins.mappers.gaussian_splatting.loss.fused_rgbd_loss import SOURCE as LOSS_SOURCE
+from slamkit_plugins.mappers.gaussian_splatting.rasterizer.cpu_rasterizer import SOURCE as RASTERIZER_SOURCE
 
 PROBE = Path(__file__).resolve().parent / "vec16_probe.cpp"
 COMPILER = shutil.which("c++")
@@ -129,9 +129,9 @@ def test_clang_builds_every_kernel_and_computes_what_the_default_build_does(monk
     """The kernels are plain C++17 for GCC or Clang (macOS has only Clang): every one builds
     with clang++ (-march=native), and the rasteriser's and the fused loss's results (values and
     gradients) are those of the default compiler's (GCC's) builds."""
-    import slamkit_plugins.losses.fused_rgbd_loss as loss_module
-    import slamkit_plugins.optimizers.visible_adam as adam_module
-    import slamkit_plugins.rasterizers.cpu_rasterizer as raster_module
+    import slamkit_plugins.mappers.gaussian_splatting.loss.fused_rgbd_loss as loss_module
+    import slamkit_plugins.mappers.gaussian_splatting.optimizer.visible_adam as adam_module
+    import slamkit_plugins.mappers.gaussian_splatting.rasterizer.cpu_rasterizer as raster_module
     import slamkit_plugins.trackers.gicp.kernels as gicp_module
 
     from support.hard_scenes import CAM, hard_scene, rel_err, render_and_grads

@@ -46,7 +46,7 @@ def test_mapping_leaves_the_tracking_target_and_trajectory_as_without_mapping(tr
     last bit, while the mapper does train the trackable Gaussians: the target keeps the
     geometry they entered with."""
     poses, slam = _run("gaussian_splatting")
-    assert slam.num_keyframes >= 4 and slam.mapper.trainer.steps == 10 * FRAMES
+    assert slam.num_keyframes >= 4 and slam.mapper.steps == 10 * FRAMES
     np.testing.assert_array_equal(poses, tracking_only[0])
     gm, lean = slam.gaussian_map, tracking_only[1].gaussian_map
     trk = gm.trackable

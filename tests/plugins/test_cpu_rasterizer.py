@@ -12,12 +12,12 @@ import threading
 import pytest
 import torch
 
-import slamkit_plugins.rasterizers.cpu_rasterizer as cpu_module
+import slamkit_plugins.mappers.gaussian_splatting.rasterizer.cpu_rasterizer as cpu_module
 from slamkit.errors import ConfigError
 from slamkit.registry.discovery import create_rasterizer
 from slamkit.types import Camera
-from slamkit_plugins.rasterizers.cpu_rasterizer import CPURasterizer, CPURasterizerConfig
-from slamkit_plugins.rasterizers.torch_rasterizer import TorchRasterizer
+from slamkit_plugins.mappers.gaussian_splatting.rasterizer.cpu_rasterizer import CPURasterizer, CPURasterizerConfig
+from slamkit_plugins.mappers.gaussian_splatting.rasterizer.torch_rasterizer import TorchRasterizer
 
 from support.hard_scenes import CAM, hard_scene, rel_err, render_and_grads
 
@@ -273,8 +273,8 @@ def test_native_chooses_whether_the_library_is_built_for_this_cpu(monkeypatch, t
     _fresh_library(monkeypatch)
     monkeypatch.setenv("SLAMKIT_CACHE", str(tmp_path))
     portable = build_run(["mapper=gaussian_splatting", "mapper/rasterizer=cpu",
-                          "mapper.rasterizer.native=false"])[1].mapper.trainer.rasterizer
-    native = build_run(["mapper=gaussian_splatting", "mapper/rasterizer=cpu"])[1].mapper.trainer.rasterizer
+                          "mapper.rasterizer.native=false"])[1].mapper.rasterizer
+    native = build_run(["mapper=gaussian_splatting", "mapper/rasterizer=cpu"])[1].mapper.rasterizer
     assert "-march=native" not in portable.library.built_flags
     assert "-march=native" in native.library.built_flags
     assert portable.library.path != native.library.path
@@ -291,7 +291,7 @@ def test_num_threads_is_how_many_threads_render(cpu, threads):
     from slamkit.run.build import build_run
 
     rasterizer = build_run(["mapper=gaussian_splatting", "mapper/rasterizer=cpu",
-                            f"mapper.rasterizer.num_threads={threads}"])[1].mapper.trainer.rasterizer
+                            f"mapper.rasterizer.num_threads={threads}"])[1].mapper.rasterizer
     assert rasterizer.cfg.num_threads == threads
     big = Camera(640, 480, 500.0, 500.0, 319.5, 239.5)
     means, quats, scales, opacities, colors, w2c = (x.to(F32) for x in hard_scene(20_000, 5, big))

@@ -17,14 +17,14 @@ import types
 import pytest
 import torch
 
-import slamkit_plugins.rasterizers.gsplat_rasterizer as gsplat_module
+import slamkit_plugins.mappers.gaussian_splatting.rasterizer.gsplat_rasterizer as gsplat_module
 from slamkit.errors import ConfigError
 from slamkit.registry.compose import compose_run
 from slamkit.registry.discovery import create_rasterizer
 from slamkit.run.build import build_run
 from slamkit.types import Camera
-from slamkit_plugins.rasterizers.cpu_rasterizer import CPURasterizer
-from slamkit_plugins.rasterizers.gsplat_rasterizer import GsplatRasterizer
+from slamkit_plugins.mappers.gaussian_splatting.rasterizer.cpu_rasterizer import CPURasterizer
+from slamkit_plugins.mappers.gaussian_splatting.rasterizer.gsplat_rasterizer import GsplatRasterizer
 
 BUILD_ERROR = "Error building extension 'gsplat_cuda'"
 
@@ -83,7 +83,7 @@ def test_unbuildable_extension_fails_at_construction_in_one_line(fake_cuda):
 
 def test_auto_falls_back_to_cpu_when_the_extension_cannot_be_built(fake_cuda, caplog):
     fake_cuda(fake_gsplat(broken=True))
-    with caplog.at_level(logging.INFO, logger="slamkit_plugins.rasterizers.auto"):
+    with caplog.at_level(logging.INFO, logger="slamkit_plugins.mappers.gaussian_splatting.rasterizer.auto"):
         auto = create_rasterizer("auto")
     assert auto.name == "cpu" and isinstance(auto.backend, CPURasterizer)
     skipped = [r for r in caplog.records if "not using gsplat" in r.getMessage()]
@@ -94,7 +94,7 @@ def test_auto_falls_back_to_cpu_when_the_extension_cannot_be_built(fake_cuda, ca
 
 def test_auto_falls_back_to_cpu_on_a_cuda_machine_without_gsplat(fake_cuda, caplog):
     fake_cuda(None)  # `import gsplat` raises ImportError
-    with caplog.at_level(logging.INFO, logger="slamkit_plugins.rasterizers.auto"):
+    with caplog.at_level(logging.INFO, logger="slamkit_plugins.mappers.gaussian_splatting.rasterizer.auto"):
         auto = create_rasterizer("auto")
     assert auto.name == "cpu"
     (skipped,) = [r.getMessage() for r in caplog.records if "not using gsplat" in r.getMessage()]
@@ -106,7 +106,7 @@ def test_auto_falls_back_to_cpu_on_a_cuda_machine_without_gsplat(fake_cuda, capl
 
 def test_without_cuda_auto_skips_gsplat_quietly(monkeypatch, caplog):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
-    with caplog.at_level(logging.INFO, logger="slamkit_plugins.rasterizers.auto"):
+    with caplog.at_level(logging.INFO, logger="slamkit_plugins.mappers.gaussian_splatting.rasterizer.auto"):
         assert create_rasterizer("auto").name == "cpu"
     assert [r.levelno for r in caplog.records if "not using gsplat" in r.getMessage()] == [logging.INFO]
 
@@ -127,15 +127,15 @@ def test_run_config_reaches_gsplat_as_documented(fake_cuda):
     fake_cuda(fake_gsplat(calls))
     dataset, slam, _ = build_run(["dataset.max_frames=2", "mapper=gaussian_splatting", "mapper/rasterizer=gsplat",
                                   "mapper.rasterizer.tile_size=8", "mapping_device=cpu", "iterations_per_frame=2"])
-    rasterizer = slam.mapper.trainer.rasterizer
+    rasterizer = slam.mapper.rasterizer
     assert isinstance(rasterizer, GsplatRasterizer) and rasterizer.cfg.tile_size == 8
     assert len(calls) == 1  # the probe, at construction
     slam.initialize(dataset[0].gt_pose)
     for i in range(len(dataset)):
         slam.process(dataset[i])
-    assert slam.mapper.trainer.steps > 0 and len(calls) > 1
+    assert slam.mapper.steps > 0 and len(calls) > 1
     kw = calls[-1]
-    cam = slam.mapper.trainer.keyframes.training_camera(dataset.camera)
+    cam = slam.mapper.keyframes.training_camera(dataset.camera)
     expected_K = torch.tensor([[cam.fx, 0, cam.cx + 0.5], [0, cam.fy, cam.cy + 0.5], [0, 0, 1]])
     torch.testing.assert_close(kw["Ks"], expected_K[None])
     assert (kw["width"], kw["height"]) == (cam.width, cam.height)

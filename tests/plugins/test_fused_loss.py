@@ -1,4 +1,4 @@
-"""The fused RGB-D mapping loss (`slamkit_plugins.losses.fused_rgbd_loss`) against its torch
+"""The fused RGB-D mapping loss (`slamkit_plugins.mappers.gaussian_splatting.loss.fused_rgbd_loss`) against its torch
 reference (pytorch_msssim + autograd): value and both gradients on random and real keyframes,
 several weightings, thread-count independence, a finite-difference check, edge cases, input
 validation and the fallback without a compiler."""
@@ -13,10 +13,14 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-import slamkit_plugins.losses.fused_rgbd_loss as loss_module
+import slamkit_plugins.mappers.gaussian_splatting.loss.fused_rgbd_loss as loss_module
 from slamkit.formats.images import read_depth, read_rgb
 from slamkit.native import NativeLibrary
-from slamkit_plugins.losses.fused_rgbd_loss import fused_rgbd_loss, kernel_rgbd_loss, torch_rgbd_loss
+from slamkit_plugins.mappers.gaussian_splatting.loss.fused_rgbd_loss import (
+    fused_rgbd_loss,
+    kernel_rgbd_loss,
+    torch_rgbd_loss,
+)
 
 from support.data import REPLICA, TUM, require_data
 from support.loss_inputs import loss_and_grads, random_inputs

@@ -8,9 +8,9 @@ import torch
 from pytorch_msssim import ssim
 
 from slamkit.roles import TrainingView
-from slamkit.splatting.rendering import RenderOutput
+from slamkit.roles.rendering import RenderOutput
 from slamkit.types import Camera
-from slamkit_plugins.losses.l1_ssim_depth import L1SSIMDepthConfig, L1SSIMDepthLoss
+from slamkit_plugins.mappers.gaussian_splatting.loss.l1_ssim_depth import L1SSIMDepthConfig, L1SSIMDepthLoss
 
 H, W = 24, 32
 
@@ -57,7 +57,7 @@ def test_gradients_reach_colour_and_depth():
 def test_the_compiled_backend_is_the_same_loss(seed, invalid):
     """mapper.loss.backend=compiled (one kernel call, analytic gradients) against backend=torch
     (autograd through pytorch-msssim): value and gradients to float precision."""
-    from slamkit_plugins.losses.l1_ssim_depth import Backend
+    from slamkit_plugins.mappers.gaussian_splatting.loss.l1_ssim_depth import Backend
 
     view, render = view_and_render(seed, invalid)
     results = {}

@@ -20,11 +20,11 @@ from slamkit.map.growth import MapGrowthConfig
 from slamkit.registry.discovery import create_rasterizer
 from slamkit.run.build import build_run
 from slamkit.run.slam import SLAM
-from slamkit.splatting.keyframes import resize_rgbd
 from slamkit.types import Camera, Frame, KeyframeKind
 from slamkit_plugins.keyframes.every_n import EveryNKeyframeConfig, EveryNKeyframePolicy
 from slamkit_plugins.mappers.gaussian_splatting import GaussianSplattingConfig
-from slamkit_plugins.samplers.keyframe_samplers import CovisibleSampler
+from slamkit_plugins.mappers.gaussian_splatting.keyframes import resize_rgbd
+from slamkit_plugins.mappers.gaussian_splatting.sampler.keyframe_samplers import CovisibleSampler
 
 from support.mapping_scenes import (
     GroundTruthTracker,
@@ -70,11 +70,11 @@ def test_the_mapper_is_composed_of_the_parts_the_config_names(replica_path):
                             "mapper/strategy=3dgs", "mapper.strategy.densify_every=50", "mapper/optimizer=visible_adam",
                             "mapper.optimizer.lr_colors=0.01", "mapper.loss.weight_ssim=0.3"])
     mapper = slam.mapper
-    assert isinstance(mapper.trainer.sampler, CovisibleSampler) and mapper.trainer.sampler.cfg.top_k == 2
-    assert type(mapper.trainer.rasterizer).__name__ == "TorchRasterizer"
-    assert mapper.trainer.strategy.cfg.densify_every == 50
-    assert mapper.trainer.strategy.cfg.max_scale == 0.25  # null: Replica's sensor profile
-    assert mapper.trainer.optimizer.cfg.lr_colors == 0.01 and mapper.trainer.loss.cfg.weight_ssim == 0.3
+    assert isinstance(mapper.sampler, CovisibleSampler) and mapper.sampler.cfg.top_k == 2
+    assert type(mapper.rasterizer).__name__ == "TorchRasterizer"
+    assert mapper.strategy.cfg.densify_every == 50
+    assert mapper.strategy.cfg.max_scale == 0.25  # null: Replica's sensor profile
+    assert mapper.optimizer.cfg.lr_colors == 0.01 and mapper.loss.cfg.weight_ssim == 0.3
     with pytest.raises(ConfigError, match="sampler"):
         build_run(["mapper=gaussian_splatting", "mapper/sampler=nope"])
     with pytest.raises(ConfigError, match="mapper.resolution_scale"):
@@ -119,11 +119,11 @@ def test_training_one_view_lowers_loss_and_raises_psnr(truth_frames, backend, op
     before = mapper.evaluate([frame], [frame.gt_pose], None)["psnr"]
     add(mapper, frame)
     assert mapper.optimize(1) == 1  # the new keyframe, once on arrival
-    first = mapper.trainer.last_loss
+    first = mapper.last_loss
     version = mapper.gaussian_map.version
     assert mapper.optimize(80) == 80
     assert mapper.gaussian_map.version == version + 80  # bumped after every step
-    assert mapper.trainer.last_loss < 0.6 * first
+    assert mapper.last_loss < 0.6 * first
     metrics = mapper.evaluate([frame], [frame.gt_pose], None)
     assert metrics["psnr"] > before + 5 and metrics["psnr_train"] == metrics["psnr"]
     assert metrics["psnr_test"] is None and metrics["num_gaussians"] == N
@@ -133,8 +133,8 @@ def test_training_one_view_lowers_loss_and_raises_psnr(truth_frames, backend, op
 def test_new_keyframe_trained_first_then_sampled(truth_frames):
     mapper = make_mapper()
     trained = []
-    step = mapper.trainer.step
-    mapper.trainer.step = lambda view: trained.append(view.keyframe_id) or step(view)
+    step = mapper.step
+    mapper.step = lambda view: trained.append(view.keyframe_id) or step(view)
     add(mapper, truth_frames[0])
     add(mapper, truth_frames[1], KeyframeKind.MAPPING_ONLY)
     assert mapper.optimize(0) == 0
@@ -142,14 +142,14 @@ def test_new_keyframe_trained_first_then_sampled(truth_frames):
     assert trained == [0, 1]
     mapper.optimize(6)
     assert set(trained[2:]) <= {0, 1} and len(trained) == 8
-    assert mapper.trainer.keyframes[1].kind is KeyframeKind.MAPPING_ONLY
+    assert mapper.keyframes[1].kind is KeyframeKind.MAPPING_ONLY
 
 
 def test_training_views_are_kept_between_steps_within_their_budget(truth_frames):
     mapper = make_mapper()  # 40x30 views: 19 kB each
     add(mapper, truth_frames[0])
     add(mapper, truth_frames[1])
-    store = mapper.trainer.keyframes
+    store = mapper.keyframes
     first = store.view(0)
     assert torch.equal(first.image, store[0].view().image) and torch.equal(first.depth, store[0].view().depth)
     assert store.view(0).image is first.image and store.view(0, scale=0.5).image is not first.image
@@ -159,21 +159,21 @@ def test_training_views_are_kept_between_steps_within_their_budget(truth_frames)
     for m in (small, off):
         add(m, truth_frames[0])
         add(m, truth_frames[1])
-    kept = small.trainer.keyframes.view(0)
-    assert small.trainer.keyframes.view(0).image is kept.image
-    small.trainer.keyframes.view(1)  # the budget holds one: keyframe 0's is dropped
-    assert small.trainer.keyframes.view(0).image is not kept.image
-    assert off.trainer.keyframes.view(0).image is not off.trainer.keyframes.view(0).image
+    kept = small.keyframes.view(0)
+    assert small.keyframes.view(0).image is kept.image
+    small.keyframes.view(1)  # the budget holds one: keyframe 0's is dropped
+    assert small.keyframes.view(0).image is not kept.image
+    assert off.keyframes.view(0).image is not off.keyframes.view(0).image
 
 
 def test_the_least_recently_used_view_is_dropped_first(truth_frames):
     probe = make_mapper()
     add(probe, truth_frames[0])
-    one_view = (probe.trainer.keyframes.view(0).image.nbytes + probe.trainer.keyframes.view(0).depth.nbytes) / 2**20
+    one_view = (probe.keyframes.view(0).image.nbytes + probe.keyframes.view(0).depth.nbytes) / 2**20
     mapper = make_mapper(mapper={"view_cache_mb": 2.5 * one_view})
     for frame in (*truth_frames, truth_frames[0]):  # three keyframes
         add(mapper, frame)
-    views = mapper.trainer.keyframes
+    views = mapper.keyframes
     first, second = views.view(0), views.view(1)
     views.view(0)  # used again: keyframe 1's is now the least recently used
     views.view(2)
@@ -200,11 +200,11 @@ def test_kept_views_train_as_fresh_ones(truth_frames):
 def test_coarse_steps_train_a_new_keyframe_at_half_resolution_first(truth_frames):
     mapper = make_mapper(mapper={"coarse_steps": 3})
     widths = []
-    step = mapper.trainer.step
-    mapper.trainer.step = lambda view: widths.append(view.camera.width) or step(view)
+    step = mapper.step
+    mapper.step = lambda view: widths.append(view.camera.width) or step(view)
     add(mapper, truth_frames[0])
     mapper.optimize(5)
-    assert widths == [20, 20, 20, 40, 40] and np.isfinite(mapper.trainer.last_loss)
+    assert widths == [20, 20, 20, 40, 40] and np.isfinite(mapper.last_loss)
 
 
 def test_a_window_step_trains_on_the_same_pixels_of_its_view(truth_frames):
@@ -213,25 +213,25 @@ def test_a_window_step_trains_on_the_same_pixels_of_its_view(truth_frames):
     the view's render; the map still learns the view."""
     mapper = make_mapper(mapper={"window": 0.5})
     windows = []
-    step = mapper.trainer.step
-    mapper.trainer.step = lambda view: windows.append(view) or step(view)
+    step = mapper.step
+    mapper.step = lambda view: windows.append(view) or step(view)
     add(mapper, truth_frames[0])
     mapper.optimize(1)
-    first = mapper.trainer.last_loss
+    first = mapper.last_loss
     mapper.optimize(60)
-    assert mapper.trainer.last_loss < 0.6 * first
-    full = mapper.trainer.keyframes[0].view()
+    assert mapper.last_loss < 0.6 * first
+    full = mapper.keyframes[0].view()
     assert {(w.camera.height, w.camera.fx) for w in windows} == {(16, full.camera.fx)}
     assert {w.camera.width for w in windows} <= set(range(16, 21)) and len({w.camera.width for w in windows}) > 1
     with torch.no_grad():
-        whole = mapper.trainer.render(full.world_to_camera, full.camera)
+        whole = mapper.render(full.world_to_camera, full.camera)
         corners = set()
         for w in windows[-8:]:
             x0, y0 = round(full.camera.cx - w.camera.cx), round(full.camera.cy - w.camera.cy)
             corners.add((x0, y0))
             rows, columns = slice(y0, y0 + w.camera.height), slice(x0, x0 + w.camera.width)
             assert torch.equal(w.image, full.image[rows, columns]) and torch.equal(w.depth, full.depth[rows, columns])
-            part = mapper.trainer.render(w.world_to_camera, w.camera)
+            part = mapper.render(w.world_to_camera, w.camera)
             # the same pixels, but near the window's border: 3DGS clamps the projection's Jacobian
             # at 15 % outside the image, so Gaussians beyond the window's edge spread differently
             inner = (slice(4, -4), slice(4, -4))
@@ -248,11 +248,11 @@ def test_a_small_window_keeps_the_loss_s_minimum_size():
     it takes 16 pixels (or the whole side) instead, and training runs."""
     mapper = make_mapper(mapper={"window": 0.25, "coarse_steps": 2})
     sizes = []
-    step = mapper.trainer.step
-    mapper.trainer.step = lambda view: sizes.append((view.camera.width, view.camera.height)) or step(view)
+    step = mapper.step
+    mapper.step = lambda view: sizes.append((view.camera.width, view.camera.height)) or step(view)
     frame = render_frame(create_rasterizer("torch"), start_map(), pose_x(0.0))
     add(mapper, frame)
-    assert mapper.optimize(4) == 4 and np.isfinite(mapper.trainer.last_loss)
+    assert mapper.optimize(4) == 4 and np.isfinite(mapper.last_loss)
     assert all(w >= 16 and h == 15 for w, h in sizes[:2]) and all(w >= 16 and h >= 16 for w, h in sizes[2:])
     with pytest.raises(ConfigError, match="mapper.window: expected in \\(0, 1\\]"):
         GaussianSplattingConfig(window=0.0)
@@ -279,7 +279,7 @@ def test_rows_appended_during_a_step_are_kept_and_the_step_applies(truth_frames)
     add(mapper, truth_frames[0])
     mapper.optimize(1)
     appended = {}
-    render = mapper.trainer.render
+    render = mapper.render
 
     def render_then_append(*args, **kwargs):
         out = render(*args, **kwargs)
@@ -288,13 +288,13 @@ def test_rows_appended_during_a_step_are_kept_and_the_step_applies(truth_frames)
             appended["colors"] = gm.colors.detach()[appended["rows"]].clone()
         return out
 
-    mapper.trainer.render = render_then_append
+    mapper.render = render_then_append
     before = gm.colors.detach()[:N].clone()
-    assert mapper.optimize(1) == 1 and mapper.trainer.stale_steps == 0
+    assert mapper.optimize(1) == 1 and mapper.stale_steps == 0
     assert len(gm) == N + 30
     assert torch.equal(gm.colors.detach()[appended["rows"]], appended["colors"])  # untouched
     assert not torch.equal(gm.colors.detach()[:N], before)  # the step's update reached the map
-    mapper.trainer.render = render
+    mapper.render = render
     mapper.optimize(2)
     state_follows_map(mapper)
 
@@ -303,21 +303,21 @@ def test_a_step_is_dropped_when_rows_are_removed_during_it(truth_frames):
     gm = start_map()
     mapper = make_mapper(gm, strategy=("gsicp", {"prune_every": 0}))
     add(mapper, truth_frames[0])
-    render = mapper.trainer.render
+    render = mapper.render
 
     def render_then_remove(*args, **kwargs):
         out = render(*args, **kwargs)
         with gm.lock:
             drop = torch.zeros(len(gm), dtype=torch.bool)
             drop[:10] = True
-            mapper.trainer.edit.remove(drop)
+            mapper.edit.remove(drop)
         return out
 
-    mapper.trainer.render = render_then_remove
+    mapper.render = render_then_remove
     mapper.optimize(1)
-    assert mapper.trainer.stale_steps == 1 and len(gm) == N - 10
-    mapper.trainer.render = render
-    assert mapper.optimize(2) == 2 and mapper.trainer.stale_steps == 1
+    assert mapper.stale_steps == 1 and len(gm) == N - 10
+    mapper.render = render
+    assert mapper.optimize(2) == 2 and mapper.stale_steps == 1
     state_follows_map(mapper)
 
 
@@ -330,19 +330,19 @@ def test_non_finite_loss_is_skipped_and_the_corrupt_gaussian_removed(truth_frame
         gm.colors[7] = float("nan")  # a corrupt Gaussian in view: the loss is NaN
     good = torch.arange(len(gm)) != 7
     params = {k: v.detach()[good].clone() for k, v in gm.parameters().items()}
-    state = {k: [t[good] for t in v] for k, v in mapper.trainer.optimizer.row_state().items()}
+    state = {k: [t[good] for t in v] for k, v in mapper.optimizer.row_state().items()}
     with caplog.at_level(logging.WARNING):
         assert mapper.optimize(1) == 1  # attempted, skipped
-    assert mapper.trainer.skipped_steps == 1 and "skipped" in caplog.text
+    assert mapper.skipped_steps == 1 and "skipped" in caplog.text
     # the step changed nothing; the corrupt Gaussian is removed at once (with its state)
     assert len(gm) == N - 1
     for k, v in gm.parameters().items():
         torch.testing.assert_close(v.detach(), params[k], rtol=0, atol=0, msg=k)
-    for k, tensors in mapper.trainer.optimizer.row_state().items():
+    for k, tensors in mapper.optimizer.row_state().items():
         for t, expected in zip(tensors, state[k]):
             torch.testing.assert_close(t, expected, rtol=0, atol=0, msg=k)
     state_follows_map(mapper)
-    assert mapper.optimize(2) == 2 and mapper.trainer.skipped_steps == 1 and np.isfinite(mapper.trainer.last_loss)
+    assert mapper.optimize(2) == 2 and mapper.skipped_steps == 1 and np.isfinite(mapper.last_loss)
 
 
 def test_invalid_depth_values_are_masked(truth_frames):
@@ -351,9 +351,9 @@ def test_invalid_depth_values_are_masked(truth_frames):
     depth[0, :5] = [np.nan, np.inf, -1.0, 0.0, -np.inf]
     mapper = make_mapper()
     add(mapper, Frame(0, 0.0, f.rgb, depth, f.camera, f.gt_pose))
-    assert (mapper.trainer.keyframes[0].view().depth[0, :5] == 0).all()
+    assert (mapper.keyframes[0].view().depth[0, :5] == 0).all()
     mapper.optimize(2)
-    assert mapper.trainer.skipped_steps == 0 and np.isfinite(mapper.trainer.last_loss)
+    assert mapper.skipped_steps == 0 and np.isfinite(mapper.last_loss)
 
 
 @pytest.mark.parametrize("geometry", ["optimised", "entry"])
@@ -414,3 +414,21 @@ def test_evaluate_reports_train_and_test_views_and_writes_outputs(truth_frames, 
     assert len(load_ply(tmp_path / "map.ply")) == m["num_gaussians"] == len(mapper.gaussian_map)
     half = make_mapper(mapper.gaussian_map, mapper={"eval_resolution_scale": 0.5})
     assert half.evaluate(truth_frames, poses, None)["eval_frames"] == 2
+
+
+def test_the_mappers_built_in_parts_sit_in_the_folder_of_their_config_group():
+    """The folder tree reads like the config tree: a built-in plugin of the part `mapper/<key>`
+    is a module of `slamkit_plugins.mappers.gaussian_splatting.<key>`, and the mapper is its
+    trainer (a subclass, not an object it forwards to)."""
+    from slamkit.registry.discovery import default_registry
+    from slamkit.roles import PARTS, Mapper
+    from slamkit_plugins.mappers.gaussian_splatting import GaussianSplattingMapper
+    from slamkit_plugins.mappers.gaussian_splatting.trainer import Trainer
+
+    registry = default_registry()
+    for part in PARTS:
+        modules = {r.spec.cls.__module__ for r in registry.plugins[part.key].values()}
+        built_in = {m for m in modules if m.startswith("slamkit_plugins.")}
+        assert built_in, part.key
+        assert all(m.startswith(f"slamkit_plugins.mappers.gaussian_splatting.{part.key}.") for m in built_in), built_in
+    assert issubclass(GaussianSplattingMapper, Trainer) and issubclass(Trainer, Mapper)

@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from slamkit.map.gaussian_map import PARAMETERS
-from slamkit_plugins.optimizers.adam import AdamConfig, TorchAdam
-from slamkit_plugins.optimizers.visible_adam import Kernels, VisibleAdam, VisibleAdamConfig
+from slamkit_plugins.mappers.gaussian_splatting.optimizer.adam import AdamConfig, TorchAdam
+from slamkit_plugins.mappers.gaussian_splatting.optimizer.visible_adam import Kernels, VisibleAdam, VisibleAdamConfig
 
 SHAPES = {"means": (3,), "quats": (4,), "log_scales": (3,), "opacity_logits": (), "colors": (3,)}
 LRS = AdamConfig().learning_rates()
@@ -94,7 +94,7 @@ def test_visible_adam_leaves_unseen_rows_alone_and_counts_steps_per_row(kernels)
 def test_a_late_row_starts_like_a_fresh_adam_with_row_bias_correction(kernels):
     """bias_correction=row: a row appended after 20 steps (zero state) moves on its first update
     as a fresh Adam moves a parameter (lr * g / |g|): its own step count bias-corrects it."""
-    from slamkit_plugins.optimizers.visible_adam import BiasCorrection
+    from slamkit_plugins.mappers.gaussian_splatting.optimizer.visible_adam import BiasCorrection
 
     p = params(10)
     optimizer = visible(kernels, bias_correction=BiasCorrection["row"])
@@ -166,7 +166,7 @@ def test_the_compiled_kernel_equals_the_torch_reference_on_a_long_sparse_run():
 def test_global_bias_correction_on_rows_seen_every_step_is_torch_adam_too(kernels):
     """bias_correction=global (gsplat's SelectiveAdam): the optimiser's step count for every row;
     a row that joins late takes that count, as in torch.optim.Adam."""
-    from slamkit_plugins.optimizers.visible_adam import BiasCorrection
+    from slamkit_plugins.mappers.gaussian_splatting.optimizer.visible_adam import BiasCorrection
 
     ours, theirs = params(30), params(30)
     optimizer, ref = visible(kernels, bias_correction=BiasCorrection["global"]), reference(theirs)

@@ -9,20 +9,23 @@ import math
 import pytest
 import torch
 
-import slamkit_plugins.rasterizers.gsplat_rasterizer as gsplat_module
-import slamkit_plugins.rasterizers.torch_rasterizer as torch_module
+import slamkit_plugins.mappers.gaussian_splatting.rasterizer.gsplat_rasterizer as gsplat_module
+import slamkit_plugins.mappers.gaussian_splatting.rasterizer.torch_rasterizer as torch_module
 from slamkit.errors import ConfigError
 from slamkit.geometry.transforms import covariance_from_scales
 from slamkit.registry.discovery import Registry, create_rasterizer
 from slamkit.types import Camera
-from slamkit_plugins.rasterizers.torch_rasterizer import TorchRasterizer, TorchRasterizerConfig
+from slamkit_plugins.mappers.gaussian_splatting.rasterizer.torch_rasterizer import (
+    TorchRasterizer,
+    TorchRasterizerConfig,
+)
 
 from support.render_scenes import F64, a_pose, as_tuple, random_scene, random_weights, weighted_loss
 
 
 def brute_force_render(means, quats, scales, opacities, colors, w2c, cam, background):
     """Every pixel against every Gaussian, composited in a Python loop over depth order, with
-    plain autograd: the conventions of `slamkit.splatting.rendering` written as directly as possible."""
+    plain autograd: the conventions of `slamkit.roles.rendering` written as directly as possible."""
     R, t = w2c[:3, :3], w2c[:3, 3]
     x, y, z = (means @ R.T + t).unbind(-1)
     u, v = cam.fx * x / z + cam.cx, cam.fy * y / z + cam.cy
@@ -211,7 +214,7 @@ def test_config_is_validated():
 
 
 def _registry_with_backends() -> Registry:
-    from slamkit_plugins.rasterizers import auto as auto_module
+    from slamkit_plugins.mappers.gaussian_splatting.rasterizer import auto as auto_module
 
     registry = Registry()
     registry.add_module(torch_module, "torch_rasterizer (test)")
@@ -221,7 +224,7 @@ def _registry_with_backends() -> Registry:
 
 
 def test_auto_takes_the_first_backend_it_can_build(monkeypatch):
-    from slamkit_plugins.rasterizers.auto import AutoRasterizer, AutoRasterizerConfig
+    from slamkit_plugins.mappers.gaussian_splatting.rasterizer.auto import AutoRasterizer, AutoRasterizerConfig
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     registry = _registry_with_backends()
@@ -251,7 +254,7 @@ def test_max_pairs_per_chunk_bounds_the_bands_without_changing_the_image():
     outs, bands = [], []
     for limit in (2_000_000, 1024):
         rast = build_run(["mapper=gaussian_splatting", "mapper/rasterizer=torch",
-                          f"mapper.rasterizer.max_pairs_per_chunk={limit}"])[1].mapper.trainer.rasterizer
+                          f"mapper.rasterizer.max_pairs_per_chunk={limit}"])[1].mapper.rasterizer
         outs.append(rast.render(*scene, a_pose(), cam))
         bands.append(rast.last_num_bands)
     assert bands[0] == 1 and bands[1] > 5

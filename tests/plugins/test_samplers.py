@@ -9,7 +9,7 @@ import pytest
 
 from slamkit.errors import ConfigError
 from slamkit.run.build import build_run
-from slamkit_plugins.samplers.keyframe_samplers import (
+from slamkit_plugins.mappers.gaussian_splatting.sampler.keyframe_samplers import (
     CovisibleSampler,
     CovisibleSamplerConfig,
     RandomSampler,
@@ -48,7 +48,7 @@ def test_random_recent_and_covisible_choices():
 
 
 def test_newest_share_is_the_share_of_draws_on_the_newest_keyframe():
-    from slamkit_plugins.samplers.keyframe_samplers import RandomSamplerConfig
+    from slamkit_plugins.mappers.gaussian_splatting.sampler.keyframe_samplers import RandomSamplerConfig
 
     rng = np.random.default_rng(0)
     ids = list(range(10))

@@ -10,9 +10,9 @@ import torch
 
 from slamkit.errors import ConfigError
 from slamkit.registry.discovery import create_rasterizer
-from slamkit.splatting import AdmissionConfig
 from slamkit.tuning import DatasetTuning
-from slamkit_plugins.strategies.densify_3dgs import Densify3DGSConfig
+from slamkit_plugins.mappers.gaussian_splatting.admission import AdmissionConfig
+from slamkit_plugins.mappers.gaussian_splatting.strategy.densify_3dgs import Densify3DGSConfig
 
 from support.mapping_scenes import (
     N,

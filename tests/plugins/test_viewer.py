@@ -96,7 +96,7 @@ def test_render_view_is_none_by_default_and_the_3dgs_map_render_otherwise():
     view.pose = pose
     out = view.render(scale=0.5)
     w2c = torch.as_tensor(np.linalg.inv(pose), dtype=torch.float32)
-    reference = mapper.trainer.render(w2c, CAMERA.scaled(0.5))
+    reference = mapper.render(w2c, CAMERA.scaled(0.5))
     assert out.color.shape == (12, 16, 3) and not out.color.requires_grad
     torch.testing.assert_close(out.color, reference.color.detach())
     torch.testing.assert_close(out.depth, reference.depth.detach())

@@ -69,7 +69,7 @@ PART_DEFAULTS = {"rasterizer": "torch", "sampler": "random", "strategy": "gsicp"
 
 
 def make_mapper(gm: GaussianMap | None = None, tuning: DatasetTuning | None = None, **settings):
-    """A `gaussian_splatting` mapper (its `trainer` holds the parts) built through the registry,
+    """A `gaussian_splatting` mapper (a trainer: it holds the parts) built through the registry,
     on `gm` (default `start_map()`). `settings`: `mapper={...}` (the mapper's config fields; training
     at full resolution unless given), and per part either a plugin name, or (name, {field: value}),
     e.g. `strategy=("3dgs", {"densify_every": 3})`."""
@@ -100,13 +100,12 @@ def add(mapper, frame: Frame, kind: KeyframeKind = KeyframeKind.TRACKING, new_ro
 def state_follows_map(mapper) -> None:
     """The optimiser's and the strategy's per-row state cover exactly the map's rows, and the
     map's parameters are leaves autograd differentiates."""
-    trainer = mapper.trainer
-    n = len(trainer.gaussian_map)
-    for name, tensors in trainer.optimizer.row_state().items():
+    n = len(mapper.gaussian_map)
+    for name, tensors in mapper.optimizer.row_state().items():
         assert all(t.shape[0] == n for t in tensors), name
-    for name, t in trainer.strategy.state.items():
+    for name, t in mapper.strategy.state.items():
         assert t.shape[0] == n, name
-    for name, p in trainer.gaussian_map.parameters().items():
+    for name, p in mapper.gaussian_map.parameters().items():
         assert p.is_leaf and p.requires_grad, name
 
 

@@ -106,7 +106,7 @@ def make_mapper(gm: GaussianMap, **strategy_fields):
 def assert_state_follows_map(mapper) -> None:
     """The optimiser's per-row state covers exactly the map's rows."""
     n = len(mapper.gaussian_map)
-    for name, tensors in mapper.trainer.optimizer.row_state().items():
+    for name, tensors in mapper.optimizer.row_state().items():
         assert all(t.shape[0] == n for t in tensors), name
 
 
@@ -115,11 +115,11 @@ def test_dead_gaussians_are_relocated_onto_live_ones():
     before = gm.rows()
     mapper = make_mapper(gm, refine_every=3, grow_fraction=0.0, jitter=False)
     mapper.optimize(2)
-    assert mapper.trainer.strategy.metrics()["mcmc_relocated"] == 0  # not yet
+    assert mapper.strategy.metrics()["mcmc_relocated"] == 0  # not yet
     mapper.optimize(1)
-    stats = mapper.trainer.strategy.metrics()
+    stats = mapper.strategy.metrics()
     assert stats["mcmc_relocated"] == DEAD and len(gm) == N
-    assert float(gm.opacities.detach().min()) >= mapper.trainer.strategy.cfg.min_opacity
+    assert float(gm.opacities.detach().min()) >= mapper.strategy.cfg.min_opacity
     # Without jitter each relocated row sits exactly on a live Gaussian of the map before.
     moved = gm.means.detach()[:DEAD]
     distance = torch.cdist(moved, before.means[DEAD:]).min(dim=1).values
@@ -132,7 +132,7 @@ def test_dead_gaussians_are_relocated_onto_live_ones():
     means = gm.means.detach()
     touched = torch.cdist(means, means[:DEAD]).min(dim=1).values < 1e-6
     assert DEAD < int(touched.sum()) <= 2 * DEAD
-    for m in mapper.trainer.optimizer.row_state()["colors"]:
+    for m in mapper.optimizer.row_state()["colors"]:
         assert float(m[touched].abs().max()) == 0 and float(m[~touched].abs().max()) > 0
 
 
@@ -160,7 +160,7 @@ def test_growth_stays_within_the_budget():
     assert len(gm) == N + 45  # the cap
     mapper.optimize(4)
     assert len(gm) == N + 45
-    stats = mapper.trainer.strategy.metrics()
+    stats = mapper.strategy.metrics()
     assert stats["mcmc_added"] == 45 and stats["mcmc_refinements"] == 4
     assert not bool(gm.trackable[N:].any())
     assert_state_follows_map(mapper)
@@ -174,7 +174,7 @@ def test_finish_prunes_the_dead_and_the_oversized():
     mapper = make_mapper(gm, refine_every=1000)
     mapper.finish()
     assert len(gm) == N - DEAD - 5
-    assert mapper.trainer.strategy.metrics()["mcmc_pruned"] == DEAD + 5
+    assert mapper.strategy.metrics()["mcmc_pruned"] == DEAD + 5
     assert_state_follows_map(mapper)
 
 

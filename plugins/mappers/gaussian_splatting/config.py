@@ -1,4 +1,4 @@
-"""The 3DGS mapper's options: the trainer's (`slamkit.splatting.TrainerConfig`) and the
+"""The 3DGS mapper's options: the trainer's (`.trainer.TrainerConfig`) and the
 evaluation's. Its parts are groups nested under it: `mapper/rasterizer=cpu`,
 `mapper.strategy.prune_every=400`."""
 
@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from slamkit.roles import require
-from slamkit.splatting import TrainerConfig
+from slamkit_plugins.mappers.gaussian_splatting.trainer import TrainerConfig
 
 
 @dataclass

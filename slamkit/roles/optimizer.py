@@ -14,7 +14,7 @@ class MapOptimizer(ABC):
     """Updates the map's parameters from one training step's gradients.
 
     Its state is per map row (e.g. Adam's moments), so it must follow the rows as the map grows
-    and shrinks: the shared row operations (`slamkit.splatting.ops.MapEdit`) call `edit_rows`
+    and shrinks: the shared row operations (`slamkit.roles.map_edit.MapEdit`) call `edit_rows`
     and `reset`, never a strategy directly."""
 
     @abstractmethod

@@ -2,7 +2,7 @@
 
 The reference the other backends are checked against, and the fallback where neither gsplat
 (CUDA) nor a compiled CPU backend is available: exactly the conventions of
-`slamkit.splatting.rendering.Rasterizer`. The projection is ordinary autograd; the compositing
+`slamkit.roles.rendering.Rasterizer`. The projection is ordinary autograd; the compositing
 is one `torch.autograd.Function` with 3DGS's analytic backward, reaching means, quats, scales,
 opacities, colors and the background.
 
@@ -24,8 +24,7 @@ from torch.autograd.function import once_differentiable
 
 from slamkit.geometry.transforms import covariance_from_scales
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import PluginConfig, RunContext, require
-from slamkit.splatting import Rasterizer, RenderOutput
+from slamkit.roles import PluginConfig, Rasterizer, RenderOutput, RunContext, require
 from slamkit.types import Camera
 
 NEAR_PLANE = 0.01  # metres: Gaussians at camera z <= this are culled

@@ -11,7 +11,7 @@ from typing import Any
 import torch
 
 from slamkit.config import PluginConfig, require
-from slamkit.splatting.ops import MapEdit
+from slamkit.roles.map_edit import MapEdit
 
 log = logging.getLogger(__name__)
 

@@ -1,6 +1,6 @@
 """Which of a keyframe's Gaussians enter the map: none where the map already explains the
 keyframe's view (`AdmissionConfig.skip_covered`), so that the map is bounded by the scene, not
-by how long the camera looks at it. The tests are in `slamkit.splatting.coverage`.
+by how long the camera looks at it. The tests are in `.coverage`.
 """
 
 from __future__ import annotations
@@ -13,13 +13,13 @@ import torch
 
 from slamkit.config import PluginConfig, RunContext, require
 from slamkit.map.gaussian_map import GaussianRows
-from slamkit.splatting.coverage import DepthTolerance, covered_by_render, occupied_by_centres
-from slamkit.splatting.rendering import RenderOutput
+from slamkit.roles.rendering import RenderOutput
 from slamkit.types import Camera
+from slamkit_plugins.mappers.gaussian_splatting.coverage import DepthTolerance, covered_by_render, occupied_by_centres
 
 
 class CoverageTest(enum.Enum):
-    """Where the map explains a keyframe's view (`slamkit.splatting.coverage`): centres (a map
+    """Where the map explains a keyframe's view (`.coverage`): centres (a map
     centre projects near the point at its depth; needs no render, no training), render (the
     map's render is opaque there at its depth), either."""
 

@@ -21,8 +21,7 @@ import torch
 
 from slamkit.errors import ConfigError
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import PluginConfig, RunContext, require
-from slamkit.splatting import Rasterizer, RenderOutput
+from slamkit.roles import PluginConfig, Rasterizer, RenderOutput, RunContext, require
 from slamkit.types import Camera
 
 NEAR_PLANE = 0.01
@@ -50,7 +49,7 @@ class GsplatRasterizerConfig(PluginConfig):
 
 
 class GsplatRasterizer(Rasterizer):
-    """`gsplat.rasterization` wrapped to `slamkit.splatting.rendering.Rasterizer` (see module docstring)."""
+    """`gsplat.rasterization` wrapped to `slamkit.roles.rendering.Rasterizer` (see module docstring)."""
 
     def __init__(self, cfg: GsplatRasterizerConfig | None = None, context: RunContext = RunContext()):
         self.cfg = cfg or GsplatRasterizerConfig()

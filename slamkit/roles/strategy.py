@@ -6,8 +6,8 @@ of training and edits the map only through the `MapEdit` it is handed (append, r
 duplicate, split, reset opacity, update), which keeps every per-row state aligned:
 `step_post_backward(edit, info)` after each step's backward pass and optimiser update
 (gradients in `info`: accumulate statistics, densify or prune on a schedule), `finish(edit)`
-after the last step. Which of a keyframe's Gaussians enter the map (`slamkit.splatting.admission`)
-and the memory cap (`slamkit.splatting.memory_cap`) are the trainer's, whatever the strategy.
+after the last step. Which of a keyframe's Gaussians enter the map (`mapper.admission.*`) and
+the memory cap (`mapper.memory_cap.*`) are the 3DGS trainer's, whatever the strategy.
 """
 
 from __future__ import annotations
@@ -19,9 +19,9 @@ from typing import Any
 import torch
 
 from slamkit.config import PluginConfig, RunContext
-from slamkit.splatting.ops import MapEdit
-from slamkit.splatting.rendering import RenderOutput
-from slamkit.splatting.views import TrainingView
+from slamkit.roles.map_edit import MapEdit
+from slamkit.roles.rendering import RenderOutput
+from slamkit.roles.training_view import TrainingView
 
 
 @dataclass

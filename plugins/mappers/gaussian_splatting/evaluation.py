@@ -23,9 +23,9 @@ from slamkit.map.gaussian_map import GaussianMap
 from slamkit.metrics import images as image_metrics
 from slamkit.metrics.lpips_network import LPIPS, min_image_side
 from slamkit.progress import Progress
-from slamkit.splatting.keyframes import resize_rgbd
-from slamkit.splatting.rendering import RenderOutput
+from slamkit.roles.rendering import RenderOutput
 from slamkit.types import Camera
+from slamkit_plugins.mappers.gaussian_splatting.keyframes import resize_rgbd
 
 log = logging.getLogger(__name__)
 

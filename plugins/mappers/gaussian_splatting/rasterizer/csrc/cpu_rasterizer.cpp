@@ -1,6 +1,6 @@
 // slamkit CPU rasteriser: tile-based differentiable 3D Gaussian Splatting, forward and backward.
 //
-// Plain C++17 with a C ABI (loaded with ctypes by slamkit_plugins/rasterizers/cpu_rasterizer.py):
+// Plain C++17 with a C ABI (loaded with ctypes by slamkit_plugins/mappers/gaussian_splatting/rasterizer/cpu_rasterizer.py):
 // no torch headers, so it builds in seconds with any C++17 compiler and does not depend on the
 // torch version (GCC >= 9 or Clang; vector extensions). Threads: a persistent pool, work handed
 // out dynamically in chunks; results are independent of the thread count (every sum has a
@@ -12,7 +12,7 @@
 // is the C ABI.
 //
 // Conventions: exactly those of slamkit.map.rendering.Rasterizer and the `torch` backend
-// (plugins/rasterizers/torch_rasterizer.py), which is the reference:
+// (plugins/mappers/gaussian_splatting/rasterizer/torch_rasterizer.py), which is the reference:
 //   - p = R m + t; culled when p_z <= 0.01 or opacity <= 1/255 (float32 compare);
 //   - u = fx x / z + cx, v = fy y / z + cy; J with x/z, y/z clamped to the image extended by
 //     15 % (+0.5 px) on each side; 2D covariance J R Sigma R^T J^T + 0.3 I; conic = its inverse;

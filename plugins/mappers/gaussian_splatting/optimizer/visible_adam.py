@@ -28,8 +28,8 @@ from slamkit.errors import ConfigError
 from slamkit.native import NativeLibrary
 from slamkit.plugin import PluginSpec, hookimpl
 from slamkit.roles import MapOptimizer, RunContext
-from slamkit.splatting.optimizer import rotated_moments
-from slamkit_plugins.optimizers.adam import AdamConfig
+from slamkit.roles.optimizer import rotated_moments
+from slamkit_plugins.mappers.gaussian_splatting.optimizer.adam import AdamConfig
 
 log = logging.getLogger(__name__)
 SOURCE = Path(__file__).resolve().parent / "csrc" / "visible_adam.cpp"

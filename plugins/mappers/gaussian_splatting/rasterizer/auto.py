@@ -17,8 +17,7 @@ import torch
 
 from slamkit.errors import ConfigError, PluginError
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import PluginConfig, RunContext, require
-from slamkit.splatting import Rasterizer
+from slamkit.roles import PluginConfig, Rasterizer, RunContext, require
 
 log = logging.getLogger(__name__)
 

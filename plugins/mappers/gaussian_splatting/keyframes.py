@@ -1,5 +1,5 @@
 """The 3DGS mapper's keyframes: each input keyframe kept at the training resolution, in memory
-or on disk, and handed to training as a `slamkit.splatting.views.TrainingView`.
+or on disk, and handed to training as a `slamkit.roles.training_view.TrainingView`.
 
 Images are kept as uint8 colour and uint16 depth in 1 mm steps (at most 0.5 mm of rounding, up
 to 65.5 m; deeper pixels become invalid): a long run holds hundreds of keyframes (96 kB each at
@@ -24,7 +24,7 @@ import torch
 import torch.nn.functional as F
 
 from slamkit.geometry.transforms import invert_pose
-from slamkit.splatting.views import TrainingView
+from slamkit.roles.training_view import TrainingView
 from slamkit.types import Camera, Frame, KeyframeKind
 
 #: Keyframe depth is stored as uint16 in steps of this many metres.

@@ -10,8 +10,7 @@ from dataclasses import dataclass
 import torch
 
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import RunContext, StepInfo, Strategy, StrategyConfig, require
-from slamkit.splatting import MapEdit
+from slamkit.roles import MapEdit, RunContext, StepInfo, Strategy, StrategyConfig, require
 
 
 @dataclass

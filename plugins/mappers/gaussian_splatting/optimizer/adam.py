@@ -19,7 +19,7 @@ import torch
 from slamkit.map.gaussian_map import PARAMETERS
 from slamkit.plugin import PluginSpec, hookimpl
 from slamkit.roles import MapOptimizer, PluginConfig, RunContext, require
-from slamkit.splatting.optimizer import rotated_moments
+from slamkit.roles.optimizer import rotated_moments
 
 #: Which config field holds each parameter's learning rate.
 LR_FIELDS = {"means": "lr_means", "quats": "lr_quats", "log_scales": "lr_scales", "opacity_logits": "lr_opacity",

@@ -1,6 +1,6 @@
 // slamkit fused RGB-D mapping loss: value and gradients in one pass, no autograd graph.
 //
-// Plain C++17 with a C ABI (loaded with ctypes by slamkit_plugins/losses/fused_rgbd_loss.py,
+// Plain C++17 with a C ABI (loaded with ctypes by slamkit_plugins/mappers/gaussian_splatting/loss/fused_rgbd_loss.py,
 // which holds the torch reference `torch_rgbd_loss`). The loss, for rendered colour c (H,W,3),
 // rendered depth d (H,W), keyframe image I (H,W,3) and observed depth D (H,W) in metres:
 //

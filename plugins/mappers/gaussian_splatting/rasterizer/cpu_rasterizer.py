@@ -1,6 +1,6 @@
 """`mapper/rasterizer=cpu`: a tile-based, multi-threaded, compiled CPU rasteriser (forward + backward).
 
-The conventions of `slamkit.splatting.rendering.Rasterizer`, reproduced to float precision with
+The conventions of `slamkit.roles.rendering.Rasterizer`, reproduced to float precision with
 the `torch` reference backend's exact per-row pixel coverage; gradients reach means, quats,
 scales, opacities, colors and the background. The work is done by `csrc/cpu_rasterizer.cpp`
 (C++17 behind a C ABI, loaded with ctypes), compiled when the backend is first built and cached
@@ -21,8 +21,7 @@ import torch
 from slamkit.errors import ConfigError
 from slamkit.native import NativeLibrary, available_threads
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import PluginConfig, RunContext, require, thread_count
-from slamkit.splatting import Rasterizer, RenderOutput
+from slamkit.roles import PluginConfig, Rasterizer, RenderOutput, RunContext, require, thread_count
 from slamkit.types import Camera
 
 SOURCE = Path(__file__).resolve().parent / "csrc" / "cpu_rasterizer.cpp"

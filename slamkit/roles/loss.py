@@ -6,8 +6,8 @@ from abc import ABC, abstractmethod
 
 import torch
 
-from slamkit.splatting.rendering import RenderOutput
-from slamkit.splatting.views import TrainingView
+from slamkit.roles.rendering import RenderOutput
+from slamkit.roles.training_view import TrainingView
 
 
 class MappingLoss(ABC):

@@ -1,6 +1,6 @@
 // Adam over the rows of a Gaussian map with one step count per row, updating only the rows
 // that have a non-zero gradient in some parameter (the "visible" rows of a training step).
-// C ABI, loaded with ctypes by slamkit_plugins.optimizers.visible_adam; float32 tensors,
+// C ABI, loaded with ctypes by slamkit_plugins.mappers.gaussian_splatting.optimizer.visible_adam; float32 tensors,
 // row-major, contiguous. Each row is updated exactly as Adam updates a parameter whose only
 // steps are the ones in which it had a gradient (bias corrections from its own step count).
 #include <cmath>

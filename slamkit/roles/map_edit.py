@@ -1,6 +1,6 @@
 """The shared operations that change which Gaussians the map holds (gsplat's strategy ops).
 
-A densification strategy (`slamkit.splatting.strategy.Strategy`) edits the map only through a
+A densification strategy (`slamkit.roles.strategy.Strategy`) edits the map only through a
 `MapEdit`: append, remove, duplicate, split, reset opacity, update rows, move rows (a loop
 closure's correction). Each operation keeps
 every per-row state aligned with the map's rows, in one place: the optimiser's (`MapOptimizer.
@@ -23,7 +23,7 @@ from slamkit.geometry.transforms import quat_to_rotmat
 from slamkit.map.gaussian_map import GaussianMap, GaussianRows, RowMotion
 
 if TYPE_CHECKING:
-    from slamkit.splatting.optimizer import MapOptimizer
+    from slamkit.roles.optimizer import MapOptimizer
 
 log = logging.getLogger(__name__)
 

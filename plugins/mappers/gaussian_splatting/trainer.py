@@ -30,19 +30,20 @@ import torch
 
 from slamkit.config import PluginConfig, RunContext, require
 from slamkit.geometry.transforms import invert_pose
-from slamkit.map.gaussian_map import GaussianMap, GaussianRows
-from slamkit.splatting.admission import Admission, AdmissionConfig, KeyframeView
-from slamkit.splatting.keyframes import KeyframeStorage, KeyframeStore
-from slamkit.splatting.loss import MappingLoss
-from slamkit.splatting.memory_cap import MemoryCap, MemoryCapConfig
-from slamkit.splatting.ops import MapEdit
-from slamkit.splatting.optimizer import MapOptimizer
-from slamkit.splatting.rendering import Rasterizer, RenderOutput, render_map
-from slamkit.splatting.sampler import KeyframeSampler
-from slamkit.splatting.strategy import StepInfo, Strategy
-from slamkit.splatting.timing import PhaseTimer
-from slamkit.splatting.views import TrainingView
+from slamkit.map.gaussian_map import GaussianRows
+from slamkit.roles.loss import MappingLoss
+from slamkit.roles.map_edit import MapEdit
+from slamkit.roles.mapping import Mapper
+from slamkit.roles.optimizer import MapOptimizer
+from slamkit.roles.rendering import Rasterizer, RenderOutput, render_map
+from slamkit.roles.sampler import KeyframeSampler
+from slamkit.roles.strategy import StepInfo, Strategy
+from slamkit.roles.training_view import TrainingView
 from slamkit.types import Camera, Frame, KeyframeKind
+from slamkit_plugins.mappers.gaussian_splatting.admission import Admission, AdmissionConfig, KeyframeView
+from slamkit_plugins.mappers.gaussian_splatting.keyframes import KeyframeStorage, KeyframeStore
+from slamkit_plugins.mappers.gaussian_splatting.memory_cap import MemoryCap, MemoryCapConfig
+from slamkit_plugins.mappers.gaussian_splatting.timing import PhaseTimer
 
 log = logging.getLogger(__name__)
 
@@ -89,15 +90,16 @@ class TrainerConfig(PluginConfig):
         return self.fill_nulls(resolution_scale=scale)
 
 
-class Trainer:
-    """Trains `gaussian_map` from keyframes with the given parts (see the module docstring)."""
+class Trainer(Mapper):
+    """A mapper that trains the shared map (`context.gaussian_map`) from keyframes with the given
+    parts (see the module docstring); `GaussianSplattingMapper` adds its outputs."""
 
-    def __init__(self, cfg: TrainerConfig, gaussian_map: GaussianMap, rasterizer: Rasterizer,
+    def __init__(self, cfg: TrainerConfig, context: RunContext = RunContext(), *, rasterizer: Rasterizer,
                  sampler: KeyframeSampler, strategy: Strategy, optimizer: MapOptimizer, loss: MappingLoss):
         require(cfg.resolution_scale is not None, "mapper.resolution_scale",
                 "a value (TrainerConfig.resolve fills it)", None)
-        self.cfg = cfg
-        self.gaussian_map = gaussian_map
+        super().__init__(cfg, context)
+        gaussian_map = self.gaussian_map
         self.rasterizer, self.sampler, self.strategy, self.optimizer, self.loss = (
             rasterizer, sampler, strategy, optimizer, loss)
         self.admission = Admission(cfg.admission)
@@ -109,7 +111,7 @@ class Trainer:
         self.steps = 0  # training steps taken (skipped and dropped ones excluded)
         self.skipped_steps = 0  # steps skipped for a non-finite loss or gradient
         self.stale_steps = 0  # steps dropped: rows were removed or overwritten during them
-        # Seconds in train() and finish(): wall clock, and CPU time of the calling thread.
+        # Seconds in optimize() and finish(): wall clock, and CPU time of the calling thread.
         self.train_time_s = 0.0
         self.train_cpu_s = 0.0
         self.last_loss: float | None = None
@@ -159,7 +161,7 @@ class Trainer:
             self.keyframes.move(updates)
 
     # -- training --------------------------------------------------------------------------
-    def train(self, iterations: int) -> int:
+    def optimize(self, iterations: int) -> int:
         """Up to `iterations` steps; returns the steps attempted (skipped and dropped ones
         included); 0 while there is no keyframe or no Gaussian, so a real-time mapping loop
         waits instead of spinning."""

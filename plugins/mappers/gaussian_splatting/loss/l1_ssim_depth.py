@@ -20,9 +20,8 @@ import torch
 
 from slamkit.errors import ConfigError
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import MappingLoss, PluginConfig, RunContext, TrainingView, require, thread_count
-from slamkit.splatting import RenderOutput
-from slamkit_plugins.losses import fused_rgbd_loss as rgbd
+from slamkit.roles import MappingLoss, PluginConfig, RenderOutput, RunContext, TrainingView, require, thread_count
+from slamkit_plugins.mappers.gaussian_splatting.loss import fused_rgbd_loss as rgbd
 
 
 class PixelsWithoutDepth(enum.Enum):

@@ -1,4 +1,4 @@
-"""Where the map already explains a keyframe's view: the tests `slamkit.splatting.admission` uses
+"""Where the map already explains a keyframe's view: the tests `.admission` uses
 to leave out new Gaussians the map does not need (`mapper.admission.skip_covered`).
 
 Both tests are on the keyframe's image plane, with a depth tolerance (`DepthTolerance`) so that
@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from slamkit.geometry.transforms import project_points
-from slamkit.splatting.rendering import RenderOutput
+from slamkit.roles.rendering import RenderOutput
 from slamkit.types import Camera
 
 

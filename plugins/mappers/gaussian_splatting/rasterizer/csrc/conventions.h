@@ -1,4 +1,4 @@
-// The CPU rasteriser's conventions, those of the torch backend (plugins/rasterizers/torch_rasterizer.py;
+// The CPU rasteriser's conventions, those of the torch backend (plugins/mappers/gaussian_splatting/rasterizer/torch_rasterizer.py;
 // cpu_rasterizer.cpp's first comment lists them): tile size and the constants of the projection and
 // the compositing.
 #pragma once

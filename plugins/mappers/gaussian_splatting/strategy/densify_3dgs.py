@@ -18,9 +18,8 @@ from dataclasses import dataclass
 import torch
 
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import RunContext, StepInfo, require
-from slamkit.splatting import MapEdit
-from slamkit_plugins.strategies.gsicp import PruneConfig, PruneStrategy
+from slamkit.roles import MapEdit, RunContext, StepInfo, require
+from slamkit_plugins.mappers.gaussian_splatting.strategy.gsicp import PruneConfig, PruneStrategy
 
 #: A split Gaussian's children have its scales divided by this (3DGS).
 SPLIT_SCALE_DIVISOR = 1.6
