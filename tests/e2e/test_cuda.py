@@ -32,8 +32,8 @@ from slamkit.registry.compose import compose_run
 from slamkit.registry.discovery import create_rasterizer, default_registry
 from slamkit.run import pipeline
 from slamkit.run.build import build_run
-from slamkit_plugins.mappers.gaussian_splatting.keyframes import resize_rgbd
 from slamkit.types import Camera
+from slamkit_plugins.mappers.gaussian_splatting.keyframes import resize_rgbd
 from slamkit_plugins.mappers.gaussian_splatting.rasterizer.torch_rasterizer import TorchRasterizer
 
 from support.data import REPLICA, REPO, require_data
