@@ -46,7 +46,7 @@ class PoseGraphConfig(PluginConfig):
     min_fitness: float = 0.62
     #: metres: RMS distance of those point pairs, at most.
     max_inlier_rmse_m: float = 0.015
-    #: a loop's difference from odometry within this chi-square (6 dof) quantile of both uncertainties (odometry's along the path between)
+    #: a loop's difference from odometry within this chi-square (6 dof) quantile of its and odometry's uncertainty
     correction_confidence: float = 0.999
     #: the loop's point-to-plane information per point along its weakest direction, at least (1/3 a box; 0 a wall)
     min_constraint: float = 0.05

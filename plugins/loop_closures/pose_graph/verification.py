@@ -3,8 +3,9 @@ the candidate's frame (FPFH + RANSAC, then G-ICP: `slamkit.geometry.registration
 only when every figure passes its bound (`PoseGraphConfig`): RANSAC's inliers, G-ICP's fitness
 and inlier RMSE, agreement with odometry within the uncertainty odometry accumulated between the
 two keyframes and the loop's own (a chi-square test: a registration that snapped to a
-similar-looking other place lands far from where odometry says, unless tracking slid there), and a point-to-plane information that constrains every translation direction
-(a wall alone lets the pose slide).
+similar-looking other place lands far from where odometry says, unless tracking slid there),
+and a point-to-plane information that constrains every translation direction (a wall alone
+lets the pose slide).
 """
 
 from __future__ import annotations
