@@ -67,11 +67,16 @@ from slamkit_plugins.loop_closures.pose_graph import closure as pose_graph_closu
 from slamkit_plugins.loop_closures.pose_graph import optimisation, verification
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-SEQUENCES = {  # name -> (dataset plugin, folder)
-    "7scenes": ("sevenscenes", DATA / "7scenes_redkitchen_300to999"),
-    "tum": ("tum", DATA / "tum_fr1_rpy_first150"),
-    "replica": ("replica", DATA / "replica_room0_first20"),
+SEQUENCES = {  # name -> the dataset's overrides
+    "7scenes": ["dataset=sevenscenes", f"dataset.path={DATA / '7scenes_redkitchen_300to999'}"],
+    "tum": ["dataset=tum", f"dataset.path={DATA / 'tum_fr1_rpy_first150'}"],
+    "replica": ["dataset=replica", f"dataset.path={DATA / 'replica_room0_first20'}"],
 }
+#: The synthetic paths that come back, frames each, with the structured-light sensor: exact
+#: ground truth, odometry that drifts as a Kinect's does (as benchmarks/loop_closure_runs.py).
+SYNTHETIC = {"room_loop": 600, "figure_eight": 720, "return": 900, "revisit_rotated": 900}
+SEQUENCES.update({f"synthetic_{path}": ["dataset=synthetic", f"dataset.camera_path={path}", f"dataset.num_frames={n}",
+                                        "dataset.depth_model=structured_light"] for path, n in SYNTHETIC.items()})
 #: A loop is right when its relative pose is this close to the ground truth's (metres, degrees).
 RIGHT_M, RIGHT_DEG = 0.05, 3.0
 #: A candidate pair is a true revisit when this fraction of the keyframe's downsampled points has a
@@ -114,9 +119,10 @@ class TrackedSequence:
                        [str(o) for o in f["overrides"]])
 
 
-def track(dataset: str, path: Path, max_frames: int | None = None, extra: tuple[str, ...] = ()) -> TrackedSequence:
-    """Track `dataset` at `path` (tracking only) and keep its keyframes (see TrackedSequence)."""
-    overrides = [f"dataset={dataset}", f"dataset.path={path}", "mapper=none", *extra]
+def track(dataset: list[str], max_frames: int | None = None, extra: tuple[str, ...] = ()) -> TrackedSequence:
+    """Track the sequence `dataset` (its overrides; tracking only) and keep its keyframes (see
+    TrackedSequence)."""
+    overrides = [*dataset, "mapper=none", *extra]
     if max_frames:
         overrides.append(f"dataset.max_frames={max_frames}")
     data, slam, _ = build_run(overrides)
@@ -143,8 +149,7 @@ def tracked(name: str, keyframes_dir: Path | None) -> TrackedSequence:
     cache = keyframes_dir / f"{name}.npz" if keyframes_dir else None
     if cache is not None and cache.is_file():
         return TrackedSequence.load(cache)
-    dataset, path = SEQUENCES[name]
-    seq = track(dataset, path)
+    seq = track(SEQUENCES[name])
     if cache is not None:
         seq.save(cache)
     return seq

@@ -45,7 +45,7 @@ from slamkit.registry.compose import compose_run
 from slamkit.run.build import build_run
 from slamkit.run.loop_closing import loop_keyframe
 from slamkit_plugins.loop_closures.pose_graph import optimisation, verification
-from slamkit_plugins.loop_closures.pose_graph.closure import ODOMETRY_INFORMATION_FLOOR
+from slamkit_plugins.loop_closures.pose_graph.verification import INFORMATION_FLOOR
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from loop_closure import SEQUENCES, TRUE_REVISIT_OVERLAP, corrected_ate, geometry, orthonormal  # noqa: E402
@@ -64,8 +64,7 @@ def track_with_colours(cache: Path | None):
             k = len(f["keyframe_frames"])
             return (f["poses"], f["gt"], f["keyframe_frames"], [f[f"points_{i}"] for i in range(k)],
                     [f[f"covariances_{i}"] for i in range(k)], [f[f"colours_{i}"] for i in range(k)])
-    dataset, path = SEQUENCES["7scenes"]
-    data, slam, _ = build_run([f"dataset={dataset}", f"dataset.path={path}", "mapper=none"])
+    data, slam, _ = build_run([*SEQUENCES["7scenes"], "mapper=none"])
     poses, gts, frames, points, covariances, colours = [], [], [], [], [], []
     for i in range(len(data)):
         frame = data[i]
@@ -191,7 +190,7 @@ def main() -> None:
         rel = relative_pose(kf_poses[k - 1], kf_poses[k])
         info, _ = verification.normalised_information(geo.clouds[k], geo.clouds[k - 1], rel, voxel)
         odometry_edges.append(PoseGraphEdge("odometry", k - 1, k, rel,
-                                            (info + ODOMETRY_INFORMATION_FLOOR * np.eye(6)) / lc.odometry_sigma_m**2))
+                                            (info + INFORMATION_FLOOR * np.eye(6)) / lc.odometry_sigma_m**2))
 
     rows = []
     for name, poses_found in found.items():

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from slamkit.geometry.transforms import invert_pose, rotation_angle_deg
+from slamkit.geometry.transforms import invert_pose, rotation_angle_deg, skew
 
 
 def check_argument(condition: bool, what: str, expected: str, value: Any) -> None:
@@ -82,3 +82,28 @@ def pose_difference(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     """(metres, degrees) between two 4x4 poses: the translation and angle of inv(a) @ b."""
     d = relative_pose(a, b)
     return float(np.linalg.norm(d[:3, 3])), float(rotation_angle_deg(d[:3, :3]))
+
+
+def adjoint(T: np.ndarray) -> np.ndarray:
+    """6x6 adjoint of the 4x4 pose `T` in (rotation, translation) order: a motion exp(xi) on the
+    right of T equals exp(adjoint(T) @ xi) on its left, [[R, 0], [skew(t) R, R]]."""
+    R, t = T[:3, :3], T[:3, 3]
+    out = np.zeros((6, 6))
+    out[:3, :3] = out[3:, 3:] = R
+    out[3:, :3] = skew(t) @ R
+    return out
+
+
+def chain_covariances(relative_poses: np.ndarray, covariances: np.ndarray) -> np.ndarray:
+    """(N,6,6): element i is the covariance (module docstring's order and side) of the composed
+    relative pose relative_poses[i] @ ... @ relative_poses[-1], given the (N,4,4) motions' own
+    (N,6,6) covariances, independent, to first order: each motion's error is carried into the
+    last frame by the adjoint of the inverse of the motions after it."""
+    out = np.zeros((len(relative_poses), 6, 6))
+    total, after = np.zeros((6, 6)), np.eye(4)
+    for i in range(len(relative_poses) - 1, -1, -1):
+        carry = adjoint(invert_pose(after))
+        total = total + carry @ covariances[i] @ carry.T
+        out[i] = total
+        after = relative_poses[i] @ after
+    return out

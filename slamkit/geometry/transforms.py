@@ -99,7 +99,15 @@ def invert_pose(T: np.ndarray) -> np.ndarray:
 
 
 def so3_exp(w: np.ndarray) -> np.ndarray:
-    """Rodrigues: axis-angle 3-vector (radians) to a 3x3 rotation matrix."""
+    """Rodrigues: (..., 3) axis-angle vectors (radians) to (..., 3, 3) rotation matrices."""
+    if np.ndim(w) > 1:
+        w = np.asarray(w, dtype=np.float64)
+        theta = np.linalg.norm(w, axis=-1)[..., None, None]
+        small = theta < 1e-12
+        safe = np.where(small, 1.0, theta)
+        K = skew(w)
+        return (np.eye(3) + np.where(small, 1.0, np.sin(safe) / safe) * K
+                + np.where(small, 0.0, (1 - np.cos(safe)) / safe**2) * (K @ K))
     theta = float(np.linalg.norm(w))
     K = skew(w)
     if theta < 1e-12:

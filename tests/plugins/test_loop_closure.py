@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from slamkit.formats.g2o import read_g2o, to_g2o
-from slamkit.geometry import backproject, make_pose, nearest_rotation, se3_exp, so3_exp
+from slamkit.geometry import backproject, make_pose, nearest_rotation, se3_exp, so3_exp, so3_log
+from slamkit.geometry.pose_graph import chain_covariances
 from slamkit.geometry.registration import FeatureCloud, register
 from slamkit.registry import default_registry
 from slamkit.roles.loop_closure import (
@@ -101,6 +102,29 @@ def test_follow_keyframes_keeps_each_frame_relative_to_the_last_keyframe_at_or_b
             np.testing.assert_allclose(relative_pose(moved[k], moved[i]), relative_pose(poses[k], poses[i]), atol=1e-9)
     with pytest.raises(ValueError, match="increasing"):
         follow_keyframes(poses, np.arange(8), np.array([5, 2]), updates)
+
+
+def test_chain_covariances_match_the_spread_of_sampled_chains():
+    """The first-order covariance of a composed relative pose (each motion perturbed on its
+    right, the error read as (rotation vector, translation) of inv(mean) @ sample) agrees with
+    the covariance of 20000 sampled chains within 5 % of its largest entry, for every suffix."""
+    rng = np.random.default_rng(0)
+    motions = np.array([se3_exp(np.r_[rng.normal(0, 0.3, 3), rng.normal(0, 0.5, 3)]) for _ in range(4)])
+    factors = rng.normal(0, 1e-3, (4, 6, 6))
+    covariances = factors @ factors.transpose(0, 2, 1)
+    predicted = chain_covariances(motions, covariances)
+    for start in range(4):
+        mean = np.linalg.multi_dot([np.eye(4), *motions[start:]])
+        noise = [rng.multivariate_normal(np.zeros(6), c, 20000) for c in covariances[start:]]
+        samples = np.broadcast_to(np.eye(4), (20000, 4, 4))
+        for motion, xi in zip(motions[start:], noise):
+            perturbation = np.broadcast_to(np.eye(4), (20000, 4, 4)).copy()
+            perturbation[:, :3, :3], perturbation[:, :3, 3] = so3_exp(xi[:, :3]), xi[:, 3:]  # first order
+            samples = samples @ motion @ perturbation
+        error = relative_pose(mean, samples)
+        residual = np.concatenate([so3_log(error[:, :3, :3]), error[:, :3, 3]], axis=1)
+        sampled = np.cov(residual.T)
+        assert np.abs(sampled - predicted[start]).max() <= 0.05 * np.abs(predicted[start]).max(), start
 
 
 def test_g2o_text_round_trips_and_gtsam_reads_it(tmp_path):

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from slamkit.config import RunContext
+from slamkit.geometry.pose_graph import chain_covariances
 from slamkit.geometry.registration import FeatureCloud, import_open3d
 from slamkit.roles.loop_closure import (
     LoopCheck,
@@ -39,10 +40,6 @@ from slamkit.roles.loop_closure import (
 from slamkit_plugins.loop_closures.pose_graph import detection, optimisation, verification
 from slamkit_plugins.loop_closures.pose_graph.config import Backend, PoseGraphConfig
 
-#: Added to an odometry edge's information per matched point, so that a direction the two
-#: keyframes' points do not constrain (or a pair with no matched points) stays tied to odometry
-#: with 1/sqrt(this) = ~30 times its sigma.
-ODOMETRY_INFORMATION_FLOOR = 1e-3
 #: Optimise-and-drop rounds at most per decision (each drops the worst inconsistent loop).
 MAX_DROP_ROUNDS = 10
 
@@ -134,7 +131,7 @@ class PoseGraphLoopClosure(LoopClosure):
             information = keyframe.odometry_information
             if information is None:
                 per_point, _ = verification.normalised_information(cloud, previous.cloud, relative, cfg.voxel)
-                information = (per_point + ODOMETRY_INFORMATION_FLOOR * np.eye(6)) / cfg.odometry_sigma_m**2
+                information = (per_point + verification.INFORMATION_FLOOR * np.eye(6)) / cfg.odometry_sigma_m**2
             self.edges.append(PoseGraphEdge("odometry", previous.keyframe_id, node.keyframe_id, relative,
                                             np.asarray(information, dtype=np.float64)))
         self.nodes.append(node)
@@ -160,17 +157,27 @@ class PoseGraphLoopClosure(LoopClosure):
                           if self.nodes[j].descriptor is not None}
             near = sorted((j for j in similarity if similarity[j] >= cfg.min_appearance), key=lambda j: -similarity[j])
         checks = []
-        for j in list(near)[:cfg.max_candidates]:
+        candidates = list(near)[:cfg.max_candidates]
+        uncertainty = self._odometry_uncertainty(query) if candidates else None
+        for j in candidates:
             match = self.nodes[j]
             ids = (node.keyframe_id, match.keyframe_id, node.frame_index, match.frame_index)
             odometry = relative_pose(match.pose, node.pose)
-            check, information = verification.verify(node.cloud, match.cloud, odometry, float(path[query] - path[j]),
-                                                     cfg, ids, cfg.seed + node.keyframe_id)
+            check, information = verification.verify(node.cloud, match.cloud, odometry, uncertainty[j], cfg, ids,
+                                                     cfg.seed + node.keyframe_id)
             if check.accepted:
                 check = self._consistent(check, PoseGraphEdge("loop", match.keyframe_id, node.keyframe_id,
                                                               check.relative_pose, information))
             checks.append(check)
         return checks
+
+    def _odometry_uncertainty(self, query: int) -> np.ndarray:
+        """(query, 6, 6): element j is the covariance of odometry's relative pose from node j to
+        node `query` (in the query's frame), accumulated along the odometry edges between them."""
+        odometry = [e for e in self.edges if e.kind == "odometry"][:query]  # edge k ends at node k + 1
+        poses = np.array([e.relative_pose for e in odometry]).reshape(-1, 4, 4)
+        covariances = np.linalg.inv(np.array([e.information for e in odometry]).reshape(-1, 6, 6))
+        return chain_covariances(poses, covariances)
 
     def _consistent(self, check: LoopCheck, edge: PoseGraphEdge) -> LoopCheck:
         """`check` (verified) with its reason: its loop `edge` joins the graph when, optimised

@@ -46,14 +46,8 @@ class PoseGraphConfig(PluginConfig):
     min_fitness: float = 0.62
     #: metres: RMS distance of those point pairs, at most.
     max_inlier_rmse_m: float = 0.015
-    #: metres the loop's relative pose may differ from odometry's with no path between (a wrong snap lands farther)
-    max_correction_m: float = 0.1
-    #: metres added to max_correction_m per metre of camera path between the two keyframes.
-    correction_per_path: float = 0.03
-    #: degrees the loop's relative rotation may differ from odometry's with no path between them.
-    max_correction_deg: float = 2.0
-    #: degrees added to max_correction_deg per metre of camera path between the two keyframes.
-    correction_deg_per_path: float = 0.5
+    #: a loop's difference from odometry within this chi-square (6 dof) quantile of its and odometry's uncertainty
+    correction_confidence: float = 0.999
     #: the loop's point-to-plane information per point along its weakest direction, at least (1/3 a box; 0 a wall)
     min_constraint: float = 0.05
     #: the pose-graph optimiser: gtsam | open3d.
@@ -73,10 +67,9 @@ class PoseGraphConfig(PluginConfig):
 
     def validate(self) -> None:
         for name in ("voxel", "search_radius_m", "odometry_sigma_m", "loop_sigma_m", "robust_width",
-                     "max_loop_residual", "max_inlier_rmse_m", "max_correction_m", "max_correction_deg"):
+                     "max_loop_residual", "max_inlier_rmse_m"):
             require(getattr(self, name) > 0, f"loop_closure.{name}", "> 0", getattr(self, name))
-        for name in ("min_path_m", "radius_per_path", "correction_per_path", "correction_deg_per_path",
-                     "min_constraint"):
+        for name in ("min_path_m", "radius_per_path", "min_constraint"):
             require(getattr(self, name) >= 0, f"loop_closure.{name}", ">= 0", getattr(self, name))
         require(self.exclude_recent >= 1, "loop_closure.exclude_recent", "an integer >= 1", self.exclude_recent)
         require(0 < self.max_view_angle_deg <= 180, "loop_closure.max_view_angle_deg", "in (0, 180]",
@@ -90,4 +83,6 @@ class PoseGraphConfig(PluginConfig):
         require(self.min_inliers >= 3, "loop_closure.min_inliers", "an integer >= 3", self.min_inliers)
         require(0 < self.consistency_confidence < 1, "loop_closure.consistency_confidence", "in (0, 1)",
                 self.consistency_confidence)
+        require(0 < self.correction_confidence < 1, "loop_closure.correction_confidence", "in (0, 1)",
+                self.correction_confidence)
         require(0 < self.min_fitness <= 1, "loop_closure.min_fitness", "in (0, 1]", self.min_fitness)

@@ -1,10 +1,11 @@
 """Geometric verification of a loop candidate: global registration of the keyframe's points in
 the candidate's frame (FPFH + RANSAC, then G-ICP: `slamkit.geometry.registration`), accepted
 only when every figure passes its bound (`PoseGraphConfig`): RANSAC's inliers, G-ICP's fitness
-and inlier RMSE, agreement with odometry within a bound that grows with the camera path between
-the two (a registration that snapped to a similar-looking other place lands far from where
-odometry says), and a point-to-plane information that constrains every translation direction
-(a wall alone lets the pose slide).
+and inlier RMSE, agreement with odometry within the uncertainty odometry accumulated between the
+two keyframes and the loop's own (a chi-square test: a registration that snapped to a
+similar-looking other place lands far from where odometry says, unless tracking slid there),
+and a point-to-plane information that constrains every translation direction (a wall alone
+lets the pose slide).
 """
 
 from __future__ import annotations
@@ -12,8 +13,15 @@ from __future__ import annotations
 import numpy as np
 
 from slamkit.geometry.registration import FeatureCloud, alignment_information, register
-from slamkit.roles.loop_closure import LoopCheck, pose_difference
+from slamkit.geometry.transforms import so3_log
+from slamkit.roles.loop_closure import LoopCheck, pose_difference, relative_pose
 from slamkit_plugins.loop_closures.pose_graph.config import PoseGraphConfig
+from slamkit_plugins.loop_closures.pose_graph.optimisation import chi_square_6_quantile
+
+#: Added to a point-to-plane information per matched point, so that a direction the points do
+#: not constrain (or a pair with no matched points) keeps a finite uncertainty: 1/sqrt(this) =
+#: ~30 times the edge's sigma.
+INFORMATION_FLOOR = 1e-3
 
 
 def normalised_information(source: FeatureCloud, target: FeatureCloud, pose: np.ndarray,
@@ -25,14 +33,15 @@ def normalised_information(source: FeatureCloud, target: FeatureCloud, pose: np.
     return info / max(matched, 1), matched
 
 
-def verify(query: FeatureCloud, match: FeatureCloud, odometry: np.ndarray, path_m: float, cfg: PoseGraphConfig,
-           ids: tuple[int, int, int, int], seed: int) -> tuple[LoopCheck, np.ndarray]:
+def verify(query: FeatureCloud, match: FeatureCloud, odometry: np.ndarray, odometry_covariance: np.ndarray,
+           cfg: PoseGraphConfig, ids: tuple[int, int, int, int], seed: int) -> tuple[LoopCheck, np.ndarray]:
     """The check of candidate `match` for keyframe `query` and the loop edge's information
     (6x6, in the query's frame, scaled by 1 / loop_sigma_m^2).
 
     odometry: the query's pose in the match's camera frame from the current estimates.
-    path_m: metres of camera path between them. ids: (keyframe id, match id, frame index,
-    match frame index)."""
+    odometry_covariance: 6x6, the uncertainty of `odometry` accumulated along the odometry edges
+    between them (`slamkit.geometry.pose_graph.chain_covariances`).
+    ids: (keyframe id, match id, frame index, match frame index)."""
     found = register(query, match, cfg.ransac_iterations, cfg.ransac_confidence, seed)
     if not np.isfinite(found.pose).all():  # G-ICP diverged (degenerate covariances): no pose to check
         failed = LoopCheck(*ids, relative_pose=np.eye(4), fitness=0.0, inliers=found.ransac_inliers,
@@ -44,15 +53,20 @@ def verify(query: FeatureCloud, match: FeatureCloud, odometry: np.ndarray, path_
     check = LoopCheck(*ids, relative_pose=found.pose, fitness=found.fitness, inliers=found.ransac_inliers,
                       inlier_rmse_m=found.rmse_m, correction_m=correction_m, correction_deg=correction_deg,
                       accepted=True)
-    bound_m = cfg.max_correction_m + cfg.correction_per_path * path_m
-    bound_deg = cfg.max_correction_deg + cfg.correction_deg_per_path * path_m
     weakest = float(np.linalg.eigvalsh(information[3:, 3:])[0])
+    # the loop's difference from odometry, whitened by both uncertainties: odometry's, accumulated
+    # along the path (large where tracking slid along a wall), and the loop's own
+    loop_covariance = cfg.loop_sigma_m**2 * np.linalg.inv(information + INFORMATION_FLOOR * np.eye(6))
+    difference = relative_pose(odometry, found.pose)
+    xi = np.concatenate([so3_log(difference[:3, :3]), difference[:3, 3]])
+    chi2 = float(xi @ np.linalg.solve(odometry_covariance + loop_covariance, xi))
+    bound = chi_square_6_quantile(cfg.correction_confidence)
     failures = [
         (found.ransac_inliers < cfg.min_inliers, f"{found.ransac_inliers} RANSAC inliers < {cfg.min_inliers}"),
         (found.fitness < cfg.min_fitness, f"fitness {found.fitness:.3f} < {cfg.min_fitness}"),
         (found.rmse_m > cfg.max_inlier_rmse_m, f"inlier RMSE {found.rmse_m:.4f} m > {cfg.max_inlier_rmse_m}"),
-        (correction_m > bound_m, f"{correction_m:.3f} m from odometry > {bound_m:.3f}"),
-        (correction_deg > bound_deg, f"{correction_deg:.2f} deg from odometry > {bound_deg:.2f}"),
+        (chi2 > bound, f"{correction_m:.3f} m, {correction_deg:.2f} deg from odometry: chi-square {chi2:.1f} > "
+                       f"{bound:.1f} of their uncertainties"),
         (weakest < cfg.min_constraint, f"weakest direction constrained {weakest:.3f} < {cfg.min_constraint}"),
     ]
     reason = next((why for failed, why in failures if failed), "")
