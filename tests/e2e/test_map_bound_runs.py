@@ -1,6 +1,6 @@
 """A map bounded by the scene (issue 20, point 4) end to end: a looped real sequence (TUM, with
 and without the 3DGS mapper; Replica with mapping-only keyframes) whose map stops growing after
-the first pass. The coverage tests themselves: tests/core/test_map_bound.py."""
+the first pass. The coverage tests themselves: tests/plugins/test_map_bound.py."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """The memory cap end to end (issue 9): freed memory returned to the system (in a process of its
 own, whose heap is measured), and `slamkit` with the cap, sequential and real time. The cap
-itself: tests/core/test_memory_guard.py."""
+itself: tests/plugins/test_memory_guard.py."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """Densification strategies (`strategy=gsicp|3dgs`) through the mapper's hooks, and the growth
-control every strategy has (`strategy.skip_covered`: tests/core/test_map_bound.py)."""
+control every strategy has (`strategy.skip_covered`: tests/plugins/test_map_bound.py)."""
 
 from __future__ import annotations
 
