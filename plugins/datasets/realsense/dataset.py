@@ -9,7 +9,6 @@ import shutil
 import sys
 import tempfile
 import threading
-import time
 import weakref
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,8 +17,9 @@ import numpy as np
 
 from slamkit.errors import DataError
 from slamkit.formats.tum import interpolate_poses, read_tum_trajectory
-from slamkit.roles import Dataset, DatasetConfig, DatasetTuning, RunContext, SourceEnded, require
+from slamkit.roles import Dataset, DatasetConfig, DatasetTuning, RunContext, require
 from slamkit.types import Camera, Frame
+from slamkit_plugins.datasets.realsense.capture import LiveCapture
 from slamkit_plugins.datasets.realsense.recording import TumRecorder
 from slamkit_plugins.datasets.realsense.sdk import RECORDING_SUFFIXES, FrameSet, Stream
 
@@ -116,18 +116,12 @@ class RealSenseDataset(Dataset):
                  "aligned to colour by the SDK" if self.stream.aligned else "already in the colour camera")
         self.gt = self._ground_truth()
         self.recorder = self._recorder()
-        self.timestamps: list[float] = [] if cfg.live() else self.file_stamps  # of the run's frames
-        self.arrivals: list[float] = []  # live: time.perf_counter() of each frame set taken
-        self.source_dropped = 0  # live: frame sets the camera or the queue dropped before the run saw them
+        self.capture: LiveCapture | None = None  # a live source's frames, taken as they come
         if cfg.live():
-            self._frames: dict[int, FrameSet] = {}
-            self._taken = threading.Condition(self._lock)
-            self._error: DataError | None = None
-            self._ended = False
-            self._running = True
-            self._asked = threading.Event()  # the run has asked for its first frame
-            self._capture = threading.Thread(target=self._capture_all, name="slamkit-realsense", daemon=True)
-            self._capture.start()
+            self.capture = LiveCapture(
+                self.stream, None if self.path is None else self.file_stamps,
+                LIVE_FRAMES if cfg.max_frames is None else self.raw_indices()[-1] + 1,
+                cfg.start, cfg.stride, cfg.queue, cfg.timeout_s, self.recorder)
 
     # -- set-up ---------------------------------------------------------------------------------
     @staticmethod
@@ -191,65 +185,25 @@ class RealSenseDataset(Dataset):
         return gt_ts, gt
 
     # -- live capture ---------------------------------------------------------------------------
-    def _capture_all(self) -> None:
-        """The capture thread: from the run's first request on, every frame set the camera gives
-        (a recording's playback starts then), numbered in order (the raw
-        frames: the run takes those `start` and `stride` select), until the run has all it asked
-        for (max_frames) or `close`; frame sets the queue has no room for, and the gaps in the
-        camera's frame counter, are counted in `source_dropped`."""
-        last_number = None
-        cfg = self.cfg
-        limit = LIVE_FRAMES if cfg.max_frames is None else self.raw_indices()[-1] + 1
-        try:
-            while not self._asked.wait(0.1):  # from the run's first frame on, as it is ready for them
-                if not self._running:
-                    return
-            self.stream.resume()
-            while self._running and len(self.arrivals) < limit:
-                frames = self.stream.next(self.cfg.timeout_s)
-                arrival = time.perf_counter()
-                if frames is None:  # a recording's end
-                    break
-                if self.path is not None:  # a recording: its frame sets before this one that did not come
-                    number = int(np.searchsorted(self.file_stamps, frames.timestamp - 1e-7))
-                    last_number = -1 if last_number is None else last_number
-                else:  # a camera: the gaps in its frame counter
-                    number = frames.number
-                if last_number is not None and number > last_number + 1:
-                    self._dropped_at_source(number - last_number - 1, "the camera, the USB link or the playback")
-                last_number = number
-                with self._taken:
-                    index = len(self.arrivals)
-                    taken = index >= cfg.start and (index - cfg.start) % cfg.stride == 0
-                    if taken and len(self._frames) >= cfg.queue:
-                        self._dropped_at_source(1, f"the run's queue of {cfg.queue} frames being full")
-                        continue
-                    if taken:
-                        self._frames[index] = frames
-                    self.timestamps.append(frames.timestamp)
-                    self.arrivals.append(arrival)
-                    self._taken.notify_all()
-                if taken and self.recorder is not None:
-                    self.recorder.add(index, frames.timestamp, frames.rgb, frames.depth_raw)
-        except DataError as exc:
-            with self._taken:
-                self._error = exc
-                self._taken.notify_all()
-        finally:
-            self.stream.stop()
-            with self._taken:
-                self._ended = True
-                self._taken.notify_all()
+    @property
+    def timestamps(self) -> list[float]:
+        """Seconds, of the raw frames: a live source's as they came, else the recording's."""
+        return self.file_stamps if self.capture is None else self.capture.timestamps
 
-    def _dropped_at_source(self, n: int, why: str) -> None:
-        self.source_dropped += n
-        log.warning("%s: %d frame(s) dropped before the run saw them (%s; %d so far)", self.where, n, why,
-                    self.source_dropped)
+    @property
+    def arrivals(self) -> list[float]:
+        """Live: time.perf_counter() of each raw frame set taken from the source (else empty)."""
+        return [] if self.capture is None else self.capture.arrivals
+
+    @property
+    def source_dropped(self) -> int:
+        """Live: frame sets the camera or the queue dropped before the run saw them."""
+        return 0 if self.capture is None else self.capture.source_dropped
 
     def close(self) -> None:
         """Stop the camera or the playback and finish the recording; again is a no-op."""
-        if self.cfg.live():
-            self._running = False
+        if self.capture is not None:
+            self.capture.stop()
         _stop(self._streams)
         if self.recorder is not None:
             self.recorder.close()
@@ -261,10 +215,7 @@ class RealSenseDataset(Dataset):
     def arrival(self, i: int) -> float | None:
         """Live: time.perf_counter() seconds when frame i of the run (raw frame start + i * stride)
         was taken from the camera (None: not yet). A recording: None (the run paces it, `fps_limit`)."""
-        if not self.cfg.live():
-            return None
-        raw, arrivals = self.cfg.start + i * self.cfg.stride, self.arrivals
-        return arrivals[raw] if raw < len(arrivals) else None
+        return None if self.capture is None else self.capture.arrival(self.cfg.start + i * self.cfg.stride)
 
     # -- the Dataset role -------------------------------------------------------------------------
     @property
@@ -317,20 +268,7 @@ class RealSenseDataset(Dataset):
     def _live(self, i: int) -> FrameSet | None:
         """Frame set i of a live source: waits for it. One the run has passed: from the
         recording file, else None when `record` has it; SourceEnded past a recording's end."""
-        self._asked.set()
-        deadline = time.monotonic() + self.cfg.timeout_s
-        with self._taken:
-            while i not in self._frames and i >= len(self.arrivals):
-                if self._error is not None:
-                    raise self._error
-                if self._ended:
-                    raise SourceEnded(f"{self.where} ended after {len(self.arrivals)} frames")
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    raise DataError(f"{self.where} gave no frame in {self.cfg.timeout_s:g} s (expected one every "
-                                    f"1/{self.stream.fps} s; is it still connected? dataset.timeout_s waits longer)")
-                self._taken.wait(left)
-            frames = self._frames.pop(i, None)
+        frames = self.capture.take(i)
         if frames is not None:
             return frames
         if self.path is not None:  # passed: read again from the file, at the same device time
