@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import logging
 import time
-from collections import deque
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
@@ -43,12 +42,11 @@ from slamkit.types import Camera, Frame, KeyframeKind
 from slamkit_plugins.mappers.gaussian_splatting.admission import Admission, AdmissionConfig, KeyframeView
 from slamkit_plugins.mappers.gaussian_splatting.keyframes import KeyframeStorage, KeyframeStore
 from slamkit_plugins.mappers.gaussian_splatting.memory_cap import MemoryCap, MemoryCapConfig
+from slamkit_plugins.mappers.gaussian_splatting.schedule import TrainingSchedule
 from slamkit_plugins.mappers.gaussian_splatting.timing import PhaseTimer
 
 log = logging.getLogger(__name__)
 
-#: Pixels: a training window's smallest side (the loss's SSIM takes 11x11 windows; a tile is 16).
-MIN_WINDOW_SIDE = 16
 #: `resolution_scale` when null, by mode (real time trains at a quarter: twice the steps a keyframe).
 SEQUENTIAL_RESOLUTION_SCALE = 0.5
 REALTIME_RESOLUTION_SCALE = 0.25
@@ -105,9 +103,7 @@ class Trainer(Mapper):
         self.admission = Admission(cfg.admission)
         self.memory_cap = MemoryCap(cfg.memory_cap)
         self.keyframes = KeyframeStore(cfg.resolution_scale, cfg.keyframe_storage, cfg.keyframe_dir, cfg.view_cache_mb)
-        self.pending: deque[int] = deque()  # keyframes not trained on yet
-        self.trained: dict[int, int] = {}  # steps taken on each keyframe
-        self.rng = np.random.default_rng(cfg.seed)
+        self.schedule = TrainingSchedule(self.keyframes, sampler, cfg.coarse_steps, cfg.window, cfg.seed)
         self.steps = 0  # training steps taken (skipped and dropped ones excluded)
         self.skipped_steps = 0  # steps skipped for a non-finite loss or gradient
         self.stale_steps = 0  # steps dropped: rows were removed or overwritten during them
@@ -146,7 +142,7 @@ class Trainer(Mapper):
         """Keep `frame` (seen from `pose`, camera-to-world) as a training view; its Gaussians are
         at `new_rows` of the map (protected from the memory cap while others can go)."""
         keyframe = self.keyframes.add(frame, pose, kind)
-        self.pending.append(keyframe.id)
+        self.schedule.add(keyframe.id)
         self.gaussians_added += max(0, new_rows.stop - new_rows.start)
         with self.gaussian_map.lock:
             self.memory_cap.enforce(self.edit, protect=new_rows)
@@ -168,10 +164,7 @@ class Trainer(Mapper):
         start, cpu_start, done = time.perf_counter(), time.thread_time(), 0
         while done < iterations and len(self.keyframes) and len(self.gaussian_map):
             with self.timer("view"):
-                kf_id = self.pending.popleft() if self.pending else self._sample()
-                coarse = self.trained.get(kf_id, 0) < self.cfg.coarse_steps
-                self.trained[kf_id] = self.trained.get(kf_id, 0) + 1
-                view = self._window(self.keyframes.view(kf_id, self.gaussian_map.device, 0.5 if coarse else 1.0))
+                view = self.schedule.next_view(self.gaussian_map.device)
             self.step(view)
             self.timer.steps += 1
             done += 1
@@ -255,12 +248,10 @@ class Trainer(Mapper):
                 "train_resolution": [first.width, first.height] if first else None}
 
     def state_dict(self) -> dict[str, Any]:
-        """Keyframes, the training schedule (pending, steps per keyframe, the random state),
+        """Keyframes, the training schedule (`TrainingSchedule.state_dict`),
         counters, the optimiser's and the strategy's state."""
         with self.gaussian_map.lock:  # copies (C calls) of what a mapping thread changes outside the lock
-            pending, trained = self.pending.copy(), dict(self.trained)
-            return {"keyframes": self.keyframes.state_dict(), "pending": list(pending),
-                    "trained": [[k, v] for k, v in trained.items()], "rng": self.rng.bit_generator.state,
+            return {"keyframes": self.keyframes.state_dict(), **self.schedule.state_dict(),
                     "steps": self.steps, "skipped_steps": self.skipped_steps, "stale_steps": self.stale_steps,
                     "train_time_s": self.train_time_s, "train_cpu_s": self.train_cpu_s, "last_loss": self.last_loss,
                     "optimizer": self.optimizer.state_dict(), "strategy": self.strategy.state_dict(),
@@ -274,9 +265,7 @@ class Trainer(Mapper):
         if self.keyframes.resolution_scale != configured:
             log.warning("resumed keyframes train at %g of the frame size, so new ones do too (not %g)",
                         self.keyframes.resolution_scale, configured)
-        self.pending = deque(int(k) for k in state["pending"])
-        self.trained = {int(k): int(v) for k, v in state["trained"]}
-        self.rng.bit_generator.state = state["rng"]
+        self.schedule.load_state_dict(state)
         self.steps, self.skipped_steps, self.stale_steps = (int(state[k]) for k in ("steps", "skipped_steps",
                                                                                      "stale_steps"))
         self.train_time_s, self.train_cpu_s = float(state["train_time_s"]), float(state["train_cpu_s"])
@@ -298,27 +287,6 @@ class Trainer(Mapper):
     def _count_time(self, start: float, cpu_start: float) -> None:
         self.train_time_s += time.perf_counter() - start
         self.train_cpu_s += time.thread_time() - cpu_start
-
-    def _window(self, view: TrainingView) -> TrainingView:
-        """A random window of `view` of the configured size (`window`, at least MIN_WINDOW_SIDE
-        pixels a side), or the view itself. A window may start up to its size (less
-        MIN_WINDOW_SIDE) before the view's edge and is clipped to the view, so border pixels are
-        trained about as often as the others (a window drawn inside the view would rarely hold
-        them)."""
-        if self.cfg.window >= 1.0:
-            return view
-        spans = []
-        for size in (view.camera.width, view.camera.height):
-            part = min(size, max(MIN_WINDOW_SIDE, round(size * self.cfg.window)))
-            reach = part - MIN_WINDOW_SIDE if part < size else 0
-            start = int(self.rng.integers(-reach, size - part + reach + 1))
-            spans.append((max(start, 0), min(start + part, size) - max(start, 0)))
-        (x0, width), (y0, height) = spans
-        return view.window(x0, y0, width, height)
-
-    def _sample(self) -> int:
-        ids = list(self.keyframes.ids)
-        return self.sampler.sample(ids, {k: self.keyframes[k].pose for k in ids}, self.rng)
 
     @contextmanager
     def _locked(self):
