@@ -45,19 +45,8 @@ from slamkit.geometry import make_pose, quat_to_rotmat
 from slamkit.geometry.pose_graph import pose_difference, relative_pose
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from loop_closure import RIGHT_DEG, RIGHT_M, orthonormal  # noqa: E402  (the offline benchmark's definitions)
+from loop_closure import RIGHT_DEG, RIGHT_M, SEQUENCES, SYNTHETIC, orthonormal  # noqa: E402  (the offline benchmark's)
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-SEQUENCES = {
-    "7scenes": ["dataset=sevenscenes", f"dataset.path={DATA / '7scenes_redkitchen_300to999'}"],
-    "tum": ["dataset=tum", f"dataset.path={DATA / 'tum_fr1_rpy_first150'}"],
-    "replica": ["dataset=replica", f"dataset.path={DATA / 'replica_room0_first20'}"],
-}
-#: The synthetic paths that come back (issue 46), frames each, with the structured-light sensor:
-#: exact ground truth, odometry that drifts as a Kinect's does.
-SYNTHETIC = {"room_loop": 600, "figure_eight": 720, "return": 900, "revisit_rotated": 900}
-SEQUENCES.update({f"synthetic_{path}": ["dataset=synthetic", f"dataset.camera_path={path}", f"dataset.num_frames={n}",
-                                        "dataset.depth_model=structured_light"] for path, n in SYNTHETIC.items()})
 #: A loop is **exact** (issue 46's acceptance on the synthetic paths) within these of the truth.
 EXACT_M, EXACT_DEG = 0.02, 1.0
 #: The 3DGS mapper's settings for sequential 7-Scenes (700 frames): half the default steps a

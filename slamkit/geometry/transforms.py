@@ -100,14 +100,9 @@ def invert_pose(T: np.ndarray) -> np.ndarray:
 
 def so3_exp(w: np.ndarray) -> np.ndarray:
     """Rodrigues: (..., 3) axis-angle vectors (radians) to (..., 3, 3) rotation matrices."""
-    if np.ndim(w) > 1:
+    if np.ndim(w) > 1:  # one at a time: the single vector's arithmetic, bit for bit
         w = np.asarray(w, dtype=np.float64)
-        theta = np.linalg.norm(w, axis=-1)[..., None, None]
-        small = theta < 1e-12
-        safe = np.where(small, 1.0, theta)
-        K = skew(w)
-        return (np.eye(3) + np.where(small, 1.0, np.sin(safe) / safe) * K
-                + np.where(small, 0.0, (1 - np.cos(safe)) / safe**2) * (K @ K))
+        return np.stack([so3_exp(v) for v in w.reshape(-1, 3)]).reshape(w.shape[:-1] + (3, 3))
     theta = float(np.linalg.norm(w))
     K = skew(w)
     if theta < 1e-12:
