@@ -12,12 +12,18 @@ installed (editable) slamkit. `compare` prints one table row a case and writes J
     python benchmarks/redesign_identity.py run /tmp/ref --rev main       # before
     python benchmarks/redesign_identity.py run /tmp/new                   # after (the working tree)
     python benchmarks/redesign_identity.py compare /tmp/ref /tmp/new      # table + JSON
+    python benchmarks/redesign_identity.py timing /tmp/rt --rev b43124f   # real time, alternated
 
 Cases (sequential mode: results independent of the machine's speed): TUM fr1/rpy and Replica
 room0 with the 3DGS mapper, 7-Scenes redkitchen with the pose-graph loop closure, a mapped TUM
 run stopped after 20 frames and resumed to 40, and a localisation of TUM frames 40-59 in that
 resumed run's map. `--tum-frames`, `--sevenscenes-frames` shorten the long ones on a slow machine
 (the JSON records the counts used).
+
+`timing` is the real-time half of the acceptance: the mapped TUM run at 30 frames/s (with and
+without drop_frames), the revision's snapshot and the installed slamkit alternated `--repeats`
+times, each run its own process; it prints and writes each side's stream frames/s, mapping steps,
+ATE and PSNR (medians and every run). Timings: run it alone on a quiet machine.
 """
 
 from __future__ import annotations
@@ -117,6 +123,60 @@ def run(out: Path, rev: str | None, tum_frames: int, sevenscenes_frames: int) ->
     (out / "runs.json").write_text(json.dumps(log, indent=2))
 
 
+#: (case, overrides) of `timing`: the real-time runs whose stream rate and mapping steps a
+#: redesign must keep.
+REALTIME_CASES = [
+    ("tum_realtime30", [*TUM, "mode=realtime", "fps_limit=30", "mapper=gaussian_splatting"]),
+    ("tum_realtime30_drop", [*TUM, "mode=realtime", "fps_limit=30", "drop_frames=true", "mapper=gaussian_splatting"]),
+]
+TIMING_KEYS = ("stream_fps", "mapping_steps", "ate_rmse_m", "psnr", "dropped_frames")
+
+
+def timing(out: Path, rev: str, repeats: int, out_json: Path, only: tuple[str, ...] = ()) -> None:
+    """Alternate the revision's runs with the installed slamkit's (before, after, before, ...)
+    for each REALTIME_CASES case (those named in `only`, if any); write {case: {side: [metrics
+    of each run]}} and medians."""
+    import statistics
+
+    out.mkdir(parents=True, exist_ok=True)
+    src = snapshot(rev, out / "src")
+    envs = {"before": {**os.environ, "PYTHONPATH": os.pathsep.join([str(src), os.environ.get("PYTHONPATH", "")])},
+            "after": dict(os.environ)}
+    exe = Path(sys.executable).with_name("slamkit")
+    results: dict = {"rev": rev, "repeats": repeats, "cases": {}}
+    for name, overrides in [c for c in REALTIME_CASES if not only or c[0] in only]:
+        runs: dict[str, list] = {"before": [], "after": []}
+        for i in range(repeats):
+            for side in ("before", "after"):
+                run_dir = out / f"{name}_{side}_{i}"
+                cmd = [str(exe), *overrides, *QUIET, f"hydra.run.dir={run_dir}", "existing_outputs=clean"]
+                proc = subprocess.run(cmd, capture_output=True, text=True, env=envs[side], cwd=out)
+                metrics = json.loads((run_dir / "metrics.json").read_text()) if proc.returncode == 0 else {}
+                flat = {key.rsplit(".", 1)[-1]: v for key, v in _flat_all(metrics).items()}
+                runs[side].append({k: flat.get(k) for k in TIMING_KEYS} | {"returncode": proc.returncode})
+                print(f"{name} {side} {i}: " + ", ".join(f"{k} {runs[side][-1][k]}" for k in TIMING_KEYS), flush=True)
+        medians = {side: {k: statistics.median(r[k] for r in rs if r[k] is not None)
+                          for k in TIMING_KEYS if any(r[k] is not None for r in rs)} for side, rs in runs.items()}
+        results["cases"][name] = {"runs": runs, "median": medians}
+        b, a = medians["before"], medians["after"]
+        print(f"{name}: stream fps {b.get('stream_fps', 0):.2f} -> {a.get('stream_fps', 0):.2f}, mapping steps "
+              f"{b.get('mapping_steps', 0):.0f} -> {a.get('mapping_steps', 0):.0f} (medians of {repeats})", flush=True)
+    out_json.parent.mkdir(parents=True, exist_ok=True)
+    out_json.write_text(json.dumps(results, indent=2))
+    print(out_json)
+
+
+def _flat_all(d: dict, prefix: str = "") -> dict:
+    """Every leaf of a nested dict under its dotted key (timings included)."""
+    flat = {}
+    for key, value in d.items():
+        if isinstance(value, dict):
+            flat.update(_flat_all(value, f"{prefix}{key}."))
+        else:
+            flat[prefix + key] = value
+    return flat
+
+
 def _copy_outputs(src: Path, dest: Path) -> None:
     dest.mkdir(parents=True, exist_ok=True)
     for name in OUTPUTS:
@@ -195,7 +255,16 @@ def main(argv: list[str] | None = None) -> int:
     p_cmp.add_argument("before", type=Path)
     p_cmp.add_argument("after", type=Path)
     p_cmp.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "redesign_identity.json")
+    p_time = sub.add_parser("timing", help="real-time runs of REV and the installed slamkit, alternated")
+    p_time.add_argument("out", type=Path)
+    p_time.add_argument("--rev", required=True)
+    p_time.add_argument("--repeats", type=int, default=3)
+    p_time.add_argument("--cases", default="", help="comma-separated REALTIME_CASES names (default: all)")
+    p_time.add_argument("--json", type=Path, default=REPO / "benchmarks" / "results" / "redesign_realtime.json")
     args = parser.parse_args(argv)
+    if args.command == "timing":
+        timing(args.out, args.rev, args.repeats, args.json, tuple(filter(None, args.cases.split(","))))
+        return 0
     if args.command == "run":
         run(args.out, args.rev, args.tum_frames, args.sevenscenes_frames)
         return 0
