@@ -61,8 +61,9 @@ class SLAM:
     (`beside=True`): the map is trained and loops decided by the workers of
     `slamkit.run.runner.RealtimeRunner` beside tracking, and with `handovers` the mapper takes a
     keyframe in a thread of its own (`KeyframeHandovers`) while the next frames are tracked; a
-    tracking keyframe's growth and the tracker's new target stay on the tracking thread, so the
-    next frame aligns to the map with the keyframe in it.
+    tracking keyframe's trackable Gaussians enter the map on the tracking thread, the tracker's
+    new target is built first in the keyframe's thread, and the next frame waits for it, so it
+    aligns to the map with the keyframe in it.
     """
 
     def __init__(self, tracker: Tracker, keyframe_policy: KeyframePolicy, mapper: Mapper, gaussian_map: GaussianMap,
@@ -97,6 +98,8 @@ class SLAM:
         if self.last_pose is None:  # the run's first frame (a resumed run has its last pose)
             self.initialize(frame.gt_pose if frame.gt_pose is not None else np.eye(4))
         start = time.perf_counter()
+        if self.handovers is not None:
+            self.handovers.ready()  # the tracker's target with the last tracking keyframe in it
         with self.boundary("tracker", "track"):
             result = self.tracker.track(frame)
         if not np.all(np.isfinite(result.pose)):  # a diverged tracker must not poison the map
@@ -157,10 +160,11 @@ class SLAM:
         mapper and the loop closure take the keyframe. With `handovers`, what the next frames'
         tracking does not need runs in a thread beside it: the mapper taking the keyframe
         (`Mapper.add_keyframe`: a training view, the memory cap); for a tracking keyframe the
-        admission of its Gaussians that are not trackable (its trackable ones, the tracker's next
-        target, enter first on the tracking thread); for a mapping-only keyframe its whole growth
-        (the tracker aligns to the map as of the last tracking keyframe). The next keyframe, a
-        loop correction and a checkpoint wait for it (`settle`)."""
+        admission of its Gaussians that are not trackable (its trackable ones enter first on the
+        tracking thread; the tracker's new target is built from them first in the thread, and the
+        next frame waits for that part: `KeyframeHandovers.ready`); for a mapping-only keyframe
+        its whole growth (the tracker aligns to the map as of the last tracking keyframe). The
+        next keyframe, a loop correction and a checkpoint wait for it (`settle`)."""
         self.settle()  # keyframes reach the map and the mapper in order, each before the next one's admission
         keyframe_id = self.num_keyframes
         defer = self.handovers is not None
@@ -171,14 +175,14 @@ class SLAM:
             new = self.candidate_rows(frame, self.with_gaussians(frame, result), kind, keyframe_id)
             trackable = None if new is None else new.trackable.cpu().numpy()
             tracked = self.gaussian_map.append(new.select(trackable).computed()) if new is not None else None
-            self._update_target(keyframe_id)
 
             def hand_over() -> None:
                 rows = self.grow_map(frame, result, kind, keyframe_id, None if new is None else new.select(~trackable))
                 if tracked is not None and rows.start == tracked.stop > tracked.start:
                     rows = slice(tracked.start, rows.stop)  # nothing entered between: one keyframe's rows
                 self._hand_over(frame, result.pose, kind, rows)
-            self.handovers.start(hand_over)
+            # the new target first, before the rest changes the map: the next frame waits for it alone
+            self.handovers.start(hand_over, first=lambda: self._update_target(keyframe_id))
         else:
             rows = self.grow_map(frame, self.with_gaussians(frame, result), kind, keyframe_id)
             if kind is KeyframeKind.TRACKING:

@@ -137,6 +137,44 @@ def test_keyframes_handed_over_beside_tracking_give_the_same_run():
     assert beside.optimize(2) == waited.optimize(2) == 2  # the mapper has every keyframe to train on
 
 
+def test_the_next_target_is_built_beside_tracking_and_the_next_frame_aligns_to_it():
+    """A tracking keyframe's new target is built in the keyframe's thread, not on the tracking
+    thread (its frame's pose is not held up by it), and the next frame's alignment starts only
+    once it is built (made slow here: 30 ms)."""
+    import threading
+    import time
+
+    dataset, slam, _ = build_run(["dataset=synthetic", "dataset.num_frames=10", "dataset.width=64",
+                                  "dataset.height=48", "tracker=gicp", "keyframe=every_n", "keyframe.tracking_every=3",
+                                  "mapper=gaussian_splatting", "mode=realtime", "keyframe_thread=true"])
+    calls = []
+
+    def logged(name, method, pause=0.0):
+        def call(*args, **kwargs):
+            calls.append((name, "start", threading.current_thread().name))
+            time.sleep(pause)
+            try:
+                return method(*args, **kwargs)
+            finally:
+                calls.append((name, "end", threading.current_thread().name))
+        return call
+
+    slam.tracker.update_target = logged("update_target", slam.tracker.update_target, pause=0.03)
+    slam.tracker.track = logged("track", slam.tracker.track)
+    slam.initialize(dataset[0].gt_pose)
+    for i in range(len(dataset)):
+        slam.process(dataset[i])
+    slam.settle()
+    assert sum(c[:2] == ("update_target", "end") for c in calls) >= 3
+    assert {c[2] for c in calls if c[0] == "update_target"} == {"slamkit-keyframe"}
+    assert {c[2] for c in calls if c[0] == "track"} == {threading.current_thread().name}
+    building = False
+    for name, edge, _ in calls:  # no alignment starts while a target is being built
+        if name == "update_target":
+            building = edge == "start"
+        assert not (building and name == "track"), calls
+
+
 def test_a_failure_beside_tracking_is_raised_on_the_tracking_thread_naming_the_plugin(monkeypatch):
     dataset, slam, _ = build_run(["dataset=synthetic", "dataset.num_frames=3", "dataset.width=64",
                                   "dataset.height=48", "tracker=gicp", "mapper=gaussian_splatting", "mode=realtime"])
