@@ -104,6 +104,18 @@ def after_gap_errors(run_dir: Path) -> list[dict]:
     return out
 
 
+def delays_by_kind(run_dir: Path, slowest: int = 3) -> dict:
+    """From a run's frames.csv: the tracking keyframes' delay median and maximum (ms), and the
+    `slowest` frames (index, keyframe kind, delay ms): where a run's tail comes from."""
+    with open(run_dir / "frames.csv", newline="") as f:
+        rows = [r for r in csv.DictReader(f) if r.get("delay_ms")]
+    keyframes = [float(r["delay_ms"]) for r in rows if r["keyframe"] == "tracking"]
+    rows.sort(key=lambda r: -float(r["delay_ms"]))
+    return {"tracking_keyframe_delay_median_ms": statistics.median(keyframes) if keyframes else None,
+            "tracking_keyframe_delay_max_ms": max(keyframes, default=None),
+            "slowest_frames": [(int(r["index"]), r["keyframe"], float(r["delay_ms"])) for r in rows[:slowest]]}
+
+
 def _f(value, digits=1, scale=1.0) -> str:
     return "-" if value is None else f"{value * scale:.{digits}f}"
 
@@ -126,21 +138,27 @@ def main() -> int:
     result: dict = {"machine": {"platform": platform.platform(), "processor": platform.processor()},
                     "runs_dir": str(runs_dir), "realtime": {}, "gaps": {}}
     parts = set(args.parts.split(","))
-    table = [["sequence", "run", "delay median ms", "p99 ms", "max ms", "dropped", "ATE cm", "PSNR dB"]]
+    table = [["sequence", "run", "delay median ms", "p99 ms", "max ms", "tracking keyframes median / max ms",
+              "slowest frames (index: ms)", "dropped", "ATE cm", "PSNR dB"]]
     for seq, overrides in SEQUENCES.items() if "realtime" in parts else ():
         records = []
         for k in range(repeats):
             r = run_system(f"{seq}_rt{k}", overrides(args.data) + REALTIME + limit, COMMON, runs_dir, args.timeout)
+            if r.get("returncode") == 0:
+                r.update(delays_by_kind(runs_dir / f"{seq}_rt{k}"))
             records.append(r)
             table.append([seq, str(k), _f(r.get("delay_median_ms")), _f(r.get("delay_p99_ms")),
-                          _f(r.get("delay_max_ms")), str(r.get("dropped_frames", "-")),
+                          _f(r.get("delay_max_ms")), f"{_f(r.get('tracking_keyframe_delay_median_ms'))} / "
+                          f"{_f(r.get('tracking_keyframe_delay_max_ms'))}",
+                          ", ".join(f"{i}: {ms:.0f}" for i, _, ms in r.get("slowest_frames", [])),
+                          str(r.get("dropped_frames", "-")),
                           _f(r.get("ate_rmse_m"), 2, 100), _f(r.get("psnr"), 2)])
         ok = [r for r in records if r.get("returncode") == 0]
         med = {key: statistics.median([r[key] for r in ok if r.get(key) is not None] or [float("nan")])
                for key in ("delay_median_ms", "delay_p99_ms", "delay_max_ms", "ate_rmse_m", "psnr")}
         worst_max = max((r["delay_max_ms"] for r in ok if r.get("delay_max_ms") is not None), default=None)
         table.append([seq, "median", _f(med["delay_median_ms"]), _f(med["delay_p99_ms"]), _f(med["delay_max_ms"]),
-                      "", _f(med["ate_rmse_m"], 2, 100), _f(med["psnr"], 2)])
+                      "", "", "", _f(med["ate_rmse_m"], 2, 100), _f(med["psnr"], 2)])
         result["realtime"][seq] = {"records": records, "median": med, "worst_max_ms": worst_max}
     if "realtime" in parts:
         print("Real time, 30 frames/s, with the mapper\n" + markdown_table(table))
