@@ -16,6 +16,7 @@ JSON (`--out`).
     python benchmarks/frame_delay.py --quick                                     # smoke: 60 frames
     python benchmarks/frame_delay.py --set tracker.frame_budget_ms=60            # another budget
     python benchmarks/frame_delay.py --parts gaps                                # the gaps alone (any machine)
+    python benchmarks/frame_delay.py --parts realtime,without_mapper             # and the floor: tracking alone
 
 Run it alone on a quiet machine: delays are wall-clock figures.
 """
@@ -45,6 +46,8 @@ SEQUENCES = {
 COMMON = ["tracker=gicp", "keyframe=overlap"]
 REALTIME = ["mode=realtime", "fps_limit=30", "drop_frames=true", "mapper=gaussian_splatting"]
 GAPS = ["mapper=none", "forced_gap_every=50", "forced_gap_length=20"]
+#: The floor of the delays: the same real-time runs without the mapper (nothing beside tracking).
+WITHOUT_MAPPER = [o for o in REALTIME if not o.startswith("mapper=")] + ["mapper=none"]
 #: Issue 47's targets: delay (ms), ATE (m) and PSNR (dB) of today's real-time runs, gap error (m).
 TARGETS = {"p99_ms": 66.0, "max_ms": 150.0, "ate_m": {"tum": 0.0490, "7scenes": 0.0250}, "psnr": {"tum": 17.8},
            "gap_m": 0.05}
@@ -128,7 +131,8 @@ def main() -> int:
     parser.add_argument("--timeout", type=float, default=1800)
     parser.add_argument("--out", type=Path)
     parser.add_argument("--parts", default="realtime,gaps",
-                        help="which parts: realtime (wall-clock delays: a quiet machine), gaps (sequential)")
+                        help="which parts: realtime (wall-clock delays: a quiet machine), without_mapper (the same "
+                             "runs, tracking alone: the delays' floor), gaps (sequential)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="an override of every run, e.g. --set tracker.frame_budget_ms=60")
     args = parser.parse_args()
@@ -140,28 +144,35 @@ def main() -> int:
     parts = set(args.parts.split(","))
     table = [["sequence", "run", "delay median ms", "p99 ms", "max ms", "tracking keyframes median / max ms",
               "slowest frames (index: ms)", "dropped", "ATE cm", "PSNR dB"]]
-    for seq, overrides in SEQUENCES.items() if "realtime" in parts else ():
-        records = []
-        for k in range(repeats):
-            r = run_system(f"{seq}_rt{k}", overrides(args.data) + REALTIME + limit, COMMON, runs_dir, args.timeout)
-            if r.get("returncode") == 0:
-                r.update(delays_by_kind(runs_dir / f"{seq}_rt{k}"))
-            records.append(r)
-            table.append([seq, str(k), _f(r.get("delay_median_ms")), _f(r.get("delay_p99_ms")),
-                          _f(r.get("delay_max_ms")), f"{_f(r.get('tracking_keyframe_delay_median_ms'))} / "
-                          f"{_f(r.get('tracking_keyframe_delay_max_ms'))}",
-                          ", ".join(f"{i}: {ms:.0f}" for i, _, ms in r.get("slowest_frames", [])),
-                          str(r.get("dropped_frames", "-")),
-                          _f(r.get("ate_rmse_m"), 2, 100), _f(r.get("psnr"), 2)])
-        ok = [r for r in records if r.get("returncode") == 0]
-        med = {key: statistics.median([r[key] for r in ok if r.get(key) is not None] or [float("nan")])
-               for key in ("delay_median_ms", "delay_p99_ms", "delay_max_ms", "ate_rmse_m", "psnr")}
-        worst_max = max((r["delay_max_ms"] for r in ok if r.get("delay_max_ms") is not None), default=None)
-        table.append([seq, "median", _f(med["delay_median_ms"]), _f(med["delay_p99_ms"]), _f(med["delay_max_ms"]),
-                      "", "", "", _f(med["ate_rmse_m"], 2, 100), _f(med["psnr"], 2)])
-        result["realtime"][seq] = {"records": records, "median": med, "worst_max_ms": worst_max}
-    if "realtime" in parts:
-        print("Real time, 30 frames/s, with the mapper\n" + markdown_table(table))
+    for part, title, system in (("realtime", "Real time, 30 frames/s, with the mapper", REALTIME),
+                                ("without_mapper", "The same without the mapper (tracking alone)", WITHOUT_MAPPER)):
+        if part not in parts:
+            continue
+        table = [table[0]]
+        result[part] = {}
+        for seq, overrides in SEQUENCES.items():
+            records = []
+            for k in range(repeats):
+                name = f"{seq}_{'rt' if part == 'realtime' else 'alone'}{k}"
+                given = [o for o in overrides(args.data) if "mapper=none" not in system or "eval_every" not in o]
+                r = run_system(name, given + system + limit, COMMON, runs_dir, args.timeout)
+                if r.get("returncode") == 0:
+                    r.update(delays_by_kind(runs_dir / name))
+                records.append(r)
+                table.append([seq, str(k), _f(r.get("delay_median_ms")), _f(r.get("delay_p99_ms")),
+                              _f(r.get("delay_max_ms")), f"{_f(r.get('tracking_keyframe_delay_median_ms'))} / "
+                              f"{_f(r.get('tracking_keyframe_delay_max_ms'))}",
+                              ", ".join(f"{i}: {ms:.0f}" for i, _, ms in r.get("slowest_frames", [])),
+                              str(r.get("dropped_frames", "-")),
+                              _f(r.get("ate_rmse_m"), 2, 100), _f(r.get("psnr"), 2)])
+            ok = [r for r in records if r.get("returncode") == 0]
+            med = {key: statistics.median([r[key] for r in ok if r.get(key) is not None] or [float("nan")])
+                   for key in ("delay_median_ms", "delay_p99_ms", "delay_max_ms", "ate_rmse_m", "psnr")}
+            worst_max = max((r["delay_max_ms"] for r in ok if r.get("delay_max_ms") is not None), default=None)
+            table.append([seq, "median", _f(med["delay_median_ms"]), _f(med["delay_p99_ms"]),
+                          _f(med["delay_max_ms"]), "", "", "", _f(med["ate_rmse_m"], 2, 100), _f(med["psnr"], 2)])
+            result[part][seq] = {"records": records, "median": med, "worst_max_ms": worst_max}
+        print(f"{title}\n" + markdown_table(table))
 
     gaps = [["sequence", "frame", "after frame", "error cm", "error deg", "floor cm", "floor deg", "floor's keyframe"]]
     for seq, overrides in SEQUENCES.items() if "gaps" in parts else ():
