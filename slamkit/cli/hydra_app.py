@@ -15,8 +15,9 @@
   sweeper and its launcher are given those compositions (`_ComposedJobs`) instead of composing
   them again, as `Hydra.multirun` runs a sweep otherwise.
 - `composition`: the command's one composition step for a run or a sweep: a resume's arguments
-  from its checkpoint, old spellings, a scene sweep's scenes under data_root, the output folder
-  and the plugin choices, then `SingleRun` or `Sweep`.
+  from its checkpoint, old spellings, the output folder and the plugin choices, then `SingleRun`
+  or `Sweep` (a scene sweep narrowed there to the scenes under data_root whose jobs open their
+  dataset: `slamkit.cli.scenes`, each scene's job composed once).
 - `run_hydra`: everything else (`--cfg job`, `--info`, `--help`, ...) as any Hydra app, its
   arguments given to Hydra's own parser.
 
@@ -28,6 +29,7 @@ from __future__ import annotations
 
 import copy
 import os
+import sys
 import tempfile
 import warnings
 from pathlib import Path
@@ -48,6 +50,7 @@ from hydra.core.utils import run_job
 from hydra.types import HydraContext, RunMode
 from omegaconf import OmegaConf, open_dict
 
+from slamkit.cli.scenes import SCENE_KEY, SceneSweep, job_scene, scene_sweep, unreadable
 from slamkit.errors import ConfigError
 from slamkit.registry.compose import (
     CONFIG_MODULE,
@@ -161,16 +164,51 @@ class Sweep:
                 with open_dict(self.cfg):
                     self.cfg.hydra.mode = RunMode.MULTIRUN
                     self.cfg.hydra.overrides.hydra.append("hydra.mode=MULTIRUN")
-            self.loader = _ComposedJobs(self.hydra.config_loader, self.cfg, self._checked_jobs(overrides, registry))
+            scenes = scene_sweep(self.cfg, overrides) if self.sweep else None
+            if scenes is not None:  # the scenes with a folder under data_root, before any job is composed
+                self._run_scenes(scenes, [s for s in scenes.scenes if not _skipped(s, scenes.missing(s))])
+            jobs = self._checked_jobs(overrides, registry)
+            if scenes is not None:  # and whose job opens its dataset
+                jobs = self._complete_scenes(scenes, jobs)
+            composed_jobs = {job: cfg for job, (cfg, _) in jobs.items()}
+            self.loader = _ComposedJobs(self.hydra.config_loader, self.cfg, composed_jobs)
         except BaseException:
             GlobalHydra.instance().clear()
             raise
         if not self.sweep:
             GlobalHydra.instance().clear()
 
+    def _run_scenes(self, scenes: SceneSweep, kept: list[str]) -> None:
+        """The sweep runs the scenes `kept` of `scenes` only: its `scene=` list (the command
+        line's, else the experiment's sweeper params) narrowed to them; ConfigError (one line)
+        when none is kept."""
+        if not kept:
+            raise scenes.none_complete()
+        narrowed = f"{SCENE_KEY}={','.join(kept)}"
+        with open_dict(self.cfg):
+            if scenes.given is None:
+                self.cfg.hydra.sweeper.params[SCENE_KEY] = ",".join(kept)
+            else:
+                task = self.cfg.hydra.overrides.task
+                self.cfg.hydra.overrides.task = [narrowed if o == scenes.given else o for o in task]
+                self.overrides = [narrowed if o == scenes.given else o for o in self.overrides]
+
+    def _complete_scenes(self, scenes: SceneSweep, jobs: dict[tuple[str, ...], Any]) -> dict[tuple[str, ...], Any]:
+        """`jobs` without those whose scene's dataset does not open (each scene named in one line,
+        opened by its first job), the sweep narrowed to the others (`_run_scenes`)."""
+        first = {}  # scene -> its first job's (run config, plugins)
+        for job, (_, run) in jobs.items():
+            first.setdefault(job_scene(job), run)
+        first.pop(None, None)
+        incomplete = {scene for scene, (run_cfg, names) in first.items() if _skipped(scene, unreadable(run_cfg, names))}
+        if incomplete:
+            self._run_scenes(scenes, [scene for scene in first if scene not in incomplete])
+        return {job: checked for job, checked in jobs.items() if job_scene(job) not in incomplete}
+
     def _checked_jobs(self, overrides: Sequence[str], registry: Registry) -> dict[tuple[str, ...], Any]:
-        """Each job of the basic sweeper composed as its launcher composes it, and checked; a job
-        that does not compose or check is refused in one line naming it (ConfigError)."""
+        """Each job of the basic sweeper composed as its launcher composes it, and checked, with
+        its run config and plugins (`validated`); a job that does not compose or check is refused
+        in one line naming it (ConfigError)."""
         jobs = sweep_jobs(self.cfg) or []
         swept = {o.key_or_group for o in parse_overrides(overrides) if o.is_sweep_override()}
         checked = {}
@@ -179,14 +217,14 @@ class Sweep:
             try:
                 check_spellings(told)
                 cfg = composed(lambda: self.hydra.config_loader.load_sweep_config(self.cfg, list(job)), told, registry)
-                validated(cfg, told)
+                run = validated(cfg, told)
             except ConfigError as exc:
                 if len(jobs) == 1:
                     raise
                 varied = [o for o in job if o.split("=", 1)[0] in swept]
                 raise ConfigError(f"job {number} of {len(jobs)} of the sweep ({' '.join(varied) or 'as given'}): "
                                   f"{exc}") from None
-            checked[tuple(job)] = cfg
+            checked[tuple(job)] = (cfg, run)
         return checked
 
     def run(self) -> None:
@@ -224,17 +262,14 @@ def composition(task: Callable[[Any], Any], overrides: Sequence[str], registry: 
                 multirun: bool) -> SingleRun | Sweep:
     """The command's one composition step for a run or a sweep (`overrides`: its arguments but
     `-m`, `multirun` whether it was given): a resume's arguments from its checkpoint
-    (`slamkit.run.checkpoint.resume_arguments`), an old spelling refused, a scene sweep restricted
-    to the scenes under data_root (`slamkit.cli.scenes.present_scenes`), the output folder and the
-    plugin choices checked, then the configuration composed once and checked: `SingleRun`, or
-    `Sweep` for `-m`, a swept value or an experiment that sweeps. A SlamkitError, one line, for
-    what is refused."""
-    from slamkit.cli.scenes import present_scenes
+    (`slamkit.run.checkpoint.resume_arguments`), an old spelling refused, the output folder and
+    the plugin choices checked, then the configuration composed once and checked: `SingleRun`, or
+    `Sweep` for `-m`, a swept value or an experiment that sweeps (a scene sweep narrowed there to
+    the scenes under data_root). A SlamkitError, one line, for what is refused."""
     from slamkit.run.checkpoint import resume_arguments
 
     overrides = resume_arguments(list(overrides))
     check_spellings(overrides)
-    overrides = present_scenes(overrides)  # a scene sweep (+experiment=paper_tum): the scenes under data_root
     _check_output_dir(overrides, multirun=multirun)
     _check_plugin_choices(registry, overrides)
     if not multirun and not _is_sweep(overrides):
@@ -242,6 +277,14 @@ def composition(task: Callable[[Any], Any], overrides: Sequence[str], registry: 
         if not single.sweep:
             return single
     return Sweep(task, overrides, registry, multirun=multirun)
+
+
+def _skipped(scene: str, why: str | None) -> bool:
+    """Whether a scene sweep leaves `scene` out (`why` it cannot run, None: it can), said in one
+    line before the first job."""
+    if why is not None:
+        print(f"slamkit: scene {scene} skipped: {why}", file=sys.stderr)
+    return why is not None
 
 
 def _is_sweep(overrides: Sequence[str]) -> bool:

@@ -74,22 +74,20 @@ def test_table1_takes_the_papers_column_of_the_scene_or_its_mean(tmp_path, capsy
     assert "my_room is not among the paper's scenes" in out  # the caveat under the table
 
 
-def test_an_ablation_over_every_scene_under_data_root_in_real_time(tmp_path):
+def test_an_ablation_over_every_scene_under_data_root_in_real_time(tmp_path, capsys):
     """+protocol=realtime and +scenes=replica: the ablation's sweep in the paper's protocol over
-    the scenes found under data_root (present_scenes keeps those there, naming the others)."""
-    import io
-
-    from slamkit.cli.scenes import present_scenes
+    the scenes found under data_root (the sweep keeps those there, naming the others)."""
     from slamkit.registry.compose import compose_run
+
+    from support.sweeps import job_values, swept_jobs
 
     (tmp_path / "Replica").mkdir()
     for scene in ("room0", "office4"):  # complete scenes (an incomplete one is skipped, naming what it lacks)
         (tmp_path / "Replica" / scene).symlink_to(require_data(REPLICA), target_is_directory=True)
-    told = io.StringIO()
-    argv = present_scenes(["-m", "+experiment=ablation_scale_alignment", "+protocol=realtime", "+scenes=replica",
-                           f"data_root={tmp_path}"], told)
-    assert argv[-1] == "scene=Replica/room0,Replica/office4"
-    assert told.getvalue().count("skipped") == 6
+    jobs = swept_jobs("+experiment=ablation_scale_alignment", "+protocol=realtime", "+scenes=replica",
+                      f"data_root={tmp_path}")
+    assert set(job_values(jobs, "scene")) == {"Replica/room0", "Replica/office4"}
+    assert capsys.readouterr().err.count("skipped") == 6
     cfg, _ = compose_run(["+experiment=ablation_scale_alignment", "+protocol=realtime", "+scenes=replica",
                           f"data_root={tmp_path}", "scene=Replica/office4", "+scale_variant=z"])
     assert (cfg.mode.value, cfg.fps_limit, cfg.dataset.path) == ("realtime", 30.0, f"{tmp_path}/Replica/office4")
