@@ -59,11 +59,11 @@ def test_a_recording_gives_the_tum_folder_trajectory_sequential_and_in_real_time
                             *mode)
         assert m["mode"] == mode[0].split("=")[1] and m["num_frames"] == N and m["dropped_frames"] == 0
         # the same frames, depth (raw / 5000) and intrinsics (the SDK's float32s as decimals): the same
-        # poses, but for the first one, from the ground truth at a timestamp up to 1e-7 s off (the SDK's
+        # poses, but for the first one, from the ground truth at a timestamp up to 2.4e-7 s off (the SDK's
         # milliseconds in a double)
         np.testing.assert_allclose(t, t_folder, atol=1e-6)
         np.testing.assert_allclose(p, p_folder, atol=1e-6)
-        assert m["ate_rmse_m"] == pytest.approx(m_folder["ate_rmse_m"], abs=1e-9)  # ground truth at stamps 1e-7 s apart
+        assert m["ate_rmse_m"] == pytest.approx(m_folder["ate_rmse_m"], abs=1e-9)  # ground truth <= 2.4e-7 s apart
     assert m_folder["ate_rmse_m"] < 0.05
 
 
