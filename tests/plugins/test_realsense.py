@@ -1,5 +1,6 @@
-"""`dataset=realsense` without a camera: a RealSense recording (.db3, written with pyrealsense2's
-software device from the real TUM frames, tests/support/realsense_writer.py) read back as the
+"""`dataset=realsense` without a camera: a RealSense recording (a .db3 written with pyrealsense2's
+software device, a ROS1 .bag written with rosbags in the SDK's layout, both from the real TUM
+frames, tests/support/realsense_writer.py) read back as the
 TUM dataset reads the folder, frame by frame and at its recorded pace; `dataset.record` keeping
 the frames in the TUM layout; the device enumeration and the one-line errors (no camera, no
 library, bad files). From the command line: tests/e2e/test_realsense_runs.py."""
@@ -28,18 +29,29 @@ from slamkit_plugins.datasets.realsense import (  # noqa: E402
     RealSenseDataset,
     sdk,  # noqa: E402
 )
+from slamkit_plugins.datasets.realsense.bag import write_bag_recording  # noqa: E402
 from slamkit_plugins.datasets.tum import TUMConfig, TUMDataset  # noqa: E402
 
-from support.realsense_writer import write_tum_recording  # noqa: E402
+from support.realsense_writer import TumRecordings  # noqa: E402
 
 N = 8
 #: metres: both read depth as raw / 5000 (the device scale read as its shortest decimal, 0.0002 m)
 DEPTH_ROUNDING = 0.0
+#: seconds: the SDK keeps a timestamp as milliseconds in a double, whose step at TUM's 1.3e12 ms
+#: is 2.4e-4 ms (2.4e-7 s); read back, a timestamp is within that of the one written (.bag, .db3)
+TIMESTAMP_ROUNDING = 1e-6
+#: the ground truth interpolated at a timestamp up to 2.4e-7 s off: a pose element within this
+GT_ROUNDING = 1e-6
 
 
 @pytest.fixture(scope="module")
-def recording(tmp_path_factory):
-    return write_tum_recording(require_data(TUM), tmp_path_factory.mktemp("realsense") / "fr1.db3", N)
+def recordings(tmp_path_factory):
+    return TumRecordings(require_data(TUM), tmp_path_factory.mktemp("realsense"), N)
+
+
+@pytest.fixture
+def recording(recordings):
+    return recordings(".db3")
 
 
 def _tum(**kw) -> TUMDataset:
@@ -47,10 +59,10 @@ def _tum(**kw) -> TUMDataset:
 
 
 def _same_frame(got, want) -> None:
-    assert got.timestamp == pytest.approx(want.timestamp, abs=1e-6)
+    assert got.timestamp == pytest.approx(want.timestamp, abs=TIMESTAMP_ROUNDING)
     np.testing.assert_array_equal(np.asarray(got.rgb), np.asarray(want.rgb))
     np.testing.assert_allclose(got.depth, want.depth, atol=DEPTH_ROUNDING, rtol=0)
-    np.testing.assert_allclose(got.gt_pose, want.gt_pose, atol=1e-9)
+    np.testing.assert_allclose(got.gt_pose, want.gt_pose, atol=GT_ROUNDING, rtol=0)
 
 
 def test_realsense_is_a_registered_dataset():
@@ -58,9 +70,11 @@ def test_realsense_is_a_registered_dataset():
     assert issubclass(spec.cls, Dataset) and spec.config is RealSenseConfig
 
 
-def test_recording_frames_equal_the_tum_folder_frames(recording):
-    """Intrinsics and depth scale from the recording, every frame set in order, then an earlier
-    frame again (played from the start)."""
+@pytest.mark.parametrize("suffix", sdk.RECORDING_SUFFIXES)
+def test_recording_frames_equal_the_tum_folder_frames(recordings, suffix):
+    """Intrinsics and depth scale from the recording (a .db3, a .bag), every frame set in order,
+    then an earlier frame again (played from the start)."""
+    recording = recordings(suffix)
     ds = RealSenseDataset(RealSenseConfig(path=str(recording), groundtruth=str(TUM / "groundtruth.txt")))
     ref = _tum()
     try:
@@ -76,11 +90,13 @@ def test_recording_frames_equal_the_tum_folder_frames(recording):
         ds.close()
 
 
-def test_recorded_pace_gives_frames_as_they_come_and_ends(recording, tmp_path):
-    """recorded_pace: a live source (frames arrive in order on the recording's clock); each
-    frame is the TUM frame of its timestamp; after the last one, SourceEnded; a passed frame is
-    read again from the file; record=DIR keeps them in the TUM layout, which dataset=folder
-    reads back."""
+@pytest.mark.parametrize("suffix", sdk.RECORDING_SUFFIXES)
+def test_recorded_pace_gives_frames_as_they_come_and_ends(recordings, suffix, tmp_path):
+    """recorded_pace: a live source (frames arrive in order on the recording's clock: a .db3's
+    recorder times, a .bag's message times); each frame is the TUM frame of its timestamp;
+    after the last one, SourceEnded; a passed frame is read again from the file; record=DIR
+    keeps them in the TUM layout, which dataset=folder reads back."""
+    recording = recordings(suffix)
     ds = RealSenseDataset(RealSenseConfig(path=str(recording), recorded_pace=True, record=str(tmp_path / "rec"),
                                           groundtruth=str(TUM / "groundtruth.txt")))
     ref = _tum()
@@ -107,7 +123,7 @@ def test_recorded_pace_gives_frames_as_they_come_and_ends(recording, tmp_path):
     assert len(kept) == len(frames)
     for i, frame in enumerate(frames):
         got = kept[i]
-        assert got.timestamp == pytest.approx(frame.timestamp, abs=1e-6)
+        assert got.timestamp == pytest.approx(frame.timestamp, abs=TIMESTAMP_ROUNDING)
         np.testing.assert_array_equal(np.asarray(got.rgb), np.asarray(frame.rgb))
         np.testing.assert_allclose(got.depth, frame.depth, atol=DEPTH_ROUNDING, rtol=0)
 
@@ -173,6 +189,7 @@ def test_the_missing_library_line(monkeypatch):
     ("frames.mp4", b"x", "a .mp4 file (expected .bag or .db3)"),
     ("broken.db3", b"not an sqlite file" * 100, "cannot"),
     ("broken.bag", b"#ROSBAG V2.0\n" + b"\0" * 64, "cannot"),
+    ("empty.bag", b"", "cannot"),
 ])
 def test_bad_recordings_fail_in_one_line(tmp_path, name, content, message):
     path = tmp_path / name
@@ -182,3 +199,14 @@ def test_bad_recordings_fail_in_one_line(tmp_path, name, content, message):
         RealSenseDataset(RealSenseConfig(path=str(path)))
     line = str(info.value)
     assert message in line and str(path) in line and "\n" not in line
+
+
+@pytest.mark.parametrize("name, message", [
+    ("frames.db3", "a RealSense ROS1 recording is a .bag file (expected a name ending in .bag)"),
+    ("absent/frames.bag", "cannot write a RealSense .bag here"),
+])
+def test_a_bag_is_written_only_to_a_new_bag_file(tmp_path, name, message):
+    with pytest.raises(DataError) as info:
+        write_bag_recording(_tum(), tmp_path / name)
+    line = str(info.value)
+    assert message in line and str(tmp_path / name) in line and "\n" not in line

@@ -30,6 +30,16 @@ def _profile(rs, sensor, kind, fmt, bpp: int, uid: int, camera, fps: int):
     return sensor.add_video_stream(stream)
 
 
+def raw_depth(frame, k: int, units_per_metre: float) -> np.ndarray:
+    """Frame `k`'s depth (metres) as the device's z16: HxW uint16 raw units, `units_per_metre`
+    of them a metre, rounded; DataError for a depth beyond z16's range."""
+    raw = np.round(np.asarray(frame.depth, dtype=np.float64) * units_per_metre)
+    if raw.max(initial=0) > np.iinfo(np.uint16).max:
+        raise DataError(f"frame {k}: depth {frame.depth.max():.2f} m beyond z16 at {units_per_metre:g} "
+                        "units per metre (expected a smaller units_per_metre)")
+    return raw.astype(np.uint16)
+
+
 def write_recording(dataset, path: Path, units_per_metre: float = 1000.0, fps: int = 30) -> Path:
     """Write every frame of `dataset` (a slamkit Dataset) as a RealSense .db3 recording at
     `path`: colour rgb8, depth z16 of `units_per_metre` raw units per metre (the device's depth
@@ -65,11 +75,8 @@ def write_recording(dataset, path: Path, units_per_metre: float = 1000.0, fps: i
             wait = start + (frame.timestamp - first) - time.perf_counter()
             if wait > 0:
                 time.sleep(wait)
-            raw = np.round(np.asarray(frame.depth, dtype=np.float64) * units_per_metre)
-            if raw.max(initial=0) > np.iinfo(np.uint16).max:
-                raise DataError(f"frame {k}: depth {frame.depth.max():.2f} m beyond z16 at {units_per_metre:g} "
-                                "units per metre (expected a smaller units_per_metre)")
-            images = ((depth_sensor, depth, raw.astype(np.uint16), 2), (color_sensor, color, np.asarray(frame.rgb), 3))
+            images = ((depth_sensor, depth, raw_depth(frame, k, units_per_metre), 2),
+                      (color_sensor, color, np.asarray(frame.rgb), 3))
             for sensor, profile, pixels, bpp in images:
                 video = rs.software_video_frame()
                 video.pixels = np.ascontiguousarray(pixels)
