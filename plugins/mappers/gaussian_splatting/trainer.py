@@ -278,8 +278,9 @@ class Trainer(Mapper):
         older = state["strategy"].get("stats", {})
         self.admission.skipped = int(state.get("admission", older).get("skipped_as_covered", 0))
         cap = state.get("memory_cap", older)
-        self.memory_cap.pruned = int(cap.get("pruned_by_memory_guard", 0))
-        self.memory_cap.prunings = int(cap.get("memory_guard_prunings", 0))
+        # a checkpoint before 0.4 names the cap's counters as the memory guard's
+        self.memory_cap.pruned = int(cap.get("pruned_by_memory_cap", cap.get("pruned_by_memory_guard", 0)))
+        self.memory_cap.prunings = int(cap.get("memory_cap_prunings", cap.get("memory_guard_prunings", 0)))
         self.gaussians_added = int(state.get("gaussians_added", 0))  # 0 from a checkpoint older than the counters
         self.strategy_edit.counts.update({k: int(v) for k, v in state.get("strategy_edits", {}).items()})
 
