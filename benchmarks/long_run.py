@@ -79,7 +79,7 @@ def variants(args) -> list[tuple[str, list[str]]]:
             base["dataset.max_frames"] = str(args.frames)
     if args.passes > 1:
         base["dataset.passes"] = str(args.passes)
-    base.update({"progress": "false", "eval.plot": "false"})
+    base.update({"output.progress": "false", "output.plot": "false"})
     if args.mapper:
         base.update({"mapper": "gaussian_splatting", "iterations_per_frame": str(args.iterations),
                      "final_iterations": "0", "mapper.eval_every": str(args.eval_every)})

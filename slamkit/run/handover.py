@@ -1,5 +1,5 @@
 """A keyframe's work that tracking does not wait for, run in a thread of its own beside it
-(real time, `keyframe_thread`): `SLAM.add_keyframe` gives it to `KeyframeHandovers`, one keyframe
+(real time, `realtime.keyframe_thread`): `SLAM.add_keyframe` gives it to `KeyframeHandovers`, one keyframe
 at a time, and the next keyframe, a loop correction and a checkpoint wait for it (`settle`)."""
 
 from __future__ import annotations
