@@ -117,7 +117,8 @@ def run(out: Path, rev: str | None, tum_frames: int, sevenscenes_frames: int) ->
     if rev:
         src = snapshot(rev, out / "src")
         env["PYTHONPATH"] = os.pathsep.join([str(src), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
-        if "class RealtimeConfig" not in (src / "slamkit" / "registry" / "schema.py").read_text():  # before 0.4
+        schema = src / "slamkit" / "registry" / "schema.py"
+        if not schema.exists() or "class RealtimeConfig" not in schema.read_text():  # a revision before 0.4
             spelled = old_spellings
     exe = Path(sys.executable).with_name("slamkit")
     log = {"rev": rev, "tum_frames": tum_frames, "sevenscenes_frames": sevenscenes_frames, "runs": {}}
