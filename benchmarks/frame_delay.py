@@ -1,11 +1,11 @@
 """A bounded delay per frame (issue 47): how late is each frame's pose in real time?
 
 The real `slamkit` command, each run its own process, on TUM fr1/rpy frames 0-149 and 7-Scenes
-redkitchen 300-999: real time at 30 frames/s with the mapper (`mode=realtime fps_limit=30
-drop_frames=true mapper=gaussian_splatting`), `--repeats` runs each. Every run's metrics.json
+redkitchen 300-999: real time at 30 frames/s with the mapper (`mode=realtime realtime.fps_limit=30
+realtime.drop_frames=true mapper=gaussian_splatting`), `--repeats` runs each. Every run's metrics.json
 gives the delay from a frame's arrival to its pose (median, p99, maximum; frames.csv
 `delay_ms` per frame), the dropped frames, ATE and PSNR. Then, sequential and tracking only,
-the same sequences with 20 frames dropped after every 50 (`forced_gap_every=50`): the largest
+the same sequences with 20 frames dropped after every 50 (`eval.forced_gap_every=50`): the largest
 error of a frame after a gap relative to the ground truth's motion since the frame before it.
 
 Prints one table per part with the issue's targets (p99 <= 66 ms, max <= 150 ms, ATE / PSNR
@@ -44,8 +44,8 @@ SEQUENCES = {
                              "mapper.eval_every=10"],
 }
 COMMON = ["tracker=gicp", "keyframe=overlap"]
-REALTIME = ["mode=realtime", "fps_limit=30", "drop_frames=true", "mapper=gaussian_splatting"]
-GAPS = ["mapper=none", "forced_gap_every=50", "forced_gap_length=20"]
+REALTIME = ["mode=realtime", "realtime.fps_limit=30", "realtime.drop_frames=true", "mapper=gaussian_splatting"]
+GAPS = ["mapper=none", "eval.forced_gap_every=50", "eval.forced_gap_length=20"]
 #: The floor of the delays: the same real-time runs without the mapper (nothing beside tracking).
 WITHOUT_MAPPER = [o for o in REALTIME if not o.startswith("mapper=")] + ["mapper=none"]
 #: Issue 47's targets: delay (ms), ATE (m) and PSNR (dB) of today's real-time runs, gap error (m).

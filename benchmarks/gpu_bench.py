@@ -4,7 +4,7 @@ run cut off by its time limit keeps what it had):
 
     python benchmarks/gpu_bench.py tracking --out DIR   # tracking fps, map on the CPU / on the GPU
     python benchmarks/gpu_bench.py phases --out DIR     # one mapping step by phase, per backend
-    python benchmarks/gpu_bench.py realtime --out DIR   # mode=realtime fps_limit=30 runs
+    python benchmarks/gpu_bench.py realtime --out DIR   # mode=realtime realtime.fps_limit=30 runs
     python benchmarks/gpu_bench.py note STEP STATUS SECONDS [DETAIL] --out DIR   # the script's own steps
     python benchmarks/gpu_bench.py plan                 # what each stage would run; runs nothing
 
@@ -24,7 +24,7 @@ gsplat out (the script passes it when gsplat's extension did not build).
   untimed and PHASE_STEPS timed steps of the mapper's own `optimize` (its PhaseTimer, with
   torch.cuda.synchronize around each phase: benchmarks/step_phases.py): view, render, loss,
   backward, lock, optimizer, strategy, wall milliseconds per step (and thread CPU ms in the JSON).
-- realtime: `slamkit-bench`'s gsicp_realtime30 system (mode=realtime fps_limit=30; mapping stops
+- realtime: `slamkit-bench`'s gsicp_realtime30 system (mode=realtime realtime.fps_limit=30; mapping stops
   with the stream, real-time mode's default) per backend variant, each run in its own process
   under REALTIME_TIMEOUT_S seconds: ATE, tracking / stream / system frames/s, mapping steps,
   PSNR, Gaussians.
@@ -149,7 +149,7 @@ def markdown(data: dict) -> str:
                                                                  "optimizer", "strategy", "step")) + " |")
         lines.append("")
     if data.get("realtime"):
-        lines += ["## Real time (mode=realtime fps_limit=30, mapping stops with the stream)", "",
+        lines += ["## Real time (mode=realtime realtime.fps_limit=30, mapping stops with the stream)", "",
                   "| sequence | backend@map | frames | ATE cm | track fps | stream fps | system fps | mapping steps | "
                   "PSNR dB | Gaussians |", "|---|---|---|---|---|---|---|---|---|---|"]
         for r in data["realtime"]:
@@ -203,7 +203,7 @@ def tracking(name: str, device: str, data: Path, frames: list) -> dict:
     from slamkit.run.build import build_run
 
     _, slam, _ = build_run([*sequence_overrides(name, data), "tracker=gicp", "keyframe=overlap", "mapper=none",
-                            f"mapping_device={device}", "progress=false"])
+                            f"mapping_device={device}", "output.progress=false"])
     sync, grow, target = _sync_for(device), [], []
     slam.grow_map = _timed(slam.grow_map, sync, grow)
     gm = slam.gaussian_map
@@ -252,7 +252,7 @@ def phases(name: str, variant: str, data: Path) -> dict:
     device = variant.split("@")[1]
     dataset, slam, _ = build_run([*sequence_overrides(name, data), f"dataset.max_frames={PHASE_FRAMES}",
                                   "mapper=gaussian_splatting", *variant_overrides(variant), "iterations_per_frame=0",
-                                  "progress=false"])
+                                  "output.progress=false"])
     slam.initialize(dataset[0].gt_pose)
     for i in range(len(dataset)):
         slam.process(dataset[i])

@@ -39,7 +39,7 @@ FIGURES = ("inlier_fraction", "surface_agreement", "color_correlation")
 def make_map(folder: Path, dataset: str, path: Path, frames: int) -> None:
     exe = Path(sys.executable).with_name("slamkit")
     subprocess.run([str(exe), f"dataset={dataset}", f"dataset.path={path}", f"dataset.max_frames={frames}",
-                    "mapper=none", "progress=false", "checkpoint.save=true",
+                    "mapper=none", "output.progress=false", "checkpoint.save=true",
                     f"hydra.run.dir={folder}"], check=True, capture_output=True)
 
 

@@ -79,7 +79,7 @@ def variants(args) -> list[tuple[str, list[str]]]:
             base["dataset.max_frames"] = str(args.frames)
     if args.passes > 1:
         base["dataset.passes"] = str(args.passes)
-    base.update({"progress": "false", "eval.plot": "false"})
+    base.update({"output.progress": "false", "output.plot": "false"})
     if args.mapper:
         base.update({"mapper": "gaussian_splatting", "iterations_per_frame": str(args.iterations),
                      "final_iterations": "0", "mapper.eval_every": str(args.eval_every)})
@@ -164,7 +164,7 @@ def summary(m: dict, stopped: bool, wall: float) -> str:
             f"ATE RMSE {ate}, {m['fps']:.2f} frames/s, {m['num_gaussians']:,} Gaussians, "
             f"peak {m['peak_memory_mb']:.0f} MB (ru_maxrss), process {wall:.0f} s")
     if m.get("psnr") is not None:
-        text += (f", PSNR {m['psnr']:.2f} dB, {m['pruned_by_memory_guard']:,} pruned by the memory guard, "
+        text += (f", PSNR {m['psnr']:.2f} dB, {m['pruned_by_memory_cap']:,} pruned by the memory cap, "
                  f"keyframe images {m['keyframe_memory_mb']:.1f} MB")
     return text
 

@@ -14,7 +14,7 @@ Cases (`--cases`, comma-separated):
   figure eight, return to the start, revisit from another direction) with the structured-light
   sensor model: ATE with and without, the loops, how many are right and how many within 2 cm and
   1 degree of the exact ground truth.
-- `realtime`: real time at 30 frames/s input (`mode=realtime fps_limit=30`) with the mapper:
+- `realtime`: real time at 30 frames/s input (`mode=realtime realtime.fps_limit=30`) with the mapper:
   7-Scenes (ATE, PSNR, loops) and TUM fr1/rpy (stream frames/s, mapping steps in the stream,
   ATE). Wall-clock figures: run it alone on a quiet machine.
 
@@ -54,7 +54,7 @@ EXACT_M, EXACT_DEG = 0.02, 1.0
 MAPPER_SEQUENTIAL = ["mapper=gaussian_splatting", "iterations_per_frame=5", "final_iterations=400",
                      "mapper.resolution_scale=0.5", "mapper.eval_every=10"]
 #: Real time: the defaults (160x120 training, no refinement), 30 frames/s input.
-MAPPER_REALTIME = ["mapper=gaussian_splatting", "mode=realtime", "fps_limit=30"]
+MAPPER_REALTIME = ["mapper=gaussian_splatting", "mode=realtime", "realtime.fps_limit=30"]
 CASES = {  # case -> [(sequence, overrides)]
     "tracking": [("7scenes", ["mapper=none"]), ("tum", ["mapper=none"]), ("replica", ["mapper=none"])],
     "mapper": [("7scenes", MAPPER_SEQUENTIAL)],

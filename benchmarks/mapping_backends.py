@@ -34,7 +34,7 @@ def run(sequence: str, backend: str, extra: list[str], out: Path) -> dict:
     exe = Path(sys.executable).with_name("slamkit")
     run_dir = out / f"{sequence}_{backend}"
     cmd = [str(exe), *SEQUENCES[sequence], "mapper=gaussian_splatting", *PATHS[backend], *extra,
-           "progress=false", "eval.plot=false", f"hydra.run.dir={run_dir}"]
+           "output.progress=false", "output.plot=false", f"hydra.run.dir={run_dir}"]
     start = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True)
     row = {"sequence": sequence, "backend": backend, "process_s": time.perf_counter() - start,

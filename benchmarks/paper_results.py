@@ -40,10 +40,10 @@ REPLICA = "dataset=replica dataset.path=$DATA/replica_room0_first20"
 #: GROUP: [(name, the slamkit arguments)]; `-m +experiment=...` ones are sweeps.
 GROUPS = {
     "realtime": [("tum_paper", f"preset=paper {TUM}"), ("tum_paper_unlimited", f"preset=paper_unlimited {TUM}"),
-                 ("tum_default", f"mode=realtime fps_limit=30 mapper=gaussian_splatting {TUM}"),
+                 ("tum_default", f"mode=realtime realtime.fps_limit=30 mapper=gaussian_splatting {TUM}"),
                  ("replica_paper", f"preset=paper {REPLICA}"),
                  ("replica_paper_unlimited", f"preset=paper_unlimited {REPLICA}"),
-                 ("replica_default", f"mode=realtime fps_limit=30 mapper=gaussian_splatting {REPLICA}")],
+                 ("replica_default", f"mode=realtime realtime.fps_limit=30 mapper=gaussian_splatting {REPLICA}")],
     "table5": [("tum", f"-m +experiment=ablation_regularization {TUM} mapper.resolution_scale=0.5")],
     "table6": [("replica", f"-m +experiment=ablation_scale_alignment {REPLICA}")],
     "table7": [("replica", f"-m +experiment=ablation_keyframes {REPLICA}"),

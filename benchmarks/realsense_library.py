@@ -80,7 +80,7 @@ def open3d_facts(recording: Path, fmt: str) -> dict:
 
 def run(out_dir: Path, *args: str) -> tuple[np.ndarray, np.ndarray, dict]:
     exe = Path(sys.executable).with_name("slamkit")
-    common = ["mapper=none", "progress=false", "eval.plot=false", f"hydra.run.dir={out_dir}"]
+    common = ["mapper=none", "output.progress=false", "output.plot=false", f"hydra.run.dir={out_dir}"]
     proc = subprocess.run([str(exe), *args, *common], capture_output=True, text=True)
     if proc.returncode != 0:
         raise SystemExit(f"slamkit {' '.join(args)} failed: {proc.stderr[-2000:]}")

@@ -30,7 +30,7 @@ SEQUENCES = {
 }
 DEFAULT = "gsicp_realtime30,gsicp_sequential,gicp_realtime"
 REALTIME = SYSTEMS["gsicp_realtime30"]
-EXTRA = {"gicp_realtime": ["tracker=gicp", "keyframe=overlap", "mapper=none", "mode=realtime", "fps_limit=30"]}
+EXTRA = {"gicp_realtime": ["tracker=gicp", "keyframe=overlap", "mapper=none", "mode=realtime", "realtime.fps_limit=30"]}
 
 
 def row(r: dict) -> list[str]:

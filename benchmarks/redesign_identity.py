@@ -7,7 +7,10 @@ set aside.
 script beside this Python), each its own process, into OUT/<case>. With `--rev REV` the runs use
 a snapshot of that git revision (`git archive` into OUT/src, put first on PYTHONPATH, so that the
 code being changed in the working tree does not leak into the reference); without it, the
-installed (editable) slamkit. `compare` prints one table row a case and writes JSON.
+installed (editable) slamkit. A revision before 0.4 knows only the old spellings of the keys
+0.4 renamed (issue 42, point 4: `progress` for `output.progress`, ...): its runs are given them,
+and `compare` reads its metrics.json under the new keys. `compare` prints one table row a case
+and writes JSON.
 
     python benchmarks/redesign_identity.py run /tmp/ref --rev main       # before
     python benchmarks/redesign_identity.py run /tmp/new                   # after (the working tree)
@@ -39,6 +42,7 @@ import sys
 import tarfile
 import time
 from pathlib import Path
+from typing import Callable
 
 import tomllib
 
@@ -47,7 +51,7 @@ DATA = Path(os.environ.get("SLAMKIT_DATA", REPO.parent / "shared" / "data"))
 TUM = ["dataset=tum", f"dataset.path={DATA / 'tum_fr1_rpy_first150'}"]
 REPLICA = ["dataset=replica", f"dataset.path={DATA / 'replica_room0_first20'}"]
 SEVENSCENES = ["dataset=sevenscenes", f"dataset.path={DATA / '7scenes_redkitchen_300to999'}"]
-QUIET = ["progress=false", "eval.plot=false"]
+QUIET = ["output.progress=false", "output.plot=false"]
 #: metrics.json keys that measure time or the process's memory, not the result: left out of the
 #: comparison (matched on the last part of the dotted key).
 TIMING = re.compile(r"(_s|_ms|fps|_cpu_s|peak_memory_mb)$|^delay_|^mapping_step_ms$|_s_per_")
@@ -58,6 +62,8 @@ PATHS = {"map"}
 #: files (the ATE of an identical trajectory) may differ in its last bit with BLAS's threading.
 ROUNDING = 1e-12
 OUTPUTS = ("trajectory.txt", "map.ply", "metrics.json", "keyframes.txt", "loops.csv")
+#: metrics.json keys that 0.4 renamed besides the settings' (the memory cap's counters).
+RENAMED_METRICS = {"pruned_by_memory_guard": "pruned_by_memory_cap", "memory_guard_prunings": "memory_cap_prunings"}
 
 
 def cases(tum_frames: int, sevenscenes_frames: int) -> list[tuple[str, list[str]]]:
@@ -98,12 +104,36 @@ def snapshot(rev: str, dest: Path) -> Path:
     return dest
 
 
+def renamed_in_0_4() -> dict[str, str]:
+    """{old key: new key} of the run keys that slamkit 0.4 renamed (`fps_limit`: `realtime.fps_limit`)."""
+    from slamkit.registry.compose import RENAMED_IN
+
+    return RENAMED_IN["0.4"]
+
+
+def old_spellings(overrides: list[str]) -> list[str]:
+    """`overrides` as a revision before 0.4 spells them (`output.progress=false` -> `progress=false`)."""
+    old = {new: old for old, new in renamed_in_0_4().items()}
+    return [old.get(key, key) + sep + value for key, sep, value in (o.partition("=") for o in overrides)]
+
+
+def revision(rev: str | None, out: Path) -> tuple[dict, Callable[[list[str]], list[str]]]:
+    """(environment, spelling) of runs made by `rev`'s snapshot under out/src (None: the
+    installed slamkit): the environment puts it first on PYTHONPATH, and the spelling gives a
+    revision before 0.4 the old spellings of the overrides."""
+    env = dict(os.environ)
+    if not rev:
+        return env, list
+    src = snapshot(rev, out / "src")
+    env["PYTHONPATH"] = os.pathsep.join([str(src), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+    schema = src / "slamkit" / "registry" / "schema.py"
+    before_0_4 = not schema.exists() or "class RealtimeConfig" not in schema.read_text()
+    return env, old_spellings if before_0_4 else list
+
+
 def run(out: Path, rev: str | None, tum_frames: int, sevenscenes_frames: int) -> None:
     out.mkdir(parents=True, exist_ok=True)
-    env = dict(os.environ)
-    if rev:
-        src = snapshot(rev, out / "src")
-        env["PYTHONPATH"] = os.pathsep.join([str(src), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+    env, spelled = revision(rev, out)  # spelled: the overrides as the slamkit that runs them spells its keys
     exe = Path(sys.executable).with_name("slamkit")
     log = {"rev": rev, "tum_frames": tum_frames, "sevenscenes_frames": sevenscenes_frames, "runs": {}}
     for name, overrides in cases(tum_frames, sevenscenes_frames):
@@ -111,7 +141,7 @@ def run(out: Path, rev: str | None, tum_frames: int, sevenscenes_frames: int) ->
         run_dir = out / ("resumed" if name == "resume" else name)
         # a resume writes into the folder it continues; hydra.run.dir must not be given then
         where = [] if name == "resume" else [f"hydra.run.dir={run_dir}"]
-        cmd = [str(exe), *extra, *overrides, *QUIET, *where]
+        cmd = [str(exe), *spelled([*extra, *overrides, *QUIET]), *where]
         start = time.perf_counter()
         proc = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=out)
         log["runs"][name] = {"command": " ".join(cmd), "returncode": proc.returncode,
@@ -126,8 +156,9 @@ def run(out: Path, rev: str | None, tum_frames: int, sevenscenes_frames: int) ->
 #: (case, overrides) of `timing`: the real-time runs whose stream rate and mapping steps a
 #: redesign must keep.
 REALTIME_CASES = [
-    ("tum_realtime30", [*TUM, "mode=realtime", "fps_limit=30", "mapper=gaussian_splatting"]),
-    ("tum_realtime30_drop", [*TUM, "mode=realtime", "fps_limit=30", "drop_frames=true", "mapper=gaussian_splatting"]),
+    ("tum_realtime30", [*TUM, "mode=realtime", "realtime.fps_limit=30", "mapper=gaussian_splatting"]),
+    ("tum_realtime30_drop", [*TUM, "mode=realtime", "realtime.fps_limit=30", "realtime.drop_frames=true",
+                             "mapper=gaussian_splatting"]),
 ]
 TIMING_KEYS = ("stream_fps", "mapping_steps", "ate_rmse_m", "psnr", "dropped_frames")
 
@@ -139,9 +170,7 @@ def timing(out: Path, rev: str, repeats: int, out_json: Path, only: tuple[str, .
     import statistics
 
     out.mkdir(parents=True, exist_ok=True)
-    src = snapshot(rev, out / "src")
-    envs = {"before": {**os.environ, "PYTHONPATH": os.pathsep.join([str(src), os.environ.get("PYTHONPATH", "")])},
-            "after": dict(os.environ)}
+    sides = {"before": revision(rev, out), "after": revision(None, out)}  # (environment, spelling)
     exe = Path(sys.executable).with_name("slamkit")
     results: dict = {"rev": rev, "repeats": repeats, "cases": {}}
     for name, overrides in [c for c in REALTIME_CASES if not only or c[0] in only]:
@@ -149,8 +178,10 @@ def timing(out: Path, rev: str, repeats: int, out_json: Path, only: tuple[str, .
         for i in range(repeats):
             for side in ("before", "after"):
                 run_dir = out / f"{name}_{side}_{i}"
-                cmd = [str(exe), *overrides, *QUIET, f"hydra.run.dir={run_dir}", "existing_outputs=clean"]
-                proc = subprocess.run(cmd, capture_output=True, text=True, env=envs[side], cwd=out)
+                env, spelled = sides[side]
+                cmd = [str(exe), *spelled([*overrides, *QUIET, "output.existing_outputs=clean"]),
+                       f"hydra.run.dir={run_dir}"]
+                proc = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=out)
                 metrics = json.loads((run_dir / "metrics.json").read_text()) if proc.returncode == 0 else {}
                 flat = {key.rsplit(".", 1)[-1]: v for key, v in _flat_all(metrics).items()}
                 runs[side].append({k: flat.get(k) for k in TIMING_KEYS} | {"returncode": proc.returncode})
@@ -196,6 +227,14 @@ def _flat(d: dict, prefix: str = "") -> dict:
     return flat
 
 
+def _metrics(path: Path) -> dict:
+    """metrics.json flattened (`_flat`), a run before 0.4's keys under their 0.4 names (its
+    `settings.fps_limit` is `settings.realtime.fps_limit`), so that a revision before the rename
+    compares with one after it."""
+    renamed = {**{f"settings.{old}": f"settings.{new}" for old, new in renamed_in_0_4().items()}, **RENAMED_METRICS}
+    return {renamed.get(key, key): value for key, value in _flat(json.loads(path.read_text())).items()}
+
+
 def _rounding(a, b) -> bool:
     """Both floats, within ROUNDING of each other (relative)."""
     return (isinstance(a, float) and isinstance(b, float)
@@ -213,7 +252,7 @@ def compare_dirs(a: Path, b: Path) -> dict:
         if not (fa.exists() and fb.exists()):
             result[name] = "missing in " + ("before" if not fa.exists() else "after")
         elif name == "metrics.json":
-            ma, mb = _flat(json.loads(fa.read_text())), _flat(json.loads(fb.read_text()))
+            ma, mb = _metrics(fa), _metrics(fb)
             diff = sorted(k for k in ma.keys() | mb.keys()
                           if k not in PATHS and ma.get(k, "<absent>") != mb.get(k, "<absent>"))
             real = [k for k in diff if not _rounding(ma.get(k), mb.get(k))]

@@ -47,12 +47,13 @@ BOUND_S = 5.0
 
 def phases(data: Path, quick: bool) -> dict[str, tuple[list[str], str]]:
     """{phase: (overrides, pause point)}."""
-    tum = ["dataset=tum", f"dataset.path={data / 'tum_fr1_rpy_first150'}", "progress=false"]
-    kitchen = ["dataset=sevenscenes", f"dataset.path={data / '7scenes_redkitchen_300to999'}", "progress=false"]
+    tum = ["dataset=tum", f"dataset.path={data / 'tum_fr1_rpy_first150'}", "output.progress=false"]
+    kitchen = ["dataset=sevenscenes", f"dataset.path={data / '7scenes_redkitchen_300to999'}", "output.progress=false"]
     frames = 10 if quick else 40
     stream_at = 15 if quick else 60
-    realtime = [*kitchen, f"dataset.max_frames={2 * frames}", "dataset.passes=2", "mode=realtime", "fps_limit=30",
-                "tracker=gicp", "mapper=gaussian_splatting", "keyframe_thread=true", "loop_closure=pose_graph"]
+    realtime = [*kitchen, f"dataset.max_frames={2 * frames}", "dataset.passes=2", "mode=realtime",
+                "realtime.fps_limit=30", "tracker=gicp", "mapper=gaussian_splatting", "realtime.keyframe_thread=true",
+                "loop_closure=pose_graph"]
     mapping = [*tum, "dataset.max_frames=10" if quick else "dataset.max_frames=30", "mapper=gaussian_splatting",
                "final_iterations=100000"]
     return {
@@ -88,7 +89,7 @@ def main() -> int:
         if "localize" in chosen:
             made = subprocess.run([str(Path(sys.executable).with_name("slamkit")), "dataset=tum",
                                    f"dataset.path={args.data / 'tum_fr1_rpy_first150'}", "dataset.max_frames=60",
-                                   "mapper=none", "progress=false", "checkpoint.save=true",
+                                   "mapper=none", "output.progress=false", "checkpoint.save=true",
                                    f"hydra.run.dir={tmp}/map"], cwd=tmp, capture_output=True, text=True)
             if made.returncode:
                 print(f"the map for localize could not be made: {made.stderr.strip().splitlines()[-1:]}")

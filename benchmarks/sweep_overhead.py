@@ -38,7 +38,7 @@ def main() -> None:
     args = parser.parse_args()
     seeds = ",".join(str(s) for s in range(args.jobs))
     grid = ["-m", "dataset=tum", f"dataset.path={TUM}", f"dataset.max_frames={args.frames}", "mapper=none",
-            "tracker=gicp", f"seed={seeds}", "progress=false", "eval.plot=false"]
+            "tracker=gicp", f"seed={seeds}", "output.progress=false", "output.plot=false"]
     work = Path(tempfile.mkdtemp(prefix="sweep_overhead_"))
     env = dict(os.environ, SLAMKIT_CACHE=str(work / "cache"))
     results = {}

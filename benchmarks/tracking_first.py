@@ -1,10 +1,10 @@
 """Tracking first (issue 37): does real time keep the input rate while the map trains?
 
 Measured as a user meets it: the real `slamkit` command, each run its own process, in real time
-(`mode=realtime fps_limit=30`), tracking alone (`mapper=none`) and with the mapper
+(`mode=realtime realtime.fps_limit=30`), tracking alone (`mapper=none`) and with the mapper
 (`mapper=gaussian_splatting`), alternated A/B/A/B in one invocation (`--repeats` pairs), on TUM
 fr1/rpy frames 0-149 and 7-Scenes redkitchen 300-999. Then the same pairs with
-`drop_frames=true` (a camera that does not wait), and the sequential tracking-only CPU per frame
+`realtime.drop_frames=true` (a camera that does not wait), and the sequential tracking-only CPU per frame
 on TUM (`stream_cpu_s / frames`, every thread, reading included) with its ATE.
 
 Prints, per sequence, every run and the medians: stream frames/s, the with/without ratio,
@@ -14,7 +14,7 @@ acceptance targets against the medians. Writes JSON (`--out`).
 
     python benchmarks/tracking_first.py                       # the full run (~20 min on 2 cores)
     python benchmarks/tracking_first.py --quick               # a smoke test: 30 frames, one pair
-    python benchmarks/tracking_first.py --variant low="mapping_priority=low"   # a third system
+    python benchmarks/tracking_first.py --variant low="realtime.mapping_priority=low"   # a third system
     python benchmarks/tracking_first.py --only-drop --set tracker.retry_unconverged=true   # drops only
 
 Run it alone on a quiet machine: frames/s are wall-clock figures.
@@ -41,7 +41,7 @@ SEQUENCES = {
 #: frames (the evaluation runs after the stream and is no target here).
 MAPPER_SET = {"7scenes": ["mapper.eval_every=10"]}
 COMMON = ["tracker=gicp", "keyframe=overlap"]
-REALTIME = ["mode=realtime", "fps_limit=30"]
+REALTIME = ["mode=realtime", "realtime.fps_limit=30"]
 TRACKING = ["mapper=none"]
 MAPPING = ["mapper=gaussian_splatting"]
 #: Issue 37's acceptance targets.
@@ -134,9 +134,9 @@ def main() -> None:
     parser.add_argument("--variant", action="append", default=[], metavar='NAME="OVERRIDES"',
                         help="a further real-time system with the mapper and these overrides, alternated too")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="for every run")
-    parser.add_argument("--no-drop", action="store_true", help="skip the drop_frames=true pairs")
+    parser.add_argument("--no-drop", action="store_true", help="skip the realtime.drop_frames=true pairs")
     parser.add_argument("--only-drop", action="store_true",
-                        help="only the drop_frames=true pairs (no every-frame pairs, no sequential run)")
+                        help="only the realtime.drop_frames=true pairs (no every-frame pairs, no sequential run)")
     parser.add_argument("--data", type=Path, default=DATA)
     parser.add_argument("--runs-dir", type=Path, default=None)
     parser.add_argument("--timeout", type=float, default=1800)
@@ -160,7 +160,7 @@ def main() -> None:
         if not args.only_drop:
             entry["realtime"] = alternate(systems, common, repeats, runs_dir, f"{sequence}-realtime", args.timeout)
         if not args.no_drop:
-            dropping = {name: overrides + ["drop_frames=true"] for name, overrides in systems.items()}
+            dropping = {name: overrides + ["realtime.drop_frames=true"] for name, overrides in systems.items()}
             entry["drop_frames"] = alternate(dropping, common, repeats, runs_dir, f"{sequence}-drop", args.timeout)
         entry["medians"] = {part: {name: summarise(records) for name, records in entry[part].items()}
                             for part in ("realtime", "drop_frames") if part in entry}

@@ -8,7 +8,7 @@ The start-0 run of a mapping variant is the full run (final training steps, ever
 evaluated: its PSNR is the table's); the other starts only track and map (no final steps, one
 frame evaluated), since ATE does not depend on what happens after the last frame. A variant
 already in --out is not run again (delete it to rerun). `--realtime` adds the real-time run
-(`mode=realtime fps_limit=30 final_iterations=0`) from frame 0.
+(`mode=realtime realtime.fps_limit=30 final_iterations=0`) from frame 0.
 """
 
 from __future__ import annotations
@@ -34,14 +34,14 @@ VARIANTS = {  # name -> CLI overrides (entry_shape and mapper.freeze_trackable: 
     "entry_target_op09": MAPPER + ["tracker.target_geometry=entry", "tracker.min_target_opacity=0.09"],
 }
 QUICK = ["final_iterations=0", "mapper.eval_every=100000", "mapper.save_images=0"]
-REALTIME = ["mode=realtime", "fps_limit=30", "final_iterations=0"]
+REALTIME = ["mode=realtime", "realtime.fps_limit=30", "final_iterations=0"]
 
 
 def run(name: str, overrides: list[str], start: int, out_root: Path, extra: list[str]) -> dict:
     out = out_root / f"{name}_s{start}{'_rt' if 'mode=realtime' in extra else ''}"
     exe = Path(sys.executable).with_name("slamkit")
     args = [str(exe), "dataset=tum", f"dataset.path={DATA}", f"dataset.start={start}", "tracker=gicp",
-            *overrides, *extra, "progress=false", f"hydra.run.dir={out}"]
+            *overrides, *extra, "output.progress=false", f"hydra.run.dir={out}"]
     t0 = time.time()
     proc = subprocess.run(args, env=dict(os.environ, OMP_NUM_THREADS=os.environ.get("OMP_NUM_THREADS", "1")),
                           capture_output=True, text=True)

@@ -16,7 +16,7 @@ cd "$REPO"
 OMP_NUM_THREADS=1 .venv/bin/slamkit dataset=replica dataset.path="$DATA/replica_room0_first20" \
   dataset.max_frames="$FRAMES" mapper=gaussian_splatting iterations_per_frame=5 final_iterations=100 \
   mapper.save_images=0 viewer=viser viewer.port="$PORT" viewer.keep_serving=true viewer.render_every=5 \
-  progress=false hydra.run.dir="$RUN" > "$RUN/stdout.txt" 2>&1 &
+  output.progress=false hydra.run.dir="$RUN" > "$RUN/stdout.txt" 2>&1 &
 PID=$!
 trap 'kill -TERM $PID 2>/dev/null || true' EXIT
 until grep -qs "Ctrl-C (or SIGTERM) to stop" "$RUN/stdout.txt"; do

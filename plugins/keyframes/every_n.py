@@ -9,7 +9,15 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import KeyframeDecision, KeyframeHistory, KeyframePolicy, PluginConfig, RunContext, require
+from slamkit.roles import (
+    KeyframeDecision,
+    KeyframeHistory,
+    KeyframePolicy,
+    PluginConfig,
+    RunContext,
+    method_setting,
+    require,
+)
 from slamkit.types import Frame, KeyframeKind, TrackingResult
 
 
@@ -18,9 +26,9 @@ class EveryNKeyframeConfig(PluginConfig):
     """Keyframes at fixed intervals."""
 
     #: frames between tracking keyframes
-    tracking_every: int = 30
+    tracking_every: int = method_setting(30)
     #: frames between a keyframe and the next mapping-only keyframe (0: none)
-    mapping_every: int = 0
+    mapping_every: int = method_setting(0)
 
     def validate(self) -> None:
         require(self.tracking_every >= 1, "keyframe.tracking_every", "an integer >= 1", self.tracking_every)

@@ -16,7 +16,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import KeyframeDecision, KeyframeHistory, KeyframePolicy, PluginConfig, RunContext, require
+from slamkit.roles import (
+    KeyframeDecision,
+    KeyframeHistory,
+    KeyframePolicy,
+    PluginConfig,
+    RunContext,
+    method_setting,
+    require,
+)
 from slamkit.types import Frame, KeyframeKind, TrackingResult
 
 
@@ -44,9 +52,9 @@ class OverlapKeyframeConfig(PluginConfig):
     #: a tracking keyframe when the overlapping fraction is below this (null: the dataset's keyframe_threshold)
     keyframe_threshold: float | None = None
     #: a mapping-only keyframe every this many frames after the last keyframe (0: none; reference 10)
-    mapping_every: int = 10
+    mapping_every: int = method_setting(10)
     #: a tracking keyframe when none was chosen for this many frames (the paper's Fig. 5 rule; 0: never)
-    max_interval: int = 0
+    max_interval: int = method_setting(0)
 
     def validate(self) -> None:
         require(self.overlap_threshold is None or self.overlap_threshold > 0,

@@ -30,7 +30,7 @@ SYSTEMS: dict[str, list[str]] = {
     "gsicp_sequential": ["tracker=gicp", "keyframe=overlap", "mapper=gaussian_splatting"],
     # Real time as the reference code: mapping stops with the input stream (real-time mode's default).
     "gsicp_realtime30": ["tracker=gicp", "keyframe=overlap", "mapper=gaussian_splatting", "mode=realtime",
-                         "fps_limit=30"],
+                         "realtime.fps_limit=30"],
     "gsicp_unlimited": ["tracker=gicp", "keyframe=overlap", "mapper=gaussian_splatting", "mode=realtime"],
 }
 DEFAULT_SYSTEMS = "gicp,gicp_plane,gicp_none,kiss_icp,small_gicp"
@@ -43,7 +43,7 @@ COLUMNS = [("ate_rmse_m", "ATE RMSE cm", 100), ("ate_mean_m", "ATE mean cm", 100
 def run_system(name: str, overrides: list[str], common: list[str], out_dir: Path, timeout: float) -> dict:
     exe = Path(sys.executable).with_name("slamkit")
     run_dir = out_dir / name
-    cmd = [str(exe), *common, *overrides, "progress=false", "eval.plot=false", f"hydra.run.dir={run_dir}"]
+    cmd = [str(exe), *common, *overrides, "output.progress=false", "output.plot=false", f"hydra.run.dir={run_dir}"]
     start = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
     record = {"system": name, "command": " ".join(["slamkit", *common, *overrides]),

@@ -22,7 +22,7 @@ from slamkit.registry.discovery import Registry
 
 #: Every run's input and length: 6 frames of 64 x 48 pixels, 2 mapping steps a frame and 2 after.
 BASE_OVERRIDES = ("dataset=synthetic", "dataset.num_frames=6", "dataset.width=64", "dataset.height=48",
-                  "iterations_per_frame=2", "final_iterations=2", "progress=false", "eval.lpips=off",
+                  "iterations_per_frame=2", "final_iterations=2", "output.progress=false", "eval.lpips=off",
                   "checkpoint.save=false")
 #: Rounds of runs: the pairwise set, then the pairs that refused runs hid (one round is usual).
 MAX_ROUNDS = 4

@@ -6,7 +6,7 @@ is claimed for it (`slamkit.run.ownership`) before Hydra writes anything into it
   another run, an earlier run's outputs, the map's folder of a localisation) before Hydra
   creates `.hydra/` in it; `on_run_end` lets it go.
 - `on_multirun_start` (a sweep): `hydra.sweep.dir` must be new, or an earlier sweep's cleaned
-  with `existing_outputs=clean`; `on_job_start` / `on_job_end` lock each job's folder.
+  with `output.existing_outputs=clean`; `on_job_start` / `on_job_end` lock each job's folder.
 
 `SweepProgressCallback` says, as each job of a sweep starts, which of how many it is, the time
 since the sweep started and an estimate of the time left (`slamkit: sweep job 3 of 8, 2 min 10 s
@@ -51,7 +51,7 @@ def _value(config, key: str, default=None):
 
 
 def _existing(config) -> ownership.ExistingOutputs:
-    return ownership.ExistingOutputs(_value(config, "existing_outputs", "refuse"))
+    return ownership.ExistingOutputs(_value(config, "output.existing_outputs", "refuse"))
 
 
 def _claim(folder: Path, **how) -> None:
@@ -121,7 +121,7 @@ class SweepProgressCallback(Callback):
 
         num = OmegaConf.select(config, "hydra.job.num")
         multirun = str(OmegaConf.select(config, "hydra.mode")).endswith("MULTIRUN")
-        if num is None or not multirun or _value(config, "progress") is False:  # progress=false: quiet
+        if num is None or not multirun or _value(config, "output.progress") is False:  # output.progress=false: quiet
             return
         text = f"sweep job {num + 1}" + (f" of {self.total}" if self.total else "")
         if self.start is not None:

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slamkit.config import PluginConfig, RunContext, require
+from slamkit.config import PluginConfig, RunContext, method_setting, require
 from slamkit.geometry.gaussians import Regularization, knn_covariances, regularize, rotate_covariances
 from slamkit.geometry.transforms import backproject
 from slamkit.map.gaussian_map import GaussianRows
@@ -72,19 +72,19 @@ class MapGrowthConfig(PluginConfig):
     read literally) divides the ellipse-regularised scales (median axis 1 m) by z^p."""
 
     #: gicp | knn: new Gaussians' shapes (see InitialShape)
-    initial_shape: InitialShape = InitialShape.gicp
+    initial_shape: InitialShape = method_setting(InitialShape.gicp)
     #: none | constant | z | z_pow | eq4 (null: z_pow sequential, none in real time; module docstring)
-    scale_alignment: ScaleAlignment | None = None
+    scale_alignment: ScaleAlignment | None = method_setting(None)
     #: the c of max(c z^p, 1) (the reference code's 2; see the module docstring)
-    scale_c: float = 1.0
+    scale_c: float = method_setting(1.0)
     #: the p of max(c z^p, 1) and of Eq. 4 (the reference code's 1.5)
-    scale_p: float = 1.5
+    scale_p: float = method_setting(1.5)
     #: opacity of new Gaussians, in (0, 1)
     initial_opacity: float = 0.1
     #: m^2: a new Gaussian this close (squared) to a trackable one is not trackable (null: the dataset's)
     new_gaussian_overlap: float | None = None
     #: a mapping-only keyframe's Gaussians may become trackable (false: never, as the paper's Sec. 3.3; docs/paper.md)
-    mapping_only_trackable: bool = False
+    mapping_only_trackable: bool = method_setting(False)
     #: a keyframe's Gaussians from every n-th pixel when the tracker hands none (null: the dataset's tracking stride)
     pixel_stride: int | None = None
     #: neighbours (the point included) of a new Gaussian's k-NN covariance when the tracker hands none over

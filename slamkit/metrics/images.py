@@ -13,11 +13,12 @@ every pixel is valid, as on Replica.
 
 from __future__ import annotations
 
-import enum
 import math
 
 import torch
 from pytorch_msssim import ssim as _ms_ssim
+
+from slamkit.config import PsnrPixels
 
 #: SSIM window (pixels) and Gaussian sigma used everywhere in slamkit (3DGS / GS-ICP SLAM).
 SSIM_WINDOW = 11
@@ -29,14 +30,6 @@ def _check(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None) -> None:
         raise ValueError(f"image shapes differ: {tuple(a.shape)} vs {tuple(b.shape)}")
     if mask is not None and tuple(mask.shape) != tuple(a.shape[:2]):
         raise ValueError(f"mask shape {tuple(mask.shape)} does not match the image's {tuple(a.shape[:2])}")
-
-
-class PsnrPixels(enum.Enum):
-    """Which pixels PSNR averages over when a mask is given. valid: the masked ones. all: every
-    pixel, those outside the mask set to 0 in both images (GS-ICP SLAM's reference code)."""
-
-    valid = "valid"
-    all = "all"
 
 
 def zero_outside(img: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:

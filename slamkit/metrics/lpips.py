@@ -26,12 +26,12 @@ expected is a one-line DataError naming the file and the key.
 
 from __future__ import annotations
 
-import enum
 import logging
 from pathlib import Path
 
 import torch
 
+from slamkit.config import LpipsMode
 from slamkit.errors import DataError
 from slamkit.metrics import lpips_weights as weights
 from slamkit.metrics.lpips_network import LPIPS
@@ -90,15 +90,6 @@ def load_lpips(backbone: str | Path | None = None, linear: str | Path | None = N
                              "linear": str(linear_path),
                              "linear_sha256": (backbone_sha if linear_path == backbone_path
                                                else weights.sha256(linear_path))})
-
-
-class LpipsMode(enum.Enum):
-    """auto: LPIPS when its weights are there, else none (said once). on: LPIPS or a one-line
-    error. off: no LPIPS."""
-
-    auto = "auto"
-    on = "on"
-    off = "off"
 
 
 _told: set[str] = set()

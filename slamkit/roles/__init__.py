@@ -7,7 +7,7 @@ optimiser, loss) have theirs here too, one module each, with what they are hande
 step's target (`training_view`) and the row operations a strategy edits the map through
 (`map_edit`)."""
 
-from slamkit.config import PluginConfig, RunContext, check_values, require, thread_count, unlimited
+from slamkit.config import PluginConfig, RunContext, check_values, method_setting, require, thread_count, unlimited
 from slamkit.roles.dataset import Dataset, DatasetConfig, OnError, SourceEnded
 from slamkit.roles.loop_closure import (
                                         LoopCheck,
@@ -37,7 +37,8 @@ DensifyStrategy = Strategy
 
 __all__ = [
     "ROLES", "ROLE_KEYS", "RUN_ROLES", "PARTS", "Role", "role", "role_of",
-    "PluginConfig", "RunContext", "require", "thread_count", "unlimited", "check_values", "DatasetTuning",
+    "PluginConfig", "RunContext", "require", "thread_count", "unlimited", "method_setting", "check_values",
+    "DatasetTuning",
     "Dataset", "DatasetConfig", "OnError", "SourceEnded",
     "Tracker", "KeyframePolicy", "KeyframeDecision", "KeyframeHistory",
     "Mapper", "Rasterizer", "RenderOutput", "KeyframeSampler", "Strategy", "StrategyConfig", "MapOptimizer",

@@ -50,7 +50,7 @@ class DatasetConfig(PluginConfig):
 
     def live(self) -> bool:
         """Whether this config opens a source that does not wait for the run (a camera): it then
-        runs in real time with drop_frames unless the command line says otherwise
+        runs in real time with realtime.drop_frames unless the command line says otherwise
         (`slamkit.registry.schema.validate_config`). The default: a recording, False."""
         return False
 
@@ -138,8 +138,8 @@ class Dataset(ABC):
 
     def arrival(self, i: int) -> float | None:
         """A live source: time.perf_counter() seconds when frame i arrived, None while it has not;
-        the run drops frame i when frame i + 1 has arrived (drop_frames). A recording: None (the
-        run paces it with fps_limit)."""
+        the run drops frame i when frame i + 1 has arrived (realtime.drop_frames). A recording: None (the
+        run paces it with realtime.fps_limit)."""
         return None
 
     def close(self) -> None:

@@ -12,7 +12,7 @@ import logging
 from dataclasses import dataclass
 from typing import Any, Sequence
 
-from slamkit.config import RenderScoring, RunContext, resolve_tree
+from slamkit.config import RunContext, resolve_tree
 from slamkit.errors import ConfigError, DataError
 from slamkit.map.gaussian_map import GaussianMap
 from slamkit.native import available_threads
@@ -66,10 +66,9 @@ def build(cfg: RunConfig, registry: Registry, names: dict[str, str]) -> BuiltRun
         return registry.create(role, name, None, context)
 
     context = RunContext(tuning=dataset.tuning, realtime=cfg.mode is Mode.realtime,
-                         drops_frames=cfg.mode is Mode.realtime and cfg.drop_frames,
+                         drops_frames=cfg.mode is Mode.realtime and cfg.realtime.drop_frames,
                          tracking_threads=tracking_threads(cfg), device=str(gaussian_map.device),
-                         gaussian_map=gaussian_map, build=build_default, scoring=RenderScoring(
-                             cfg.eval.lpips.value, cfg.eval.lpips_backbone, cfg.eval.psnr_pixels.value))
+                         gaussian_map=gaussian_map, build=build_default, scoring=cfg.eval)
     cfg = resolve_tree(cfg, context)
 
     def create(path: str, config: Any, **parts) -> Any:
@@ -87,7 +86,7 @@ def build(cfg: RunConfig, registry: Registry, names: dict[str, str]) -> BuiltRun
     realtime = cfg.mode is Mode.realtime  # the real-time runner's workers train and detect beside `process`
     slam = SLAM(tracker, create("keyframe", cfg.keyframe), create("mapper", cfg.mapper, **parts), gaussian_map,
                 cfg.growth, cfg.iterations_per_frame, boundary, loop_closer, beside=realtime,
-                handovers=KeyframeHandovers() if realtime and cfg.keyframe_thread else None)
+                handovers=KeyframeHandovers() if realtime and cfg.realtime.keyframe_thread else None)
     return BuiltRun(dataset, slam, create("viewer", cfg.viewer), cfg)
 
 
@@ -97,7 +96,7 @@ def _loop_closure(cfg: RunConfig, registry: Registry, names: dict[str, str], con
     cls = registry.get("loop_closure", names["loop_closure"]).cls
     if context.realtime and cls.closes_loops:
         with PluginBoundary(names)("loop_closure", "__init__"):
-            return LoopClosureProcess(cls, cfg.loop_closure, context, cfg.mapping_priority)
+            return LoopClosureProcess(cls, cfg.loop_closure, context, cfg.realtime.mapping_priority)
     return create("loop_closure", cfg.loop_closure)
 
 

@@ -33,7 +33,7 @@ import logging
 import time
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterable
 
 import numpy as np
 import torch
@@ -267,18 +267,22 @@ def finished(cfg, names: dict[str, str], frames: int) -> dict[str, Any] | None:
     return metrics
 
 
-def saved_settings(checkpoint: dict[str, Any]) -> dict[str, Any]:
-    """The method settings (`slamkit.run.settings.METHOD_KEYS`) of the session that wrote the
-    checkpoint, from its resolved config (a key its config lacks is left out)."""
-    from slamkit.run.settings import METHOD_KEYS
+def saved_settings(checkpoint: dict[str, Any], keys: Iterable[str]) -> dict[str, Any]:
+    """The method settings `keys` (dotted, `slamkit.run.settings.marked_settings`) of the session
+    that wrote the checkpoint, from its resolved config (a key its config lacks is left out). A
+    checkpoint before 0.4 has some of them at their old keys (`fps_limit`: `realtime.fps_limit`)."""
+    from slamkit.registry.compose import RENAMED_IN
 
+    old_spelling = {new: old for old, new in RENAMED_IN["0.4"].items()}
     settings = {}
-    for key in METHOD_KEYS:
-        node: Any = checkpoint.get("config") or {}
-        for part in key.split("."):
-            node = node.get(part, _ABSENT) if isinstance(node, dict) else _ABSENT
-        if node is not _ABSENT:
-            settings[key] = node
+    for key in keys:
+        for spelling in filter(None, (key, old_spelling.get(key))):
+            node: Any = checkpoint.get("config") or {}
+            for part in spelling.split("."):
+                node = node.get(part, _ABSENT) if isinstance(node, dict) else _ABSENT
+            if node is not _ABSENT:
+                settings[key] = node
+                break
     return settings
 
 
@@ -290,8 +294,8 @@ def settings_changes(checkpoint: dict[str, Any], cfg, names: dict[str, str], fir
     from slamkit.run.settings import method_settings
 
     changes = list(checkpoint.get("settings_changes") or [])
-    before = saved_settings(checkpoint)
     now = json.loads(json.dumps(method_settings(cfg, names)))
+    before = saved_settings(checkpoint, now)
     changed = sorted(k for k in before if k in now and before[k] != now[k])
     if changed:
         change = {"frame": first, "before": {k: before[k] for k in changed}, "after": {k: now[k] for k in changed}}
@@ -349,7 +353,7 @@ def current_path(role: str) -> str:
 
 def resume_arguments(argv: list[str]) -> list[str]:
     """The command line of `slamkit resume=RUN_DIR [overrides]`: the overrides of the run that
-    wrote the checkpoint (respelled where slamkit 0.3 renamed their keys), then the new ones
+    wrote the checkpoint (respelled where slamkit 0.3 or 0.4 renamed their keys), then the new ones
     (which replace those of the same key), and `hydra.run.dir=RUN_DIR` so that the run's files
     are extended in place. `argv` unchanged without resume=. CheckpointError when the checkpoint
     cannot be read."""

@@ -1,8 +1,8 @@
 """A keyframe's work that tracking does not wait for, run in a thread of its own beside it
-(real time, `keyframe_thread`): `SLAM.add_keyframe` gives it to `KeyframeHandovers`, one keyframe
-at a time, and the next keyframe, a loop correction and a checkpoint wait for it (`settle`). What
-the next frame needs (the tracker's new target) runs first in that thread, and the next frame
-waits for that part only (`ready`)."""
+(real time, `realtime.keyframe_thread`): `SLAM.add_keyframe` gives it to `KeyframeHandovers`, one
+keyframe at a time, and the next keyframe, a loop correction and a checkpoint wait for it
+(`settle`). What the next frame needs (the tracker's new target) runs first in that thread, and
+the next frame waits for that part only (`ready`)."""
 
 from __future__ import annotations
 

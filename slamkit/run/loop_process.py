@@ -6,7 +6,7 @@ release the GIL (open3d's voxel downsampling, normals and FPFH features, which `
 computes for every keyframe; any loop closure written in Python) stops the tracking thread for as
 long as it runs, whatever its scheduling priority; at a lower priority it is worse, as the thread
 holding the GIL waits for a CPU while tracking waits for it. In a process of its own, at
-`mapping_priority` (its threads, open3d's OpenMP workers included, inherit it), the loop closure
+`realtime.mapping_priority` (its threads, open3d's OpenMP workers included, inherit it), the loop closure
 shares nothing with tracking but the CPUs.
 
 `LoopClosureProcess` is a `LoopClosure` that forwards every call to the plugin built in the

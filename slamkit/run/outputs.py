@@ -94,7 +94,7 @@ class RunOutputs:
                 np.array([state.gt_poses[i] for i in has_gt])))
         self.save_loops()
         metrics = self.save_metrics()
-        if self.cfg.eval.plot and len(poses):
+        if self.cfg.output.plot and len(poses):
             self.keep("trajectory.png", lambda: self._plot(poses, metrics))
 
     def save_loops(self) -> None:

@@ -5,7 +5,7 @@
   stops in one line naming the holder (`RunFolderInUse`). The lock dies with its process, however
   it ends, so a killed run leaves no stale lock.
 - `check_new_run_folder`: a new run into a folder holding another run's outputs, or another
-  program's files, stops in one line (`existing_outputs=clean` empties a slamkit run folder
+  program's files, stops in one line (`output.existing_outputs=clean` empties a slamkit run folder
   first); a folder holding only what a refused run left (`.hydra/`, `slamkit.log`) counts as new.
 - `check_localization_folder`: localisation never writes into its map's folder.
 - `unique_suffix`: default folders (`${slamkit.run:}` in conf/config.yaml) are unique per
@@ -159,14 +159,14 @@ def check_new_run_folder(folder: Path, existing: ExistingOutputs = ExistingOutpu
     if existing is not ExistingOutputs.clean:
         what, resume = ("sweep", "") if key == "hydra.sweep.dir" else ("run", f", resume={folder} to continue it")
         raise RunFolderError(f"{key}={folder} holds the outputs of an earlier {what} ({_listed(left)}); choose a new "
-                             f"folder{resume}, or existing_outputs=clean to start it clean")
+                             f"folder{resume}, or output.existing_outputs=clean to start it clean")
     for name in [*left, *(n for n in RUN_RECORDS - {LOCK_NAME})]:
         path = folder / name
         if path.is_dir() and not path.is_symlink():
             shutil.rmtree(path)
         elif path.exists() or path.is_symlink():
             path.unlink()
-    log.warning("existing_outputs=clean: deleted the earlier outputs in %s (%s)", folder, _listed(left))
+    log.warning("output.existing_outputs=clean: deleted the earlier outputs in %s (%s)", folder, _listed(left))
 
 
 def check_localization_folder(folder: Path, map_source: str | Path | None) -> None:

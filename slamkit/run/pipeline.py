@@ -72,7 +72,7 @@ class Pipeline:
                  stop: StopSignals):
         out_dir.mkdir(parents=True, exist_ok=True)
         np.random.seed(cfg.seed)
-        progress.configure(cfg.progress)
+        progress.configure(cfg.output.progress)
         built = build(cfg, registry, names)
         self.names, self.stop, self.out_dir = names, stop, out_dir
         self.dataset, self.slam, self.cfg = built.dataset, built.slam, built.config
@@ -93,9 +93,11 @@ class Pipeline:
         self.outputs = RunOutputs(self.cfg, self.slam, self.state, out_dir, checkpoints, stop)
         cfg = self.cfg
         realtime = cfg.mode is Mode.realtime
-        # a live source's frames arrive on its own clock; a recording's at fps_limit in real time
-        clock = LiveClock(self.dataset) if self.dataset.live else InputClock(cfg.fps_limit if realtime else None)
-        self.runner = (RealtimeRunner(self.slam, clock, cfg.switch_interval, cfg.mapping_priority, cfg.mapping_yields)
+        # a live source's frames arrive on its own clock; a recording's at realtime.fps_limit in real time
+        clock = (LiveClock(self.dataset) if self.dataset.live
+                 else InputClock(cfg.realtime.fps_limit if realtime else None))
+        self.runner = (RealtimeRunner(self.slam, clock, cfg.realtime.switch_interval, cfg.realtime.mapping_priority,
+                                      cfg.realtime.mapping_yields)
                        if realtime else Runner(self.slam, clock))
 
     def run(self) -> dict[str, Any]:
@@ -215,8 +217,8 @@ class Pipeline:
                     log.warning("frame %d skipped: %s", frame.index, frame.error)
                     state.record_unreadable(frame.timestamp)
                     frames_log.unreadable(frame.index, frame.timestamp, frame.error)
-                elif ((runner.wait(frame.index - first) and cfg.drop_frames or cfg.in_forced_gap(frame.index - first))
-                      and state.poses):
+                elif ((runner.wait(frame.index - first) and cfg.realtime.drop_frames
+                       or cfg.eval.in_forced_gap(frame.index - first)) and state.poses):
                     state.record_dropped(frame)
                     frames_log.dropped(frame)
                 else:

@@ -1,8 +1,8 @@
 """How a run feeds frames to its `SLAM`: `Runner` (sequential mode) calls `SLAM.process` on each
 frame as it is read; `RealtimeRunner` makes the same call on each frame at its time on an input
-clock (`InputClock` at `fps_limit`, or a live source's own, `slamkit.run.live.LiveClock`) while
+clock (`InputClock` at `realtime.fps_limit`, or a live source's own, `slamkit.run.live.LiveClock`) while
 its workers (`slamkit.run.workers`) train the map and decide on loops beside tracking, the
-mapping worker at a lower priority and out of the way of a late frame (`mapping_yields`), and
+mapping worker at a lower priority and out of the way of a late frame (`realtime.mapping_yields`), and
 the mapper takes each keyframe beside tracking (`SLAM.handovers`, built by `slamkit.run.build`).
 There is one per-frame path, the SLAM's; a runner adds only when a frame is taken and what runs
 beside it.
@@ -103,10 +103,10 @@ class Runner:
 
 
 class RealtimeRunner(Runner):
-    """Real time: frames taken at their time on `clock` (`InputClock` at `fps_limit`, None: as
+    """Real time: frames taken at their time on `clock` (`InputClock` at `realtime.fps_limit`, None: as
     fast as tracking goes; a live source's `LiveClock`), a `MappingThread` training the map at
-    `mapping_priority` (Python's switch interval `switch_interval_s` while it runs) that starts
-    no step while tracking is late on a frame (`mapping_yields`), and a `LoopThread` for a loop
+    `realtime.mapping_priority` (Python's switch interval `switch_interval_s` while it runs) that starts
+    no step while tracking is late on a frame (`realtime.mapping_yields`), and a `LoopThread` for a loop
     closure that closes loops. The SLAM must be built for it (`beside=True`: its `process`
     neither trains nor detects)."""
 
@@ -125,7 +125,7 @@ class RealtimeRunner(Runner):
             self.loops.start()
 
     def process(self, frame: Frame, i: int) -> StepResult:
-        """`SLAM.process(frame)` with no mapping step starting once it is late (`mapping_yields`);
+        """`SLAM.process(frame)` with no mapping step starting once it is late (`realtime.mapping_yields`);
         a worker's failure is raised here, on the tracking thread."""
         if self.mapping_yields:
             self.mapping.yield_to_tracking(self.clock.late_after(i))

@@ -4,44 +4,36 @@ paper's or slamkit's, docs/paper.md) without reading the run's config files."""
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 from typing import Any
 
+from slamkit.config import METHOD
 from slamkit.registry.compose import preset_not_applied
 from slamkit.registry.schema import RunConfig
 
-#: The run config's keys that make one method differ from another (the switches of docs/paper.md's
-#: "Differences" table and what the paper's ablations vary); a key the run's plugins lack is left out.
-METHOD_KEYS = (
-    "preset", "mode", "fps_limit", "iterations_per_frame", "drop_frames",
-    "tracker.regularization", "tracker.target_geometry", "tracker.min_target_opacity", "tracker.target_min_median",
-    "tracker.initial_guess", "tracker.fallback_to_previous", "tracker.retry_unconverged", "tracker.coarse_factor",
-    "keyframe.mapping_every", "keyframe.max_interval", "keyframe.tracking_every",
-    "growth.initial_shape", "growth.scale_alignment", "growth.scale_c", "growth.scale_p",
-    "growth.mapping_only_trackable",
-    "mapper.resolution_scale", "mapper.admission.skip_covered", "mapper.strategy.prune_every",
-    "mapper.strategy.prune_at_finish", "mapper.loss.pixels_without_depth",
-    "eval.psnr_pixels", "eval.lpips",
-)
 
-
-def method_settings(cfg: RunConfig, names: dict[str, str]) -> dict[str, Any]:
-    """{key: value} of METHOD_KEYS in `cfg` (the run's effective config: `BuiltRun.config`),
-    enums by their value, plus `refinement_steps` (the mapping steps after the stream) and
-    `preset_not_applied` (the roles whose preset settings were left out for the plugin chosen,
-    `names` by role path: `slamkit.registry.compose.preset_not_applied`)."""
+def marked_settings(config: Any, prefix: str = "") -> dict[str, Any]:
+    """{dotted key: value} of the fields of the dataclass `config` declared `method_setting`
+    (the switches of docs/paper.md's "Differences" table and what the paper's ablations vary),
+    recursively through the configs nested in it (keys `prefix` + field name), enums by their
+    value. A plugin's marked field appears where that plugin is chosen, and only there."""
     settings: dict[str, Any] = {}
-    for key in METHOD_KEYS:
-        node: Any = cfg
-        for part in key.split("."):
-            node = getattr(node, part, _MISSING)
-            if node is _MISSING:
-                break
-        if node is not _MISSING:
-            settings[key] = node.value if isinstance(node, enum.Enum) else node
-    settings["refinement_steps"] = cfg.refinement_iterations()
-    settings["preset_not_applied"] = preset_not_applied(cfg.preset, names)
+    for f in dataclasses.fields(config):
+        value = getattr(config, f.name)
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            settings.update(marked_settings(value, f"{prefix}{f.name}."))
+        elif f.metadata.get(METHOD):
+            settings[f"{prefix}{f.name}"] = value.value if isinstance(value, enum.Enum) else value
     return settings
 
 
-_MISSING = object()
+def method_settings(cfg: RunConfig, names: dict[str, str]) -> dict[str, Any]:
+    """The method settings of `cfg` (the run's effective config: `BuiltRun.config`, its
+    `marked_settings`), plus `refinement_steps` (the mapping steps after the stream) and
+    `preset_not_applied` (the roles whose preset settings were left out for the plugin chosen,
+    `names` by role path: `slamkit.registry.compose.preset_not_applied`)."""
+    settings = marked_settings(cfg)
+    settings["refinement_steps"] = cfg.refinement_iterations()
+    settings["preset_not_applied"] = preset_not_applied(cfg.preset, names)
+    return settings

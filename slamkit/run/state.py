@@ -115,7 +115,7 @@ class RunState:
         self.lost_frames += 1
 
     def record_dropped(self, frame: Frame) -> None:
-        """A frame that arrived while the tracker was busy (real-time mode, drop_frames): it
+        """A frame that arrived while the tracker was busy (real-time mode, realtime.drop_frames): it
         keeps the last pose, so the trajectory still has one line per input frame."""
         self.timestamps.append(frame.timestamp)
         self.poses.append(self.poses[-1])

@@ -98,3 +98,15 @@ def test_a_resumed_frame_log_has_one_row_per_frame(tmp_path, before, kept):
         rows = list(csv.reader(f))
     assert rows[0] == FrameLog.COLUMNS
     assert [row[0] for row in rows[1:]] == kept + ["2"]
+
+
+def test_a_checkpoint_before_0_4_gives_its_method_settings_under_their_new_keys():
+    """saved_settings reads a setting 0.4 moved into a group (`fps_limit`) at its old key too."""
+    from slamkit.run.checkpoint import saved_settings
+
+    before = {"config": {"preset": "paper", "fps_limit": 30.0, "tracker": {"regularization": "plane"}}}
+    keys = ["preset", "realtime.fps_limit", "realtime.drop_frames", "tracker.regularization"]
+    assert saved_settings(before, keys) == {"preset": "paper", "realtime.fps_limit": 30.0,
+                                            "tracker.regularization": "plane"}
+    now = {"config": {"realtime": {"fps_limit": None, "drop_frames": True}}}
+    assert saved_settings(now, keys) == {"realtime.fps_limit": None, "realtime.drop_frames": True}

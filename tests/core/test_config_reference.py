@@ -88,7 +88,7 @@ def built_config(key: str, run, slam, viewer, dataset):
     path = key.split(".")[:-1]
     if not path:
         return run
-    if path[0] in ("eval", "objective", "checkpoint", "localize"):
+    if path[0] in ("realtime", "eval", "output", "objective", "checkpoint", "localize"):
         return getattr(run, path[0])
     if path[0] == "growth":
         return slam.growth

@@ -23,7 +23,7 @@ from support.lpips_weights import SHAPES_BACKBONE, fabricated
 
 #: What preset=paper must set (docs/paper.md, "Differences"), after the dataset's tuning is filled
 #: (TUM: the reference code's target opacity 0.09).
-PAPER = {"preset": "paper", "mode": "realtime", "fps_limit": 30.0, "refinement_steps": 0,
+PAPER = {"preset": "paper", "mode": "realtime", "realtime.fps_limit": 30.0, "refinement_steps": 0,
          "tracker.target_geometry": "optimised", "tracker.min_target_opacity": 0.09, "tracker.target_min_median": 1e-3,
          "tracker.initial_guess": "previous", "tracker.fallback_to_previous": False, "tracker.coarse_factor": 1.0,
          "keyframe.mapping_every": 10, "growth.mapping_only_trackable": False, "growth.scale_alignment": "z_pow",
@@ -49,9 +49,9 @@ def test_preset_paper_sets_every_switch_of_the_papers_system(tum_path):
 def test_preset_paper_unlimited_is_the_same_without_the_input_limit(tum_path):
     paper, _ = effective_settings(["preset=paper", "dataset=tum", f"dataset.path={tum_path}"])
     unlimited, _ = effective_settings(["preset=paper_unlimited", "dataset=tum", f"dataset.path={tum_path}"])
-    assert unlimited["fps_limit"] is None and unlimited["preset"] == "paper_unlimited"
-    assert {k: v for k, v in unlimited.items() if k not in ("fps_limit", "preset")} == \
-        {k: v for k, v in paper.items() if k not in ("fps_limit", "preset")}
+    assert unlimited["realtime.fps_limit"] is None and unlimited["preset"] == "paper_unlimited"
+    assert {k: v for k, v in unlimited.items() if k not in ("realtime.fps_limit", "preset")} == \
+        {k: v for k, v in paper.items() if k not in ("realtime.fps_limit", "preset")}
 
 
 def test_the_default_preset_is_slamkits_defaults_and_a_later_override_wins(replica_path):
@@ -74,7 +74,7 @@ def test_a_preset_composes_with_a_plugin_it_does_not_name_and_says_what_it_left_
                                                                                       left_out_for):
     settings, names = effective_settings(["preset=paper", choice, "dataset=tum", f"dataset.path={tum_path}"])
     assert settings["preset_not_applied"] == {role: {"settings_for": left_out_for, "chosen": choice.split("=")[1]}}
-    assert (settings["mode"], settings["fps_limit"], settings["growth.scale_c"]) == ("realtime", 30.0, 2.0)
+    assert (settings["mode"], settings["realtime.fps_limit"], settings["growth.scale_c"]) == ("realtime", 30.0, 2.0)
     if role != "tracker":  # the paper's tracker still has the paper's settings
         assert (settings["tracker.initial_guess"], settings["tracker.target_min_median"]) == ("previous", 1e-3)
     else:
@@ -87,6 +87,52 @@ def test_a_mapper_part_the_preset_has_no_settings_for_is_left_out_with_the_rest_
     assert names["mapper.strategy"] == "mcmc"
     assert settings["preset_not_applied"] == {"mapper.strategy": {"settings_for": ["3dgs", "gsicp"], "chosen": "mcmc"}}
     assert (settings["mapper.resolution_scale"], settings["mapper.loss.pixels_without_depth"]) == (1.0, "zero")
+
+
+#: The method settings of a paper run as 0.3 listed them by name in core (`METHOD_KEYS`), at their
+#: keys since 0.4: what the fields marked `method_setting` must give, no more and no less.
+LISTED_BEFORE = {
+    "preset", "mode", "realtime.fps_limit", "iterations_per_frame", "realtime.drop_frames",
+    "tracker.regularization", "tracker.target_geometry", "tracker.min_target_opacity", "tracker.target_min_median",
+    "tracker.initial_guess", "tracker.fallback_to_previous", "tracker.retry_unconverged", "tracker.coarse_factor",
+    "keyframe.mapping_every", "keyframe.max_interval",
+    "growth.initial_shape", "growth.scale_alignment", "growth.scale_c", "growth.scale_p",
+    "growth.mapping_only_trackable",
+    "mapper.resolution_scale", "mapper.admission.skip_covered", "mapper.strategy.prune_every",
+    "mapper.strategy.prune_at_finish", "mapper.loss.pixels_without_depth",
+    "eval.psnr_pixels", "eval.lpips",
+}
+
+
+def test_the_method_settings_are_the_fields_marked_on_themselves(tum_path):
+    settings, _ = effective_settings(["preset=paper", "dataset=tum", f"dataset.path={tum_path}"])
+    assert set(settings) == LISTED_BEFORE | {"refinement_steps", "preset_not_applied"}
+    every_n, _ = effective_settings(["keyframe=every_n", "dataset=tum", f"dataset.path={tum_path}"])
+    assert every_n["keyframe.tracking_every"] == 30 and "keyframe.max_interval" not in every_n
+
+
+def test_marked_settings_walk_nested_configs_by_dotted_key_and_skip_unmarked_fields():
+    import dataclasses
+    import enum
+
+    from slamkit.config import method_setting
+    from slamkit.run.settings import marked_settings
+
+    class Colour(enum.Enum):
+        red = "red"
+
+    @dataclasses.dataclass
+    class Part:
+        switch: Colour = method_setting(Colour.red)
+        tuning: int = 3
+
+    @dataclasses.dataclass
+    class Whole:
+        part: Part = dataclasses.field(default_factory=Part)
+        steps: int = method_setting(10)
+        threads: int = 0
+
+    assert marked_settings(Whole()) == {"part.switch": "red", "steps": 10}
 
 
 def test_a_key_the_chosen_plugin_lacks_is_one_whole_line_naming_key_plugin_and_its_settings():

@@ -90,7 +90,8 @@ def test_an_ablation_over_every_scene_under_data_root_in_real_time(tmp_path, cap
     assert capsys.readouterr().err.count("skipped") == 6
     cfg, _ = compose_run(["+experiment=ablation_scale_alignment", "+protocol=realtime", "+scenes=replica",
                           f"data_root={tmp_path}", "scene=Replica/office4", "+scale_variant=z"])
-    assert (cfg.mode.value, cfg.fps_limit, cfg.dataset.path) == ("realtime", 30.0, f"{tmp_path}/Replica/office4")
+    assert (cfg.mode.value, cfg.realtime.fps_limit, cfg.dataset.path) == ("realtime", 30.0,
+                                                                        f"{tmp_path}/Replica/office4")
     assert cfg.preset == "paper" and cfg.growth.scale_alignment.value == "z"
 
 
@@ -98,7 +99,8 @@ def test_a_run_resumed_with_other_method_settings_is_no_rows_and_is_named(tmp_pa
     sweep = tmp_path / "sweep"
     fake_run(sweep, "0", ["scene=Replica/room0", "preset=paper"], ate_mean_m=0.002, ate_rmse_m=0.003)
     fake_run(sweep, "1", ["scene=Replica/office4", "preset=paper"], ate_mean_m=0.004, ate_rmse_m=0.005,
-             settings_changes=[{"frame": 10, "before": {"fps_limit": 30.0}, "after": {"fps_limit": None}}])
+             settings_changes=[{"frame": 10, "before": {"realtime.fps_limit": 30.0},
+                                "after": {"realtime.fps_limit": None}}])
     assert report_main([str(sweep), "--paper", "table1"]) == 0
     text = capsys.readouterr().out.split("**Table 1")[1]
     header, *rows = table_rows(text)

@@ -55,19 +55,30 @@ def test_the_mappers_parts_are_groups_nested_under_it():
         compose_run(["mapper/rasterizer=torch"])
 
 
-@pytest.mark.parametrize("old, new", [
-    ("rasterizer=cpu", "mapper/rasterizer=cpu"),
-    ("mapper.rasterizer=cpu,torch", "mapper/rasterizer=cpu,torch"),
-    ("+rasterizer.num_threads=2", "+mapper.rasterizer.num_threads=2"),
-    ("strategy.prune_every=0", "mapper.strategy.prune_every=0"),
-    ("strategy.skip_covered=false", "mapper.admission.skip_covered=false"),
-    ("mapper.strategy.max_gaussians=1000", "mapper.memory_cap.max_gaussians=1000"),
-    ("map.scale_alignment=z", "growth.scale_alignment=z"),
-    ("localize.map=out", "map=out"),
+@pytest.mark.parametrize("old, new, version", [
+    ("rasterizer=cpu", "mapper/rasterizer=cpu", "0.3"),
+    ("mapper.rasterizer=cpu,torch", "mapper/rasterizer=cpu,torch", "0.3"),
+    ("+rasterizer.num_threads=2", "+mapper.rasterizer.num_threads=2", "0.3"),
+    ("strategy.prune_every=0", "mapper.strategy.prune_every=0", "0.3"),
+    ("strategy.skip_covered=false", "mapper.admission.skip_covered=false", "0.3"),
+    ("mapper.strategy.max_gaussians=1000", "mapper.memory_cap.max_gaussians=1000", "0.3"),
+    ("map.scale_alignment=z", "growth.scale_alignment=z", "0.3"),
+    ("localize.map=out", "map=out", "0.3"),
+    ("fps_limit=30", "realtime.fps_limit=30", "0.4"),
+    ("drop_frames=true", "realtime.drop_frames=true", "0.4"),
+    ("switch_interval=0.005", "realtime.switch_interval=0.005", "0.4"),
+    ("mapping_priority=low", "realtime.mapping_priority=low", "0.4"),
+    ("mapping_yields=false", "realtime.mapping_yields=false", "0.4"),
+    ("keyframe_thread=false", "realtime.keyframe_thread=false", "0.4"),
+    ("forced_gap_every=50", "eval.forced_gap_every=50", "0.4"),
+    ("forced_gap_length=20", "eval.forced_gap_length=20", "0.4"),
+    ("existing_outputs=clean", "output.existing_outputs=clean", "0.4"),
+    ("progress=false", "output.progress=false", "0.4"),
+    ("eval.plot=false", "output.plot=false", "0.4"),
 ])
-def test_an_old_spelling_gets_one_line_naming_the_new_one(old, new):
+def test_an_old_spelling_gets_one_line_naming_the_new_one(old, new, version):
     from slamkit.registry.compose import compose_run
 
-    with pytest.raises(ConfigError, match="since slamkit 0.3") as err:
+    with pytest.raises(ConfigError, match=f"is spelled .* since slamkit {version} ") as err:
         compose_run(["mapper=gaussian_splatting", old])
     assert f"(write {new})" in str(err.value) and "\n" not in str(err.value)

@@ -81,7 +81,7 @@ def test_the_mapping_thread_shortens_the_gil_switch_interval_while_it_runs():
 def _keyframe_run(defer: bool, frames: int = 12):
     """A synthetic run with tracking and mapping-only keyframes, each frame tracked with
     `slam.process` of a SLAM built for real time, the keyframes' work beside tracking or not
-    (`keyframe_thread`); the
+    (`realtime.keyframe_thread`); the
     mapper's `add_keyframe` made slow (30 ms) and every call of `admit` / `add_keyframe` logged
     with its start and end, so that an overlap would show."""
     import time
@@ -89,7 +89,7 @@ def _keyframe_run(defer: bool, frames: int = 12):
     dataset, slam, _ = build_run(["dataset=synthetic", f"dataset.num_frames={frames}", "dataset.width=64",
                                   "dataset.height=48", "tracker=gicp", "keyframe=every_n", "keyframe.tracking_every=4",
                                   "keyframe.mapping_every=2", "mapper=gaussian_splatting", "mode=realtime",
-                                  f"keyframe_thread={defer}"])
+                                  f"realtime.keyframe_thread={defer}"])
     calls = []
 
     def logged(name, method, pause=0.0):
@@ -146,7 +146,7 @@ def test_the_next_target_is_built_beside_tracking_and_the_next_frame_aligns_to_i
 
     dataset, slam, _ = build_run(["dataset=synthetic", "dataset.num_frames=10", "dataset.width=64",
                                   "dataset.height=48", "tracker=gicp", "keyframe=every_n", "keyframe.tracking_every=3",
-                                  "mapper=gaussian_splatting", "mode=realtime", "keyframe_thread=true"])
+                                  "mapper=gaussian_splatting", "mode=realtime", "realtime.keyframe_thread=true"])
     calls = []
 
     def logged(name, method, pause=0.0):
@@ -236,8 +236,8 @@ def test_one_frame_goes_pipeline_runner_slam_then_the_roles_in_order(tmp_path):
 
     registry = default_registry()
     cfg, names = compose_run(["dataset=synthetic", "dataset.num_frames=2", "dataset.width=64", "dataset.height=48",
-                              "mapper=gaussian_splatting", "final_iterations=0", "progress=false",
-                              "eval.plot=false"], registry)
+                              "mapper=gaussian_splatting", "final_iterations=0", "output.progress=false",
+                              "output.plot=false"], registry)
     pipeline = Pipeline(cfg, registry, names, tmp_path, StopSignals())
     calls = []
 

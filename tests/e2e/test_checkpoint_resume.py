@@ -62,7 +62,7 @@ def _cfg(tmp_path: Path, *overrides: str):
     return compose_run(["mapper=gaussian_splatting", "checkpoint.save=true", "dataset.num_frames=10",
                         "mapper.resolution_scale=0.25",
                         "mapper.eval_resolution_scale=0.25", "mapper.eval_every=5", "mapper.save_images=0",
-                        "iterations_per_frame=2", "final_iterations=0", "progress=false", "eval.plot=false",
+                        "iterations_per_frame=2", "final_iterations=0", "output.progress=false", "output.plot=false",
                         "mapper/rasterizer=cpu", "mapper.strategy.prune_every=0", *overrides])
 
 
@@ -101,8 +101,8 @@ def test_a_resumed_run_continues_exactly_where_its_checkpoint_stopped(tmp_path):
 
 @pytest.mark.slow
 def test_every_n_keyframes_a_checkpoint_is_written(tmp_path, caplog):
-    cfg, names = compose_run(["dataset.max_frames=30", "mapper=none", "checkpoint.every_keyframes=2", "progress=false",
-                              "eval.plot=false"])
+    cfg, names = compose_run(["dataset.max_frames=30", "mapper=none", "checkpoint.every_keyframes=2",
+                              "output.progress=false", "output.plot=false"])
     with caplog.at_level("INFO", logger="slamkit.run.checkpoint"):
         metrics = pipeline.run(cfg, default_registry(), names, tmp_path)
     saved = [r.getMessage() for r in caplog.records if r.getMessage().startswith("checkpoint (keyframes)")]
@@ -114,7 +114,7 @@ def test_every_n_keyframes_a_checkpoint_is_written(tmp_path, caplog):
 def test_a_default_run_writes_no_checkpoint_at_its_end_and_a_resumed_one_keeps_its_own(tmp_path):
     """Run folders stay small: the end checkpoint only when asked; but a folder that holds one (a
     resumed run's) has it brought to the end, so the finished run is not resumed again."""
-    base = ["mapper=none", "progress=false", "eval.plot=false"]
+    base = ["mapper=none", "output.progress=false", "output.plot=false"]
     cfg, names = compose_run(["dataset.max_frames=12", *base])
     metrics = pipeline.run(cfg, default_registry(), names, tmp_path / "plain")
     assert metrics["completed"] and not (tmp_path / "plain" / CHECKPOINT_NAME).exists()
@@ -130,7 +130,7 @@ def test_a_default_run_writes_no_checkpoint_at_its_end_and_a_resumed_one_keeps_i
 @pytest.mark.slow
 def test_resume_refuses_other_plugins_and_a_damaged_checkpoint(tmp_path, tum_path):
     out = tmp_path / "run"
-    base = ("dataset=tum", f"dataset.path={tum_path}", "dataset.max_frames=5", "mapper=none", "progress=false",
+    base = ("dataset=tum", f"dataset.path={tum_path}", "dataset.max_frames=5", "mapper=none", "output.progress=false",
             "checkpoint.save=true")
     proc = run_slamkit(*base, f"hydra.run.dir={out}", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
@@ -151,8 +151,8 @@ def test_an_interrupted_run_is_resumed_to_the_end(tmp_path, tum_path):
     finishes the sequence in the same folder, the trajectory extended."""
     out = tmp_path / "run"
     exe = Path(sys.executable).with_name("slamkit")
-    args = ["dataset=tum", f"dataset.path={tum_path}", "dataset.max_frames=60", "mapper=none", "progress=false",
-            "fps_limit=15", "mode=realtime", f"hydra.run.dir={out}"]
+    args = ["dataset=tum", f"dataset.path={tum_path}", "dataset.max_frames=60", "mapper=none", "output.progress=false",
+            "realtime.fps_limit=15", "mode=realtime", f"hydra.run.dir={out}"]
     proc = subprocess.Popen([str(exe), *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 120
@@ -167,7 +167,7 @@ def test_an_interrupted_run_is_resumed_to_the_end(tmp_path, tum_path):
     saved = read_meta(out / CHECKPOINT_NAME)
     stopped = json.loads((out / "metrics.json").read_text())["num_frames"]
     assert saved["reason"] == "interrupted" and saved["num_frames"] == stopped < 60
-    proc = run_slamkit(f"resume={out}", "fps_limit=null", cwd=tmp_path)
+    proc = run_slamkit(f"resume={out}", "realtime.fps_limit=null", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["num_frames"] == 60 and metrics["completed"]
@@ -183,7 +183,7 @@ def test_export_reads_a_checkpoint(tmp_path, replica_path, capsys):
     out = tmp_path / "run"
     # the paper's scale alignment: 1-3 mm Gaussians at opacity 0.1, too faint to mesh at alpha 0.5
     proc = run_slamkit("dataset=replica", f"dataset.path={replica_path}", "dataset.max_frames=3", "mapper=none",
-                       "growth.scale_alignment=z_pow", "progress=false", "checkpoint.save=true",
+                       "growth.scale_alignment=z_pow", "output.progress=false", "checkpoint.save=true",
                        f"hydra.run.dir={out}", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert not (out / "map.ply").exists()  # mapper=none: the checkpoint is the map

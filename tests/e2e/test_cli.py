@@ -135,9 +135,11 @@ def test_the_command_exits_2_with_one_line_for_each(tmp_path):
 
 
 def test_hydras_own_options_behave_as_in_any_hydra_app(tmp_path):
-    """--cfg job prints the composed config, --info what Hydra knows, --help the app's help; no run."""
-    job = _ok(run_slamkit("--cfg", "job", "tracker=kiss_icp", cwd=tmp_path))
+    """--cfg job prints the composed config (the run's settings in their groups), --info what Hydra
+    knows, --help the app's help; no run."""
+    job = _ok(run_slamkit("--cfg", "job", "tracker=kiss_icp", "realtime.fps_limit=30", cwd=tmp_path))
     assert "\ntracker:" in job.stdout and "\nmode: sequential" in job.stdout
+    assert "\nrealtime:\n  fps_limit: 30" in job.stdout and "\noutput:\n  existing_outputs: refuse" in job.stdout
     info = _ok(run_slamkit("--info", "config", cwd=tmp_path))
     assert "Config search path" in info.stdout
     helped = _ok(run_slamkit("--help", cwd=tmp_path))
@@ -178,7 +180,7 @@ def _counted(*args, cwd):
 
 def test_a_run_and_its_resume_compose_the_configuration_once(tmp_path):
     run_dir = tmp_path / "run"
-    first = _counted("dataset.num_frames=12", "dataset.max_frames=6", "progress=false", "eval.plot=false",
+    first = _counted("dataset.num_frames=12", "dataset.max_frames=6", "output.progress=false", "output.plot=false",
                      "checkpoint.save=true", f"hydra.run.dir={run_dir}", cwd=tmp_path)
     assert first.stderr.strip().splitlines()[-1] == "compositions: 1", first.stderr
     assert (run_dir / ".hydra" / "config.yaml").is_file() and (run_dir / "metrics.json").is_file()
@@ -192,7 +194,8 @@ def test_a_sweep_composes_each_job_once(tmp_path):
     before the first job starts, then run from that composition), not again by Hydra's sweeper
     and launcher; both jobs run."""
     sweep_dir = tmp_path / "sweep"
-    proc = _counted("-m", "dataset.num_frames=6", "dataset.max_frames=3,4", "progress=false", "eval.plot=false",
+    proc = _counted("-m", "dataset.num_frames=6", "dataset.max_frames=3,4", "output.progress=false",
+                    "output.plot=false",
                     "checkpoint.save=false", f"hydra.sweep.dir={sweep_dir}", cwd=tmp_path)
     composed = [line for line in proc.stderr.splitlines() if line.startswith("composed: ")]
     for value in ("dataset.max_frames=3", "dataset.max_frames=4"):

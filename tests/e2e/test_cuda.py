@@ -120,7 +120,7 @@ def keyframe_scene(replica_path: Path, seed: int = 0):
     overlap and occlude like a trained map's; its pose (world-to-camera) and the training camera
     (half resolution, 600x340)."""
     dataset, slam, _ = build_run(["dataset=replica", f"dataset.path={replica_path}", "dataset.max_frames=1",
-                                  "mapper=none", "mapping_device=cpu", "progress=false"])
+                                  "mapper=none", "mapping_device=cpu", "output.progress=false"])
     frame = dataset[0]
     slam.initialize(frame.gt_pose)
     slam.process(frame)
@@ -162,7 +162,7 @@ def psnr(image: torch.Tensor, reference: torch.Tensor) -> float:
 #: tracker's targets (rebuilt every second frame, from the trained map) depend on the mapping.
 PIPELINE = ["dataset=replica", "dataset.max_frames=6", "mapper=gaussian_splatting", "keyframe=every_n",
             "keyframe.tracking_every=2", "iterations_per_frame=10", "final_iterations=100",
-            "mapper.eval_resolution_scale=0.5", "mapper.save_images=0", "progress=false", "eval.plot=false"]
+            "mapper.eval_resolution_scale=0.5", "mapper.save_images=0", "output.progress=false", "output.plot=false"]
 
 
 def run_pipeline(replica_path: Path, out_dir: Path, *overrides: str) -> tuple[dict, np.ndarray]:
@@ -206,7 +206,7 @@ def test_mapping_step_phases_on_cuda(backend, replica_path):
         gsplat_rasterizer()
     dataset, slam, _ = build_run(["dataset=replica", f"dataset.path={replica_path}", "dataset.max_frames=3",
                                   "mapper=gaussian_splatting", f"mapper/rasterizer={backend}", "mapping_device=cuda",
-                                  "iterations_per_frame=0", "progress=false"])
+                                  "iterations_per_frame=0", "output.progress=false"])
     slam.initialize(dataset[0].gt_pose)
     for i in range(len(dataset)):
         slam.process(dataset[i])
@@ -231,8 +231,9 @@ def test_realtime_maps_on_the_gpu_by_default(replica_path, tmp_path):
     """mode=realtime with the default mapping_device (auto): the map and the keyframes on the
     GPU, the tracker on the CPU; the run completes and trains."""
     overrides = ["dataset=replica", f"dataset.path={replica_path}", "dataset.max_frames=5",
-                 "mapper=gaussian_splatting", "mode=realtime", "fps_limit=30", "final_iterations=20",
-                 "mapper.eval_resolution_scale=0.5", "mapper.save_images=0", "progress=false", "eval.plot=false"]
+                 "mapper=gaussian_splatting", "mode=realtime", "realtime.fps_limit=30", "final_iterations=20",
+                 "mapper.eval_resolution_scale=0.5", "mapper.save_images=0", "output.progress=false",
+                 "output.plot=false"]
     _, slam, _ = build_run(overrides)
     assert slam.gaussian_map.device.type == "cuda"
     cfg, names = compose_run(overrides)

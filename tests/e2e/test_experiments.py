@@ -15,9 +15,9 @@ pytestmark = pytest.mark.slow  # every test here starts the slamkit command
 
 def test_two_job_sweep_with_submitit_local_then_report(tmp_path):
     sweep = tmp_path / "sweep"
-    proc = run_slamkit("-m", "tracker=gicp,kiss_icp", "keyframe=overlap", "dataset.num_frames=12", "progress=false",
-                       "hydra/launcher=submitit_local", "hydra.launcher.timeout_min=10", f"hydra.sweep.dir={sweep}",
-                       cwd=tmp_path)
+    proc = run_slamkit("-m", "tracker=gicp,kiss_icp", "keyframe=overlap", "dataset.num_frames=12",
+                       "output.progress=false", "hydra/launcher=submitit_local", "hydra.launcher.timeout_min=10",
+                       f"hydra.sweep.dir={sweep}", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert report_main([str(sweep)]) == 0
     with open(sweep / "report.csv") as f:
@@ -30,9 +30,9 @@ def test_two_job_sweep_with_submitit_local_then_report(tmp_path):
 
 def test_seed_sweep_rows_average_with_spread(tmp_path):
     sweep = tmp_path / "sweep"
-    proc = run_slamkit("+experiment=ablation_regularization", "dataset.num_frames=8", "seed=0,1", "progress=false",
-                       "iterations_per_frame=1", "mapper.resolution_scale=0.25", "mapper.eval_every=8",
-                       f"hydra.sweep.dir={sweep}", cwd=tmp_path)
+    proc = run_slamkit("+experiment=ablation_regularization", "dataset.num_frames=8", "seed=0,1",
+                       "output.progress=false", "iterations_per_frame=1", "mapper.resolution_scale=0.25",
+                       "mapper.eval_every=8", f"hydra.sweep.dir={sweep}", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert report_main([str(sweep)]) == 0
     rows = list(csv.DictReader(open(sweep / "report.csv")))
@@ -51,7 +51,8 @@ def test_sequential_runs_are_bit_identical_for_the_same_seed(tmp_path):
         out = tmp_path / name
         proc = run_slamkit("tracker=gicp", "keyframe=overlap", "mapper=gaussian_splatting", "mapper/sampler=random",
                            "iterations_per_frame=2", "final_iterations=0", "mapper.eval_every=4",
-                           "dataset.num_frames=12", "seed=3", "progress=false", f"hydra.run.dir={out}", cwd=tmp_path)
+                           "dataset.num_frames=12", "seed=3", "output.progress=false", f"hydra.run.dir={out}",
+                           cwd=tmp_path)
         assert proc.returncode == 0, proc.stderr[-2000:]
         outputs.append(((out / "trajectory.txt").read_bytes(), (out / "map.ply").read_bytes()))
     assert outputs[0] == outputs[1]  # trajectory and optimised map, bit for bit

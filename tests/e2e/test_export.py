@@ -93,8 +93,8 @@ def test_errors_are_one_line(tmp_path, capsys, monkeypatch):
 def test_run_writes_its_camera_and_keyframe_poses(tmp_path):
     out = tmp_path / "run"
     proc = run_slamkit("dataset=synthetic", "dataset.num_frames=12", "dataset.width=64", "dataset.height=48",
-                       "mapper=none", "keyframe=every_n", "keyframe.tracking_every=4", "progress=false",
-                       "eval.plot=false", f"hydra.run.dir={out}", cwd=tmp_path)
+                       "mapper=none", "keyframe=every_n", "keyframe.tracking_every=4", "output.progress=false",
+                       "output.plot=false", f"hydra.run.dir={out}", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]
     camera = json.loads((out / "camera.json").read_text())
     assert camera["width"] == 64 and camera["height"] == 48 and camera["fx"] > 0
@@ -123,7 +123,7 @@ def test_mesh_of_a_replica_mapping_run_matches_the_true_depth(tmp_path, replica_
         "dataset=replica", f"dataset.path={replica_path}", "dataset.max_frames=5", "keyframe=every_n",
         "keyframe.tracking_every=2", "mapper=gaussian_splatting", "iterations_per_frame=2",
         "final_iterations=300", "mapper.resolution_scale=0.25", "mapper.eval_every=100",
-        "mapper.save_images=0", "progress=false", "eval.plot=false", f"hydra.run.dir={out}",
+        "mapper.save_images=0", "output.progress=false", "output.plot=false", f"hydra.run.dir={out}",
         cwd=tmp_path, env_extra={"OMP_NUM_THREADS": "1"}, timeout=600,
     )
     assert proc.returncode == 0, proc.stderr[-2000:]

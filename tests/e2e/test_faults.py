@@ -94,7 +94,7 @@ class Fault:
 
 
 HUGE = "1000000"
-FAST = ("tracker=kiss_icp", "mapper=none", "progress=false")
+FAST = ("tracker=kiss_icp", "mapper=none", "output.progress=false")
 TUM_DATA = ("dataset=tum", "dataset.path={data}", *FAST)
 FOLDER = ("dataset=folder", "dataset.path={data}", *FAST)
 RAN = ("trajectory.txt", "metrics.json", "frames.csv")
@@ -113,7 +113,8 @@ FAULTS = [
     Fault("cy-negative", ("dataset.cy=-5",), 2, "dataset.cy: expected null or >= 0 pixels, got -5.0"),
     Fault("depth-trunc-nan", ("dataset.depth_trunc=nan",), 2, "dataset.depth_trunc"),
     Fault("scale-c-nan", ("growth.scale_c=nan",), 2, "growth.scale_c"),
-    Fault("fps-limit-inf", ("mode=realtime", "fps_limit=inf"), 2, "fps_limit: expected a finite number"),
+    Fault("fps-limit-inf", ("mode=realtime", "realtime.fps_limit=inf"), 2,
+          "realtime.fps_limit: expected a finite number"),
     Fault("seed-negative", ("seed=-1",), 2, "seed: expected an integer from 0 to 2^32 - 1"),
     Fault("seed-huge", ("seed=1099511627776",), 2, "seed: expected an integer from 0 to 2^32 - 1"),
     Fault("mapper-seed-negative", ("mapper=gaussian_splatting", "mapper.seed=-1"), 2, "mapper.seed: expected"),
@@ -229,10 +230,10 @@ def digests(folder: Path, ignore: tuple[str, ...] = ()) -> dict[str, str]:
 
 
 TUM_RUN = (*TUM_DATA, f"dataset.max_frames={FRAMES}")
-GICP = ("dataset=tum", "dataset.path={data}", "mapper=none", "progress=false", "dataset.max_frames=4")
+GICP = ("dataset=tum", "dataset.path={data}", "mapper=none", "output.progress=false", "dataset.max_frames=4")
 TINY_MAPPING = ("dataset=synthetic", "dataset.num_frames=6", "dataset.width=64", "dataset.height=48",
                 "keyframe=every_n", "keyframe.tracking_every=3", "mapper=gaussian_splatting", "final_iterations=4",
-                "mapper.save_images=2", "iterations_per_frame=2", "progress=false")
+                "mapper.save_images=2", "iterations_per_frame=2", "output.progress=false")
 
 
 def earlier(*argv: str, frames: int = FRAMES, base: tuple[str, ...] = TUM_DATA, then: Callable | None = None):
@@ -369,7 +370,7 @@ def same_poses(case: Case, result) -> None:
 
 def replica_map(case: Case) -> None:
     case.slamkit("dataset=replica", f"dataset.path={require_data(REPLICA)}", "dataset.max_frames=5", "mapper=none",
-                 "progress=false", "checkpoint.save=true", "hydra.run.dir={tmp}/map")
+                 "output.progress=false", "checkpoint.save=true", "hydra.run.dir={tmp}/map")
 
 
 def nothing_localised(case: Case, result) -> None:
@@ -444,7 +445,7 @@ def remember_metrics(case: Case) -> None:
 
 def cleaned(case: Case, result) -> None:
     assert not {p.name for p in case.out.iterdir()} & {"map.ply", "render_0000.png", "render_0005.png"}
-    assert "existing_outputs=clean" in (case.out / ".hydra" / "overrides.yaml").read_text()
+    assert "output.existing_outputs=clean" in (case.out / ".hydra" / "overrides.yaml").read_text()
     metrics = json.loads((case.out / "metrics.json").read_text())
     assert metrics["num_frames"] == FRAMES and "psnr" not in metrics
 
@@ -476,15 +477,15 @@ ISSUE_36 = [
           after=holder_named_and_stopped),
     Fault("new-run-into-a-used-folder", TUM_RUN, 2, "holds the outputs of an earlier run (", kept=RAN, completed=True,
           make=tiny_tum, before=earlier(base=TINY_MAPPING), after=unchanged()),
-    Fault("new-run-into-a-used-folder-clean", (*TUM_RUN, "existing_outputs=clean"), 0, "", kept=RAN, make=tiny_tum,
-          before=earlier(base=TINY_MAPPING), after=cleaned),
+    Fault("new-run-into-a-used-folder-clean", (*TUM_RUN, "output.existing_outputs=clean"), 0, "", kept=RAN,
+          make=tiny_tum, before=earlier(base=TINY_MAPPING), after=cleaned),
     Fault("new-run-into-another-programs-folder", TUM_RUN, 2, "holds files that are not a slamkit run's (notes.txt)",
           kept=(), make=tiny_tum, before=others_files, after=others_files_kept),
-    Fault("clean-another-programs-folder", (*TUM_RUN, "existing_outputs=clean"), 2,
+    Fault("clean-another-programs-folder", (*TUM_RUN, "output.existing_outputs=clean"), 2,
           "holds files that are not a slamkit run's (notes.txt)", kept=(), make=tiny_tum, before=others_files,
           after=others_files_kept),
     Fault("localise-into-the-maps-folder", ("mode=localize", "map={out}", "dataset=tum", "dataset.path={data}",
-          "progress=false"), 2, "localisation writes into a folder of its own", kept=RAN, completed=True,
+          "output.progress=false"), 2, "localisation writes into a folder of its own", kept=RAN, completed=True,
           make=tiny_tum, before=earlier(), after=unchanged()),
     Fault("export-over-the-checkpoint", ("ply", "{out}", "--out", "{out}/checkpoint.zip"), 2,
           "is a map checkpoint", kept=RAN, completed=True, make=tiny_tum, program="slamkit-export", before=earlier(),
@@ -523,7 +524,7 @@ ISSUE_36 = [
     Fault("tum-uint16-depth-in-whole-metres", TUM_DATA, 2, "dataset.depth_scale",
           kept=("trajectory.txt:0", "metrics.json", "frames.csv"), make=tum_with(uint16_cast_metres)),
     Fault("localise-in-another-scene", ("mode=localize", "map={tmp}/map", "dataset=tum", "dataset.path={data}",
-          "dataset.max_frames=3", "localize.attempts=1", "progress=false"), 3, "no frame was localised",
+          "dataset.max_frames=3", "localize.attempts=1", "output.progress=false"), 3, "no frame was localised",
           kept=("trajectory.txt:0", "metrics.json", "frames.csv"), make=tiny_tum, before=replica_map,
           after=nothing_localised),
     Fault("resume-after-the-frame-list-changed", ("resume={out}", "dataset.max_frames=8"), 2,
@@ -538,7 +539,7 @@ ISSUE_36 = [
     Fault("stdout-reader-quits", TUM_RUN, 0, "", kept=RAN, make=tiny_tum, process="| true"),
     Fault("stdout-head-1", TUM_RUN, 0, "", kept=RAN, make=tiny_tum, process="| head -1"),
     Fault("stdout-full", TUM_RUN, 0, "", kept=RAN, make=tiny_tum, process="> /dev/full"),
-    Fault("stderr-closed-with-a-progress-bar", (*TUM_RUN, "progress=true"), 0, "", kept=RAN, make=tiny_tum,
+    Fault("stderr-closed-with-a-progress-bar", (*TUM_RUN, "output.progress=true"), 0, "", kept=RAN, make=tiny_tum,
           process="2>&-", after=stderr_log_clean),
     Fault("stderr-full", TUM_RUN, 0, "", kept=RAN, make=tiny_tum, process="2> /dev/full"),
     Fault("report-into-head-1", ("{out}",), 0, "", kept=RAN, completed=True, make=tiny_tum, program="slamkit-report",
@@ -747,12 +748,16 @@ ISSUE_45 = [
           before=earlier(frames=4, then=remember_metrics), after=settings_change_recorded),
     Fault("key-of-the-preset", ("preset.x=1",), 2, "preset.x=1: preset is chosen whole (preset=NAME: paper"),
     # 6. boolean keys take booleans only
-    Fault("bool-a-number", ("keyframe_thread=2",), 2, "keyframe_thread: expected true or false, got 2"),
-    Fault("bool-negative", ("mapping_yields=-1",), 2, "mapping_yields: expected true or false, got -1"),
+    Fault("bool-a-number", ("realtime.keyframe_thread=2",), 2,
+          "realtime.keyframe_thread: expected true or false, got 2"),
+    Fault("bool-negative", ("realtime.mapping_yields=-1",), 2,
+          "realtime.mapping_yields: expected true or false, got -1"),
     Fault("bool-of-a-plugin", ("tracker.retry_unconverged=2",), 2,
           "tracker.retry_unconverged: expected true or false, got 2"),
-    Fault("bool-in-a-sweep", ("-m", "dataset.num_frames=3", *FAST, "keyframe_thread=true,2", "hydra.sweep.dir={out}"),
-          2, "job 2 of 2 of the sweep (keyframe_thread=2): keyframe_thread: expected true or false, got 2",
+    Fault("bool-in-a-sweep", ("-m", "dataset.num_frames=3", *FAST, "realtime.keyframe_thread=true,2",
+                              "hydra.sweep.dir={out}"),
+          2, "job 2 of 2 of the sweep (realtime.keyframe_thread=2): realtime.keyframe_thread: expected true or "
+             "false, got 2",
           after=said_once_before_any_job),
     # 7. a job's error said once
     Fault("job-error-said-once", ("dataset=tum", "dataset.path={data}/nope", *FAST), 2, "not found", kept=(),
@@ -1002,8 +1007,9 @@ SIGNAL_EXIT_BOUND_S = 5.0
 #: back and forth): its backlog grows by ~5 keyframe-seconds a second, and a call that took every
 #: keyframe queued would last seconds by the 60th frame.
 BUSY_REALTIME = ("dataset=tum", "dataset.path={data}", "dataset.passes=12", "dataset.max_frames=90",
-                 "progress=false", "mode=realtime", "fps_limit=30", "keyframe=every_n", "keyframe.tracking_every=1",
-                 "keyframe_thread=true", "mapper=gaussian_splatting", "mapper/rasterizer=cpu", "loop_closure=slow",
+                 "output.progress=false", "mode=realtime", "realtime.fps_limit=30", "keyframe=every_n",
+                 "keyframe.tracking_every=1", "realtime.keyframe_thread=true", "mapper=gaussian_splatting",
+                 "mapper/rasterizer=cpu", "loop_closure=slow",
                  "loop_closure.seconds=0.2")
 SIGNAL_PHASES = {
     "startup": (TUM_RUN, "startup"),
@@ -1013,7 +1019,8 @@ SIGNAL_PHASES = {
     "refine": ((*TINY_MAPPING, "final_iterations=100000"), "refine"),
     "map": (TINY_MAPPING, "map"),
     "evaluate": (TINY_MAPPING, "evaluate"),
-    "localize-stream": (("mode=localize", "map={tmp}/map", "dataset=tum", "dataset.path={data}", "progress=false"),
+    "localize-stream": (("mode=localize", "map={tmp}/map", "dataset=tum", "dataset.path={data}",
+                         "output.progress=false"),
                         "stream@3"),
 }
 
@@ -1038,7 +1045,7 @@ def test_a_stop_signal_ends_the_run_within_the_bound_in_every_phase(phase, tmp_p
     env = {"PYTHONPATH": os.pathsep.join([str(site), os.environ.get("PYTHONPATH", "")])}
     if phase.startswith("localize"):  # the map it localises in: a run of the same frames
         made = subprocess.run([str(Path(sys.executable).with_name("slamkit")), "dataset=tum", f"dataset.path={data}",
-                               "mapper=none", "progress=false", "checkpoint.save=true",
+                               "mapper=none", "output.progress=false", "checkpoint.save=true",
                                f"hydra.run.dir={tmp_path / 'map'}"], cwd=tmp_path, capture_output=True, text=True,
                               timeout=300)
         assert made.returncode == 0, made.stderr[-3000:]

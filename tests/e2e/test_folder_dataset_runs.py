@@ -32,7 +32,7 @@ def scene(tmp_path) -> Path:
 def test_slamkit_runs_on_a_folder(scene, tmp_path):
     out = tmp_path / "run"
     proc = run_slamkit("dataset=folder", f"dataset.path={scene}", "dataset.trajectory=gt.txt", "mapper=none",
-                       "progress=false", f"hydra.run.dir={out}", cwd=tmp_path)
+                       "output.progress=false", f"hydra.run.dir={out}", cwd=tmp_path)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     timestamps, poses = read_tum_trajectory(out / "trajectory.txt")
     assert len(timestamps) == FRAMES and np.isfinite(poses).all()

@@ -82,8 +82,9 @@ def test_dry_run_prints_every_step_and_touches_nothing(tmp_path):
         for variant in ("cpu@cpu", "cpu@cuda", "torch@cuda", "gsplat@cuda"):
             assert any(t.startswith(f"would time: phases {sequence} {variant}") for t in timings)
         for variant in ("gsplat@cuda", "torch@cuda", "cpu@cpu"):
-            assert any(t.startswith(f"would time: realtime {sequence} {variant}") and "mode=realtime fps_limit=30"
-                       in t and f"mapper/rasterizer={variant.split('@')[0]}" in t for t in timings)
+            assert any(t.startswith(f"would time: realtime {sequence} {variant}")
+                       and "mode=realtime realtime.fps_limit=30" in t
+                       and f"mapper/rasterizer={variant.split('@')[0]}" in t for t in timings)
     assert "nothing is run" in lines[0]
 
 

@@ -19,7 +19,7 @@ pytestmark = pytest.mark.slow  # every test here starts the slamkit command
 
 def _start(out: Path, *args: str) -> subprocess.Popen:
     exe = Path(sys.executable).with_name("slamkit")
-    return subprocess.Popen([str(exe), *args, "progress=false", f"hydra.run.dir={out}"],
+    return subprocess.Popen([str(exe), *args, "output.progress=false", f"hydra.run.dir={out}"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
@@ -39,7 +39,7 @@ def _wait_for_frames(out: Path, n: int, proc: subprocess.Popen, timeout: float =
 def test_realtime_run_interrupted_by_a_signal_writes_consistent_outputs(sig, tmp_path):
     out = tmp_path / "run"
     # 10 frames/s input over 120 frames: about 12 s if left alone
-    proc = _start(out, "mode=realtime", "fps_limit=10", "eval.running_ate_every=1")
+    proc = _start(out, "mode=realtime", "realtime.fps_limit=10", "eval.running_ate_every=1")
     try:
         _wait_for_frames(out, 5, proc)
         os.kill(proc.pid, sig)

@@ -28,7 +28,7 @@ def _digest(path: Path) -> str:
 
 
 def _run(tmp_path: Path, out: Path, *args: str) -> dict:
-    proc = run_slamkit(*args, "progress=false", "eval.plot=false", f"hydra.run.dir={out}", cwd=tmp_path)
+    proc = run_slamkit(*args, "output.progress=false", "output.plot=false", f"hydra.run.dir={out}", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     return json.loads((out / "metrics.json").read_text())
 
@@ -91,7 +91,7 @@ def test_an_interrupted_localisation_keeps_its_frames_and_exits_143_on_sigterm(t
     tum = ("dataset=tum", f"dataset.path={tum_path}", "mapper=none")
     _run(tmp_path, tmp_path / "map", *tum, "dataset.max_frames=5", "checkpoint.save=true")
     out = tmp_path / "loc"
-    run = Slamkit(*tum, "mode=localize", f"map={tmp_path / 'map'}", "dataset.max_frames=8", "progress=false",
+    run = Slamkit(*tum, "mode=localize", f"map={tmp_path / 'map'}", "dataset.max_frames=8", "output.progress=false",
                   f"hydra.run.dir={out}", cwd=tmp_path, pause_at="stream@3")
     run.wait_for("slamkit: paused at stream@3")
     run.send(signal.SIGTERM)

@@ -1,6 +1,6 @@
 """A bounded delay per frame (issue 47): each frame's delay from arrival to pose in frames.csv
-and its median, p99 and maximum in metrics.json; forced gaps (forced_gap_every,
-forced_gap_length) as a camera that does not wait makes them, and tracking across them."""
+and its median, p99 and maximum in metrics.json; forced gaps (eval.forced_gap_every,
+eval.forced_gap_length) as a camera that does not wait makes them, and tracking across them."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import pytest
 from slamkit.errors import ConfigError
 from slamkit.formats.tum import read_tum_trajectory
 from slamkit.geometry.transforms import invert_pose
-from slamkit.registry.schema import RunConfig
+from slamkit.registry.schema import EvalConfig
 
 from support.commands import run_slamkit
 from support.data import TUM, require_data
@@ -21,7 +21,7 @@ from support.data import TUM, require_data
 pytestmark = pytest.mark.slow  # every test here starts the slamkit command
 
 SMALL = ("dataset=synthetic", "dataset.num_frames=10", "dataset.width=64", "dataset.height=48", "tracker=gicp",
-         "keyframe=every_n", "keyframe.tracking_every=3", "mapper=none", "progress=false", "eval.plot=false")
+         "keyframe=every_n", "keyframe.tracking_every=3", "mapper=none", "output.progress=false", "output.plot=false")
 
 
 def rows(run) -> list[dict]:
@@ -30,14 +30,15 @@ def rows(run) -> list[dict]:
 
 
 def test_forced_gaps_and_a_delay_per_frame(tmp_path):
-    """forced_gap_every=4 forced_gap_length=2 drops stream positions 4, 5 and 8, 9; every
+    """eval.forced_gap_every=4 eval.forced_gap_length=2 drops stream positions 4, 5 and 8, 9; every
     tracked frame's delay is logged, at least its tracking time, and summarised."""
-    assert [p for p in range(12) if RunConfig(forced_gap_every=4, forced_gap_length=2).in_forced_gap(p)] == [4, 5, 8, 9]
-    with pytest.raises(ConfigError, match="forced_gap_length"):
-        RunConfig(forced_gap_every=4, forced_gap_length=4)
+    gaps = EvalConfig(forced_gap_every=4, forced_gap_length=2)
+    assert [p for p in range(12) if gaps.in_forced_gap(p)] == [4, 5, 8, 9]
+    with pytest.raises(ConfigError, match="eval.forced_gap_length"):
+        EvalConfig(forced_gap_every=4, forced_gap_length=4)
     out = tmp_path / "run"
-    proc = run_slamkit(*SMALL, "forced_gap_every=4", "forced_gap_length=2", f"hydra.run.dir={out}", cwd=tmp_path,
-                       timeout=300)
+    proc = run_slamkit(*SMALL, "eval.forced_gap_every=4", "eval.forced_gap_length=2", f"hydra.run.dir={out}",
+                       cwd=tmp_path, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     table = rows(out)
     assert [int(r["index"]) for r in table if r["note"] == "dropped"] == [4, 5, 8, 9]
@@ -58,7 +59,8 @@ def test_tracking_across_long_gaps_on_tum(tmp_path):
     path = require_data(TUM)
     out = tmp_path / "run"
     proc = run_slamkit("dataset=tum", f"dataset.path={path}", "tracker=gicp", "keyframe=overlap", "mapper=none",
-                       "forced_gap_every=50", "forced_gap_length=20", "progress=false", "eval.plot=false",
+                       "eval.forced_gap_every=50", "eval.forced_gap_length=20", "output.progress=false",
+                       "output.plot=false",
                        f"hydra.run.dir={out}", cwd=tmp_path, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
     table = rows(out)

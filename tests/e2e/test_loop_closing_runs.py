@@ -41,8 +41,9 @@ def test_a_sequential_run_on_real_frames_closes_a_right_loop_lowers_the_ate_and_
     the same trajectory.txt and loops.csv, byte for byte (registration is deterministic)."""
     data = require_data(SEVENSCENES)
     registry = default_registry()
-    base = ["dataset=sevenscenes", f"dataset.path={data}", "dataset.max_frames=260", "mapper=none", "progress=false",
-            "eval.plot=false"]
+    base = ["dataset=sevenscenes", f"dataset.path={data}", "dataset.max_frames=260", "mapper=none",
+            "output.progress=false",
+            "output.plot=false"]
     runs = {}
     for name, closure in (("none", "none"), ("pose_graph", "pose_graph"), ("again", "pose_graph")):
         cfg, names = compose_run([*base, f"loop_closure={closure}"], registry)

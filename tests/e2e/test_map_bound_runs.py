@@ -12,7 +12,8 @@ import pytest
 from support.commands import run_slamkit
 
 LOOP = ["dataset=tum", "dataset.start=120", "dataset.stride=3", "dataset.passes=3",  # 10 frames a pass
-        "keyframe=every_n", "keyframe.tracking_every=2", "final_iterations=0", "progress=false", "eval.plot=false"]
+        "keyframe=every_n", "keyframe.tracking_every=2", "final_iterations=0", "output.progress=false",
+        "output.plot=false"]
 MAPPING = ["mapper=gaussian_splatting", "mapper.resolution_scale=0.25", "mapper.eval_resolution_scale=0.25",
            "mapper.eval_every=5", "mapper.save_images=0"]
 
@@ -40,7 +41,7 @@ def test_a_looped_sequence_stops_growing_the_map_after_the_first_pass(tmp_path, 
     every 2nd frame, training at a quarter resolution: with the default growth the passes after
     the first add at most 10% of what the first added; with every keyframe's Gaussians admitted
     (skip_covered off) they add at least half as much again. Tracking is the same."""
-    run_mode = ["mode=realtime", "fps_limit=30"] if mode == "realtime" else ["iterations_per_frame=2"]
+    run_mode = ["mode=realtime", "realtime.fps_limit=30"] if mode == "realtime" else ["iterations_per_frame=2"]
     bounded, m_bounded = loop_run(tmp_path, tum_path, "bounded", *MAPPING, *run_mode)
     unbounded, m_unbounded = loop_run(tmp_path, tum_path, "unbounded", *MAPPING, "mapper.admission.skip_covered=false",
                                       *run_mode)
@@ -72,7 +73,7 @@ def test_a_looped_sequence_with_mapping_only_keyframes_stops_growing(tmp_path, r
     (measuring new surface against the tracker's target alone, each revisit added ~5,600)."""
     out = tmp_path / "replica"
     proc = run_slamkit("dataset=replica", f"dataset.path={replica_path}", "dataset.passes=9", "mapper=none",
-                       "progress=false", "eval.plot=false", f"hydra.run.dir={out}", cwd=tmp_path,
+                       "output.progress=false", "output.plot=false", f"hydra.run.dir={out}", cwd=tmp_path,
                        env_extra={"OMP_NUM_THREADS": "1"}, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
     frames = list(csv.DictReader(open(out / "frames.csv")))

@@ -20,7 +20,7 @@ def test_cli_run_writes_rendering_metrics_images_and_map(tmp_path):
     proc = run_slamkit(
         "dataset=synthetic", "dataset.num_frames=6", "dataset.width=64", "dataset.height=48",
         "tracker=gicp", "keyframe=every_n", "keyframe.tracking_every=3", "mapper=gaussian_splatting",
-        "final_iterations=4", "mapper.save_images=2", "iterations_per_frame=2", "progress=false",
+        "final_iterations=4", "mapper.save_images=2", "iterations_per_frame=2", "output.progress=false",
         f"hydra.run.dir={out}", cwd=tmp_path, timeout=300,
     )
     assert proc.returncode == 0, proc.stderr[-2000:]

@@ -56,12 +56,12 @@ def test_cli_run_with_the_guard_reports_pruning_and_stays_under_the_cap(tmp_path
         "keyframe=every_n", "keyframe.tracking_every=2", "mapper=gaussian_splatting",
         "mapper.memory_cap.max_gaussians=1000", "mapper.admission.skip_covered=false",
         "final_iterations=2", "mapper.save_images=0", "iterations_per_frame=2", f"mode={mode}",
-        "progress=false", "eval.plot=false", f"hydra.run.dir={out}", cwd=tmp_path, timeout=300,
+        "output.progress=false", "output.plot=false", f"hydra.run.dir={out}", cwd=tmp_path, timeout=300,
     )
     assert proc.returncode == 0, proc.stderr[-2000:]
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["completed"] and metrics["num_keyframes"] == 6
-    assert metrics["pruned_by_memory_guard"] > 0 and metrics["num_gaussians"] <= 1000
+    assert metrics["pruned_by_memory_cap"] > 0 and metrics["num_gaussians"] <= 1000
     sizes = [int(r["num_gaussians"]) for r in csv.DictReader(open(out / "frames.csv"))]
     assert len(sizes) == 12
     if mode == "sequential":  # after every frame; in real time the guard runs in the handover thread

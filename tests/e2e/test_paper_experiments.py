@@ -22,8 +22,8 @@ pytestmark = pytest.mark.slow  # every test here starts the slamkit command
 
 #: Few frames, one mapping step each, a tenth of the resolution, one evaluation frame at a quarter.
 TINY = ["dataset.max_frames=3", "iterations_per_frame=1", "mapper.resolution_scale=0.1", "mapper.eval_every=3",
-        "mapper.eval_resolution_scale=0.25", "mapper.save_images=0", "eval.lpips=off", "eval.plot=false",
-        "checkpoint.save=false", "progress=false"]
+        "mapper.eval_resolution_scale=0.25", "mapper.save_images=0", "eval.lpips=off", "output.plot=false",
+        "checkpoint.save=false", "output.progress=false"]
 
 
 def sweep(experiment: str, tmp_path: Path, *extra: str) -> list[dict]:
@@ -122,7 +122,7 @@ def data_root(tmp_path) -> Path:
 def test_paper_tables_run_each_scene_found_in_both_presets_and_name_the_missing(experiment, found, scenes,
                                                                                data_root, tmp_path):
     jobs = sweep(experiment, tmp_path, f"data_root={data_root}")
-    assert [(j["settings"]["preset"], j["settings"]["fps_limit"]) for j in jobs] == [
+    assert [(j["settings"]["preset"], j["settings"]["realtime.fps_limit"]) for j in jobs] == [
         ("paper", 30.0), ("paper_unlimited", None)]
     assert all(f"scene={found}" in j["overrides"] for j in jobs)
     assert all(j["metrics"]["settings"]["mode"] == "realtime" for j in jobs)

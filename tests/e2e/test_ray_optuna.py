@@ -22,7 +22,7 @@ from support.commands import run_slamkit
 pytestmark = pytest.mark.slow  # every test here starts the slamkit command
 
 GRID = ["tracker=gicp,kiss_icp", "dataset=synthetic", "dataset.num_frames=10", "dataset.width=160",
-        "dataset.height=120", "mapper=none", "progress=false", "eval.plot=false"]
+        "dataset.height=120", "mapper=none", "output.progress=false", "output.plot=false"]
 
 
 def _processes_mentioning(text: str) -> list[str]:
@@ -160,7 +160,8 @@ def test_the_optuna_search_scores_failed_runs_and_finds_the_best(tmp_path):
     pytest.importorskip("optuna", reason="optuna is the optional extra `optuna` (in `test`)")
     sweep = tmp_path / "search"
     proc = run_slamkit("+experiment=search_gicp", "dataset=synthetic", "dataset.num_frames=8", "dataset.width=160",
-                       "dataset.height=120", "progress=false", "eval.plot=false", "hydra/sweeper/sampler=random",
+                       "dataset.height=120", "output.progress=false", "output.plot=false",
+                       "hydra/sweeper/sampler=random",
                        "hydra.sweeper.sampler.seed=0", "hydra.sweeper.n_trials=3",
                        "tracker.max_correspondence_distance=choice(0.05,-1.0)",
                        "keyframe.keyframe_threshold=choice(0.8)", f"hydra.sweep.dir={sweep}",

@@ -26,7 +26,7 @@ from slamkit_plugins.datasets.realsense.sdk import RECORDING_SUFFIXES  # noqa: E
 from support.realsense_writer import TumRecordings, write_tum_recording  # noqa: E402
 
 N = 20
-COMMON = ["mapper=none", "progress=false", "eval.plot=false", "dataset.depth_trunc=3.0", "dataset.prefetch=2"]
+COMMON = ["mapper=none", "output.progress=false", "output.plot=false", "dataset.depth_trunc=3.0", "dataset.prefetch=2"]
 
 
 @pytest.fixture(scope="module")
@@ -54,7 +54,7 @@ def test_a_recording_gives_the_tum_folder_trajectory_sequential_and_in_real_time
     (t_folder, p_folder), m_folder, _ = _run(tmp_path, "folder", "dataset=tum", f"dataset.path={tum_path}",
                                              f"dataset.max_frames={N}")
     gt = f"dataset.groundtruth={tum_path / 'groundtruth.txt'}"
-    for mode in (["mode=sequential"], ["mode=realtime", "fps_limit=30", "drop_frames=false"]):
+    for mode in (["mode=sequential"], ["mode=realtime", "realtime.fps_limit=30", "realtime.drop_frames=false"]):
         (t, p), m, _ = _run(tmp_path, mode[0].split("=")[1], "dataset=realsense", f"dataset.path={recording}", gt,
                             *mode)
         assert m["mode"] == mode[0].split("=")[1] and m["num_frames"] == N and m["dropped_frames"] == 0
@@ -69,7 +69,7 @@ def test_a_recording_gives_the_tum_folder_trajectory_sequential_and_in_real_time
 
 @pytest.mark.slow
 def test_at_its_recorded_pace_a_recording_is_a_live_source_the_viewers_follow(tmp_path, tum_path, recording):
-    """recorded_pace: real time with drop_frames without asking; frames the tracker is busy for
+    """recorded_pace: real time with realtime.drop_frames without asking; frames the tracker is busy for
     are dropped and counted (frames.csv, metrics.json); the frames it tracked reach the rerun
     recording and viser, as a recording's do."""
     pytest.importorskip("rerun", reason="rerun-sdk is the optional extra `viewer`")
@@ -78,7 +78,7 @@ def test_at_its_recorded_pace_a_recording_is_a_live_source_the_viewers_follow(tm
     rrd = tmp_path / "live.rrd"
     (t, _), m, out = _run(tmp_path, "rerun", "dataset=realsense", f"dataset.path={recording}",
                           "dataset.recorded_pace=true", "viewer=rerun", f"viewer.save={rrd}")
-    assert m["mode"] == "realtime" and m["settings"]["drop_frames"] is True
+    assert m["mode"] == "realtime" and m["settings"]["realtime.drop_frames"] is True
     rows = (out / "frames.csv").read_text().splitlines()[1:]
     dropped = sum(row.split(",")[-2] == "dropped" for row in rows)
     assert len(t) == len(rows) == m["num_frames"] <= N and dropped == m["dropped_frames"]
@@ -102,8 +102,9 @@ def test_ctrl_c_ends_a_live_source_with_every_output_written_and_its_frames_repl
     recording = write_tum_recording(tum_path, tmp_path / "long.db3", 90)
     kept, out = tmp_path / "kept", tmp_path / "live"
     run = Slamkit("dataset=realsense", f"dataset.path={recording}", "dataset.recorded_pace=true",
-                  f"dataset.record={kept}", "mapper=gaussian_splatting", "mapper.save_images=0", "progress=false",
-                  "eval.plot=false", f"hydra.run.dir={out}", cwd=tmp_path, pause_at="stream@10",
+                  f"dataset.record={kept}", "mapper=gaussian_splatting", "mapper.save_images=0",
+                  "output.progress=false",
+                  "output.plot=false", f"hydra.run.dir={out}", cwd=tmp_path, pause_at="stream@10",
                   env={"OMP_NUM_THREADS": "1"})
     run.wait_for("slamkit: paused at stream@10")
     run.send(signal.SIGINT)
@@ -122,7 +123,7 @@ def test_ctrl_c_ends_a_live_source_with_every_output_written_and_its_frames_repl
 
 @pytest.mark.slow
 def test_no_camera_is_one_line(tmp_path):
-    proc = run_slamkit("dataset=realsense", "mapper=none", "progress=false", f"hydra.run.dir={tmp_path / 'run'}",
+    proc = run_slamkit("dataset=realsense", "mapper=none", "output.progress=false", f"hydra.run.dir={tmp_path / 'run'}",
                        cwd=tmp_path)
     if "no RealSense camera connected" not in proc.stderr and proc.returncode == 0:
         pytest.skip("a RealSense camera is connected here")

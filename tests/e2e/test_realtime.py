@@ -15,7 +15,7 @@ pytestmark = pytest.mark.slow  # every test here starts the slamkit command
 
 SMALL = ("dataset=synthetic", "dataset.num_frames=10", "dataset.width=64", "dataset.height=48", "tracker=gicp",
          "keyframe=every_n", "keyframe.tracking_every=3", "mapper=gaussian_splatting", "mapper.save_images=0",
-         "progress=false", "eval.plot=false")
+         "output.progress=false", "output.plot=false")
 
 
 def test_refinement_is_the_modes_choice_unless_given():
@@ -30,8 +30,8 @@ def test_realtime_trains_after_the_stream_only_when_asked(tmp_path, final, steps
     extra = () if final is None else (f"final_iterations={final}",)
     # mapping at tracking's priority: at `idle` (the default) or `low` a busy test machine may
     # leave it no step in a stream this short
-    proc = run_slamkit(*SMALL, "mode=realtime", "mapping_priority=same", *extra, f"hydra.run.dir={out}", cwd=tmp_path,
-                       timeout=300)
+    proc = run_slamkit(*SMALL, "mode=realtime", "realtime.mapping_priority=same", *extra, f"hydra.run.dir={out}",
+                       cwd=tmp_path, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["mapping_priority"] == "same" and metrics["mapping_cpu_wait_s"] >= 0

@@ -15,7 +15,7 @@ from support.commands import run_slamkit
 def test_third_party_plugin_runs_from_the_cli_with_its_config(plugin_dir, tmp_path):
     out = tmp_path / "run"
     env = {"PYTHONPATH": str(plugin_dir)}
-    proc = run_slamkit("tracker=still", "tracker.offset=0.5", "dataset.num_frames=8", "progress=false",
+    proc = run_slamkit("tracker=still", "tracker.offset=0.5", "dataset.num_frames=8", "output.progress=false",
                        f"hydra.run.dir={out}", cwd=tmp_path, env_extra=env)
     assert proc.returncode == 0, proc.stderr
     lines = (out / "trajectory.txt").read_text().splitlines()

@@ -21,7 +21,8 @@ def test_rosbag_run_gives_the_tum_folder_run_poses(tmp_path, tum_path):
     """The same G-ICP run on the folder and on a ROS1 bag of its frames: identical poses and ATE."""
     n = 20
     bag = write_tum_bag(tum_path, tmp_path / "fr1.bag", n)
-    common = ["mapper=none", "progress=false", "eval.plot=false", "dataset.depth_trunc=3.0", "dataset.prefetch=2"]
+    common = ["mapper=none", "output.progress=false", "output.plot=false", "dataset.depth_trunc=3.0",
+              "dataset.prefetch=2"]
     runs = {}
     for name, args in {
         "folder": ["dataset=tum", f"dataset.path={tum_path}", f"dataset.max_frames={n}"],
@@ -55,7 +56,7 @@ def test_bad_bags_exit_2_with_one_line(tmp_path, tum_path, how, message):
     else:
         write_tum_bag(tum_path, path, 2, image_topics=how != "no_images",
                       depth_size=(320, 240) if how == "sizes" else None)
-    proc = run_slamkit("dataset=rosbag", f"dataset.path={path}", "mapper=none", "progress=false",
+    proc = run_slamkit("dataset=rosbag", f"dataset.path={path}", "mapper=none", "output.progress=false",
                        f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()

@@ -80,7 +80,7 @@ def test_a_completed_run_says_so_and_takes_peak_memory_after_the_evaluation(tmp_
     site = make_plugin_dist(tmp_path / "site", "slamkit-hungry-mapper", {"hungry_mapper": HUNGRY_MAPPER},
                             {"hungry": "hungry_mapper"})
     out = tmp_path / "run"
-    proc = run_slamkit("dataset.num_frames=8", "mapper=hungry", "progress=false", f"hydra.run.dir={out}",
+    proc = run_slamkit("dataset.num_frames=8", "mapper=hungry", "output.progress=false", f"hydra.run.dir={out}",
                        cwd=tmp_path, env_extra={"PYTHONPATH": str(site)})
     assert proc.returncode == 0, proc.stderr[-3000:]
     metrics = _metrics(out)
@@ -131,7 +131,7 @@ def slamkit_plugins():
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_a_signal_during_startup_is_one_line_and_status_128_plus_its_number(sig, tmp_path):
     out = tmp_path / "run"
-    run = Slamkit("progress=false", f"hydra.run.dir={out}", cwd=tmp_path, pause_at="startup")
+    run = Slamkit("output.progress=false", f"hydra.run.dir={out}", cwd=tmp_path, pause_at="startup")
     run.wait_for("slamkit: paused at startup")
     run.send(sig)
     code, stdout, stderr = run.finish()
@@ -144,7 +144,7 @@ def test_a_signal_during_startup_is_one_line_and_status_128_plus_its_number(sig,
 @pytest.mark.parametrize("delay_s", [1.0, 2.5])
 def test_sigint_while_plugins_load_prints_no_traceback(delay_s, tmp_path):
     """No hook: SIGINT at a fixed time after the start, while torch and the plugins import."""
-    run = Slamkit("progress=false", f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
+    run = Slamkit("output.progress=false", f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
     time.sleep(delay_s)
     run.send(signal.SIGINT)
     code, stdout, stderr = run.finish()
@@ -158,8 +158,8 @@ def test_sigint_while_plugins_load_prints_no_traceback(delay_s, tmp_path):
 @pytest.mark.slow
 def test_a_run_that_tracks_no_frame_fails_with_no_ate(tmp_path):
     out = tmp_path / "run"
-    proc = run_slamkit("dataset.num_frames=10", "dataset.depth_trunc=1e-6", "progress=false", f"hydra.run.dir={out}",
-                       cwd=tmp_path)
+    proc = run_slamkit("dataset.num_frames=10", "dataset.depth_trunc=1e-6", "output.progress=false",
+                       f"hydra.run.dir={out}", cwd=tmp_path)
     assert proc.returncode == 3, proc.stdout + proc.stderr[-3000:]
     assert "ATE RMSE not reported" in proc.stdout and "(failed: tracking failed: no frame tracked" in proc.stdout
     metrics = _metrics(out)
@@ -177,7 +177,7 @@ def test_losing_more_than_max_lost_fraction_fails_the_run(tum_path, tmp_path):
     rgb = [line.split()[1] for line in (seq / "rgb.txt").read_text().splitlines()]
     for i in (3, 5, 7, 9):
         (seq / rgb[i]).write_bytes(b"not a png")
-    args = ("dataset=tum", f"dataset.path={seq}", "dataset.on_error=skip", "mapper=none", "progress=false")
+    args = ("dataset=tum", f"dataset.path={seq}", "dataset.on_error=skip", "mapper=none", "output.progress=false")
     failed = run_slamkit(*args, "eval.max_lost_fraction=0.25", f"hydra.run.dir={tmp_path / 'strict'}", cwd=tmp_path)
     assert failed.returncode == 3, failed.stderr[-3000:]
     metrics = _metrics(tmp_path / "strict")
@@ -191,7 +191,7 @@ def test_losing_more_than_max_lost_fraction_fails_the_run(tum_path, tmp_path):
 @pytest.mark.slow
 def test_a_sweep_goes_on_past_a_failed_run_and_the_report_keeps_it_apart(tmp_path):
     sweep = tmp_path / "sweep"
-    proc = run_slamkit("-m", "dataset.depth_trunc=1e-6,5", "dataset.num_frames=8", "progress=false",
+    proc = run_slamkit("-m", "dataset.depth_trunc=1e-6,5", "dataset.num_frames=8", "output.progress=false",
                        f"hydra.sweep.dir={sweep}", cwd=tmp_path)
     assert proc.returncode == 3, proc.stderr[-3000:]
     assert proc.stderr.strip().splitlines()[-1].startswith("slamkit: error: tracking failed in 1 of the sweep's runs: ")
@@ -241,7 +241,7 @@ def test_a_full_disk_while_writing_the_map_keeps_the_rest_and_says_so(tmp_path, 
 def test_a_full_disk_for_every_file_is_still_one_line(tmp_path, monkeypatch, capsys):
     out = tmp_path / "run"
     _fail_fsync_of(monkeypatch, None)
-    code, stdout, stderr = slamkit_in_process(monkeypatch, capsys, "dataset.num_frames=5", "progress=false",
+    code, stdout, stderr = slamkit_in_process(monkeypatch, capsys, "dataset.num_frames=5", "output.progress=false",
                                                f"hydra.run.dir={out}")
     assert code == 1 and "Traceback" not in stderr
     assert stderr.strip().splitlines()[-1] == (f"slamkit: error: could not write {out / 'camera.json'} (and 3 more): "
@@ -265,7 +265,7 @@ def test_a_file_size_limit_keeps_the_small_files(tmp_path):
         resource.setrlimit(resource.RLIMIT_FSIZE, (64 * 1024, 64 * 1024))
 
     exe = Path(sys.executable).with_name("slamkit")
-    proc = subprocess.run([str(exe), *tiny(mapper__save_images=0), "eval.plot=false", f"hydra.run.dir={out}"],
+    proc = subprocess.run([str(exe), *tiny(mapper__save_images=0), "output.plot=false", f"hydra.run.dir={out}"],
                           cwd=tmp_path, capture_output=True, text=True, preexec_fn=limit, timeout=600)
     assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr[-3000:]
     last = proc.stderr.strip().splitlines()[-1]
@@ -387,7 +387,7 @@ def test_a_run_that_fails_after_the_stream_writes_a_checkpoint_that_resumes(tmp_
                             {"failing_finish": "failing_finish"})
     env = {"PYTHONPATH": str(site)}
     out = tmp_path / "run"
-    proc = run_slamkit("dataset.num_frames=8", "mapper=failing_finish", "progress=false", f"hydra.run.dir={out}",
+    proc = run_slamkit("dataset.num_frames=8", "mapper=failing_finish", "output.progress=false", f"hydra.run.dir={out}",
                        cwd=tmp_path, env_extra=env)
     assert proc.returncode != 0 and "finish broke" in proc.stderr.strip().splitlines()[-1]
     assert _metrics(out)["status"] == "failed"

@@ -71,17 +71,17 @@ def test_with_the_optimised_geometry_the_trajectory_leaves_the_tracking_only_one
 
 @pytest.mark.slow
 def test_realtime_mapping_run_tracks_as_tracking_only_through_the_cli(tmp_path):
-    """`mode=realtime fps_limit=30`: the mapping thread trains while frames are tracked; the
+    """`mode=realtime realtime.fps_limit=30`: the mapping thread trains while frames are tracked; the
     trajectory written is the tracking-only run's, whatever the machine let mapping do."""
     # one scale alignment for both (real time defaults to none, sequential to z_pow): the tracking
     # target is scale-free, but dividing by another median rounds differently (1e-9)
     common = ["dataset=tum", f"dataset.path={require_data(TUM)}", "dataset.max_frames=30", "tracker=gicp",
-              "growth.scale_alignment=z_pow", "progress=false", "eval.plot=false"]
+              "growth.scale_alignment=z_pow", "output.progress=false", "output.plot=false"]
     runs = {"none": ["mapper=none"],
             # `low` priority: at `idle` (the default) a busy test machine may leave mapping no CPU
-            "realtime": ["mapper=gaussian_splatting", "mode=realtime", "mapping_priority=low", "fps_limit=30",
-                         "mapper.resolution_scale=0.25",
-                         "mapper.eval_every=100", "mapper.save_images=0"]}
+            "realtime": ["mapper=gaussian_splatting", "mode=realtime", "realtime.mapping_priority=low",
+                         "realtime.fps_limit=30", "mapper.resolution_scale=0.25", "mapper.eval_every=100",
+                         "mapper.save_images=0"]}
     for name, args in runs.items():
         proc = run_slamkit(*common, *args, f"hydra.run.dir={tmp_path / name}", cwd=tmp_path, timeout=300)
         assert proc.returncode == 0, proc.stderr[-2000:]

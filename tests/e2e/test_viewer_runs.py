@@ -23,7 +23,7 @@ def test_rerun_records_a_tum_run_to_rrd(tmp_path, tum_path):
     proc = run_slamkit(
         "dataset=tum", f"dataset.path={tum_path}", "dataset.max_frames=8", "mapper=gaussian_splatting",
         "iterations_per_frame=1", "final_iterations=0", "mapper.eval_every=100", "mapper.save_images=0",
-        "viewer=rerun", f"viewer.save={rrd}", "viewer.render_every=4", "viewer.map_every=4", "progress=false",
+        "viewer=rerun", f"viewer.save={rrd}", "viewer.render_every=4", "viewer.map_every=4", "output.progress=false",
         f"hydra.run.dir={out}", cwd=tmp_path, env_extra={"OMP_NUM_THREADS": "1"}, timeout=300,
     )
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -45,7 +45,7 @@ def test_rerun_records_a_tum_run_to_rrd(tmp_path, tum_path):
 def test_default_viewer_is_none_and_rerun_defaults_to_the_run_folder(tmp_path):
     pytest.importorskip("rerun", reason="rerun-sdk is the optional extra `viewer`")
     common = ["dataset=synthetic", "dataset.num_frames=4", "dataset.width=64", "dataset.height=48", "mapper=none",
-              "progress=false", "eval.plot=false"]
+              "output.progress=false", "output.plot=false"]
     proc = run_slamkit(*common, f"hydra.run.dir={tmp_path}/plain", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]
     hydra_cfg = yaml.safe_load((tmp_path / "plain/.hydra/hydra.yaml").read_text())
@@ -94,7 +94,7 @@ def test_a_failing_viewer_warns_and_the_run_goes_on(tmp_path):
                             {"broken": "broken_viewer"})
     out = tmp_path / "run"
     proc = run_slamkit("dataset=synthetic", "dataset.num_frames=5", "dataset.width=64", "dataset.height=48",
-                       "mapper=none", "viewer=broken", "progress=false", "eval.plot=false",
+                       "mapper=none", "viewer=broken", "output.progress=false", "output.plot=false",
                        f"hydra.run.dir={out}", cwd=tmp_path, env_extra={"PYTHONPATH": str(site)})
     assert proc.returncode == 0, proc.stderr[-2000:]
     said = proc.stdout + proc.stderr

@@ -21,7 +21,7 @@ def test_a_replica_run_with_viser_exits_after_its_last_frame(tmp_path, replica_p
     out = tmp_path / "run"
     proc = run_slamkit("dataset=replica", f"dataset.path={replica_path}", "dataset.max_frames=6",
                        "mapper=gaussian_splatting", "iterations_per_frame=2", "final_iterations=0",
-                       "mapper.eval_every=100", "mapper.save_images=0", "progress=false", "viewer=viser",
+                       "mapper.eval_every=100", "mapper.save_images=0", "output.progress=false", "viewer=viser",
                        "viewer.port=0", "viewer.splat_keyframes=1", "viewer.render_every=2", f"hydra.run.dir={out}",
                        cwd=tmp_path, env_extra={"OMP_NUM_THREADS": "1"}, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -42,7 +42,7 @@ def test_keep_serving_serves_the_page_after_the_run_until_sigterm(tmp_path):
 
     out = tmp_path / "run"
     cmd = [str(Path(sys.executable).with_name("slamkit")), "dataset=synthetic", "dataset.num_frames=4",
-           "dataset.width=64", "dataset.height=48", "mapper=none", "progress=false", "eval.plot=false",
+           "dataset.width=64", "dataset.height=48", "mapper=none", "output.progress=false", "output.plot=false",
            "viewer=viser", "viewer.port=0", "viewer.keep_serving=true", f"hydra.run.dir={out}"]
     proc = subprocess.Popen(cmd, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
                             env=dict(os.environ, OMP_NUM_THREADS="1"))

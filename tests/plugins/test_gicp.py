@@ -460,7 +460,7 @@ def test_a_prediction_over_a_long_gap_is_capped():
 def test_a_frame_budget_stops_the_fallbacks():
     """The sudden stop of test_fallback_to_previous_pose_after_a_sudden_stop with a frame budget
     already spent: the first alignment fails, no fallback starts, the frame is lost rather than late. The
-    defaults bound a frame where the input does not wait (real time with drop_frames), not where it waits."""
+    defaults bound a frame where the input does not wait (real time with realtime.drop_frames), not where it waits."""
     frame = make_frame(POSE)
     gmap = map_from_frame(frame, POSE)
     tracker = GICPTracker(tight_config(max_correspondence_distance=0.03, min_correspondences=4000,

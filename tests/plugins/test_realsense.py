@@ -140,11 +140,11 @@ def test_record_refuses_a_folder_holding_a_recording(recording, tmp_path):
 def test_a_live_camera_runs_in_real_time_with_drops_unless_told():
     """Composing the config opens no camera: dataset=realsense without a path is live."""
     cfg, _ = compose_run(["dataset=realsense"])
-    assert cfg.dataset.live() and cfg.mode is Mode.realtime and cfg.drop_frames
-    cfg, _ = compose_run(["dataset=realsense", "mode=sequential", "drop_frames=false"])
-    assert cfg.mode is Mode.sequential and not cfg.drop_frames
+    assert cfg.dataset.live() and cfg.mode is Mode.realtime and cfg.realtime.drop_frames
+    cfg, _ = compose_run(["dataset=realsense", "mode=sequential", "realtime.drop_frames=false"])
+    assert cfg.mode is Mode.sequential and not cfg.realtime.drop_frames
     cfg, _ = compose_run(["dataset=realsense", "dataset.path=x.db3"])
-    assert not cfg.dataset.live() and cfg.mode is Mode.sequential and not cfg.drop_frames
+    assert not cfg.dataset.live() and cfg.mode is Mode.sequential and not cfg.realtime.drop_frames
 
 
 def test_start_and_stride_select_a_live_sources_frames(recording):

@@ -21,7 +21,7 @@ from slamkit.cli import main as slamkit_cli
 #: its checkpoint written.
 TINY = {"dataset": "synthetic", "dataset.num_frames": 6, "dataset.width": 64, "dataset.height": 48,
         "keyframe": "every_n", "keyframe.tracking_every": 3, "mapper": "gaussian_splatting", "final_iterations": 4,
-        "mapper.save_images": 2, "iterations_per_frame": 2, "progress": "false",
+        "mapper.save_images": 2, "iterations_per_frame": 2, "output.progress": "false",
         "checkpoint.save": "true"}
 
 

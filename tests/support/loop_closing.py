@@ -126,9 +126,9 @@ def loop_registry():
 
 
 def run_shifted(registry, out: Path, *overrides: str) -> dict:
-    cfg, names = compose_run(["dataset.num_frames=30", "mapper=none", "loop_closure=shifting", "progress=false",
+    cfg, names = compose_run(["dataset.num_frames=30", "mapper=none", "loop_closure=shifting", "output.progress=false",
                               "checkpoint.save=true",
-                              "eval.plot=false", *overrides], registry)
+                              "output.plot=false", *overrides], registry)
     return pipeline.run(cfg, registry, names, out)
 
 

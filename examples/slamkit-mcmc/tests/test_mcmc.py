@@ -229,7 +229,7 @@ def test_slamkit_runs_mcmc_on_replica(tmp_path):
          "mapper=gaussian_splatting", "mapper/strategy=mcmc", "mapper.strategy.refine_every=10",
          "iterations_per_frame=5",
          "final_iterations=20", "mapper.resolution_scale=0.25", "mapper.eval_every=3",
-         "mapper.save_images=0", "progress=false", f"hydra.run.dir={out}"],
+         "mapper.save_images=0", "output.progress=false", f"hydra.run.dir={out}"],
         cwd=tmp_path, capture_output=True, text=True, timeout=600, env=dict(os.environ, OMP_NUM_THREADS="1"),
     )
     assert proc.returncode == 0, proc.stdout + proc.stderr

@@ -74,7 +74,7 @@ def test_slamkit_runs_p2plane_on_tum(tmp_path):
     slamkit = Path(sys.executable).with_name("slamkit")
     proc = subprocess.run(
         [str(slamkit), "tracker=p2plane", "dataset=tum", f"dataset.path={TUM}", "dataset.max_frames=30",
-         "mapper=none", "progress=false", f"hydra.run.dir={out}"],
+         "mapper=none", "output.progress=false", f"hydra.run.dir={out}"],
         cwd=tmp_path, capture_output=True, text=True, timeout=600,
     )
     assert proc.returncode == 0, proc.stdout + proc.stderr

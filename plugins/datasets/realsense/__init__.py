@@ -4,7 +4,7 @@
 
 Live: the device's own colour intrinsics and depth scale, depth aligned to colour by the SDK, the
 device's timestamps, the resolution and rate asked for (`dataset.width/height/fps`), the camera
-picked by `dataset.serial` among several; the run is real time with drop_frames unless the
+picked by `dataset.serial` among several; the run is real time with realtime.drop_frames unless the
 command line says otherwise, and Ctrl-C ends it with its outputs written. `dataset.record=DIR`
 keeps the frames in the TUM layout. docs/datasets.md, "`realsense`: a RealSense camera, live or
 recorded". Modules: `sdk` (the library: cameras, a pipeline, frame sets), `capture` (a live

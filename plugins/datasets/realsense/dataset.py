@@ -214,7 +214,7 @@ class RealSenseDataset(Dataset):
 
     def arrival(self, i: int) -> float | None:
         """Live: time.perf_counter() seconds when frame i of the run (raw frame start + i * stride)
-        was taken from the camera (None: not yet). A recording: None (the run paces it, `fps_limit`)."""
+        was taken from the camera (None: not yet). A recording: None (the run paces it, `realtime.fps_limit`)."""
         return None if self.capture is None else self.capture.arrival(self.cfg.start + i * self.cfg.stride)
 
     # -- the Dataset role -------------------------------------------------------------------------

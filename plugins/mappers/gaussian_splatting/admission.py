@@ -11,7 +11,7 @@ from typing import Any, Callable
 
 import torch
 
-from slamkit.config import PluginConfig, RunContext, require
+from slamkit.config import PluginConfig, RunContext, method_setting, require
 from slamkit.map.gaussian_map import GaussianRows
 from slamkit.roles.rendering import RenderOutput
 from slamkit.types import Camera
@@ -33,7 +33,7 @@ class AdmissionConfig(PluginConfig):
     """Which of a keyframe's Gaussians enter the map."""
 
     #: no new Gaussian where the map explains the view, except trackable ones (off: the map grows on every revisit)
-    skip_covered: bool = True
+    skip_covered: bool = method_setting(True)
     #: the test: centres (bounds the map in real time too), render, or either
     coverage: CoverageTest = CoverageTest.centres
     #: input pixels; the centres test's disc has radius cell / sqrt(2) (null: the dataset's tracking pixel stride)

@@ -15,7 +15,6 @@ import numpy as np
 
 from slamkit.config import RunContext
 from slamkit.formats.ply import save_ply
-from slamkit.metrics.images import PsnrPixels
 from slamkit.metrics.lpips import lpips_for_evaluation
 from slamkit_plugins.mappers.gaussian_splatting.config import GaussianSplattingConfig
 from slamkit_plugins.mappers.gaussian_splatting.evaluation import evaluate_renders
@@ -31,7 +30,7 @@ class GaussianSplattingMapper(Trainer):
     def __init__(self, cfg: GaussianSplattingConfig, context: RunContext = RunContext(), **parts: Any):
         super().__init__(cfg, context, **parts)
         scoring = context.scoring
-        self.psnr_pixels = PsnrPixels(scoring.psnr_pixels)
+        self.psnr_pixels = scoring.psnr_pixels
         self.lpips = lpips_for_evaluation(scoring.lpips, scoring.lpips_backbone, self.gaussian_map.device)
 
     def save_map(self, out_dir) -> list[Path]:

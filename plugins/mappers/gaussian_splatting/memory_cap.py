@@ -60,4 +60,4 @@ class MemoryCap:
         return excess
 
     def metrics(self) -> dict[str, Any]:
-        return {"pruned_by_memory_guard": self.pruned, "memory_guard_prunings": self.prunings}
+        return {"pruned_by_memory_cap": self.pruned, "memory_cap_prunings": self.prunings}

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from slamkit.config import PluginConfig, RunContext, require
+from slamkit.config import PluginConfig, RunContext, method_setting, require
 from slamkit.geometry.transforms import invert_pose
 from slamkit.map.gaussian_map import GaussianRows
 from slamkit.roles.loss import MappingLoss
@@ -57,7 +57,7 @@ class TrainerConfig(PluginConfig):
     """How the trainer trains (its parts have configs of their own)."""
 
     #: training images are the keyframes resized by this factor (null: 0.5, and 0.25 in real time)
-    resolution_scale: float | None = None
+    resolution_scale: float | None = method_setting(None)
     #: a keyframe's first steps (this many) see it at half the training resolution (0: off, the paper's)
     coarse_steps: int = 0
     #: a step trains on a random window of this fraction of the view's width and height (1: the whole view)
@@ -278,8 +278,9 @@ class Trainer(Mapper):
         older = state["strategy"].get("stats", {})
         self.admission.skipped = int(state.get("admission", older).get("skipped_as_covered", 0))
         cap = state.get("memory_cap", older)
-        self.memory_cap.pruned = int(cap.get("pruned_by_memory_guard", 0))
-        self.memory_cap.prunings = int(cap.get("memory_guard_prunings", 0))
+        # a checkpoint before 0.4 names the cap's counters as the memory guard's
+        self.memory_cap.pruned = int(cap.get("pruned_by_memory_cap", cap.get("pruned_by_memory_guard", 0)))
+        self.memory_cap.prunings = int(cap.get("memory_cap_prunings", cap.get("memory_guard_prunings", 0)))
         self.gaussians_added = int(state.get("gaussians_added", 0))  # 0 from a checkpoint older than the counters
         self.strategy_edit.counts.update({k: int(v) for k, v in state.get("strategy_edits", {}).items()})
 

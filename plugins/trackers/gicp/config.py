@@ -14,11 +14,11 @@ import enum
 from dataclasses import dataclass
 
 from slamkit.geometry.gaussians import Regularization
-from slamkit.roles import PluginConfig, RunContext, require, thread_count
+from slamkit.roles import PluginConfig, RunContext, method_setting, require, thread_count
 from slamkit_plugins.trackers.gicp.kernels import Kernels
 
 #: ms: no fallback of a frame starts after this much of its tracking (`frame_budget_ms`) when the
-#: input does not wait (real time with drop_frames: a late frame costs the next ones): the issue's
+#: input does not wait (real time with realtime.drop_frames: a late frame costs the next ones): the issue's
 #: 150 ms bound less the rest of a frame. Where the input waits, a fallback costs latency only and
 #: a cut one costs accuracy on a slow CPU (docs/results.md).
 REALTIME_BUDGET_MS = 100.0
@@ -49,11 +49,11 @@ class GICPConfig(PluginConfig):
     #: neighbours (the point included) of each point's covariance
     knn: int = 10
     #: the covariances' regularisation: ellipse | plane | none (paper Table 5)
-    regularization: Regularization = Regularization.ellipse
+    regularization: Regularization = method_setting(Regularization.ellipse)
     #: the smallest eigenvalue of `plane` regularisation
     plane_eps: float = 1e-3
     #: m^2; with ellipse, a map covariance of smaller median eigenvalue becomes this x I (null: off; reference 1e-3)
-    target_min_median: float | None = None
+    target_min_median: float | None = method_setting(None)
     #: metres (null: the dataset's; reference 0.03 TUM, 0.02 Replica)
     max_correspondence_distance: float | None = None
     #: Levenberg-Marquardt iterations, each finding the correspondences again
@@ -63,21 +63,21 @@ class GICPConfig(PluginConfig):
     #: metres; converged when every entry of the last update's |dt| is below this
     translation_tolerance: float = 5e-4
     #: map Gaussians at or below this opacity are not aligned to (0: all; null: the dataset's, 0.09 TUM, 0.05 Replica)
-    min_target_opacity: float | None = 0.0
+    min_target_opacity: float | None = method_setting(0.0)
     #: the target's means and shapes: entry (as they entered the map) | optimised (the mapper's; reference)
-    target_geometry: TargetGeometry = TargetGeometry.entry
+    target_geometry: TargetGeometry = method_setting(TargetGeometry.entry)
     #: where the optimisation starts: previous (pose) | constant_velocity (the last motion applied again)
-    initial_guess: InitialGuess = InitialGuess.constant_velocity
+    initial_guess: InitialGuess = method_setting(InitialGuess.constant_velocity)
     #: fewer valid trackable depth points: the frame is lost
     min_points: int = 100
     #: fewer matched points in an iteration: the frame is lost
     min_correspondences: int = 50
     #: a first alignment that fails or slides is run again from the previous pose (more matched points wins)
-    fallback_to_previous: bool = True
+    fallback_to_previous: bool = method_setting(True)
     #: an alignment slides when it ends over this x max_correspondence_distance (RMS; <= 2x after drops) from its start
     fallback_slide: float = 2.0
     #: a first alignment that did not converge (matched, not slid) is tried again too (null: yes, in real time no)
-    retry_unconverged: bool | None = None
+    retry_unconverged: bool | None = method_setting(None)
     #: an alignment back within the tolerances of where it was 2-6 iterations before stops (null: in real time)
     stop_stalled: bool | None = None
     #: after dropped frames the prediction spans at most this many frame intervals of the last motion
@@ -88,10 +88,10 @@ class GICPConfig(PluginConfig):
     min_matched_ratio: float = 0.8
     #: metres: when no alignment is trusted, FPFH + RANSAC registration to the map at this voxel, then G-ICP (0: off)
     relocalize_voxel: float = 0.05
-    #: ms from a frame's start: no fallback (nor its iterations) starts after it (null: 100 with drop_frames; 0: none)
+    #: ms from a frame's start: no fallback (nor its iterations) starts after it (null: 100 where frames drop; 0: none)
     frame_budget_ms: float | None = None
     #: a first alignment that fails or slides is also tried coarse to fine, from this x the distance (1: off)
-    coarse_factor: float = 3.0
+    coarse_factor: float = method_setting(3.0)
     #: Levenberg-Marquardt's initial damping, relative to the normal matrix's largest diagonal entry
     lm_lambda: float = 1e-9
     #: damped steps tried per iteration before giving up on a cost decrease

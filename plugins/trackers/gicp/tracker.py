@@ -104,7 +104,7 @@ class GICPTracker(Tracker):
     def predict(self, frame_index: int | None = None) -> np.ndarray:
         """The pose the optimisation starts from (camera-to-world) for the frame of dataset index
         `frame_index`. With constant velocity, the last motion is taken once per frame interval
-        since the last frame: after frames were dropped (`drop_frames`) the prediction goes as
+        since the last frame: after frames were dropped (`realtime.drop_frames`) the prediction goes as
         far as the camera went (without it, the alignment starts a few motions short and needs
         more iterations and fallbacks, which makes the next frame late in turn)."""
         return self._predicted(self._intervals(frame_index))

@@ -20,7 +20,16 @@ import torch
 
 from slamkit.errors import ConfigError
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import MappingLoss, PluginConfig, RenderOutput, RunContext, TrainingView, require, thread_count
+from slamkit.roles import (
+    MappingLoss,
+    PluginConfig,
+    RenderOutput,
+    RunContext,
+    TrainingView,
+    method_setting,
+    require,
+    thread_count,
+)
 from slamkit_plugins.mappers.gaussian_splatting.loss import fused_rgbd_loss as rgbd
 
 
@@ -59,7 +68,7 @@ class L1SSIMDepthConfig(PluginConfig):
     #: the compiled kernel's threads (0: every CPU this process may use)
     num_threads: int = thread_count(0)
     #: pixels without depth: ignore (not counted) | zero (counted, depth 0; the reference code's, torch only)
-    pixels_without_depth: PixelsWithoutDepth = PixelsWithoutDepth.ignore
+    pixels_without_depth: PixelsWithoutDepth = method_setting(PixelsWithoutDepth.ignore)
 
     def validate(self) -> None:
         for name in ("weight_l1", "weight_ssim", "weight_depth"):

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import torch
 
 from slamkit.plugin import PluginSpec, hookimpl
-from slamkit.roles import MapEdit, RunContext, StepInfo, Strategy, StrategyConfig, require
+from slamkit.roles import MapEdit, RunContext, StepInfo, Strategy, StrategyConfig, method_setting, require
 
 
 @dataclass
@@ -18,13 +18,13 @@ class PruneConfig(StrategyConfig):
     """GS-ICP SLAM's pruning schedule."""
 
     #: training steps between prunings (0: never)
-    prune_every: int = 200
+    prune_every: int = method_setting(200)
     #: prune Gaussians less opaque than this
     prune_min_opacity: float = 0.005
     #: metres; prune Gaussians whose largest standard deviation exceeds it (null: the dataset's max_gaussian_scale)
     max_scale: float | None = None
     #: prune once more after the last training step (the reference code does not)
-    prune_at_finish: bool = True
+    prune_at_finish: bool = method_setting(True)
 
     def validate(self) -> None:
         super().validate()
