@@ -49,7 +49,7 @@ import numpy as np
 
 from slamkit.cli.bench import markdown_table
 from slamkit.geometry import invert_pose, nearest_rotation, se3_exp, transform_points
-from slamkit.geometry.registration import import_open3d
+from slamkit.geometry.registration import refine
 from slamkit.metrics.trajectory import ate
 from slamkit.registry.compose import compose_run
 from slamkit.registry.discovery import default_registry
@@ -218,17 +218,13 @@ def corrected_ate(seq: TrackedSequence, keyframe_poses: np.ndarray) -> float:
 
 
 def gicp_from_odometry(geo: Geometry, cfg):
-    """measure(q, m, odometry) for with_gt_loops: open3d's G-ICP of q's cloud in m's from
-    odometry's pose (each pair registered once)."""
-    reg = import_open3d().pipelines.registration
+    """measure(q, m, odometry) for with_gt_loops: G-ICP of q's cloud in m's from odometry's pose
+    (`slamkit.geometry.registration.refine`; each pair registered once)."""
     found: dict[tuple[int, int], np.ndarray] = {}
 
     def measure(q: int, m: int, start: np.ndarray) -> np.ndarray:
         if (q, m) not in found:
-            result = reg.registration_generalized_icp(geo.clouds[q].cloud, geo.clouds[m].cloud, cfg.voxel, start,
-                                                      reg.TransformationEstimationForGeneralizedICP(),
-                                                      reg.ICPConvergenceCriteria(max_iteration=50))
-            pose = np.asarray(result.transformation, dtype=np.float64).copy()
+            pose = refine(geo.clouds[q], geo.clouds[m], start).pose
             found[(q, m)] = pose if np.isfinite(pose).all() else start
         return found[(q, m)]
 

@@ -18,7 +18,7 @@ Needs open3d (the optional extra `mesh`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -168,11 +168,27 @@ def _register(o3d, source: FeatureCloud, target: FeatureCloud, ransac_iterations
         reg.TransformationEstimationPointToPoint(False), 3,
         [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(distance)],
         reg.RANSACConvergenceCriteria(int(ransac_iterations), float(ransac_confidence)))
+    fine = _refine(o3d, source, target, coarse.transformation, refine_iterations)
+    return replace(fine, ransac_inliers=len(coarse.correspondence_set))
+
+
+def refine(source: FeatureCloud, target: FeatureCloud, initial: np.ndarray, iterations: int = 50) -> Registration:
+    """The pose of `source` in `target`'s frame by generalized ICP alone (distance 1 voxel of
+    `target`), from `initial` (4x4); ransac_inliers 0. Deterministic, as `register`."""
+    if len(source) == 0 or len(target) == 0:
+        return Registration(np.asarray(initial, dtype=np.float64).copy(), 0.0, 0.0, 0)
+    o3d = import_open3d()
+    with single_threaded():
+        return _refine(o3d, source, target, initial, iterations)
+
+
+def _refine(o3d, source: FeatureCloud, target: FeatureCloud, initial: np.ndarray, iterations: int) -> Registration:
+    reg = o3d.pipelines.registration
     fine = reg.registration_generalized_icp(
-        source.cloud, target.cloud, voxel, coarse.transformation,
-        reg.TransformationEstimationForGeneralizedICP(), reg.ICPConvergenceCriteria(max_iteration=refine_iterations))
+        source.cloud, target.cloud, target.voxel, np.asarray(initial, dtype=np.float64),
+        reg.TransformationEstimationForGeneralizedICP(), reg.ICPConvergenceCriteria(max_iteration=iterations))
     return Registration(np.asarray(fine.transformation, dtype=np.float64).copy(), float(fine.fitness),
-                        float(fine.inlier_rmse), len(coarse.correspondence_set))
+                        float(fine.inlier_rmse))
 
 
 def alignment_information(source: FeatureCloud, target: FeatureCloud, pose: np.ndarray,

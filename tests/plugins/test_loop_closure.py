@@ -329,3 +329,38 @@ def test_a_wrong_loop_that_passed_verification_is_kept_out_of_the_pose_graph(kit
     assert not wrong.accepted and wrong.reason.startswith(expected[gate]), wrong.reason
     assert fooled[0] not in {(c.keyframe_id, c.match_id) for c in closure.loops()}
     assert sum(e.kind == "loop" for e in closure.pose_graph().edges) == len(closure.loops())
+
+
+def planes(*faces: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
+    """(N,3) points 1 cm apart on each rectangular face, given as (a corner, its two edges), metres."""
+    def face(corner, u, v):
+        a, b = (g.reshape(-1, 1) for g in np.meshgrid(np.arange(0.0, 1.0, 0.01 / np.linalg.norm(u)),
+                                                       np.arange(0.0, 1.0, 0.01 / np.linalg.norm(v))))
+        return corner + a * u + b * v
+
+    return np.concatenate([face(*f) for f in faces])
+
+
+@pytest.mark.parametrize("scene", ["corner", "corridor"])
+def test_a_loop_whose_pose_can_slide_is_rejected_as_not_unique(scene):
+    """The same scene seen from two poses, registered at the true relative pose: in the corner
+    of three planes G-ICP restarted 2 cm either side along the weakest direction comes back to it
+    (unique); in a corridor (a floor and two walls, nothing across its length) the restarts stay
+    where they started: not unique, and the reason says so."""
+    from slamkit_plugins.loop_closures.pose_graph.verification import normalised_information, sliding
+
+    x, y, z = np.eye(3)
+    faces = {"corner": [(np.zeros(3), x, y), (np.zeros(3), y, z), (np.zeros(3), z, x)],
+             "corridor": [(np.zeros(3), 2 * x, 0.6 * y), (np.zeros(3), 2 * x, 0.6 * z), (0.6 * y, 2 * x, 0.6 * z)]}
+    scene_points = planes(*faces[scene]) + np.array([-0.3, -0.3, 1.0])  # in front of the match's camera
+    truth = se3_exp(np.r_[0.02, -0.03, 0.05, 0.04, -0.03, 0.02])  # the query's pose in the match's frame
+    match = FeatureCloud(scene_points, 0.025)
+    query = FeatureCloud((scene_points - truth[:3, 3]) @ truth[:3, :3], 0.025)  # the same points, query's frame
+    information, _ = normalised_information(query, match, truth, 0.025)
+    _, directions = np.linalg.eigh(information[3:, 3:])
+    reason = sliding(query, match, truth, directions[:, 0], 0.02, 0.015)
+    if scene == "corner":
+        assert reason == ""
+    else:
+        assert abs(directions[:, 0] @ truth[:3, :3].T @ x) > 0.99  # the weakest direction is along the corridor
+        assert reason.startswith("not unique: from ") and "cm along its weakest direction" in reason, reason

@@ -45,11 +45,15 @@ class PoseGraphConfig(PluginConfig):
     #: fraction of the keyframe's downsampled points with a candidate point within a voxel after G-ICP, at least.
     min_fitness: float = 0.62
     #: metres: RMS distance of those point pairs, at most.
-    max_inlier_rmse_m: float = 0.015
+    max_inlier_rmse_m: float = 0.02
     #: a loop's difference from odometry within this chi-square (6 dof) quantile of its and odometry's uncertainty
     correction_confidence: float = 0.999
     #: the loop's point-to-plane information per point along its weakest direction, at least (1/3 a box; 0 a wall)
     min_constraint: float = 0.05
+    #: metres: G-ICP is restarted this far either side of a loop's pose along its weakest direction (0: not)
+    uniqueness_displacement_m: float = 0.02
+    #: metres: those restarts must converge this close to the loop's pose, else it is not unique (the scene slides)
+    uniqueness_tolerance_m: float = 0.015
     #: the pose-graph optimiser: gtsam | open3d.
     backend: Backend = Backend.gtsam
     #: metres: standard deviation of an odometry edge along its best-constrained direction.
@@ -67,9 +71,9 @@ class PoseGraphConfig(PluginConfig):
 
     def validate(self) -> None:
         for name in ("voxel", "search_radius_m", "odometry_sigma_m", "loop_sigma_m", "robust_width",
-                     "max_loop_residual", "max_inlier_rmse_m"):
+                     "max_loop_residual", "max_inlier_rmse_m", "uniqueness_tolerance_m"):
             require(getattr(self, name) > 0, f"loop_closure.{name}", "> 0", getattr(self, name))
-        for name in ("min_path_m", "radius_per_path", "min_constraint"):
+        for name in ("min_path_m", "radius_per_path", "min_constraint", "uniqueness_displacement_m"):
             require(getattr(self, name) >= 0, f"loop_closure.{name}", ">= 0", getattr(self, name))
         require(self.exclude_recent >= 1, "loop_closure.exclude_recent", "an integer >= 1", self.exclude_recent)
         require(0 < self.max_view_angle_deg <= 180, "loop_closure.max_view_angle_deg", "in (0, 180]",
