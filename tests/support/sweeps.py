@@ -4,6 +4,8 @@ composition of a configuration it took (the command's one composition step,
 
 from __future__ import annotations
 
+import logging
+
 from hydra.core.global_hydra import GlobalHydra
 
 from slamkit.cli.hydra_app import composition
@@ -26,6 +28,10 @@ def swept_jobs(*overrides: str, counted: list | None = None) -> list[list[str]]:
 
     registry = default_registry()
     register(registry)  # the run schema and the plugins' configs, as the command does first
+    # composing configures Hydra's logging on this process's stderr (pytest's capture, closed
+    # after the test): the handlers are put back, or a later test's log line is a logging error
+    root = logging.getLogger()
+    handlers, level = root.handlers[:], root.level
     ConfigLoaderImpl.load_configuration = counting
     try:
         sweep = composition(lambda cfg: None, list(overrides), registry, multirun=True)
@@ -33,6 +39,8 @@ def swept_jobs(*overrides: str, counted: list | None = None) -> list[list[str]]:
     finally:
         ConfigLoaderImpl.load_configuration = load
         GlobalHydra.instance().clear()
+        root.handlers[:] = handlers
+        root.setLevel(level)
 
 
 def job_values(jobs: list[list[str]], key: str) -> list[str]:

@@ -27,6 +27,10 @@ log = logging.getLogger(__name__)
 
 #: The raw frames of a live source: without dataset.max_frames it ends on a signal (Ctrl-C).
 LIVE_FRAMES = sys.maxsize
+#: Seconds: a frame set read again has the timestamp it had at start-up (the same file), to this.
+SAME_STAMP_S = 1e-6
+#: Plays from the start again, at most, when the SDK skipped a frame set, before a DataError.
+MAX_RESTARTS = 3
 
 
 @dataclass
@@ -253,11 +257,23 @@ class RealSenseDataset(Dataset):
                 if not self.cfg.live() and self.recorder is not None and k in self.recorder.files:
                     return None
                 self.reader = self._restarted(self.reader)
+            restarts = 0
             while True:
                 frames = self.reader.next(self.cfg.timeout_s)
                 if frames is None:
                     raise DataError(f"{self.where} ended at frame {self._next} of the {len(self.file_stamps)} it "
                                     "had at start-up (expected the same frames on every pass)")
+                expected = self.file_stamps[self._next] if self._next < len(self.file_stamps) else None
+                if expected is not None and abs(frames.timestamp - expected) > SAME_STAMP_S:
+                    # the SDK skipped a frame set (its ROS1 playback did on a busy machine): counted
+                    # on, every later frame would be another's; played again from the start
+                    restarts += 1
+                    if restarts > MAX_RESTARTS:
+                        raise DataError(f"{self.where}: frame set {self._next} came with timestamp "
+                                        f"{frames.timestamp:.6f} s, expected {expected:.6f} s (the SDK skipped frame "
+                                        f"sets on {MAX_RESTARTS + 1} passes)")
+                    self.reader = self._restarted(self.reader)
+                    continue
                 self._next += 1
                 if self._next - 1 == k:
                     break
