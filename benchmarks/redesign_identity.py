@@ -183,7 +183,7 @@ def timing(out: Path, rev: str, repeats: int, out_json: Path, only: tuple[str, .
                        f"hydra.run.dir={run_dir}"]
                 proc = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=out)
                 metrics = json.loads((run_dir / "metrics.json").read_text()) if proc.returncode == 0 else {}
-                flat = {key.rsplit(".", 1)[-1]: v for key, v in _flat_all(metrics).items()}
+                flat = {key.rsplit(".", 1)[-1]: v for key, v in _flat(metrics, timings=True).items()}
                 runs[side].append({k: flat.get(k) for k in TIMING_KEYS} | {"returncode": proc.returncode})
                 print(f"{name} {side} {i}: " + ", ".join(f"{k} {runs[side][-1][k]}" for k in TIMING_KEYS), flush=True)
         medians = {side: {k: statistics.median(r[k] for r in rs if r[k] is not None)
@@ -197,17 +197,6 @@ def timing(out: Path, rev: str, repeats: int, out_json: Path, only: tuple[str, .
     print(out_json)
 
 
-def _flat_all(d: dict, prefix: str = "") -> dict:
-    """Every leaf of a nested dict under its dotted key (timings included)."""
-    flat = {}
-    for key, value in d.items():
-        if isinstance(value, dict):
-            flat.update(_flat_all(value, f"{prefix}{key}."))
-        else:
-            flat[prefix + key] = value
-    return flat
-
-
 def _copy_outputs(src: Path, dest: Path) -> None:
     dest.mkdir(parents=True, exist_ok=True)
     for name in OUTPUTS:
@@ -215,13 +204,14 @@ def _copy_outputs(src: Path, dest: Path) -> None:
             (dest / name).write_bytes((src / name).read_bytes())
 
 
-def _flat(d: dict, prefix: str = "") -> dict:
+def _flat(d: dict, prefix: str = "", timings: bool = False) -> dict:
+    """Every leaf of a nested dict under its dotted key; the timings left out unless `timings`."""
     flat = {}
     for key, value in d.items():
-        if TIMING.search(key):  # a timing, or a dict of them (mapping_step_ms)
+        if not timings and TIMING.search(key):  # a timing, or a dict of them (mapping_step_ms)
             continue
         if isinstance(value, dict):
-            flat.update(_flat(value, f"{prefix}{key}."))
+            flat.update(_flat(value, f"{prefix}{key}.", timings))
         else:
             flat[prefix + key] = value
     return flat
