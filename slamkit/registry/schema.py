@@ -9,6 +9,7 @@ its dataclass (running its `validate`) before any work starts.
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 from dataclasses import dataclass, field, is_dataclass, make_dataclass
 from typing import Any, Sequence
@@ -250,6 +251,14 @@ class RunConfig(PluginConfig):
         require(self.mode is not Mode.localize or bool(self.map), "map",
                 "a run folder or checkpoint file with mode=localize (map=RUN_DIR)", self.map)
         require(self.mode is not Mode.localize or not self.resume, "resume", "null with mode=localize", self.resume)
+
+
+def run_groups() -> dict[str, type]:
+    """The run's nested groups of keys (`growth.*`, `realtime.*`, ...): each RunConfig field that
+    holds a config, its name -> its config class, in declaration order (a new group is a new
+    such field, nothing else)."""
+    return {f.name: f.default_factory for f in dataclasses.fields(RunConfig)
+            if f.default_factory is not dataclasses.MISSING and is_dataclass(f.default_factory)}
 
 
 def run_schema() -> type:

@@ -8,12 +8,13 @@ import dataclasses
 import re
 
 from slamkit.registry import default_registry
+from slamkit.registry.schema import RunConfig, run_groups
 
 from support.data import REPO
 
 REFERENCE = REPO / "docs" / "configuration.md"
-#: Top-level sections of keys that are not a role's (section -> the RunConfig field holding them).
-TOP_SECTIONS = ("growth", "realtime", "eval", "output", "objective", "checkpoint", "localize")
+#: Top-level sections of keys that are not a role's (each the RunConfig field holding them).
+TOP_SECTIONS = tuple(run_groups())
 
 
 def reference_keys() -> list[tuple[str, str, str, str]]:
@@ -34,21 +35,8 @@ def reference_keys() -> list[tuple[str, str, str, str]]:
 
 def config_class(section: str, key: str) -> type:
     """The dataclass that holds `key` of a section (a config nested in the section's: its class)."""
-    from slamkit.map.growth import MapGrowthConfig
-    from slamkit.registry.schema import (
-        CheckpointConfig,
-        EvalConfig,
-        LocalizeConfig,
-        ObjectiveConfig,
-        OutputConfig,
-        RealtimeConfig,
-        RunConfig,
-    )
-
     if section in ("", *TOP_SECTIONS):
-        return {"": RunConfig, "growth": MapGrowthConfig, "realtime": RealtimeConfig, "eval": EvalConfig,
-                "output": OutputConfig, "objective": ObjectiveConfig, "checkpoint": CheckpointConfig,
-                "localize": LocalizeConfig}[section]
+        return {"": RunConfig, **run_groups()}[section]
     group, name = section.split("=")
     cls = default_registry().get(group.split("/")[-1], name).config
     depth = len(group.split("/"))  # the key segments that name the section (mapper.rasterizer.)
