@@ -82,6 +82,8 @@ RIGHT_M, RIGHT_DEG = 0.05, 3.0
 #: A candidate pair is a true revisit when this fraction of the keyframe's downsampled points has a
 #: point of the other keyframe within TRUE_REVISIT_VOXELS voxels under the ground-truth relative pose.
 TRUE_REVISIT_OVERLAP, TRUE_REVISIT_VOXELS = 0.3, 2.0
+#: --coverage: the neighbours of an accepted loop q -> m are m +- this many keyframes (and q-2..q).
+NEIGHBOURS = 8
 #: The wrong loop of --wrong-loop: its relative pose moved by this (rotation vector rad, translation m).
 WRONG_LOOP = np.array([0.0, np.radians(10.0), 0.0, 0.25, 0.0, 0.0])
 
@@ -193,15 +195,18 @@ def geometry(seq: TrackedSequence, gt: np.ndarray, cfg) -> Geometry:
     return Geometry(clouds, overlap)
 
 
+def true_revisits(geo: Geometry) -> list[tuple[int, int]]:
+    """The (keyframe, earlier keyframe) pairs that are true revisits."""
+    return [pair for pair, overlap in geo.overlap.items() if overlap >= TRUE_REVISIT_OVERLAP]
+
+
 def with_gt_loops(odometry: PoseGraph, geo: Geometry, seq: TrackedSequence, gt: np.ndarray, cfg,
-                  measure=None) -> PoseGraph:
-    """`odometry`'s graph with a loop edge at every eligible true revisit: the ground truth's
-    relative pose, or `measure(q, m, odometry's relative pose)`'s."""
+                  measure=None, pairs: list[tuple[int, int]] | None = None) -> PoseGraph:
+    """`odometry`'s graph with a loop edge at every eligible true revisit (or at each of `pairs`):
+    the ground truth's relative pose, or `measure(q, m, odometry's relative pose)`'s."""
     kf = seq.keyframe_frames
     edges = [e for e in odometry.edges if e.kind == "odometry"]
-    for (q, m), overlap in geo.overlap.items():
-        if overlap < TRUE_REVISIT_OVERLAP:
-            continue
+    for q, m in true_revisits(geo) if pairs is None else pairs:
         T = relative_pose(gt[kf[m]], gt[kf[q]])
         if measure is not None:
             T = measure(q, m, relative_pose(seq.poses[kf[m]], seq.poses[kf[q]]))
@@ -248,6 +253,44 @@ def agreement(seq: TrackedSequence, gt: np.ndarray, measure, pairs: list[tuple[i
     return {"pairs": len(rows), **{n: None if v is None else float(v) for n, v in zip(names, median)}}
 
 
+def coverage(closure, geo: Geometry, seq: TrackedSequence, gt: np.ndarray, cfg) -> dict:
+    """What the accepted loops leave to coverage rather than to accuracy: ATE (metres) with the
+    ground truth's relative pose at exactly the accepted pairs (as good as exact loops can do
+    there), and at the true revisits next to them (keyframe q-2..q against m-NEIGHBOURS..m+NEIGHBOURS
+    of each accepted loop q -> m); and those neighbours registered by G-ICP alone
+    (`refine`), started from the accepted loop's pose chained with odometry on both sides (so
+    started within the odometry of a few keyframes of the truth): their errors against the
+    ground truth and the ATE with them as loops."""
+    kf = seq.keyframe_frames
+    odometry_graph = closure.pose_graph()
+    odometry = seq.poses[kf]
+    loops = {(c.keyframe_id, c.match_id): c.relative_pose for c in closure.loops()}
+    revisits = set(true_revisits(geo))
+    found = {}
+    for (q, m), loop in loops.items():
+        for q2 in range(max(q - 2, 0), q + 1):
+            for m2 in range(max(m - NEIGHBOURS, 0), m + NEIGHBOURS + 1):
+                if (q2, m2) in revisits and (q2, m2) not in loops and (q2, m2) not in found:
+                    start = invert_pose(odometry[m2]) @ odometry[m] @ loop @ invert_pose(odometry[q]) @ odometry[q2]
+                    pose = refine(geo.clouds[q2], geo.clouds[m2], start).pose
+                    found[(q2, m2)] = pose if np.isfinite(pose).all() else start
+    errors = np.array([pose_difference(T, relative_pose(gt[kf[m]], gt[kf[q]])) for (q, m), T in found.items()])
+    measured = {**loops, **found}
+
+    def solved(graph: PoseGraph) -> float:
+        return corrected_ate(seq, optimisation.optimise(graph, cfg.backend, cfg.robust_width))
+
+    return {"ate_gt_at_accepted_m": solved(with_gt_loops(odometry_graph, geo, seq, gt, cfg, pairs=list(loops))),
+            "neighbour_pairs": len(found),
+            "ate_gt_with_neighbours_m": solved(with_gt_loops(odometry_graph, geo, seq, gt, cfg,
+                                                             pairs=list(measured))),
+            "ate_gicp_neighbours_m": solved(with_gt_loops(odometry_graph, geo, seq, gt, cfg,
+                                                          lambda q, m, _: measured[(q, m)], list(measured))),
+            "neighbour_error_median_m": float(np.median(errors[:, 0])) if len(found) else None,
+            "neighbour_error_max_m": float(errors[:, 0].max()) if len(found) else None,
+            "neighbours_within_2cm": int((errors[:, 0] <= 0.02).sum()) if len(found) else 0}
+
+
 def feed(seq: TrackedSequence, overrides: list[str], wrong_loop: bool):
     """(the loop closure after every keyframe went through it, every check it made, CPU seconds,
     the (keyframe, match) of the injected wrong loop or None)."""
@@ -278,7 +321,7 @@ def feed(seq: TrackedSequence, overrides: list[str], wrong_loop: bool):
 
 
 def measure(name: str, seq: TrackedSequence, overrides: list[str], wrong_loop: bool, oracle: bool,
-            references: dict) -> dict:
+            references: dict, with_coverage: bool = False) -> dict:
     closure, cfg, checks, cpu, injected = feed(seq, overrides, wrong_loop)
     gt = orthonormal(seq.gt_poses)
     kf = seq.keyframe_frames
@@ -292,7 +335,7 @@ def measure(name: str, seq: TrackedSequence, overrides: list[str], wrong_loop: b
             register = gicp_from_odometry(geo, cfg)
             measured = with_gt_loops(closure.pose_graph(), geo, seq, gt, cfg, register)
             ate_oracle = corrected_ate(seq, optimisation.optimise(measured, cfg.backend, cfg.robust_width))
-            revisits = [pair for pair, overlap in geo.overlap.items() if overlap >= TRUE_REVISIT_OVERLAP]
+            revisits = true_revisits(geo)
             agree = {"true_revisits": agreement(seq, gt, register, revisits),
                      "consecutive_keyframes": agreement(seq, gt, register, [(k, k - 1) for k in range(1, len(kf))])}
         references[key] = (geo, ate_floor, ate_oracle, agree)
@@ -331,6 +374,7 @@ def measure(name: str, seq: TrackedSequence, overrides: list[str], wrong_loop: b
         "optimise_cpu_ms": optimise_ms, "relative_pose_agreement": agree,
         "wrong_loop": None if not wrong_loop else ("none accepted" if injected is None
                                                    else "dropped" if injected not in final else "kept"),
+        "coverage": coverage(closure, geo, seq, gt, cfg) if with_coverage else None,
         "checks": rows,
     }
 
@@ -392,6 +436,8 @@ def main() -> None:
     parser.add_argument("--wrong-loop", action="store_true", help="also run with one injected wrong loop")
     parser.add_argument("--oracle", action="store_true",
                         help="the G-ICP-loops reference: G-ICP at every true revisit (minutes)")
+    parser.add_argument("--coverage", action="store_true",
+                        help="ATE with exact loops at the accepted pairs, and with their neighbours (see coverage)")
     parser.add_argument("--square", action="store_true",
                         help="only the backends on the synthetic square of the tests (one loop after drift)")
     parser.add_argument("--keyframes", type=Path, default=None, help="folder to keep / reuse the tracking runs in")
@@ -415,10 +461,14 @@ def main() -> None:
             for setting in settings:
                 overrides = [*setting, f"loop_closure.backend={backend}"] if backend != "gtsam" else setting
                 for wrong in (False, True) if args.wrong_loop else (False,):
-                    row = measure(name, seq, overrides, wrong, args.oracle, references)
+                    row = measure(name, seq, overrides, wrong, args.oracle, references, args.coverage)
                     row["injected"] = wrong
                     rows.append(row)
                     print_table([row])
+                    if row["coverage"]:
+                        print(f"{name} coverage: " + ", ".join(
+                            f"{k} {100 * v:.2f} cm" if k.endswith("_m") and v is not None else f"{k} {v}"
+                            for k, v in row["coverage"].items()))
     print()
     print_table(rows)
     args.out.parent.mkdir(parents=True, exist_ok=True)
