@@ -24,9 +24,10 @@ resumed run's map. `--tum-frames`, `--sevenscenes-frames` shorten the long ones 
 (the JSON records the counts used).
 
 `timing` is the real-time half of the acceptance: the mapped TUM run at 30 frames/s (with and
-without drop_frames) and 7-Scenes 300-999 with drop_frames (`--cases` picks), the revision's snapshot and the installed slamkit alternated `--repeats`
-times, each run its own process; it prints and writes each side's stream frames/s, mapping steps,
-ATE and PSNR (medians and every run). Timings: run it alone on a quiet machine.
+without drop_frames) and 7-Scenes 300-999 with drop_frames (`--cases` picks), the revision's
+snapshot and the installed slamkit alternated `--repeats` times, each run its own process; it
+prints and writes each side's stream frames/s, mapping steps, ATE and PSNR (medians and every
+run). Timings: run it alone on a quiet machine.
 """
 
 from __future__ import annotations
@@ -159,8 +160,8 @@ REALTIME_CASES = [
     ("tum_realtime30", [*TUM, "mode=realtime", "realtime.fps_limit=30", "mapper=gaussian_splatting"]),
     ("tum_realtime30_drop", [*TUM, "mode=realtime", "realtime.fps_limit=30", "realtime.drop_frames=true",
                              "mapper=gaussian_splatting"]),
-    ("sevenscenes_realtime30_drop", [*SEVENSCENES, "mode=realtime", "realtime.fps_limit=30", "realtime.drop_frames=true",
-                                     "mapper=gaussian_splatting"]),
+    ("sevenscenes_realtime30_drop", [*SEVENSCENES, "mode=realtime", "realtime.fps_limit=30",
+                                     "realtime.drop_frames=true", "mapper=gaussian_splatting"]),
 ]
 TIMING_KEYS = ("stream_fps", "mapping_steps", "ate_rmse_m", "psnr", "dropped_frames")
 
