@@ -20,11 +20,16 @@ class FrameLog:
     """frames.csv: one row per input frame (keyframe kind, lost flag and reason, tracking and
     mapping time in ms, ...), appended as the stream goes and flushed every `flush` call and at
     the end. A log, not written atomically: after a kill its last row may be cut short; a reader
-    drops a last line that has no line end. An OSError names the file."""
+    drops a last line that has no line end. An OSError names the file.
+
+    `iterations` is the mapper's steps in that frame (sequential mode); `tracking_iterations` the
+    tracker's, over all its attempts at the frame, and `fallback` the attempt it kept when not
+    the first (both empty for a tracker that does not report them): where a slow frame's time
+    went."""
 
     COLUMNS = ["index", "timestamp", "keyframe", "lost", "tracking_ms", "mapping_ms", "iterations",
                "correspondence_ratio", "num_gaussians", "rss_mb", "note",
-               "delay_ms"]
+               "delay_ms", "tracking_iterations", "fallback"]
 
     def __init__(self, path: Path, resume_from: int = 0):
         """`resume_from` > 0: extend the log of the run this one resumes, from that frame index
@@ -54,13 +59,14 @@ class FrameLog:
         self._row([frame.index, f"{frame.timestamp:.6f}", step.keyframe.value, int(result.lost),
                    f"{1e3 * step.tracking_time_s:.2f}", f"{1e3 * step.mapping_time_s:.2f}", step.mapping_iterations,
                    _fmt(step.decision.correspondence_ratio), num_gaussians, f"{rss_mb():.1f}",
-                   result.stats.get("lost_reason", ""), "" if delay_s is None else f"{1e3 * delay_s:.2f}"])
+                   result.stats.get("lost_reason", ""), "" if delay_s is None else f"{1e3 * delay_s:.2f}",
+                   result.stats.get("iterations", ""), result.stats.get("fallback", "")])
 
     def unreadable(self, index: int, timestamp: float, error: Exception) -> None:
-        self._row([index, f"{timestamp:.6f}", "none", 1, "", "", 0, "", "", "", f"unreadable: {error}", ""])
+        self._row([index, f"{timestamp:.6f}", "none", 1, "", "", 0, "", "", "", f"unreadable: {error}", "", "", ""])
 
     def dropped(self, frame: Frame) -> None:
-        self._row([frame.index, f"{frame.timestamp:.6f}", "none", 0, "", "", 0, "", "", "", "dropped", ""])
+        self._row([frame.index, f"{frame.timestamp:.6f}", "none", 0, "", "", 0, "", "", "", "dropped", "", "", ""])
 
     def flush(self) -> None:
         self._guard(self._file.flush)

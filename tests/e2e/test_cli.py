@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 
 import numpy as np
@@ -45,6 +46,10 @@ def test_default_run_on_synthetic_prints_ate_and_fps(tmp_path):
     for name in ("trajectory.txt", "frames.csv", "trajectory.png", ".hydra/config.yaml", "slamkit.log"):
         assert (out / name).is_file(), name
     assert "synthetic: 20 frames" in (out / "slamkit.log").read_text()
+    rows = list(csv.DictReader(open(out / "frames.csv")))
+    assert len(rows) == 20 and rows[0]["tracking_iterations"] == "0"  # the first frame: no map to align to
+    assert all(int(r["tracking_iterations"]) >= 1 for r in rows[1:])
+    assert {r["fallback"] for r in rows} <= {"", "previous pose", "coarse to fine", "global registration"}
 
 
 @pytest.mark.parametrize("dataset,fixture,frames", [("tum", "tum_path", 40), ("replica", "replica_path", 20)])
