@@ -7,6 +7,7 @@ camera: exit 2 with one line. The dataset itself: tests/plugins/test_realsense.p
 
 from __future__ import annotations
 
+import csv
 import json
 import signal
 
@@ -79,8 +80,9 @@ def test_at_its_recorded_pace_a_recording_is_a_live_source_the_viewers_follow(tm
     (t, _), m, out = _run(tmp_path, "rerun", "dataset=realsense", f"dataset.path={recording}",
                           "dataset.recorded_pace=true", "viewer=rerun", f"viewer.save={rrd}")
     assert m["mode"] == "realtime" and m["settings"]["realtime.drop_frames"] is True
-    rows = (out / "frames.csv").read_text().splitlines()[1:]
-    dropped = sum(row.split(",")[-2] == "dropped" for row in rows)
+    with open(out / "frames.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    dropped = sum(row["note"] == "dropped" for row in rows)
     assert len(t) == len(rows) == m["num_frames"] <= N and dropped == m["dropped_frames"]
     tracked = m["num_frames"] - m["dropped_frames"]
     assert tracked >= 2
