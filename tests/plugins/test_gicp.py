@@ -665,6 +665,45 @@ def test_after_a_dropped_frame_an_alignment_that_went_as_far_as_the_gap_is_kept(
     assert np.linalg.norm(E[:3, 3]) < 0.005 and rotation_angle_deg(E[:3, :3]) < 0.3
 
 
+def test_a_sliding_alignment_stops_at_the_slide_limit():
+    """The sudden stop of test_fallback_to_previous_pose_after_a_sudden_stop with a 2 cm slide
+    limit: the alignment from the 5 cm wrong prediction slides back to the true pose and the
+    previous pose is tried; with stop_slid (real time) the slide stops once past the limit, in
+    fewer iterations, and the previous pose's alignment is kept."""
+    frame = make_frame(POSE)
+    gmap = map_from_frame(frame, POSE)
+    iterations = {}
+    for stop in (False, True):
+        tracker = GICPTracker(tight_config(fallback_slide=0.1, stop_slid=stop, coarse_factor=1.0,
+                                           initial_guess=InitialGuess.constant_velocity, relocalize_voxel=0.0))
+        tracker.update_target(gmap)
+        tracker.poses = [POSE @ make_pose(so3_exp(np.radians([0, -1.0, 0])), [-0.05, 0, 0]), POSE]
+        result = tracker.track(frame)
+        assert not result.lost and result.stats["retried"] == ["previous pose"], result.stats
+        # stopped midway, the slide is not kept even where it matched as many points
+        assert bool(result.stats.get("slid")) == stop == (result.stats.get("fallback") == "previous pose")
+        E = invert_pose(POSE) @ result.pose
+        assert np.linalg.norm(E[:3, 3]) < 1e-4
+        iterations[stop] = result.stats["iterations"]
+    assert iterations[True] < iterations[False], iterations
+    assert GICPConfig().resolve(RunContext(realtime=True)).stop_slid
+    assert not GICPConfig().resolve(RunContext()).stop_slid
+
+
+def test_rms_travel_is_the_points_rms_displacement():
+    from slamkit_plugins.trackers.gicp.alignment import point_moments, rms_travel
+
+    rng = np.random.default_rng(3)
+    points = rng.normal([0.2, -0.1, 2.0], 0.8, size=(500, 3))
+    for _ in range(5):
+        start = make_pose(so3_exp(rng.normal(0, 0.5, 3)), rng.normal(0, 1, 3))
+        end = start @ make_pose(so3_exp(rng.normal(0, 0.1, 3)), rng.normal(0, 0.05, 3))
+        moved = transform_points(invert_pose(start) @ end, points) - points
+        expected = np.sqrt(np.mean(np.sum(moved ** 2, axis=1)))
+        assert rms_travel(point_moments(points), start, end) == pytest.approx(expected, rel=1e-9)
+    assert rms_travel(point_moments(points), start, start) == pytest.approx(0.0, abs=1e-7)
+
+
 def test_realtime_keeps_an_alignment_that_only_did_not_converge():
     """Two iterations do not converge from 2 cm off; sequential (and unresolved) tries again
     from the other starts, real time keeps the attempt that matched and did not slide."""

@@ -30,6 +30,22 @@ def new_stats() -> dict:
     return {"covariance_s": 0.0, "nn_search_s": 0.0, "solve_s": 0.0, "iterations": 0}
 
 
+def point_moments(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The points' mean (3,) and mean outer product (3, 3), enough for `rms_travel`."""
+    return points.mean(axis=0), points.T @ points / len(points)
+
+
+def rms_travel(moments: tuple[np.ndarray, np.ndarray], start: np.ndarray, end: np.ndarray) -> float:
+    """RMS displacement (metres) of points between two poses, from their `point_moments` (camera
+    frame): with D = start^-1 end = [R t], the mean of |(R - I) p + t|^2 is
+    tr(A S) + 2 t.(R - I) mean + |t|^2, A = (R - I)^T (R - I), S the mean outer product; so an
+    alignment can check it at every iteration without a pass over the points."""
+    mean, second = moments
+    D = invert_pose(start) @ end
+    M, t = D[:3, :3] - np.eye(3), D[:3, 3]
+    return float(np.sqrt(max(np.sum((M.T @ M) * second) + 2.0 * t @ (M @ mean) + t @ t, 0.0)))
+
+
 def orthonormalize(T: np.ndarray) -> np.ndarray:
     """The pose with its rotation block projected onto SO(3) (nearest rotation, by SVD), so
     rounding cannot accumulate through pose products."""
@@ -54,14 +70,15 @@ class Aligner:
         self.max_corr = max_corr
 
     def align(self, target: Target, src: np.ndarray, src_cov: np.ndarray, T0: np.ndarray, stats: dict,
-              max_corr: float | None = None, deadline: float | None = None):
+              max_corr: float | None = None, deadline: float | None = None, max_travel: float | None = None):
         """Levenberg-Marquardt G-ICP from T0. Returns (pose, ok, squared NN distances of the
         last correspondence search (inf where none)).
 
         It stops early, not converged, when it stalls (with `stop_stalled`: a step lands within
         the tolerances of the pose 2 to STALL_PERIOD iterations back, so the iterations left would
-        only go back and forth; stats["stalled"]) or past `deadline` (time.perf_counter()
-        seconds; stats["out_of_time"]).
+        only go back and forth; stats["stalled"]), when a step takes the source points more than
+        `max_travel` metres (RMS, `rms_travel`) from where T0 put them (stats["slid"]) or past
+        `deadline` (time.perf_counter() seconds; stats["out_of_time"]).
 
         Residuals are taken in the body frame: r_i = R^T (mu_i - R p_i - t) with weight
         W_i = (R^T C_t,i R + C_s,i)^-1 = G_i^T G_i (G_i: inverse Cholesky factor; the
@@ -77,6 +94,7 @@ class Aligner:
         idx = None  # the last matches: each search starts from them
         converged = False
         recent = [T0]  # the start and the last accepted poses, to see a stall
+        moments = point_moments(src) if max_travel is not None else None
         for it in range(cfg.max_iterations):
             if deadline is not None and it and time.perf_counter() > deadline:
                 stats["out_of_time"] = True
@@ -129,6 +147,9 @@ class Aligner:
                 break
             if cfg.stop_stalled and self._stalled(recent, T):
                 stats["stalled"] = True
+                break
+            if moments is not None and rms_travel(moments, T0, T) > max_travel:
+                stats["slid"] = True
                 break
         stats["converged"] = bool(converged)
         if not np.isfinite(T).all():

@@ -80,6 +80,8 @@ class GICPConfig(PluginConfig):
     retry_unconverged: bool | None = method_setting(None)
     #: an alignment back within the tolerances of where it was 2-6 iterations before stops (null: in real time)
     stop_stalled: bool | None = None
+    #: a first alignment that moves past the slide limit from its start stops there, slid (null: in real time)
+    stop_slid: bool | None = None
     #: after dropped frames the prediction spans at most this many frame intervals of the last motion
     max_prediction_intervals: float = 4.0
     #: an alignment matching fewer of the trackable points is not trusted: the fallbacks run, else the frame is lost
@@ -147,4 +149,6 @@ class GICPConfig(PluginConfig):
                                retry_unconverged=not context.realtime,
                                # a live camera does not wait: a frame's delay is bounded (issue 47)
                                stop_stalled=context.realtime,
+                               # nor wait for the rest of a slide the fallbacks replace (docs/results.md, stop_slid)
+                               stop_slid=context.realtime,
                                frame_budget_ms=REALTIME_BUDGET_MS if context.drops_frames else 0.0)

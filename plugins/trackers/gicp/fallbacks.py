@@ -5,9 +5,10 @@ retry_unconverged, coarse_factor).
 The first attempt starts from the prediction. When it does not converge (with
 retry_unconverged), loses the frame or slides (ends more than fallback_slide *
 max_correspondence_distance RMS from its start, e.g. after a sudden stop; up to twice that after
-dropped frames, with the intervals the prediction spans), it is run again from the previous
-pose and, with coarse_factor > 1, coarse to fine from the prediction (a motion the prediction
-missed by more than the correspondence distance); the result matching more points is kept.
+dropped frames, with the intervals the prediction spans; with stop_slid it stops there), it is
+run again from the previous pose and, with coarse_factor > 1, coarse to fine from the
+prediction (a motion the prediction missed by more than the correspondence distance); the
+result matching more points is kept.
 An attempt matching too few points (min_matched_fraction; after dropped frames
 min_matched_ratio x the last frame's) is not trusted; when none is, the frame's points are
 registered to the map without a first guess (relocalize_voxel) and aligned from there. No
@@ -21,8 +22,7 @@ import time
 
 import numpy as np
 
-from slamkit.geometry.transforms import invert_pose
-from slamkit_plugins.trackers.gicp.alignment import Aligner, new_stats
+from slamkit_plugins.trackers.gicp.alignment import Aligner, new_stats, point_moments, rms_travel
 from slamkit_plugins.trackers.gicp.config import GICPConfig
 from slamkit_plugins.trackers.gicp.target import Target
 
@@ -34,12 +34,6 @@ log = logging.getLogger(__name__)
 MAX_SLIDE_GROWTH = 2.0
 #: Stats summed over all attempts at a frame.
 _EFFORT = ("nn_search_s", "solve_s", "iterations")
-
-
-def _moved(src: np.ndarray, start: np.ndarray, end: np.ndarray) -> float:
-    """RMS displacement in metres of the source points between two poses."""
-    D = invert_pose(start) @ end
-    return float(np.sqrt(np.mean(np.sum((src @ (D[:3, :3] - np.eye(3)).T + D[:3, 3]) ** 2, axis=1))))
 
 
 def _add_effort(stats: dict, retry: dict) -> None:
@@ -66,38 +60,44 @@ class FallbackPolicy:
         first); intervals: frame intervals the prediction spans (> 1 after dropped frames: the
         slide limit grows with it, as the prediction's error does, up to MAX_SLIDE_GROWTH x);
         deadline: time.perf_counter() seconds after which no fallback, nor an iteration of one,
-        starts (the frame's budget in real time). An attempt matching less than min_matched_fraction of the
-        points, or after dropped frames less than min_matched_ratio x `last_matched` (the last
-        tracked frame's matched fraction), is not trusted (after a long gap, one that converged to a wrong pose:
-        TUM frame 120 after 20 dropped matched 0.61, 84 cm off, where the frames before matched
-        0.93; issue 47): the fallbacks run, and when none is trusted the frame is lost.
+        starts (the frame's budget in real time). An attempt matching less than
+        min_matched_fraction of the points, or after dropped frames less than min_matched_ratio
+        x `last_matched` (the last tracked frame's matched fraction), is not trusted (after a long
+        gap, one converged to a wrong pose; docs/results.md, "Tracking first"): the fallbacks run,
+        and when none is trusted the frame is lost.
         Returns (pose, ok, squared NN distances of the kept attempt's last search)."""
         aligner = self.aligner
-        # the first alignment runs to its end (stop_stalled bounds it): cut short under a busy
-        # CPU it ended unconverged and far off, and the map grew from it
-        pose, ok, sq = aligner.align(target, src, src_cov, predicted, stats)
+        slide_limit = self.cfg.fallback_slide * aligner.max_corr * min(max(1.0, intervals), MAX_SLIDE_GROWTH)
+        moments = point_moments(src)
+        # the first alignment runs to its end, bounded by stop_stalled and stop_slid, not by the
+        # deadline: cut short under a busy CPU it ended unconverged and far off, and the map grew from it
+        pose, ok, sq = aligner.align(target, src, src_cov, predicted, stats,
+                                     max_travel=slide_limit if self.cfg.stop_slid else None)
         # relative to the last frame only after dropped frames: between two consecutive frames the
         # overlap with the map may fall for good (a camera leaving it, until the next keyframe)
         reference = (last_matched or 0.0) if intervals > 1 else 0.0
         self._floor = max(self.cfg.min_matched_fraction, self.cfg.min_matched_ratio * reference)
         ok = ok and self._trusted(sq, stats)
-        slide_limit = self.cfg.fallback_slide * aligner.max_corr * min(max(1.0, intervals), MAX_SLIDE_GROWTH)
-        if ok and (stats["converged"] or not self.retry_unconverged) and _moved(src, predicted, pose) <= slide_limit:
+        slid = rms_travel(moments, predicted, pose) > slide_limit
+        if ok and (stats["converged"] or not self.retry_unconverged) and not slid:
             return pose, ok, sq
-        best = (pose, ok, sq, stats.get("num_correspondences", 0) if ok else -1)
+        # stopped on its way (stop_slid) its pose is anywhere along the slide: any trusted fallback is better
+        matched = 0 if stats.get("slid") else stats.get("num_correspondences", 0)
+        best = (pose, ok, sq, matched if ok else -1)
         for name, start, coarse in self._starts(predicted, previous, target, src, deadline, stats, best[1]):
             if deadline is not None and time.perf_counter() > deadline:
                 stats["out_of_time"] = True
                 break
             retry = new_stats()
             if coarse:
-                start, ok_coarse, _ = aligner.align(target, src, src_cov, start, retry,
+                coarse_stats = new_stats()  # its own: the fine stage's count would overwrite it
+                start, ok_coarse, _ = aligner.align(target, src, src_cov, start, coarse_stats,
                                                     aligner.max_corr * self.cfg.coarse_factor, deadline=deadline)
+                _add_effort(stats, coarse_stats)
                 if not ok_coarse:
-                    _add_effort(stats, retry)
                     continue
             pose2, ok2, sq2 = aligner.align(target, src, src_cov, start, retry, deadline=deadline)
-            if coarse and ok2 and _moved(src, start, pose2) > slide_limit:
+            if coarse and ok2 and rms_travel(moments, start, pose2) > slide_limit:
                 # the fine stage slid away from the coarse alignment: keep the coarse pose
                 pose2, sq2 = start, aligner.match(target, src, start)
                 retry["num_correspondences"] = int(np.isfinite(sq2).sum())
