@@ -40,6 +40,8 @@ class PoseGraphConfig(PluginConfig):
     ransac_iterations: int = 100000
     #: RANSAC's confidence: it stops early once this sure of its best pose.
     ransac_confidence: float = 0.999
+    #: global registrations per candidate, each from its own random choices; the one of highest fitness is checked
+    ransac_restarts: int = 1
     #: feature matches that RANSAC's coarse pose must agree with, at least.
     min_inliers: int = 40
     #: fraction of the keyframe's downsampled points with a candidate point within a voxel after G-ICP, at least.
@@ -83,6 +85,7 @@ class PoseGraphConfig(PluginConfig):
         require(self.max_candidates >= 1, "loop_closure.max_candidates", "an integer >= 1", self.max_candidates)
         require(self.ransac_iterations >= 1, "loop_closure.ransac_iterations", "an integer >= 1",
                 self.ransac_iterations)
+        require(self.ransac_restarts >= 1, "loop_closure.ransac_restarts", "an integer >= 1", self.ransac_restarts)
         require(0 < self.ransac_confidence < 1, "loop_closure.ransac_confidence", "in (0, 1)", self.ransac_confidence)
         require(self.min_inliers >= 3, "loop_closure.min_inliers", "an integer >= 3", self.min_inliers)
         require(0 < self.consistency_confidence < 1, "loop_closure.consistency_confidence", "in (0, 1)",

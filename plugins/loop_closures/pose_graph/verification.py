@@ -1,5 +1,6 @@
 """Geometric verification of a loop candidate: global registration of the keyframe's points in
-the candidate's frame (FPFH + RANSAC, then G-ICP: `slamkit.geometry.registration`), accepted
+the candidate's frame (FPFH + RANSAC, then G-ICP: `slamkit.geometry.registration`; with
+`ransac_restarts`, the highest fitness of several draws), accepted
 only when every figure passes its bound (`PoseGraphConfig`): RANSAC's inliers, G-ICP's fitness
 and inlier RMSE, agreement with odometry within the uncertainty odometry accumulated between the
 two keyframes and the loop's own (a chi-square test: a registration that snapped to a
@@ -24,6 +25,8 @@ from slamkit_plugins.loop_closures.pose_graph.optimisation import chi_square_6_q
 #: not constrain (or a pair with no matched points) keeps a finite uncertainty: 1/sqrt(this) =
 #: ~30 times the edge's sigma.
 INFORMATION_FLOOR = 1e-3
+#: A restart's seed is the candidate's plus this times its number: no other keyframe's (seed + id) meets it.
+RESTART_SEED_STRIDE = 1_000_003
 
 
 def normalised_information(source: FeatureCloud, target: FeatureCloud, pose: np.ndarray,
@@ -73,7 +76,12 @@ def verify(query: FeatureCloud, match: FeatureCloud, odometry: np.ndarray, odome
     odometry_covariance: 6x6, the uncertainty of `odometry` accumulated along the odometry edges
     between them (`slamkit.geometry.pose_graph.chain_covariances`).
     ids: (keyframe id, match id, frame index, match frame index)."""
-    found = register(query, match, cfg.ransac_iterations, cfg.ransac_confidence, seed)
+    # RANSAC's draws decide a long revisit: a pair registers right from some seeds and centimetres to
+    # a metre off from others, and the right pose has the highest fitness (docs/loop_closure.md);
+    # a draw whose RANSAC found too few inliers is last (G-ICP from its identity can fit well)
+    found = max((register(query, match, cfg.ransac_iterations, cfg.ransac_confidence, seed + k * RESTART_SEED_STRIDE)
+                 for k in range(cfg.ransac_restarts)),
+                key=lambda registration: (registration.ransac_inliers >= cfg.min_inliers, registration.fitness))
     if not np.isfinite(found.pose).all():  # G-ICP diverged (degenerate covariances): no pose to check
         failed = LoopCheck(*ids, relative_pose=np.eye(4), fitness=0.0, inliers=found.ransac_inliers,
                            inlier_rmse_m=0.0, correction_m=float("nan"), correction_deg=float("nan"), accepted=False,
