@@ -40,7 +40,7 @@ class PoseGraphConfig(PluginConfig):
     ransac_iterations: int = 100000
     #: RANSAC's confidence: it stops early once this sure of its best pose.
     ransac_confidence: float = 0.999
-    #: global registrations per candidate, each from its own random choices; the one of highest fitness is checked
+    #: global registrations per candidate, each from its own seed; checked: enough RANSAC inliers, highest fitness
     ransac_restarts: int = 1
     #: feature matches that RANSAC's coarse pose must agree with, at least.
     min_inliers: int = 40

@@ -1,6 +1,6 @@
 """Geometric verification of a loop candidate: global registration of the keyframe's points in
 the candidate's frame (FPFH + RANSAC, then G-ICP: `slamkit.geometry.registration`; with
-`ransac_restarts`, the highest fitness of several draws), accepted
+`ransac_restarts`, the best of several draws), accepted
 only when every figure passes its bound (`PoseGraphConfig`): RANSAC's inliers, G-ICP's fitness
 and inlier RMSE, agreement with odometry within the uncertainty odometry accumulated between the
 two keyframes and the loop's own (a chi-square test: a registration that snapped to a

@@ -70,15 +70,17 @@ class Aligner:
         self.max_corr = max_corr
 
     def align(self, target: Target, src: np.ndarray, src_cov: np.ndarray, T0: np.ndarray, stats: dict,
-              max_corr: float | None = None, deadline: float | None = None, max_travel: float | None = None):
+              max_corr: float | None = None, deadline: float | None = None, max_travel: float | None = None,
+              moments: tuple[np.ndarray, np.ndarray] | None = None):
         """Levenberg-Marquardt G-ICP from T0. Returns (pose, ok, squared NN distances of the
         last correspondence search (inf where none)).
 
         It stops early, not converged, when it stalls (with `stop_stalled`: a step lands within
         the tolerances of the pose 2 to STALL_PERIOD iterations back, so the iterations left would
         only go back and forth; stats["stalled"]), when a step takes the source points more than
-        `max_travel` metres (RMS, `rms_travel`) from where T0 put them (stats["slid"]) or past
-        `deadline` (time.perf_counter() seconds; stats["out_of_time"]).
+        `max_travel` metres (RMS, `rms_travel` from the source's `point_moments`, computed here
+        unless given) from where T0 put them (stats["slid"]) or past `deadline`
+        (time.perf_counter() seconds; stats["out_of_time"]).
 
         Residuals are taken in the body frame: r_i = R^T (mu_i - R p_i - t) with weight
         W_i = (R^T C_t,i R + C_s,i)^-1 = G_i^T G_i (G_i: inverse Cholesky factor; the
@@ -94,7 +96,8 @@ class Aligner:
         idx = None  # the last matches: each search starts from them
         converged = False
         recent = [T0]  # the start and the last accepted poses, to see a stall
-        moments = point_moments(src) if max_travel is not None else None
+        if max_travel is not None and moments is None:
+            moments = point_moments(src)
         for it in range(cfg.max_iterations):
             if deadline is not None and it and time.perf_counter() > deadline:
                 stats["out_of_time"] = True
@@ -148,7 +151,7 @@ class Aligner:
             if cfg.stop_stalled and self._stalled(recent, T):
                 stats["stalled"] = True
                 break
-            if moments is not None and rms_travel(moments, T0, T) > max_travel:
+            if max_travel is not None and rms_travel(moments, T0, T) > max_travel:
                 stats["slid"] = True
                 break
         stats["converged"] = bool(converged)

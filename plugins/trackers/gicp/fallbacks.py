@@ -72,7 +72,7 @@ class FallbackPolicy:
         # the first alignment runs to its end, bounded by stop_stalled and stop_slid, not by the
         # deadline: cut short under a busy CPU it ended unconverged and far off, and the map grew from it
         pose, ok, sq = aligner.align(target, src, src_cov, predicted, stats,
-                                     max_travel=slide_limit if self.cfg.stop_slid else None)
+                                     max_travel=slide_limit if self.cfg.stop_slid else None, moments=moments)
         # relative to the last frame only after dropped frames: between two consecutive frames the
         # overlap with the map may fall for good (a camera leaving it, until the next keyframe)
         reference = (last_matched or 0.0) if intervals > 1 else 0.0
