@@ -149,6 +149,8 @@ def main() -> None:
     parser.add_argument("--sequences", default=None, help="only these sequences (comma-separated)")
     parser.add_argument("--repeats", type=int, default=1, help="runs of each system, alternated")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="an override for every run")
+    parser.add_argument("--closure-set", action="append", default=[], metavar="KEY=VALUE",
+                        help="an override for the pose_graph runs only (a loop_closure.* field)")
     parser.add_argument("--runs-dir", type=Path, default=None)
     parser.add_argument("--timeout", type=float, default=7200.0)
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/loop_closure_runs.json"))
@@ -162,7 +164,8 @@ def main() -> None:
             if only and sequence not in only:
                 continue
             for k in range(args.repeats):
-                pair = {c: run(case, sequence, [*overrides, *args.set], c, runs_dir, k, args.timeout) for c in CLOSURES}
+                pair = {c: run(case, sequence, [*overrides, *args.set, *(args.closure_set if c != "none" else [])], c,
+                               runs_dir, k, args.timeout) for c in CLOSURES}
                 base, ate = pair["none"].get("ate_rmse_m"), pair["pose_graph"].get("ate_rmse_m")
                 pair["pose_graph"]["ate_change"] = ate / base - 1 if base and ate is not None else None
                 rows += pair.values()

@@ -739,3 +739,32 @@ def test_coarse_to_fine_recovers_a_motion_beyond_the_correspondence_distance():
         if factor > 1:
             assert not result.lost and result.stats["fallback"] == "coarse to fine"
     assert errors[3.0] < 1e-4 < 0.01 < errors[1.0]
+
+
+@pytest.mark.slow
+def test_extrapolation_shortens_a_slide_to_the_same_pose(tum_path):
+    """TUM fr1/rpy frame 52, in the fast turn: from the state after frame 51 its alignment slides
+    a millimetre or two an iteration for 32 iterations; extrapolated along the slide it ends
+    within the convergence tolerance's size of the same pose in less than half of them."""
+    import dataclasses
+
+    from slamkit.run.build import build_run
+
+    dataset, slam, _ = build_run(["dataset=tum", f"dataset.path={tum_path}", "dataset.max_frames=53",
+                                  "tracker=gicp", "keyframe=overlap", "mapper=none"])
+    slam.initialize(dataset[0].gt_pose)
+    for i in range(52):
+        slam.process(dataset[i])
+    state = slam.tracker.state_dict()
+    results = {}
+    for factor in (0.0, 2.0):
+        tracker = GICPTracker(dataclasses.replace(slam.tracker.cfg, extrapolation=factor))
+        tracker.load_state_dict(state)
+        results[factor] = tracker.track(dataset[52])
+        assert not results[factor].lost and results[factor].stats["converged"], results[factor].stats
+    assert results[0.0].stats["iterations"] >= 24, results[0.0].stats
+    assert results[2.0].stats["iterations"] * 2 < results[0.0].stats["iterations"], results[2.0].stats
+    E = invert_pose(results[0.0].pose) @ results[2.0].pose
+    assert np.linalg.norm(E[:3, 3]) < 0.002 and rotation_angle_deg(E[:3, :3]) < 0.2
+    assert GICPConfig().resolve(RunContext(realtime=True)).extrapolation == 2.0
+    assert GICPConfig().resolve(RunContext()).extrapolation == 0.0

@@ -18,6 +18,7 @@ import numpy as np
 
 from slamkit.geometry.transforms import invert_pose, se3_exp
 from slamkit_plugins.trackers.gicp.config import GICPConfig
+from slamkit_plugins.trackers.gicp.extrapolation import SlideExtrapolation
 from slamkit_plugins.trackers.gicp.target import Target
 
 #: The longest cycle of poses (iterations) an alignment is seen to stall in (stop_stalled).
@@ -80,7 +81,8 @@ class Aligner:
         only go back and forth; stats["stalled"]), when a step takes the source points more than
         `max_travel` metres (RMS, `rms_travel` from the source's `point_moments`, computed here
         unless given) from where T0 put them (stats["slid"]) or past `deadline`
-        (time.perf_counter() seconds; stats["out_of_time"]).
+        (time.perf_counter() seconds; stats["out_of_time"]). With `extrapolation`, an update that
+        keeps the last one's direction moves the pose on along it (`.extrapolation`).
 
         Residuals are taken in the body frame: r_i = R^T (mu_i - R p_i - t) with weight
         W_i = (R^T C_t,i R + C_s,i)^-1 = G_i^T G_i (G_i: inverse Cholesky factor; the
@@ -98,6 +100,7 @@ class Aligner:
         recent = [T0]  # the start and the last accepted poses, to see a stall
         if max_travel is not None and moments is None:
             moments = point_moments(src)
+        extrapolation = SlideExtrapolation(T0, cfg.extrapolation) if cfg.extrapolation else None
         for it in range(cfg.max_iterations):
             if deadline is not None and it and time.perf_counter() > deadline:
                 stats["out_of_time"] = True
@@ -118,6 +121,7 @@ class Aligner:
                 return T0, False, sq
             lin = self.kernels.linearize(packed_src, target.packed, idx, T)
             H, g, cost0 = lin.H, lin.g, lin.cost
+            T_iteration = T
             if lam is None:
                 lam = cfg.lm_lambda * float(np.max(np.diag(H)))
             accepted = False
@@ -148,6 +152,8 @@ class Aligner:
             stats["singular_covariances"] = lin.singular
             if converged or not accepted:
                 break
+            if extrapolation is not None:
+                T = extrapolation.next_pose(T_iteration, T)
             if cfg.stop_stalled and self._stalled(recent, T):
                 stats["stalled"] = True
                 break

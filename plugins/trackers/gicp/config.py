@@ -94,6 +94,8 @@ class GICPConfig(PluginConfig):
     frame_budget_ms: float | None = None
     #: a first alignment that fails or slides is also tried coarse to fine, from this x the distance (1: off)
     coarse_factor: float = method_setting(3.0)
+    #: an update keeping the last one's direction goes on by at most this x itself (0: off; null: 2 in real time)
+    extrapolation: float | None = None
     #: Levenberg-Marquardt's initial damping, relative to the normal matrix's largest diagonal entry
     lm_lambda: float = 1e-9
     #: damped steps tried per iteration before giving up on a cost decrease
@@ -134,6 +136,8 @@ class GICPConfig(PluginConfig):
                 "null or >= 0 ms (0: no budget)", self.frame_budget_ms)
         require(self.fallback_slide > 0, "tracker.fallback_slide", "> 0", self.fallback_slide)
         require(self.coarse_factor >= 1, "tracker.coarse_factor", ">= 1 (1 disables)", self.coarse_factor)
+        require(self.extrapolation is None or self.extrapolation >= 0, "tracker.extrapolation",
+                "null or >= 0 (0: off)", self.extrapolation)
         require(self.lm_lambda >= 0, "tracker.lm_lambda", ">= 0", self.lm_lambda)
         require(self.lm_max_tries >= 1, "tracker.lm_max_tries", "an integer >= 1", self.lm_max_tries)
         require(self.num_threads is None or self.num_threads >= 0,
@@ -151,4 +155,6 @@ class GICPConfig(PluginConfig):
                                stop_stalled=context.realtime,
                                # nor wait for the rest of a slide the fallbacks replace (docs/results.md, stop_slid)
                                stop_slid=context.realtime,
+                               # nor for an alignment to slide a millimetre an iteration (docs/results.md)
+                               extrapolation=2.0 if context.realtime else 0.0,
                                frame_budget_ms=REALTIME_BUDGET_MS if context.drops_frames else 0.0)
