@@ -164,8 +164,9 @@ def main() -> None:
             if only and sequence not in only:
                 continue
             for k in range(args.repeats):
-                pair = {c: run(case, sequence, [*overrides, *args.set, *(args.closure_set if c != "none" else [])], c,
-                               runs_dir, k, args.timeout) for c in CLOSURES}
+                extra = {c: args.closure_set if c == "pose_graph" else [] for c in CLOSURES}
+                pair = {c: run(case, sequence, [*overrides, *args.set, *extra[c]], c, runs_dir, k, args.timeout)
+                        for c in CLOSURES}
                 base, ate = pair["none"].get("ate_rmse_m"), pair["pose_graph"].get("ate_rmse_m")
                 pair["pose_graph"]["ate_change"] = ate / base - 1 if base and ate is not None else None
                 rows += pair.values()

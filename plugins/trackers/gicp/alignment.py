@@ -23,6 +23,9 @@ from slamkit_plugins.trackers.gicp.target import Target
 
 #: The longest cycle of poses (iterations) an alignment is seen to stall in (stop_stalled).
 STALL_PERIOD = 6
+#: An extrapolation moves the pose at most this x the correspondence distance (chart metres,
+#: `.extrapolation`), so that the points stay within reach of their matches.
+MAX_JUMP = 0.5
 
 
 def new_stats() -> dict:
@@ -81,8 +84,10 @@ class Aligner:
         only go back and forth; stats["stalled"]), when a step takes the source points more than
         `max_travel` metres (RMS, `rms_travel` from the source's `point_moments`, computed here
         unless given) from where T0 put them (stats["slid"]) or past `deadline`
-        (time.perf_counter() seconds; stats["out_of_time"]). With `extrapolation`, an update that
-        keeps the last one's direction moves the pose on along it (`.extrapolation`).
+        (time.perf_counter() seconds; stats["out_of_time"]). With `cfg.extrapolation`
+        (`tracker.extrapolation`) the next iteration may start from the update's pose moved on
+        along the slide (`.extrapolation`); what is checked and returned is always an update's
+        pose, and a start that matches too few points is dropped for the update's pose.
 
         Residuals are taken in the body frame: r_i = R^T (mu_i - R p_i - t) with weight
         W_i = (R^T C_t,i R + C_s,i)^-1 = G_i^T G_i (G_i: inverse Cholesky factor; the
@@ -91,7 +96,8 @@ class Aligner:
         cfg = self.cfg
         n_target = len(target)
         packed_src = np.concatenate([src, src_cov.reshape(-1, 9)], axis=1)
-        T = T0.copy()
+        T = T0.copy()  # the last Gauss-Newton result: what is checked and returned
+        start = T  # where the next iteration linearises: T, or T extrapolated along the slide
         lam = None
         nu = 2.0
         sq = np.full(len(src), np.inf)
@@ -100,13 +106,14 @@ class Aligner:
         recent = [T0]  # the start and the last accepted poses, to see a stall
         if max_travel is not None and moments is None:
             moments = point_moments(src)
-        extrapolation = SlideExtrapolation(T0, cfg.extrapolation) if cfg.extrapolation else None
+        extrapolation = (SlideExtrapolation(T0, cfg.extrapolation, MAX_JUMP * (max_corr or self.max_corr))
+                         if cfg.extrapolation else None)
         for it in range(cfg.max_iterations):
             if deadline is not None and it and time.perf_counter() > deadline:
                 stats["out_of_time"] = True
                 break
             stats["iterations"] = it + 1
-            R, t = T[:3, :3], T[:3, 3]
+            R, t = start[:3, :3], start[:3, 3]
             query = (src @ R.T + t).astype(np.float32)
             ts = time.perf_counter()
             d2, idx = target.index.nearest(query, max_corr or self.max_corr, hint=idx)
@@ -115,13 +122,15 @@ class Aligner:
             sq = d2.astype(np.float64)
             m = int(np.count_nonzero(idx < n_target))
             stats["num_correspondences"] = m
+            if m < cfg.min_correspondences and start is not T:
+                start, extrapolation = T, None  # the jump left the surface: on from the update, without jumps
+                continue
             if m < cfg.min_correspondences:
                 stats["lost_reason"] = f"too few correspondences ({m} < {cfg.min_correspondences})"
                 stats["solve_s"] += time.perf_counter() - te
                 return T0, False, sq
-            lin = self.kernels.linearize(packed_src, target.packed, idx, T)
+            lin = self.kernels.linearize(packed_src, target.packed, idx, start)
             H, g, cost0 = lin.H, lin.g, lin.cost
-            T_iteration = T
             if lam is None:
                 lam = cfg.lm_lambda * float(np.max(np.diag(H)))
             accepted = False
@@ -131,7 +140,7 @@ class Aligner:
                 except np.linalg.LinAlgError:
                     xi = np.linalg.lstsq(H + lam * np.eye(6), -g, rcond=None)[0]
                 delta = se3_exp(xi)
-                Tn = T @ delta
+                Tn = start @ delta
                 cost = lin.cost_at(Tn)  # same correspondences and weights
                 small = self._small(delta)
                 rho_den = float(xi @ (lam * xi - g))
@@ -145,6 +154,7 @@ class Aligner:
                     break
                 if small:
                     converged = True
+                    T = start
                     break
                 lam *= nu
                 nu *= 2.0
@@ -152,14 +162,13 @@ class Aligner:
             stats["singular_covariances"] = lin.singular
             if converged or not accepted:
                 break
-            if extrapolation is not None:
-                T = extrapolation.next_pose(T_iteration, T)
             if cfg.stop_stalled and self._stalled(recent, T):
                 stats["stalled"] = True
                 break
             if max_travel is not None and rms_travel(moments, T0, T) > max_travel:
                 stats["slid"] = True
                 break
+            start = T if extrapolation is None else extrapolation.next_pose(start, T)
         stats["converged"] = bool(converged)
         if not np.isfinite(T).all():
             stats["lost_reason"] = "non-finite pose"

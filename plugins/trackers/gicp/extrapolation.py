@@ -1,15 +1,14 @@
-"""Extrapolating the G-ICP alignment along a slide (after Besl and McKay's accelerated ICP, 1992).
+"""Extrapolating a G-ICP alignment along a slide (after Besl and McKay's accelerated ICP, 1992).
 
-Each G-ICP iteration steps the pose by the Gauss-Newton update of the correspondences found at
-it. Where the view pins the pose weakly along a surface the updates keep their direction and
-shrink slowly: the pose slides a millimetre or two an iteration for tens of iterations (TUM
-fr1/rpy frame 52: 32 iterations, successive updates at cosines 0.97-1.00). When an update keeps
-the last one's direction, the rest of the slide is estimated as a geometric series of updates
-shrinking at their last ratio r (r / (1 - r) more of the update, r at most `MAX_RATIO`) and taken
-at once, at most `factor` times the update; the next update, from the new correspondences,
-corrects it. (Anderson acceleration over two or three iterations was tried first: with the
-correspondences changing between iterations its least squares extrapolated ten times past the
-updates and some alignments ran out their iterations; docs/results.md.)
+Each G-ICP iteration updates the pose by the Gauss-Newton step of the correspondences found at
+it. Where the view pins the pose only weakly along a surface, the updates keep their direction
+and shrink slowly, and the pose slides a little an iteration for tens of iterations
+(docs/results.md, "A sliding alignment extrapolated"). When an update keeps the last one's
+direction and has not grown much, the rest of the slide is estimated as a geometric series of
+updates shrinking at their last ratio r (r / (1 - r) more of the update; r at most 1), at most
+`factor` times the update and at most `max_jump`; the next iteration starts there, and its update, from the
+correspondences found there, corrects it. Anderson acceleration, tried first, extrapolated far
+past the updates when the correspondences changed between iterations (the same section).
 
 Updates are compared in a chart at the alignment's start T0: x = (log(R0^T R) * LEVER_M,
 R0^T (t - t0)), so that rotation and translation are both metres.
@@ -26,18 +25,21 @@ from slamkit.geometry.transforms import so3_exp, so3_log
 LEVER_M = 1.0
 #: An update whose cosine with the last one is below this is not extrapolated.
 MIN_COSINE = 0.9
-#: The shrink ratio the series assumes is at most this (a constant slide: the factor's cap).
-MAX_RATIO = 0.95
+#: Nor one longer than this x the last: a slide's updates vary by about a tenth from one to the
+#: next, and one that grows by more is no series converging (a weak direction would only drift).
+MAX_GROWTH = 1.25
 
 
 class SlideExtrapolation:
     """Extrapolation of one alignment from `start` (4x4 camera-to-world): `next_pose` is called
-    once per accepted update; factor: the most the extrapolation adds, times the update."""
+    once per accepted update. factor: the most the extrapolation adds, times the update;
+    max_jump: and in metres of the chart."""
 
-    def __init__(self, start: np.ndarray, factor: float):
+    def __init__(self, start: np.ndarray, factor: float, max_jump: float):
         self.R0, self.t0 = start[:3, :3].copy(), start[:3, 3].copy()
         self.factor = factor
-        self.last: np.ndarray | None = None  # the last update, in the chart
+        self.max_jump = max_jump
+        self.last: np.ndarray | None = None  # the last non-zero update, in the chart
 
     def _chart(self, T: np.ndarray) -> np.ndarray:
         return np.concatenate([so3_log(self.R0.T @ T[:3, :3]) * LEVER_M, self.R0.T @ (T[:3, 3] - self.t0)])
@@ -48,17 +50,23 @@ class SlideExtrapolation:
         T[:3, 3] = self.t0 + self.R0 @ x[3:]
         return T
 
-    def next_pose(self, T: np.ndarray, updated: np.ndarray) -> np.ndarray:
-        """The pose to iterate from next, given this iteration's pose `T` and its update's
-        result `updated` (both 4x4 camera-to-world): `updated`, or moved on along the update."""
+    def next_pose(self, linearised: np.ndarray, updated: np.ndarray) -> np.ndarray:
+        """Where the next iteration starts, given the pose this iteration linearised at and its
+        update's result `updated` (both 4x4 camera-to-world): `updated`, or moved on along the
+        update."""
         x = self._chart(updated)
-        step = x - self._chart(T)
-        last, self.last = self.last, step
+        step = x - self._chart(linearised)
         n = float(np.linalg.norm(step))
-        if last is None or n == 0.0:
+        last = self.last
+        if n > 0.0:
+            self.last = step
+        if last is None or not n > 0.0:
             return updated
         n_last = float(np.linalg.norm(last))
-        if float(step @ last) < MIN_COSINE * n * n_last:
+        # a turn, or an update that grew (no series to sum; a weak direction would only drift faster)
+        if not (float(step @ last) >= MIN_COSINE * n * n_last and n <= MAX_GROWTH * n_last):
             return updated
-        r = min(n / n_last, MAX_RATIO)
-        return self._pose(x + step * min(r / (1.0 - r), self.factor))
+        # after a jump the last update is the one before it, so r is low: the estimate is cautious
+        r = min(n / n_last, 1.0)
+        scale = self.factor if r * (1.0 + self.factor) >= self.factor else r / (1.0 - r)
+        return self._pose(x + step * min(scale, self.max_jump / n))
