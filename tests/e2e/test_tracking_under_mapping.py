@@ -76,7 +76,8 @@ def test_realtime_mapping_run_tracks_as_tracking_only_through_the_cli(tmp_path):
     # one scale alignment for both (real time defaults to none, sequential to z_pow): the tracking
     # target is scale-free, but dividing by another median rounds differently (1e-9)
     common = ["dataset=tum", f"dataset.path={require_data(TUM)}", "dataset.max_frames=30", "tracker=gicp",
-              "growth.scale_alignment=z_pow", "output.progress=false", "output.plot=false"]
+              "growth.scale_alignment=z_pow", "output.progress=false", "output.plot=false",
+              "tracker.extrapolation=2"]  # real time's (null: 0 sequentially), for both
     runs = {"none": ["mapper=none"],
             # `low` priority: at `idle` (the default) a busy test machine may leave mapping no CPU
             "realtime": ["mapper=gaussian_splatting", "mode=realtime", "realtime.mapping_priority=low",
