@@ -23,7 +23,7 @@ import numpy as np
 
 from slamkit.cli.bench import markdown_table
 from slamkit.formats.g2o import read_g2o
-from slamkit.formats.tum import read_tum_trajectory
+from slamkit.formats.tum import associate, read_tum_trajectory
 from slamkit.geometry.pose_graph import PoseGraph, PoseGraphEdge, pose_difference, relative_pose
 from slamkit.metrics.trajectory import ate
 from slamkit.registry.compose import compose_run
@@ -34,13 +34,13 @@ LARGEST = 6
 
 
 def poses_at(path: Path, stamps: np.ndarray) -> np.ndarray:
-    """(K,4,4) camera-to-world poses of a TUM file at `stamps` (seconds, matched to 1 us)."""
+    """(K,4,4) camera-to-world poses of a TUM file at `stamps` (seconds, matched within 1 us)."""
     t, poses = read_tum_trajectory(path)
-    by_stamp = {round(float(s), 6): pose for s, pose in zip(t, poses)}
-    missing = [s for s in stamps if round(float(s), 6) not in by_stamp]
-    if missing:
-        sys.exit(f"{path}: no pose at {len(missing)} keyframe time(s), the first {missing[0]:.6f} s")
-    return np.stack([by_stamp[round(float(s), 6)] for s in stamps])
+    found, at = associate(stamps, t, 1e-6)
+    if len(found) != len(stamps):
+        first = stamps[np.setdiff1d(np.arange(len(stamps)), found)[0]]
+        sys.exit(f"{path}: no pose at {len(stamps) - len(found)} keyframe time(s), the first {first:.6f} s")
+    return poses[at]
 
 
 def edge_sigma_along(edge: PoseGraphEdge, direction: np.ndarray) -> float:

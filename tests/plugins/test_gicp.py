@@ -743,7 +743,7 @@ def test_coarse_to_fine_recovers_a_motion_beyond_the_correspondence_distance():
 
 def test_slide_extrapolation_sums_the_series_of_updates():
     """An update that keeps the last one's direction goes on by r / (1 - r) of itself (r: their
-    length ratio, at most 1), at most `factor` times and `max_jump` metres; a turn, an update
+    length ratio, at most 1), at most `factor` times and half the correspondence distance; a turn, an update
     that grew by more than a quarter or the first update go nowhere further; rotations
     extrapolate like translations."""
     from slamkit_plugins.trackers.gicp.extrapolation import SlideExtrapolation
@@ -755,24 +755,24 @@ def test_slide_extrapolation_sums_the_series_of_updates():
         E = invert_pose(POSE) @ T
         return E[0, 3] * 1e3, np.degrees(np.arctan2(E[1, 0], E[0, 0]))
 
-    ex = SlideExtrapolation(POSE, factor=2.0, max_jump=0.1)
+    ex = SlideExtrapolation(POSE, factor=2.0, max_corr=0.2)
     assert np.allclose(ex.next_pose(POSE, moved(1.0)), moved(1.0))  # the first update: nothing to compare
     assert offset(ex.next_pose(moved(1.0), moved(2.0))) == pytest.approx((4.0, 0.0), abs=1e-9)  # r = 1: 2x more
-    ex = SlideExtrapolation(POSE, factor=2.0, max_jump=0.1)
+    ex = SlideExtrapolation(POSE, factor=2.0, max_corr=0.2)
     ex.next_pose(POSE, moved(2.0))
     assert offset(ex.next_pose(moved(2.0), moved(3.0))) == pytest.approx((4.0, 0.0), abs=1e-9)  # r = 0.5: 1x more
     assert np.allclose(ex.next_pose(moved(3.0), moved(5.0)), moved(5.0))  # grown by 2x: no series
-    ex = SlideExtrapolation(POSE, factor=2.0, max_jump=0.1)
+    ex = SlideExtrapolation(POSE, factor=2.0, max_corr=0.2)
     ex.next_pose(POSE, moved(1.0))
     turned = POSE @ make_pose(np.eye(3), [1e-3, 1e-3, 0.0])  # 45 degrees from the last update
     assert np.allclose(ex.next_pose(moved(1.0), turned), turned)
-    ex = SlideExtrapolation(POSE, factor=2.0, max_jump=0.0015)
+    ex = SlideExtrapolation(POSE, factor=2.0, max_corr=0.003)
     ex.next_pose(POSE, moved(1.0))
     assert offset(ex.next_pose(moved(1.0), moved(2.0))) == pytest.approx((3.5, 0.0), abs=1e-9)  # capped at 1.5 mm
-    ex = SlideExtrapolation(POSE, factor=2.0, max_jump=0.1)
+    ex = SlideExtrapolation(POSE, factor=2.0, max_corr=0.2)
     ex.next_pose(POSE, moved(0.0, 0.1))
     assert offset(ex.next_pose(moved(0.0, 0.1), moved(0.0, 0.2))) == pytest.approx((0.0, 0.4), abs=1e-9)
-    ex = SlideExtrapolation(POSE, factor=2.0, max_jump=0.1)
+    ex = SlideExtrapolation(POSE, factor=2.0, max_corr=0.2)
     for _ in range(3):  # a zero update is no direction to go on in
         assert np.allclose(ex.next_pose(POSE, POSE), POSE)
 

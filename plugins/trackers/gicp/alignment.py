@@ -23,9 +23,6 @@ from slamkit_plugins.trackers.gicp.target import Target
 
 #: The longest cycle of poses (iterations) an alignment is seen to stall in (stop_stalled).
 STALL_PERIOD = 6
-#: An extrapolation moves the pose at most this x the correspondence distance (chart metres,
-#: `.extrapolation`), so that the points stay within reach of their matches.
-MAX_JUMP = 0.5
 
 
 def new_stats() -> dict:
@@ -106,7 +103,7 @@ class Aligner:
         recent = [T0]  # the start and the last accepted poses, to see a stall
         if max_travel is not None and moments is None:
             moments = point_moments(src)
-        extrapolation = (SlideExtrapolation(T0, cfg.extrapolation, MAX_JUMP * (max_corr or self.max_corr))
+        extrapolation = (SlideExtrapolation(T0, cfg.extrapolation, max_corr or self.max_corr)
                          if cfg.extrapolation else None)
         for it in range(cfg.max_iterations):
             if deadline is not None and it and time.perf_counter() > deadline:

@@ -6,9 +6,10 @@ and shrink slowly, and the pose slides a little an iteration for tens of iterati
 (docs/results.md, "A sliding alignment extrapolated"). When an update keeps the last one's
 direction and has not grown much, the rest of the slide is estimated as a geometric series of
 updates shrinking at their last ratio r (r / (1 - r) more of the update; r at most 1), at most
-`factor` times the update and at most `max_jump`; the next iteration starts there, and its update, from the
-correspondences found there, corrects it. Anderson acceleration, tried first, extrapolated far
-past the updates when the correspondences changed between iterations (the same section).
+`factor` times the update and at most MAX_JUMP of the correspondence distance; the next
+iteration starts there, and its update, from the correspondences found there, corrects it.
+Anderson acceleration, tried first, extrapolated far past the updates when the correspondences
+changed between iterations (the same section).
 
 Updates are compared in a chart at the alignment's start T0: x = (log(R0^T R) * LEVER_M,
 R0^T (t - t0)), so that rotation and translation are both metres.
@@ -28,17 +29,20 @@ MIN_COSINE = 0.9
 #: Nor one longer than this x the last: a slide's updates vary by about a tenth from one to the
 #: next, and one that grows by more is no series converging (a weak direction would only drift).
 MAX_GROWTH = 1.25
+#: An extrapolation moves the pose at most this x the correspondence distance (chart metres), so
+#: that the points stay within reach of their matches.
+MAX_JUMP = 0.5
 
 
 class SlideExtrapolation:
     """Extrapolation of one alignment from `start` (4x4 camera-to-world): `next_pose` is called
     once per accepted update. factor: the most the extrapolation adds, times the update;
-    max_jump: and in metres of the chart."""
+    max_corr: the alignment's correspondence distance (metres), which bounds it by MAX_JUMP x."""
 
-    def __init__(self, start: np.ndarray, factor: float, max_jump: float):
+    def __init__(self, start: np.ndarray, factor: float, max_corr: float):
         self.R0, self.t0 = start[:3, :3].copy(), start[:3, 3].copy()
         self.factor = factor
-        self.max_jump = max_jump
+        self.max_jump = MAX_JUMP * max_corr
         self.last: np.ndarray | None = None  # the last non-zero update, in the chart
 
     def _chart(self, T: np.ndarray) -> np.ndarray:
