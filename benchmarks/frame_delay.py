@@ -16,6 +16,7 @@ JSON (`--out`).
     python benchmarks/frame_delay.py --quick                                     # smoke: 60 frames
     python benchmarks/frame_delay.py --set tracker.frame_budget_ms=60            # another budget
     python benchmarks/frame_delay.py --parts gaps                                # the gaps alone (any machine)
+    python benchmarks/frame_delay.py --parts gaps --schedules 40/20,50/20,60/20,50/10,70/30   # other gaps too
     python benchmarks/frame_delay.py --parts realtime,without_mapper             # and the floor: tracking alone
 
 Run it alone on a quiet machine: delays are wall-clock figures.
@@ -45,7 +46,9 @@ SEQUENCES = {
 }
 COMMON = ["tracker=gicp", "keyframe=overlap"]
 REALTIME = ["mode=realtime", "realtime.fps_limit=30", "realtime.drop_frames=true", "mapper=gaussian_splatting"]
-GAPS = ["mapper=none", "eval.forced_gap_every=50", "eval.forced_gap_length=20"]
+GAPS = ["mapper=none"]
+#: The issue's forced gaps (EVERY/LENGTH: LENGTH frames dropped after every EVERY).
+ISSUE_SCHEDULE = "50/20"
 #: The floor of the delays: the same real-time runs without the mapper (nothing beside tracking).
 WITHOUT_MAPPER = [o for o in REALTIME if not o.startswith("mapper=")] + ["mapper=none"]
 #: Issue 47's targets: delay (ms), ATE (m) and PSNR (dB) of today's real-time runs, gap error (m).
@@ -135,6 +138,9 @@ def main() -> int:
                              "runs, tracking alone: the delays' floor), gaps (sequential)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="an override of every run, e.g. --set tracker.frame_budget_ms=60")
+    parser.add_argument("--schedules", default=ISSUE_SCHEDULE,
+                        help="the gaps part's forced gaps, EVERY/LENGTH[,...]: LENGTH frames dropped after every EVERY "
+                             f"(the issue's: {ISSUE_SCHEDULE}; one sequential run each)")
     args = parser.parse_args()
     repeats = 1 if args.quick else args.repeats
     limit = (["dataset.max_frames=60"] if args.quick else []) + args.set
@@ -174,21 +180,41 @@ def main() -> int:
             result[part][seq] = {"records": records, "median": med, "worst_max_ms": worst_max}
         print(f"{title}\n" + markdown_table(table))
 
+    schedules = [tuple(int(n) for n in text.split("/")) for text in args.schedules.split(",")]
     gaps = [["sequence", "frame", "after frame", "error cm", "error deg", "floor cm", "floor deg", "floor's keyframe"]]
+    summary = [["sequence", "gaps (every/length)", "ATE cm", "frames after a gap", "lost",
+                "floor <= 5 cm", "of those over 5 cm", "largest error cm"]]
     for seq, overrides in SEQUENCES.items() if "gaps" in parts else ():
-        r = run_system(f"{seq}_gaps", [o for o in overrides(args.data) if "eval_every" not in o] + GAPS + limit,
-                       COMMON, runs_dir, args.timeout)
-        errors = after_gap_errors(runs_dir / f"{seq}_gaps") if r.get("returncode") == 0 else []
-        result["gaps"][seq] = {"record": r, "after_gap": errors}
-        for e in errors:
-            gaps.append([seq, f"{e['index']}{' (lost)' if e['lost'] else ''}", str(e["before"]),
-                         _f(e["error_m"], 1, 100), _f(e["error_deg"], 1), _f(e["floor_m"], 1, 100),
-                         _f(e["floor_deg"], 1), str(e["floor_keyframe"] if e["floor_keyframe"] is not None else "-")])
-        gaps.append([seq, f"ATE {_f(r.get('ate_rmse_m'), 2, 100)} cm", "", "", "", "", "",
-                     f"{r.get('lost_frames', '-')} lost"])
-    if "gaps" in parts:
+        for every, length in schedules:
+            schedule = f"{every}/{length}"
+            name = f"{seq}_gaps" + ("" if schedule == ISSUE_SCHEDULE else f"_{every}_{length}")
+            r = run_system(name, [o for o in overrides(args.data) if "eval_every" not in o] + GAPS + limit
+                           + [f"eval.forced_gap_every={every}", f"eval.forced_gap_length={length}"],
+                           COMMON, runs_dir, args.timeout)
+            errors = after_gap_errors(runs_dir / name) if r.get("returncode") == 0 else []
+            reachable = [e for e in errors if e["floor_m"] is not None and e["floor_m"] <= TARGETS["gap_m"]]
+            over = [e["index"] for e in reachable if e["error_m"] > TARGETS["gap_m"]]
+            lost = [e["index"] for e in errors if e["lost"]]
+            record = {"record": r, "after_gap": errors, "lost": lost, "reachable": len(reachable), "over": over}
+            summary.append([seq, schedule, _f(r.get("ate_rmse_m"), 2, 100), str(len(errors)), str(lost or "-"),
+                            str(len(reachable)), str(over or "-"),
+                            _f(max((e["error_m"] for e in errors), default=None), 1, 100)])
+            if schedule != ISSUE_SCHEDULE:
+                result.setdefault("gap_schedules", {})[f"{seq} {schedule}"] = record
+                continue
+            result["gaps"][seq] = record
+            for e in errors:
+                gaps.append([seq, f"{e['index']}{' (lost)' if e['lost'] else ''}", str(e["before"]),
+                             _f(e["error_m"], 1, 100), _f(e["error_deg"], 1), _f(e["floor_m"], 1, 100),
+                             _f(e["floor_deg"], 1), "-" if e["floor_keyframe"] is None else str(e["floor_keyframe"])])
+            gaps.append([seq, f"ATE {_f(r.get('ate_rmse_m'), 2, 100)} cm", "", "", "", "", "",
+                         f"{r.get('lost_frames', '-')} lost"])
+    if "gaps" in parts and len(gaps) > 1:
         print("\nSequential, tracking only, 20 frames dropped after every 50: the error of each frame after a gap, "
               "and its floor (the best pose that agrees with the map)\n" + markdown_table(gaps))
+    if "gaps" in parts:
+        print("\nEach gap schedule: frames after a gap, lost, where the map allows 5 cm (floor) and those of "
+              "them over it\n" + markdown_table(summary))
 
     checks = []
     for seq, part in result["realtime"].items():

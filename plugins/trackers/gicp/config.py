@@ -87,8 +87,8 @@ class GICPConfig(PluginConfig):
     #: an alignment matching fewer of the trackable points is not trusted: the fallbacks run, else the frame is lost
     min_matched_fraction: float = 0.1
     #: nor, after dropped frames, one matching less than this x the last tracked frame's fraction (0: off)
-    min_matched_ratio: float = 0.8
-    #: metres: when no alignment is trusted, FPFH + RANSAC registration to the map at this voxel, then G-ICP (0: off)
+    min_matched_ratio: float = 0.7
+    #: metres: FPFH + RANSAC registration to the map at this voxel, then G-ICP: nothing trusted, a long gap (0: off)
     relocalize_voxel: float = 0.05
     #: ms from a frame's start: no fallback (nor its iterations) starts after it (null: 100 where frames drop; 0: none)
     frame_budget_ms: float | None = None

@@ -11,8 +11,12 @@ prediction (a motion the prediction missed by more than the correspondence dista
 result matching more points is kept.
 An attempt matching too few points (min_matched_fraction; after dropped frames
 min_matched_ratio x the last frame's) is not trusted; when none is, the frame's points are
-registered to the map without a first guess (relocalize_voxel) and aligned from there. No
-fallback starts past the frame's budget (frame_budget_ms, real time).
+registered to the map without a first guess (relocalize_voxel) and aligned from there. After a
+gap the prediction does not span (max_prediction_intervals), where the input waits, every start
+is tried, global registration included, whatever the first gave: the capped prediction is a
+guess, and a first alignment from it can converge to a surface the map holds twice (drift) or
+match a few points fewer than the right pose. No fallback starts past the frame's budget
+(frame_budget_ms, real time).
 """
 
 from __future__ import annotations
@@ -64,7 +68,9 @@ class FallbackPolicy:
         min_matched_fraction of the points, or after dropped frames less than min_matched_ratio
         x `last_matched` (the last tracked frame's matched fraction), is not trusted (after a long
         gap, one converged to a wrong pose; docs/results.md, "Tracking first"): the fallbacks run,
-        and when none is trusted the frame is lost.
+        and when none is trusted the frame is lost. After a gap the prediction does not span
+        (`intervals` at max_prediction_intervals) and without a deadline, every start is tried and
+        the trusted attempt matching most points kept.
         Returns (pose, ok, squared NN distances of the kept attempt's last search)."""
         aligner = self.aligner
         slide_limit = self.cfg.fallback_slide * aligner.max_corr * min(max(1.0, intervals), MAX_SLIDE_GROWTH)
@@ -79,12 +85,16 @@ class FallbackPolicy:
         self._floor = max(self.cfg.min_matched_fraction, self.cfg.min_matched_ratio * reference)
         ok = ok and self._trusted(sq, stats)
         slid = rms_travel(moments, predicted, pose) > slide_limit
-        if ok and (stats["converged"] or not self.retry_unconverged) and not slid:
+        # not in real time: global registration takes 0.3-2.5 s, and the frames dropped meanwhile
+        # would make the next frame another long gap
+        relocalize = intervals >= self.cfg.max_prediction_intervals and deadline is None
+        if ok and (stats["converged"] or not self.retry_unconverged) and not slid and not relocalize:
             return pose, ok, sq
         # stopped on its way (stop_slid) its pose is anywhere along the slide: any trusted fallback is better
         matched = 0 if stats.get("slid") else stats.get("num_correspondences", 0)
         best = (pose, ok, sq, matched if ok else -1)
-        for name, start, coarse in self._starts(predicted, previous, target, src, deadline, stats, best[1]):
+        for name, start, coarse in self._starts(predicted, previous, target, src, deadline, stats, best[1],
+                                                relocalize):
             if deadline is not None and time.perf_counter() > deadline:
                 stats["out_of_time"] = True
                 break
@@ -124,9 +134,9 @@ class FallbackPolicy:
         return False
 
     def _starts(self, predicted: np.ndarray, previous: np.ndarray | None, target: Target, src: np.ndarray,
-                deadline: float | None, stats: dict, trusted: bool):
-        """(name, start pose, coarse first?) of the attempts after the first one failed; the
-        last, when none so far is trusted (`trusted`: the first; then `stats["fallback"]`), is
+                deadline: float | None, stats: dict, trusted: bool, relocalize: bool = False):
+        """(name, start pose, coarse first?) of the attempts after the first one; the last, when
+        none so far is trusted (`trusted`: the first; then `stats["fallback"]`) or `relocalize`, is
         G-ICP from a global registration to the map (FPFH + RANSAC, without a first guess): after
         a long gap the camera may have turned tens of degrees (TUM fr1/rpy: 50-60 over 20
         frames), beyond any local start. Generated lazily: each start sees the ones before."""
@@ -136,7 +146,8 @@ class FallbackPolicy:
         if self.cfg.coarse_factor > 1:
             yield "coarse to fine", predicted, True
         out_of_time = deadline is not None and time.perf_counter() > deadline
-        if self.cfg.relocalize_voxel > 0 and not trusted and "fallback" not in stats and not out_of_time:
+        untrusted = not trusted and "fallback" not in stats
+        if self.cfg.relocalize_voxel > 0 and (untrusted or relocalize) and not out_of_time:
             start = self._relocalize(target, src, stats)
             if start is not None:
                 yield "global registration", start, False
