@@ -609,6 +609,8 @@ def test_config_validation_and_hints():
         GICPConfig(max_correspondence_distance=-1.0)
     with pytest.raises(ConfigError, match="tracker.pixel_stride"):
         GICPConfig(pixel_stride=0)
+    with pytest.raises(ConfigError, match="tracker.relocalize_restarts"):
+        GICPConfig(relocalize_restarts=0)
     cfg = GICPConfig()
     assert cfg.pixel_stride is None and cfg.max_correspondence_distance is None and cfg.min_target_opacity == 0
     with pytest.raises(ConfigError, match="tracker.pixel_stride"):

@@ -90,6 +90,8 @@ class GICPConfig(PluginConfig):
     min_matched_ratio: float = 0.7
     #: metres: FPFH + RANSAC registration to the map at this voxel, then G-ICP: nothing trusted, a long gap (0: off)
     relocalize_voxel: float = 0.05
+    #: global registrations from this many RANSAC seeds (the next only while none is trusted, all after a long gap)
+    relocalize_restarts: int = 3
     #: ms from a frame's start: no fallback (nor its iterations) starts after it (null: 100 where frames drop; 0: none)
     frame_budget_ms: float | None = None
     #: a first alignment that fails or slides is also tried coarse to fine, from this x the distance (1: off)
@@ -132,6 +134,8 @@ class GICPConfig(PluginConfig):
         require(0 <= self.min_matched_ratio <= 1, "tracker.min_matched_ratio", "in [0, 1]", self.min_matched_ratio)
         require(self.relocalize_voxel >= 0, "tracker.relocalize_voxel", ">= 0 metres (0: off)",
                 self.relocalize_voxel)
+        require(self.relocalize_restarts >= 1, "tracker.relocalize_restarts", "an integer >= 1",
+                self.relocalize_restarts)
         require(self.frame_budget_ms is None or self.frame_budget_ms >= 0, "tracker.frame_budget_ms",
                 "null or >= 0 ms (0: no budget)", self.frame_budget_ms)
         require(self.fallback_slide > 0, "tracker.fallback_slide", "> 0", self.fallback_slide)

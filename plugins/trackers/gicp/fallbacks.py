@@ -145,21 +145,31 @@ class FallbackPolicy:
             yield "previous pose", previous, False
         if self.cfg.coarse_factor > 1:
             yield "coarse to fine", predicted, True
-        out_of_time = deadline is not None and time.perf_counter() > deadline
-        untrusted = not trusted and "fallback" not in stats
-        if self.cfg.relocalize_voxel > 0 and (untrusted or relocalize) and not out_of_time:
-            start = self._relocalize(target, src, stats)
-            if start is not None:
-                yield "global registration", start, False
+        if self.cfg.relocalize_voxel <= 0:
+            return
+        source = None  # the frame's FPFH features, computed once for every seed
+        for seed in range(self.cfg.relocalize_restarts):
+            # after the first draw, another only while nothing is trusted (or after a long gap: all)
+            untrusted = not trusted and "fallback" not in stats
+            if not (untrusted or relocalize) or (deadline is not None and time.perf_counter() > deadline):
+                return
+            if source is None:
+                from slamkit.geometry.registration import FeatureCloud
 
-    def _relocalize(self, target: Target, src: np.ndarray, stats: dict) -> np.ndarray | None:
-        """The frame's pose by global registration of its points to the target's means (None
-        without open3d, said once)."""
+                source = FeatureCloud(src, self.cfg.relocalize_voxel)
+            start = self._relocalize(target, source, seed, stats)
+            if start is None:
+                return
+            yield "global registration", start, False
+
+    def _relocalize(self, target: Target, source, seed: int, stats: dict) -> np.ndarray | None:
+        """The frame's pose by global registration of its points (`source`: a FeatureCloud) to
+        the target's means, RANSAC drawing from `seed` (None without open3d, said once)."""
         from slamkit.errors import SlamkitError
-        from slamkit.geometry.registration import FeatureCloud, register
+        from slamkit.geometry.registration import register
 
         try:
-            found = register(FeatureCloud(src, self.cfg.relocalize_voxel), target.features(self.cfg.relocalize_voxel))
+            found = register(source, target.features(self.cfg.relocalize_voxel), seed=seed)
         except SlamkitError as exc:  # open3d is the optional extra `mesh`
             if not self._warned:
                 log.warning("tracker.relocalize_voxel: no global registration (%s)", exc)
