@@ -90,7 +90,7 @@ class GICPConfig(PluginConfig):
     min_matched_ratio: float = 0.7
     #: metres: FPFH + RANSAC registration to the map at this voxel, then G-ICP: nothing trusted, a long gap (0: off)
     relocalize_voxel: float = 0.05
-    #: global registrations from this many RANSAC seeds (the next only while none is trusted, all after a long gap)
+    #: global registrations from up to this many RANSAC seeds: the next only while no alignment is trusted
     relocalize_restarts: int = 3
     #: ms from a frame's start: no fallback (nor its iterations) starts after it (null: 100 where frames drop; 0: none)
     frame_budget_ms: float | None = None

@@ -11,7 +11,8 @@ prediction (a motion the prediction missed by more than the correspondence dista
 result matching more points is kept.
 An attempt matching too few points (min_matched_fraction; after dropped frames
 min_matched_ratio x the last frame's) is not trusted; when none is, the frame's points are
-registered to the map without a first guess (relocalize_voxel) and aligned from there. After a
+registered to the map without a first guess (relocalize_voxel; RANSAC from up to
+relocalize_restarts seeds while none is trusted) and aligned from there. After a
 gap the prediction does not span (max_prediction_intervals), where the input waits, every start
 is tried, global registration included, whatever the first gave: the capped prediction is a
 guess, and a first alignment from it can converge to a surface the map holds twice (drift) or
@@ -149,34 +150,34 @@ class FallbackPolicy:
             return
         source = None  # the frame's FPFH features, computed once for every seed
         for seed in range(self.cfg.relocalize_restarts):
-            # after the first draw, another only while nothing is trusted (or after a long gap: all)
+            # the first draw when nothing is trusted or after a long gap; another only while nothing is
             untrusted = not trusted and "fallback" not in stats
-            if not (untrusted or relocalize) or (deadline is not None and time.perf_counter() > deadline):
+            out_of_time = deadline is not None and time.perf_counter() > deadline
+            if not (untrusted or (relocalize and seed == 0)) or out_of_time:
                 return
-            if source is None:
-                from slamkit.geometry.registration import FeatureCloud
-
-                source = FeatureCloud(src, self.cfg.relocalize_voxel)
-            start = self._relocalize(target, source, seed, stats)
+            start, source = self._relocalize(target, src, source, seed, stats)
             if start is None:
                 return
             yield "global registration", start, False
 
-    def _relocalize(self, target: Target, source, seed: int, stats: dict) -> np.ndarray | None:
-        """The frame's pose by global registration of its points (`source`: a FeatureCloud) to
-        the target's means, RANSAC drawing from `seed` (None without open3d, said once)."""
+    def _relocalize(self, target: Target, src: np.ndarray, source, seed: int, stats: dict):
+        """The frame's pose by global registration of its points to the target's means, RANSAC
+        drawing from `seed` (None without open3d, said once), and the points' FeatureCloud
+        (`source` when given) for the next draw."""
         from slamkit.errors import SlamkitError
-        from slamkit.geometry.registration import register
+        from slamkit.geometry.registration import FeatureCloud, register
 
+        voxel = self.cfg.relocalize_voxel
         try:
-            found = register(source, target.features(self.cfg.relocalize_voxel), seed=seed)
+            source = FeatureCloud(src, voxel) if source is None else source
+            found = register(source, target.features(voxel), seed=seed)
         except SlamkitError as exc:  # open3d is the optional extra `mesh`
             if not self._warned:
                 log.warning("tracker.relocalize_voxel: no global registration (%s)", exc)
                 self._warned = True
-            return None
+            return None, source
         stats["relocalized_fitness"] = found.fitness
-        return found.pose
+        return found.pose, source
 
     def _previous_start(self, predicted: np.ndarray, previous: np.ndarray | None) -> np.ndarray | None:
         """The previous pose, when the motion model moved the start away from it and
