@@ -72,9 +72,9 @@ def _pose_error(E: np.ndarray) -> tuple[float, float]:
 
 
 def after_gap_errors(run_dir: Path) -> list[dict]:
-    """Each frame tracked after dropped ones: its index, whether it was lost, and the error of its
-    motion since the last frame tracked before the gap against the ground truth's (metres,
-    degrees); and the floor of that error for any alignment to the map: the smallest error of a
+    """Each frame tracked after dropped ones: its index, whether it was lost, its tracking time
+    (ms), and the error of its motion since the last frame tracked before the gap against the
+    ground truth's (metres, degrees); and the floor of that error for any alignment to the map: the smallest error of a
     pose that agrees with one of the keyframes seen before it whose view is within FLOOR_VIEW_DEG
     and FLOOR_VIEW_M of the frame's (keyframe k's estimated pose E_k times the ground truth's
     motion from k to the frame: where the map drifted since the frame before the gap, no
@@ -103,6 +103,7 @@ def after_gap_errors(run_dir: Path) -> list[dict]:
                     floors.append((*_pose_error(invert_pose(truth) @ (invert_pose(est[last]) @ agreeing)), tk))
             floor = min(floors, default=None)
             out.append({"index": int(r["index"]), "before": index_at[last], "lost": r["lost"] == "1",
+                        "tracking_ms": float(r["tracking_ms"]) if r["tracking_ms"] else None,
                         "error_m": metres, "error_deg": degrees,
                         "floor_m": floor[0] if floor else None, "floor_deg": floor[1] if floor else None,
                         "floor_keyframe": index_at.get(floor[2]) if floor else None})

@@ -812,3 +812,31 @@ def test_extrapolation_shortens_a_slide_to_the_same_pose(tum_path):
         assert np.linalg.norm(E[:3, 3]) < 0.002 and rotation_angle_deg(E[:3, :3]) < 0.2
     assert GICPConfig().resolve(RunContext(realtime=True)).extrapolation == 2.0
     assert GICPConfig().resolve(RunContext()).extrapolation == 0.0
+
+
+@pytest.mark.slow
+def test_a_gap_longer_than_the_prediction_tries_every_start(tum_path):
+    """Sequentially, after frames 50-69 of TUM fr1/rpy are dropped, the gap (21 frame intervals)
+    is longer than the prediction spans (max_prediction_intervals 4): every start is tried,
+    global registration included, whatever the first alignment gave. After 3 or 4 dropped
+    frames (a gap the prediction spans, the cap included) the fallbacks run as before: global
+    registration only when no alignment is trusted (here, coarse to fine is)."""
+    from slamkit.run.build import build_run
+
+    dataset, slam, _ = build_run(["dataset=tum", f"dataset.path={tum_path}", "dataset.max_frames=71",
+                                  "tracker=gicp", "keyframe=overlap", "mapper=none"])
+    slam.initialize(dataset[0].gt_pose)
+    for i in range(50):
+        slam.process(dataset[i])
+    state = slam.tracker.state_dict()
+
+    def track(index: int):
+        tracker = GICPTracker(slam.tracker.cfg)
+        tracker.load_state_dict(state)
+        return tracker.track(dataset[index])
+
+    for index in (52, 53):  # 3 and 4 intervals after frame 49
+        result = track(index)
+        assert not result.lost and "global registration" not in result.stats.get("retried", []), result.stats
+    result = track(70)
+    assert not result.lost and "global registration" in result.stats["retried"], result.stats

@@ -88,7 +88,7 @@ class GICPConfig(PluginConfig):
     min_matched_fraction: float = 0.1
     #: nor, after dropped frames, one matching less than this x the last tracked frame's fraction (0: off)
     min_matched_ratio: float = 0.7
-    #: metres: FPFH + RANSAC registration to the map at this voxel, then G-ICP: nothing trusted, a long gap (0: off)
+    #: metres: FPFH + RANSAC to the map at this voxel, then G-ICP, when nothing is trusted or after a long gap (0: off)
     relocalize_voxel: float = 0.05
     #: global registrations from up to this many RANSAC seeds: the next only while no alignment is trusted
     relocalize_restarts: int = 3

@@ -13,7 +13,7 @@ An attempt matching too few points (min_matched_fraction; after dropped frames
 min_matched_ratio x the last frame's) is not trusted; when none is, the frame's points are
 registered to the map without a first guess (relocalize_voxel; RANSAC from up to
 relocalize_restarts seeds while none is trusted) and aligned from there. After a
-gap the prediction does not span (max_prediction_intervals), where the input waits, every start
+gap longer than the prediction spans (max_prediction_intervals), where the input waits, every start
 is tried, global registration included, whatever the first gave: the capped prediction is a
 guess, and a first alignment from it can converge to a surface the map holds twice (drift) or
 match a few points fewer than the right pose. No fallback starts past the frame's budget
@@ -59,7 +59,7 @@ class FallbackPolicy:
 
     def solve(self, target: Target, src: np.ndarray, src_cov: np.ndarray, predicted: np.ndarray,
               previous: np.ndarray | None, stats: dict, intervals: float = 1.0, deadline: float | None = None,
-              last_matched: float | None = None):
+              last_matched: float | None = None, beyond_prediction: bool = False):
         """G-ICP of the source points (camera frame, metres) and covariances to the target from
         the predicted pose, with fallbacks; previous: the last tracked pose (None before the
         first); intervals: frame intervals the prediction spans (> 1 after dropped frames: the
@@ -69,9 +69,9 @@ class FallbackPolicy:
         min_matched_fraction of the points, or after dropped frames less than min_matched_ratio
         x `last_matched` (the last tracked frame's matched fraction), is not trusted (after a long
         gap, one converged to a wrong pose; docs/results.md, "Tracking first"): the fallbacks run,
-        and when none is trusted the frame is lost. After a gap the prediction does not span
-        (`intervals` at max_prediction_intervals) and without a deadline, every start is tried and
-        the trusted attempt matching most points kept.
+        and when none is trusted the frame is lost. After a gap longer than the prediction spans
+        (`beyond_prediction`: more than max_prediction_intervals) and without a deadline, every
+        start is tried and the trusted attempt matching most points kept.
         Returns (pose, ok, squared NN distances of the kept attempt's last search)."""
         aligner = self.aligner
         slide_limit = self.cfg.fallback_slide * aligner.max_corr * min(max(1.0, intervals), MAX_SLIDE_GROWTH)
@@ -86,9 +86,9 @@ class FallbackPolicy:
         self._floor = max(self.cfg.min_matched_fraction, self.cfg.min_matched_ratio * reference)
         ok = ok and self._trusted(sq, stats)
         slid = rms_travel(moments, predicted, pose) > slide_limit
-        # not in real time: global registration takes 0.3-2.5 s, and the frames dropped meanwhile
-        # would make the next frame another long gap
-        relocalize = intervals >= self.cfg.max_prediction_intervals and deadline is None
+        # only where the input waits (no deadline): a global registration outlasts many frame
+        # intervals, and the frames dropped meanwhile would make the next frame another long gap
+        relocalize = beyond_prediction and deadline is None
         if ok and (stats["converged"] or not self.retry_unconverged) and not slid and not relocalize:
             return pose, ok, sq
         # stopped on its way (stop_slid) its pose is anywhere along the slide: any trusted fallback is better
@@ -148,7 +148,7 @@ class FallbackPolicy:
             yield "coarse to fine", predicted, True
         if self.cfg.relocalize_voxel <= 0:
             return
-        source = None  # the frame's FPFH features, computed once for every seed
+        source = None  # the frame's FeatureCloud (points, normals, FPFH): made once for every seed
         for seed in range(self.cfg.relocalize_restarts):
             # the first draw when nothing is trusted or after a long gap; another only while nothing is
             untrusted = not trusted and "fallback" not in stats
@@ -160,7 +160,7 @@ class FallbackPolicy:
                 return
             yield "global registration", start, False
 
-    def _relocalize(self, target: Target, src: np.ndarray, source, seed: int, stats: dict):
+    def _relocalize(self, target: Target, src: np.ndarray, source, seed: int, stats: dict) -> tuple:
         """The frame's pose by global registration of its points to the target's means, RANSAC
         drawing from `seed` (None without open3d, said once), and the points' FeatureCloud
         (`source` when given) for the next draw."""
@@ -176,7 +176,7 @@ class FallbackPolicy:
                 log.warning("tracker.relocalize_voxel: no global registration (%s)", exc)
                 self._warned = True
             return None, source
-        stats["relocalized_fitness"] = found.fitness
+        stats["relocalized_fitness"], stats["relocalized_seed"] = found.fitness, seed
         return found.pose, source
 
     def _previous_start(self, predicted: np.ndarray, previous: np.ndarray | None) -> np.ndarray | None:

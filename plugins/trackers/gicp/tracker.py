@@ -86,7 +86,8 @@ class GICPTracker(Tracker):
         """The motion model's last two poses, the first pose, and the target (means, regularised
         covariances and the map version they were taken at)."""
         state = {"first_pose": self.first_pose, "poses": np.array(self.poses).reshape(-1, 4, 4),
-                 "frame_indices": list(self.frame_indices), "tree_builds": self.tree_builds}
+                 "frame_indices": list(self.frame_indices), "tree_builds": self.tree_builds,
+                 "last_matched": self.last_matched}
         if self.target is not None:
             state["target"] = {"means": self.target.means32, "covariances": self.target.covariances.copy(),
                                "version": self.target.version}
@@ -97,6 +98,7 @@ class GICPTracker(Tracker):
         self.poses = list(np.asarray(state["poses"], dtype=np.float64).reshape(-1, 4, 4))
         self.frame_indices = [int(i) for i in state.get("frame_indices", [])]  # older checkpoints: no gap assumed
         self.tree_builds = int(state.get("tree_builds", 0))
+        self.last_matched = state.get("last_matched")  # older checkpoints: none (no ratio for the next frame)
         target = state.get("target")
         self.target = None if target is None else Target(np.asarray(target["means"]), np.asarray(
             target["covariances"], dtype=np.float64), int(target["version"]), self.kernels, self.max_corr)
@@ -119,22 +121,27 @@ class GICPTracker(Tracker):
             return orthonormalize(last @ (motion if intervals == 1.0 else motion_power(motion, intervals)))
         return self.poses[-1].copy()
 
-    def _intervals(self, frame_index: int | None) -> float:
+    def _gap(self, frame_index: int | None) -> float:
         """How many times the last motion (between the last two tracked frames) the camera made
-        by `frame_index`: the ratio of the frame gaps (1 without indices or a gap), at most
-        `max_prediction_intervals`."""
+        by `frame_index`: the ratio of the frame gaps (1 without indices or a gap)."""
         if frame_index is None or len(self.frame_indices) != len(self.poses) or len(self.poses) < 2:
             return 1.0
         before, last = self.frame_indices[-2], self.frame_indices[-1]
         if last <= before or frame_index <= last:
             return 1.0
+        return (frame_index - last) / (last - before)
+
+    def _intervals(self, frame_index: int | None) -> float:
+        """`_gap`, at most `max_prediction_intervals`: the motions the prediction spans."""
         # capped: over a long gap the camera does not keep its velocity, and the prediction went
         # far enough off for an alignment to converge to a wrong pose (7-Scenes 157 -> 175: 96 cm)
-        return min((frame_index - last) / (last - before), self.cfg.max_prediction_intervals)
+        return min(self._gap(frame_index), self.cfg.max_prediction_intervals)
 
     def track(self, frame: Frame) -> TrackingResult:
-        intervals = self._intervals(frame.index)
-        result = self._track(frame, self._predicted(intervals), intervals)
+        gap = self._gap(frame.index)
+        intervals = min(gap, self.cfg.max_prediction_intervals)
+        result = self._track(frame, self._predicted(intervals), intervals,
+                             beyond_prediction=gap > self.cfg.max_prediction_intervals)
         self.poses = self.poses[-1:] + [result.pose]  # the motion model needs the last two
         self.frame_indices = self.frame_indices[-1:] + [frame.index]
         return result
@@ -144,8 +151,10 @@ class GICPTracker(Tracker):
         min_median = self.cfg.target_min_median if target else None
         return self.kernels.regularize(cov, self.regularization, self.cfg.plane_eps, min_median=min_median)
 
-    def _track(self, frame: Frame, predicted: np.ndarray, intervals: float = 1.0) -> TrackingResult:
-        """`intervals`: frame intervals since the last tracked frame (> 1 after dropped frames)."""
+    def _track(self, frame: Frame, predicted: np.ndarray, intervals: float = 1.0,
+               beyond_prediction: bool = False) -> TrackingResult:
+        """`intervals`: frame intervals the prediction spans (> 1 after dropped frames);
+        `beyond_prediction`: the gap since the last tracked frame is longer (`FallbackPolicy.solve`)."""
         cfg = self.cfg
         stats = new_stats()
         t0 = time.perf_counter()
@@ -177,7 +186,7 @@ class GICPTracker(Tracker):
         else:
             previous = self.poses[-1] if self.poses else None
             pose, ok, sq_track = self.fallbacks.solve(self.target, src, src_cov, predicted, previous, stats,
-                                                      intervals, deadline, self.last_matched)
+                                                      intervals, deadline, self.last_matched, beyond_prediction)
             if not ok:
                 return TrackingResult(pose=predicted, lost=True, stats=stats)
 
