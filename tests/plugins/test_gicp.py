@@ -779,6 +779,19 @@ def test_slide_extrapolation_sums_the_series_of_updates():
         assert np.allclose(ex.next_pose(POSE, POSE), POSE)
 
 
+def tum_tracker_state(tum_path, frames):
+    """TUM fr1/rpy through the system (sequential, tracking only) over `frames`: the dataset, the
+    resolved G-ICP config and the tracker's state after them."""
+    from slamkit.run.build import build_run
+
+    dataset, slam, _ = build_run(["dataset=tum", f"dataset.path={tum_path}", "tracker=gicp", "keyframe=overlap",
+                                  "mapper=none"])
+    slam.initialize(dataset[0].gt_pose)
+    for i in frames:
+        slam.process(dataset[i])
+    return dataset, slam.tracker.cfg, slam.tracker.state_dict()
+
+
 @pytest.mark.slow
 def test_extrapolation_shortens_a_slide_to_the_same_pose(tum_path):
     """TUM fr1/rpy frame 52, in the fast turn: from the state after frame 51 its first alignment
@@ -787,15 +800,7 @@ def test_extrapolation_shortens_a_slide_to_the_same_pose(tum_path):
     sequential and the real-time settings alike."""
     import dataclasses
 
-    from slamkit.run.build import build_run
-
-    dataset, slam, _ = build_run(["dataset=tum", f"dataset.path={tum_path}", "dataset.max_frames=53",
-                                  "tracker=gicp", "keyframe=overlap", "mapper=none"])
-    slam.initialize(dataset[0].gt_pose)
-    for i in range(52):
-        slam.process(dataset[i])
-    state = slam.tracker.state_dict()
-    sequential = slam.tracker.cfg
+    dataset, sequential, state = tum_tracker_state(tum_path, frames=range(52))
     live = dataclasses.replace(sequential, stop_stalled=True, stop_slid=True, retry_unconverged=False)
     for cfg in (sequential, live):
         results = {}
@@ -821,17 +826,10 @@ def test_a_gap_longer_than_the_prediction_tries_every_start(tum_path):
     global registration included, whatever the first alignment gave. After 3 or 4 dropped
     frames (a gap the prediction spans, the cap included) the fallbacks run as before: global
     registration only when no alignment is trusted (here, coarse to fine is)."""
-    from slamkit.run.build import build_run
-
-    dataset, slam, _ = build_run(["dataset=tum", f"dataset.path={tum_path}", "dataset.max_frames=71",
-                                  "tracker=gicp", "keyframe=overlap", "mapper=none"])
-    slam.initialize(dataset[0].gt_pose)
-    for i in range(50):
-        slam.process(dataset[i])
-    state = slam.tracker.state_dict()
+    dataset, cfg, state = tum_tracker_state(tum_path, frames=range(50))
 
     def track(index: int):
-        tracker = GICPTracker(slam.tracker.cfg)
+        tracker = GICPTracker(cfg)
         tracker.load_state_dict(state)
         return tracker.track(dataset[index])
 
