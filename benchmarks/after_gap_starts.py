@@ -25,28 +25,27 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
 
 from slamkit.cli.bench import markdown_table
 from slamkit.geometry.registration import FeatureCloud, register
-from slamkit.geometry.transforms import backproject, invert_pose
+from slamkit.geometry.transforms import backproject, invert_pose, rotation_angle_deg
 from slamkit.registry.schema import EvalConfig
 from slamkit.run.build import build_run
 from slamkit_plugins.trackers.gicp.alignment import new_stats
 from slamkit_plugins.trackers.gicp.tracker import GICPTracker
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-SEQUENCES = {"tum": ["dataset=tum", "dataset.path={data}/tum_fr1_rpy_first150"],
-             "7scenes": ["dataset=sevenscenes", "dataset.path={data}/7scenes_redkitchen_300to999"]}
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from frame_delay import DATA, SEQUENCES  # noqa: E402  (the sequences of the gaps part)
 
 
 def pose_error(A: np.ndarray, B: np.ndarray) -> tuple[float, float]:
     """(cm, degrees) of B relative to A."""
     E = invert_pose(A) @ B
-    return 100 * float(np.linalg.norm(E[:3, 3])), float(np.degrees(np.arccos(np.clip((np.trace(E[:3, :3]) - 1) / 2,
-                                                                                      -1, 1))))
+    return 100 * float(np.linalg.norm(E[:3, 3])), float(rotation_angle_deg(E[:3, :3]))
 
 
 def source(tracker: GICPTracker, frame) -> tuple[np.ndarray, np.ndarray]:
@@ -71,7 +70,7 @@ def main() -> int:
     every, length = (int(n) for n in args.schedule.split("/"))
     gaps = EvalConfig(forced_gap_every=every, forced_gap_length=length)
     chosen = {int(i) for i in args.frames.split(",") if i}
-    overrides = [o.format(data=args.data) for o in SEQUENCES[args.sequence]]
+    overrides = [o for o in SEQUENCES[args.sequence](args.data) if "eval_every" not in o]
     dataset, slam, _ = build_run(overrides + ["tracker=gicp", "keyframe=overlap", "mapper=none"] + args.set)
     last_study = max(chosen) if chosen else len(dataset) - 1
     slam.initialize(dataset[0].gt_pose)
@@ -92,9 +91,10 @@ def main() -> int:
             src, src_cov = source(copy, frame)
             starts = {"prediction": copy.predict(i), "previous": previous, "truth's motion": ideal}
             voxel = copy.cfg.relocalize_voxel
+            cloud = FeatureCloud(src, voxel) if voxel > 0 else None
             for seed in range(args.seeds if voxel > 0 else 0):
                 name = "global registration" + (f" (seed {seed})" if seed else "")
-                starts[name] = register(FeatureCloud(src, voxel), copy.target.features(voxel), seed=seed).pose
+                starts[name] = register(cloud, copy.target.features(voxel), seed=seed).pose
             attempts = {}
             for name, start in starts.items():
                 stats = new_stats()

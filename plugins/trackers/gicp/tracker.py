@@ -138,10 +138,9 @@ class GICPTracker(Tracker):
         return min(self._gap(frame_index), self.cfg.max_prediction_intervals)
 
     def track(self, frame: Frame) -> TrackingResult:
-        gap = self._gap(frame.index)
-        intervals = min(gap, self.cfg.max_prediction_intervals)
+        intervals = self._intervals(frame.index)
         result = self._track(frame, self._predicted(intervals), intervals,
-                             beyond_prediction=gap > self.cfg.max_prediction_intervals)
+                             beyond_prediction=self._gap(frame.index) > self.cfg.max_prediction_intervals)
         self.poses = self.poses[-1:] + [result.pose]  # the motion model needs the last two
         self.frame_indices = self.frame_indices[-1:] + [frame.index]
         return result
