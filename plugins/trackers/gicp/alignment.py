@@ -73,8 +73,9 @@ class Aligner:
     def align(self, target: Target, src: np.ndarray, src_cov: np.ndarray, T0: np.ndarray, stats: dict,
               max_corr: float | None = None, deadline: float | None = None, max_travel: float | None = None,
               moments: tuple[np.ndarray, np.ndarray] | None = None):
-        """Levenberg-Marquardt G-ICP from T0. Returns (pose, ok, squared NN distances of the
-        last correspondence search (inf where none)).
+        """Levenberg-Marquardt G-ICP from T0. Returns (pose, ok, squared NN distances (m^2, inf
+        where none) of the last correspondence search, made at the pose or at the one the pose
+        is an update from: never at an extrapolated start the pose did not come from).
 
         It stops early, not converged, when it stalls (with `stop_stalled`: a step lands within
         the tolerances of the pose 2 to STALL_PERIOD iterations back, so the iterations left would
@@ -98,6 +99,7 @@ class Aligner:
         lam = None
         nu = 2.0
         sq = np.full(len(src), np.inf)
+        from_search = True  # whether sq was searched at T or at the pose T is one update from
         idx = None  # the last matches: each search starts from them
         converged = False
         recent = [T0]  # the start and the last accepted poses, to see a stall
@@ -116,7 +118,7 @@ class Aligner:
             d2, idx = target.index.nearest(query, max_corr or self.max_corr, hint=idx)
             te = time.perf_counter()
             stats["nn_search_s"] += te - ts
-            sq = d2.astype(np.float64)
+            sq, from_search = d2.astype(np.float64), start is T
             m = int(np.count_nonzero(idx < n_target))
             stats["num_correspondences"] = m
             if m < cfg.min_correspondences and start is not T:
@@ -143,7 +145,7 @@ class Aligner:
                 rho_den = float(xi @ (lam * xi - g))
                 rho = (cost0 - cost) / rho_den if rho_den > 0 else -1.0
                 if cost <= cost0 or rho > 0:
-                    T = Tn
+                    T, from_search = Tn, True
                     lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3) if rho > 0 else 1.0
                     nu = 2.0
                     accepted = True
@@ -151,7 +153,7 @@ class Aligner:
                     break
                 if small:
                     converged = True
-                    T = start
+                    T, from_search = start, True
                     break
                 lam *= nu
                 nu *= 2.0
@@ -170,6 +172,11 @@ class Aligner:
         if not np.isfinite(T).all():
             stats["lost_reason"] = "non-finite pose"
             return T0, False, sq
+        if not from_search:
+            # the last search was at an extrapolated start that gave no update (no decrease, or
+            # too few matches on the last iteration): its distances are not T's, so search at T
+            sq = target.index.nearest((src @ T[:3, :3].T + T[:3, 3]).astype(np.float32),
+                                      max_corr or self.max_corr, hint=idx)[0].astype(np.float64)
         return orthonormalize(T), True, sq
 
     def match(self, target: Target, src: np.ndarray, pose: np.ndarray) -> np.ndarray:
