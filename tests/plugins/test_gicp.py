@@ -838,3 +838,45 @@ def test_a_gap_longer_than_the_prediction_tries_every_start(tum_path):
         assert not result.lost and "global registration" not in result.stats.get("retried", []), result.stats
     result = track(70)
     assert not result.lost and "global registration" in result.stats["retried"], result.stats
+
+
+def test_an_extrapolated_start_that_gives_no_update_leaves_the_returned_pose_its_own_distances():
+    """`tracker.extrapolation`: a corrugated surface shifted 3.7 cm across its ripples slides an
+    alignment along them; its third iteration starts from a pose moved on along the slide. Where
+    that start gives no update (here no decrease: the linearisation's cost is made infinite
+    there, and one damping try an iteration), the alignment returns the last update's pose, and
+    the squared distances it returns are that pose's own (the trust test and the new Gaussians
+    use them), not the jumped start's."""
+    import dataclasses
+
+    from slamkit_plugins.trackers.gicp.alignment import Aligner, new_stats
+    from slamkit_plugins.trackers.gicp.kernels import NumpyKernels
+    from slamkit_plugins.trackers.gicp.target import Target
+
+    class NoDecreaseAtThirdStart(NumpyKernels):
+        def __init__(self):
+            super().__init__()
+            self.starts = []
+
+        def linearize(self, src, target, nn, T):
+            lin = super().linearize(src, target, nn, T)
+            self.starts.append(T.copy())
+            if len(self.starts) == 3:
+                lin.cost_at = lambda pose: np.inf
+            return lin
+
+    grid = np.linspace(-0.5, 0.5, 201)
+    x, y = (a.ravel() for a in np.meshgrid(grid, grid))
+    surface = np.stack([x, y, 0.01 * np.sin(2 * np.pi * x / 0.2)], axis=1)
+    covariances = np.tile(1e-6 * np.eye(3), (len(surface), 1, 1))
+    source = surface + np.array([0.0371, 0.0, 0.0])
+    kernels = NoDecreaseAtThirdStart()
+    # one Levenberg-Marquardt try an iteration: the step refused at the third start is not yet small
+    aligner = Aligner(dataclasses.replace(GICPConfig(), extrapolation=2.0, lm_max_tries=1), kernels, 0.1)
+    target = Target(surface, covariances, 0, kernels, 0.1)
+    stats = new_stats()
+    pose, ok, sq = aligner.align(target, source, covariances, np.eye(4), stats)
+    assert ok and stats["iterations"] == 3
+    jump = np.linalg.norm(kernels.starts[2][:3, 3] - pose[:3, 3])
+    assert jump > 0.002, jump  # the third start was moved on past the returned pose
+    np.testing.assert_allclose(sq, aligner.match(target, source, pose), atol=1e-9)
