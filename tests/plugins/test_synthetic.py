@@ -255,11 +255,43 @@ def test_the_return_path_ends_at_its_first_pose_and_revisit_rotated_turns_its_se
     assert 20.0 < rotation_angle_deg(out[:3, :3].T @ home[:3, :3]) < 30.0
 
 
+@pytest.mark.parametrize("kind", synthetic.LOOP_PATHS)
+def test_a_ramp_starts_a_path_from_rest_and_without_one_the_path_is_unchanged(kind):
+    """`ramp_s`: the first frames move little (the hand's bob goes on) and speed up to the path's
+    pace; 0 is the path of before to the bit (every committed figure was measured on it)."""
+    n = LOOP_FRAMES[kind]
+    moving, ramped = synthetic.loop_path(kind, n, seed=3), synthetic.loop_path(kind, n, seed=3, ramp_s=1.0)
+    np.testing.assert_array_equal(synthetic.loop_path(kind, n, seed=3, ramp_s=0.0), moving)
+    np.testing.assert_array_equal(ramped[0], moving[0])  # the same start pose
+    np.testing.assert_allclose(ramped[-1], moving[-1], atol=1e-9 if kind != "return" else 1e-6)
+
+    def steps(poses):
+        return np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
+
+    start, pace = steps(ramped)[:3].mean(), np.median(steps(ramped))
+    assert start < 0.25 * pace and steps(moving)[:3].mean() > 0.5 * np.median(steps(moving))
+    ramp = steps(ramped)[: int(synthetic.FPS)]
+    assert np.all(np.diff(ramp) > -0.1 * pace)  # speeds up, give or take the hand's bob
+
+
+def test_a_ramp_progress_is_a_trapezoid_of_speed():
+    u = synthetic.from_rest(301, ramp_s=1.0)
+    assert u[0] == 0.0 and u[-1] == pytest.approx(1.0)
+    np.testing.assert_allclose(u + u[::-1], 1.0, atol=1e-12)  # symmetric: slows to rest at the end
+    speed = np.diff(u)
+    np.testing.assert_allclose(np.diff(speed[:30]), np.diff(speed[:30]).mean(), rtol=1e-6)  # even acceleration
+    np.testing.assert_allclose(speed[40:260], speed[150], rtol=1e-9)  # then constant
+
+
 def test_an_unknown_path_is_refused_in_one_line():
     with pytest.raises(ConfigError, match="dataset.camera_path"):
         SyntheticConfig(camera_path="spiral")
     with pytest.raises(ValueError, match="spiral"):
         synthetic.loop_path("spiral", 10)
+    with pytest.raises(ConfigError, match="dataset.ramp_s"):
+        SyntheticConfig(ramp_s=1.0)  # the hand-held wander has no ramp
+    with pytest.raises(ConfigError, match="dataset.ramp_s"):
+        SyntheticConfig(camera_path="return", ramp_s=-1.0)
 
 
 def _sensor_frame(depth, rgb=None, **fields):

@@ -22,13 +22,13 @@ from slamkit_plugins.datasets.synthetic.dataset import (
     SyntheticDataset,
     default_cache_dir,
 )
-from slamkit_plugins.datasets.synthetic.path import FPS, LOOP_PATHS, PATH_BOUNDS, handheld_path, loop_path
+from slamkit_plugins.datasets.synthetic.path import FPS, LOOP_PATHS, PATH_BOUNDS, from_rest, handheld_path, loop_path
 from slamkit_plugins.datasets.synthetic.raycast import render
 from slamkit_plugins.datasets.synthetic.scene import ROOM_HI, ROOM_LO, scene, scene_clearance
 
 __all__ = ["DEPTH_SCALE", "FPS", "GENERATOR_VERSION", "LOOP_PATHS", "PATH_BOUNDS", "ROOM_HI", "ROOM_LO",
-           "SyntheticConfig", "SyntheticDataset", "default_cache_dir", "handheld_path", "loop_path", "render", "scene",
-           "scene_clearance"]
+           "SyntheticConfig", "SyntheticDataset", "default_cache_dir", "from_rest", "handheld_path", "loop_path",
+           "render", "scene", "scene_clearance"]
 
 
 @hookimpl

@@ -63,6 +63,8 @@ class SyntheticConfig(DatasetConfig):
     speed: float = 1.0
     #: camera path: handheld (a seeded wander) or one that comes back: room_loop, figure_eight, return, revisit_rotated
     camera_path: str = "handheld"
+    #: a path that comes back: seconds to speed up from rest at its start and slow to rest at its end (0: no ramp)
+    ramp_s: float = 0.0
     #: depth errors: gaussian (depth_noise, depth_dropout) or structured_light (the sensor_* fields, and colour noise)
     depth_model: str = "gaussian"
     #: gaussian: metres of Gaussian depth noise at 1 m, growing with z^2 (0: exact; 1.5 mm is a Kinect v1's)
@@ -109,6 +111,9 @@ class SyntheticConfig(DatasetConfig):
         require(0.0 <= self.depth_dropout < 1.0, "dataset.depth_dropout", "a fraction in [0, 1)", self.depth_dropout)
         require(self.camera_path in ("handheld", *LOOP_PATHS), "dataset.camera_path",
                 f"one of handheld, {', '.join(LOOP_PATHS)}", self.camera_path)
+        require(self.ramp_s >= 0.0, "dataset.ramp_s", ">= 0 seconds", self.ramp_s)
+        require(self.ramp_s == 0.0 or self.camera_path != "handheld", "dataset.ramp_s",
+                "0 with camera_path=handheld (a ramp is for a path that comes back)", self.ramp_s)
         require(self.depth_model in ("gaussian", "structured_light"), "dataset.depth_model",
                 "gaussian or structured_light", self.depth_model)
         for name in ("sensor_axial_sigma_m", "sensor_axial_sigma_per_m2", "sensor_disparity_step_px",
@@ -173,6 +178,7 @@ class SyntheticDataset(Dataset):
             "speed": float(c.speed),
             # the default path keeps the key of before, so that its caches stay valid
             **({} if c.camera_path == "handheld" else {"camera_path": c.camera_path}),
+            **({"ramp_s": float(c.ramp_s)} if c.ramp_s > 0 else {}),
         }
 
     def cache_key(self) -> str:
@@ -236,7 +242,7 @@ class SyntheticDataset(Dataset):
         DEPTH_SCALE units per metre) per frame."""
         c = self.cfg
         poses = handheld_path(c.num_frames, c.seed, c.speed) if c.camera_path == "handheld" else \
-            loop_path(c.camera_path, c.num_frames, c.seed)
+            loop_path(c.camera_path, c.num_frames, c.seed, ramp_s=c.ramp_s)
         yield "meta", np.array(meta)
         yield "poses", poses
         # Frames are independent: render a chunk at a time on a few threads (numpy releases

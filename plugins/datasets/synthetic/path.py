@@ -20,6 +20,10 @@ with the same hand-held jitter and downward look:
 - `revisit_rotated`: once around the ellipse looking outwards, then back round the other way on
   an ellipse half the size, turned 25 degrees further: each wall seen again from another place,
   in another direction and in the opposite order.
+
+By default a path that comes back is at full speed from its first frame; `ramp_s` (seconds)
+makes it start from rest and speed up evenly (and slow to rest at its end), as a camera picked
+up rather than one already moving when the recording begins.
 """
 
 from __future__ import annotations
@@ -83,7 +87,11 @@ def _poses(pos: np.ndarray, heading: np.ndarray, pitch: np.ndarray, jitter: np.n
 
 def handheld_path(num_frames: int, seed: int = 0, speed: float = 1.0, fps: float = FPS) -> np.ndarray:
     """(num_frames, 4, 4) camera-to-world poses of a smooth hand-held-like path."""
-    t = np.arange(num_frames) / fps * speed
+    return _handheld(np.arange(num_frames) / fps * speed, seed)
+
+
+def _handheld(t: np.ndarray, seed: int) -> np.ndarray:
+    """The hand-held wander's poses at times `t` (seconds, scaled by the speed)."""
     s = _Terms(seed, t)
     # Position: |x| <= 0.45 + 0.25, |y| <= 0.35 + 0.2, z in 1.45 +- (0.16 + 0.08).
     pos = np.stack([s(0.45, 0.35, 0) + s(0.25, 0.83, 1), s(0.35, 0.41, 2) + s(0.20, 0.97, 3),
@@ -102,12 +110,26 @@ def _ellipse(theta: np.ndarray, scale: float | np.ndarray, s: _Terms) -> np.ndar
                      _CENTRE_Z + 0.06 * np.sin(3 * theta) + s(0.03, 1.3, 5)], axis=1)
 
 
-def loop_path(kind: str, num_frames: int, seed: int = 0, fps: float = FPS) -> np.ndarray:
+def from_rest(num_frames: int, ramp_s: float, fps: float = FPS) -> np.ndarray:
+    """(num_frames,) progress 0..1 along a path that starts and ends at rest: its speed rises
+    evenly over the first `ramp_s` seconds, stays constant, and falls evenly over the last
+    (a trapezoid of speed; symmetric: progress(i) + progress(n-1-i) = 1)."""
+    v = np.linspace(0.0, 1.0, num_frames)
+    r = min(ramp_s * fps / max(num_frames - 1, 1), 0.5)
+    top = 1.0 / (1.0 - r)  # the constant part's speed, so that progress ends at 1
+    return np.where(v < r, top * v * v / (2 * r),
+                    np.where(v > 1 - r, 1 - top * (1 - v) ** 2 / (2 * r), top * (v - r / 2)))
+
+
+def loop_path(kind: str, num_frames: int, seed: int = 0, fps: float = FPS, ramp_s: float = 0.0) -> np.ndarray:
     """(num_frames, 4, 4) camera-to-world poses of the path `kind` (one of LOOP_PATHS, see the
-    module docstring), spread over the whole sequence: more frames, a slower camera."""
+    module docstring), spread over the whole sequence: more frames, a slower camera. With
+    `ramp_s` > 0 (seconds) the camera starts and ends at rest (`from_rest`); with 0 it is moving
+    at full speed from the first frame to the last."""
     if kind not in LOOP_PATHS:
         raise ValueError(f"synthetic path: expected one of {', '.join(LOOP_PATHS)}, got {kind!r}")
-    u = np.linspace(0.0, 1.0, num_frames)  # progress along the path
+    # progress along the path
+    u = from_rest(num_frames, ramp_s, fps) if ramp_s > 0 else np.linspace(0.0, 1.0, num_frames)
     s = _Terms(seed, np.arange(num_frames) / fps)
     pitch = -0.35 + s(0.08, 0.60, 7)
     if kind == "room_loop":
@@ -123,9 +145,14 @@ def loop_path(kind: str, num_frames: int, seed: int = 0, fps: float = FPS) -> np
         return _poses(pos, heading, pitch, s.jitter())
     if kind == "return":
         wander = int(round(0.75 * num_frames))
-        out = handheld_path(wander, seed, fps=fps)
-        w = u[: num_frames - wander + 1] / u[num_frames - wander]  # 0..1 over the way back
-        w = w * w * (3 - 2 * w)  # smoothstep: no jerk where the wander ends or at the start pose
+        # with a ramp the wander starts from rest (the first half of a trapezoid twice its length);
+        # the way back (a smoothstep) ends at rest either way
+        t = np.arange(wander) / fps if ramp_s <= 0 else \
+            from_rest(2 * wander, ramp_s, fps)[:wander] * (2 * wander - 1) / fps
+        out = _handheld(t, seed)
+        v = np.linspace(0.0, 1.0, num_frames)
+        w = v[: num_frames - wander + 1] / v[num_frames - wander]  # 0..1 over the way back
+        w = w * w * (3 - 2 * w)  # smoothstep: at rest on arriving at the start pose
         first, last = out[0], out[-1]
         back = np.zeros((len(w), 4, 4))
         turn = so3_log(last[:3, :3].T @ first[:3, :3])
