@@ -388,3 +388,31 @@ def test_a_loop_whose_pose_can_slide_is_rejected_as_not_unique(scene):
     else:
         assert abs(directions[:, 0] @ truth[:3, :3].T @ x) > 0.99  # the weakest direction is along the corridor
         assert reason.startswith("not unique: from ") and "cm along its weakest direction" in reason, reason
+
+
+@pytest.mark.parametrize("weak_direction", ["reject", "free"])
+def test_a_loop_along_a_corridor_is_refused_or_kept_without_its_weakest_direction(weak_direction):
+    """A corridor seen again (a floor and two walls, nothing across its length) pins the pose
+    across it, not along it: `loop_closure.weak_direction=reject` refuses the loop in one line,
+    `free` keeps it with no information along the corridor (the graph places the pose there)."""
+    from slamkit_plugins.loop_closures.pose_graph.verification import verify
+
+    x, y, z = np.eye(3)
+    corridor = planes((np.zeros(3), 2 * x, 0.6 * y), (np.zeros(3), 2 * x, 0.6 * z), (0.6 * y, 2 * x, 0.6 * z))
+    scene_points = corridor + np.array([-0.3, -0.3, 1.0])
+    truth = se3_exp(np.r_[0.02, -0.03, 0.05, 0.04, -0.03, 0.02])
+    match = FeatureCloud(scene_points, 0.025)
+    query = FeatureCloud((scene_points - truth[:3, 3]) @ truth[:3, :3], 0.025)
+    cfg = PoseGraphConfig(**{**TEST_CONFIG, "weak_direction": weak_direction})
+    check, information = verify(query, match, truth, 1e-4 * np.eye(6), cfg, (1, 0, 10, 0), seed=0)
+    along = truth[:3, :3].T @ x  # the corridor's length in the query's frame
+    if weak_direction == "reject":
+        assert not check.accepted and check.reason.startswith("weakest direction constrained "), check.reason
+    else:
+        assert check.accepted, check.reason
+        fractions, directions = np.linalg.eigh(information[3:, 3:])
+        assert fractions[0] <= 1e-9 * fractions[-1] and abs(directions[:, 0] @ along) > 0.999
+        across = np.cross(along, truth[:3, :3].T @ y)
+        assert across @ information[3:, 3:] @ across > 0.05 / cfg.loop_sigma_m**2
+    with pytest.raises(ConfigError, match="loop_closure.weak_direction"):
+        PoseGraphConfig(weak_direction="ignore")

@@ -94,6 +94,13 @@ def verify(query: FeatureCloud, match: FeatureCloud, odometry: np.ndarray, odome
                       accepted=True)
     fractions, directions = np.linalg.eigh(information[3:, 3:])
     weakest = float(fractions[0])
+    freed = weakest < cfg.min_constraint and cfg.weak_direction == "free"
+    if freed:
+        # a wall seen again pins the pose across it but not along it: keep what it pins, and let
+        # the graph place the pose along the weakest direction (a registration may have slid there)
+        along = np.concatenate([np.zeros(3), directions[:, 0]])
+        project = np.eye(6) - np.outer(along, along)
+        information = project @ information @ project
     # the loop's difference from odometry, whitened by both uncertainties: odometry's, accumulated
     # along the path (large where tracking slid along a wall), and the loop's own
     loop_covariance = cfg.loop_sigma_m**2 * np.linalg.inv(information + INFORMATION_FLOOR * np.eye(6))
@@ -107,10 +114,12 @@ def verify(query: FeatureCloud, match: FeatureCloud, odometry: np.ndarray, odome
         (found.rmse_m > cfg.max_inlier_rmse_m, f"inlier RMSE {found.rmse_m:.4f} m > {cfg.max_inlier_rmse_m}"),
         (chi2 > bound, f"{correction_m:.3f} m, {correction_deg:.2f} deg from odometry: chi-square {chi2:.1f} > "
                        f"{bound:.1f} of their uncertainties"),
-        (weakest < cfg.min_constraint, f"weakest direction constrained {weakest:.3f} < {cfg.min_constraint}"),
+        (weakest < cfg.min_constraint and not freed,
+         f"weakest direction constrained {weakest:.3f} < {cfg.min_constraint}"),
     ]
     reason = next((why for failed, why in failures if failed), "")
     if not reason and cfg.uniqueness_displacement_m > 0:  # the costlier test last: only a loop that passed the rest
-        reason = sliding(query, match, found.pose, directions[:, 0], cfg.uniqueness_displacement_m,
+        # unique along the weakest direction the loop constrains
+        reason = sliding(query, match, found.pose, directions[:, 1 if freed else 0], cfg.uniqueness_displacement_m,
                          cfg.uniqueness_tolerance_m)
     return (check.rejected(reason) if reason else check), information / cfg.loop_sigma_m**2
