@@ -8,9 +8,9 @@ Needs open3d and, for the default backend, gtsam (the optional extra `loop`).
 
 from slamkit.plugin import PluginSpec, hookimpl
 from slamkit_plugins.loop_closures.pose_graph.closure import PoseGraphLoopClosure
-from slamkit_plugins.loop_closures.pose_graph.config import Backend, PoseGraphConfig
+from slamkit_plugins.loop_closures.pose_graph.config import Backend, PoseGraphConfig, WeakDirection
 
-__all__ = ["Backend", "PoseGraphConfig", "PoseGraphLoopClosure"]
+__all__ = ["Backend", "PoseGraphConfig", "PoseGraphLoopClosure", "WeakDirection"]
 
 
 @hookimpl

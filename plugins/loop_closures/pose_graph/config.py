@@ -16,6 +16,13 @@ class Backend(enum.Enum):
     open3d = "open3d"
 
 
+class WeakDirection(enum.Enum):
+    """What becomes of a loop constrained less than `min_constraint` along its weakest direction."""
+
+    reject = "reject"  # refused (loops.csv says by how much)
+    free = "free"  # kept, its information along that direction projected out
+
+
 @dataclass
 class PoseGraphConfig(PluginConfig):
     """Options of `loop_closure=pose_graph`: detection, verification and optimisation."""
@@ -53,7 +60,7 @@ class PoseGraphConfig(PluginConfig):
     #: the loop's point-to-plane information per point along its weakest direction, at least (1/3 a box; 0 a wall)
     min_constraint: float = 0.05
     #: a loop constrained less than min_constraint along its weakest direction: reject, or free (kept without it)
-    weak_direction: str = "reject"
+    weak_direction: WeakDirection = WeakDirection.reject
     #: metres: G-ICP is restarted this far either side of a loop's pose along its weakest direction (0: not)
     uniqueness_displacement_m: float = 0.02
     #: metres: those restarts must converge this close to the loop's pose, else it is not unique (the scene slides)
@@ -79,8 +86,6 @@ class PoseGraphConfig(PluginConfig):
             require(getattr(self, name) > 0, f"loop_closure.{name}", "> 0", getattr(self, name))
         for name in ("min_path_m", "radius_per_path", "min_constraint", "uniqueness_displacement_m"):
             require(getattr(self, name) >= 0, f"loop_closure.{name}", ">= 0", getattr(self, name))
-        require(self.weak_direction in ("reject", "free"), "loop_closure.weak_direction", "reject or free",
-                self.weak_direction)
         require(self.exclude_recent >= 1, "loop_closure.exclude_recent", "an integer >= 1", self.exclude_recent)
         require(0 < self.max_view_angle_deg <= 180, "loop_closure.max_view_angle_deg", "in (0, 180]",
                 self.max_view_angle_deg)

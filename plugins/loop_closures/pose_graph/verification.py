@@ -18,7 +18,7 @@ import numpy as np
 from slamkit.geometry.registration import FeatureCloud, alignment_information, refine, register
 from slamkit.geometry.transforms import se3_exp, so3_log
 from slamkit.roles.loop_closure import LoopCheck, pose_difference, relative_pose
-from slamkit_plugins.loop_closures.pose_graph.config import PoseGraphConfig
+from slamkit_plugins.loop_closures.pose_graph.config import PoseGraphConfig, WeakDirection
 from slamkit_plugins.loop_closures.pose_graph.optimisation import chi_square_6_quantile
 
 #: Added to a point-to-plane information per matched point, so that a direction the points do
@@ -94,7 +94,7 @@ def verify(query: FeatureCloud, match: FeatureCloud, odometry: np.ndarray, odome
                       accepted=True)
     fractions, directions = np.linalg.eigh(information[3:, 3:])
     weakest = float(fractions[0])
-    freed = weakest < cfg.min_constraint and cfg.weak_direction == "free"
+    freed = weakest < cfg.min_constraint and cfg.weak_direction is WeakDirection.free
     if freed:
         # a wall seen again pins the pose across it but not along it: keep what it pins, and let
         # the graph place the pose along the weakest direction (a registration may have slid there)
