@@ -77,7 +77,7 @@ SEQUENCES = {  # name -> the dataset's overrides
 SYNTHETIC = {"room_loop": 600, "figure_eight": 720, "return": 900, "revisit_rotated": 900}
 SEQUENCES.update({f"synthetic_{path}": ["dataset=synthetic", f"dataset.camera_path={path}", f"dataset.num_frames={n}",
                                         "dataset.depth_model=structured_light"] for path, n in SYNTHETIC.items()})
-#: The same paths starting from rest (speeding up over their first second): no start slide.
+#: The same paths from rest (speeding up over their first second, slowing over their last).
 SEQUENCES.update({f"synthetic_{path}_from_rest": [*SEQUENCES[f"synthetic_{path}"], "dataset.ramp_s=1"]
                   for path in SYNTHETIC})
 #: A loop is right when its relative pose is this close to the ground truth's (metres, degrees).

@@ -880,3 +880,4 @@ def test_an_extrapolated_start_that_gives_no_update_leaves_the_returned_pose_its
     jump = np.linalg.norm(kernels.starts[2][:3, 3] - pose[:3, 3])
     assert jump > 0.002, jump  # the third start was moved on past the returned pose
     np.testing.assert_allclose(sq, aligner.match(target, source, pose), atol=1e-9)
+    assert stats["num_correspondences"] == np.count_nonzero(np.isfinite(sq))

@@ -394,7 +394,8 @@ def test_a_loop_whose_pose_can_slide_is_rejected_as_not_unique(scene):
 def test_a_loop_along_a_corridor_is_refused_or_kept_without_its_weakest_direction(weak_direction):
     """A corridor seen again (a floor and two walls, nothing across its length) pins the pose
     across it, not along it: `loop_closure.weak_direction=reject` refuses the loop in one line,
-    `free` keeps it with no information along the corridor (the graph places the pose there)."""
+    `free` keeps it with only the floor's information along the corridor (the graph places the
+    pose there), as the optimiser's noise model factorises it."""
     from slamkit_plugins.loop_closures.pose_graph.verification import verify
 
     x, y, z = np.eye(3)
@@ -410,7 +411,13 @@ def test_a_loop_along_a_corridor_is_refused_or_kept_without_its_weakest_directio
         assert not check.accepted and check.reason.startswith("weakest direction constrained "), check.reason
     else:
         assert check.accepted, check.reason
+        import gtsam
+
         fractions, directions = np.linalg.eigh(information[3:, 3:])
-        assert fractions[0] <= 1e-9 * fractions[-1] and abs(directions[:, 0] @ along) > 0.999
+        floor = 1e-3 / cfg.loop_sigma_m**2  # verification.INFORMATION_FLOOR per loop_sigma_m^2
+        assert fractions[0] == pytest.approx(floor, rel=1e-6) and abs(directions[:, 0] @ along) > 0.999
+        R = gtsam.noiseModel.Gaussian.Information(information).R()  # what the optimiser weighs the edge by
+        freed = np.r_[np.zeros(3), directions[:, 0]]
+        assert freed @ R.T @ R @ freed == pytest.approx(floor, rel=1e-3)
         across = np.cross(along, truth[:3, :3].T @ y)
         assert across @ information[3:, 3:] @ across > 0.05 / cfg.loop_sigma_m**2

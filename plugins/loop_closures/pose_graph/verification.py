@@ -100,7 +100,9 @@ def verify(query: FeatureCloud, match: FeatureCloud, odometry: np.ndarray, odome
         # the graph place the pose along the weakest direction (a registration may have slid there)
         along = np.concatenate([np.zeros(3), directions[:, 0]])
         project = np.eye(6) - np.outer(along, along)
-        information = project @ information @ project
+        # the floor keeps it positive definite: an exactly singular information is factorised by
+        # gtsam without a check, and the rounding of its last pivot can pin the freed direction
+        information = project @ information @ project + INFORMATION_FLOOR * np.outer(along, along)
     # the loop's difference from odometry, whitened by both uncertainties: odometry's, accumulated
     # along the path (large where tracking slid along a wall), and the loop's own
     loop_covariance = cfg.loop_sigma_m**2 * np.linalg.inv(information + INFORMATION_FLOOR * np.eye(6))

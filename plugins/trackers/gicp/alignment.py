@@ -175,8 +175,11 @@ class Aligner:
         if not from_search:
             # the last search was at an extrapolated start that gave no update (no decrease, or
             # too few matches on the last iteration): its distances are not T's, so search at T
+            ts = time.perf_counter()
             sq = target.index.nearest((src @ T[:3, :3].T + T[:3, 3]).astype(np.float32),
                                       max_corr or self.max_corr, hint=idx)[0].astype(np.float64)
+            stats["nn_search_s"] += time.perf_counter() - ts
+            stats["num_correspondences"] = int(np.count_nonzero(np.isfinite(sq)))  # the fallbacks rank by it
         return orthonormalize(T), True, sq
 
     def match(self, target: Target, src: np.ndarray, pose: np.ndarray) -> np.ndarray:
