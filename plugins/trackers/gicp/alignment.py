@@ -176,17 +176,16 @@ class Aligner:
             # the last search was at an extrapolated start that gave no update (no decrease, or
             # too few matches on the last iteration): its distances are not T's, so search at T
             ts = time.perf_counter()
-            sq = target.index.nearest((src @ T[:3, :3].T + T[:3, 3]).astype(np.float32),
-                                      max_corr or self.max_corr, hint=idx)[0].astype(np.float64)
+            sq = self.match(target, src, T, max_corr)
             stats["nn_search_s"] += time.perf_counter() - ts
             stats["num_correspondences"] = int(np.count_nonzero(np.isfinite(sq)))  # the fallbacks rank by it
         return orthonormalize(T), True, sq
 
-    def match(self, target: Target, src: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    def match(self, target: Target, src: np.ndarray, pose: np.ndarray, max_corr: float | None = None) -> np.ndarray:
         """Squared distance (m^2) of each source point at `pose` to its nearest target mean
-        within max_correspondence_distance (inf where none)."""
+        within `max_corr` metres (default: max_correspondence_distance; inf where none)."""
         query = (src @ pose[:3, :3].T + pose[:3, 3]).astype(np.float32)
-        return target.index.nearest(query, self.max_corr)[0].astype(np.float64)
+        return target.index.nearest(query, max_corr or self.max_corr)[0].astype(np.float64)
 
     def _stalled(self, recent: list[np.ndarray], T: np.ndarray) -> bool:
         """Whether T is within the tolerances of the pose 2 to STALL_PERIOD accepted steps back (an
