@@ -274,7 +274,32 @@ def test_a_ramp_starts_a_path_from_rest_and_without_one_the_path_is_unchanged(ki
     assert np.all(np.diff(ramp) > -0.1 * pace)  # speeds up, give or take the hand's bob
 
 
+#: Camera positions (metres) at frames 0, n/3, 2n/3 and n-1 of each path (seed 3, LOOP_FRAMES), from
+#: the paths every committed synthetic figure was measured on (before `ramp_s` existed).
+MEASURED_ON = {
+    "room_loop": [[-0.044681130092, 0.448750513198, 1.376969589199], [-0.402825849949, -0.333502437352, 1.392029271263],
+                  [0.599825333172, 0.01085739139, 1.478978418791], [-0.418829424385, 0.322222479374, 1.502964399879]],
+    "figure_eight": [[0.0, 0.0, 1.444441986009], [0.444598183278, -0.447827100207, 1.496440780346],
+                     [-0.597102800275, 0.087911169494, 1.411764987255],
+                     [0.352671151375, 0.427975432333, 1.440476159095]],
+    "return": [[0.362436002779, 0.496748209722, 1.39348302428], [0.094699475193, -0.198137065787, 1.569744308739],
+               [-0.247487287158, -0.238674940046, 1.630855004862], [0.362436002779, 0.496748209722, 1.39348302428]],
+    "revisit_rotated": [[-0.044681130092, 0.448750513198, 1.376969589199],
+                        [0.414913178882, 0.32505994504, 1.487652575016],
+                        [0.209825510426, 0.160810310726, 1.502098938381],
+                        [-0.022340565046, 0.224375256599, 1.414230405373]],
+}
+
+
+@pytest.mark.parametrize("kind", synthetic.LOOP_PATHS)
+def test_without_a_ramp_a_path_is_the_one_the_figures_were_measured_on(kind):
+    n = LOOP_FRAMES[kind]
+    poses = synthetic.loop_path(kind, n, seed=3, ramp_s=0.0)
+    np.testing.assert_allclose(poses[[0, n // 3, 2 * n // 3, n - 1], :3, 3], MEASURED_ON[kind], atol=1e-9)
+
+
 def test_a_ramp_progress_is_a_trapezoid_of_speed():
+    np.testing.assert_array_equal(synthetic.from_rest(5, ramp_s=0.0), np.linspace(0, 1, 5))  # no ramp: constant
     u = synthetic.from_rest(301, ramp_s=1.0)
     assert u[0] == 0.0 and u[-1] == pytest.approx(1.0)
     np.testing.assert_allclose(u + u[::-1], 1.0, atol=1e-12)  # symmetric: slows to rest at the end
@@ -292,6 +317,10 @@ def test_an_unknown_path_is_refused_in_one_line():
         SyntheticConfig(ramp_s=1.0)  # the hand-held wander has no ramp
     with pytest.raises(ConfigError, match="dataset.ramp_s"):
         SyntheticConfig(camera_path="return", ramp_s=-1.0)
+    with pytest.raises(ConfigError, match="dataset.ramp_s"):
+        SyntheticConfig(camera_path="return", num_frames=60, ramp_s=1.5)  # up and down do not fit in 2 s
+    with pytest.raises(ValueError, match="longer than half"):
+        synthetic.from_rest(60, ramp_s=1.5)
 
 
 def _sensor_frame(depth, rgb=None, **fields):

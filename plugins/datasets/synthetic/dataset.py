@@ -114,6 +114,8 @@ class SyntheticConfig(DatasetConfig):
         require(self.ramp_s >= 0.0, "dataset.ramp_s", ">= 0 seconds", self.ramp_s)
         require(self.ramp_s == 0.0 or self.camera_path != "handheld", "dataset.ramp_s",
                 "0 with camera_path=handheld (a ramp is for a path that comes back)", self.ramp_s)
+        require(2 * self.ramp_s * FPS <= max(self.num_frames - 1, 1), "dataset.ramp_s",
+                f"at most half of the path's {self.num_frames} frames at {FPS:g} frames/s", self.ramp_s)
         require(self.depth_model in ("gaussian", "structured_light"), "dataset.depth_model",
                 "gaussian or structured_light", self.depth_model)
         for name in ("sensor_axial_sigma_m", "sensor_axial_sigma_per_m2", "sensor_disparity_step_px",

@@ -113,9 +113,14 @@ def _ellipse(theta: np.ndarray, scale: float | np.ndarray, s: _Terms) -> np.ndar
 def from_rest(num_frames: int, ramp_s: float, fps: float = FPS) -> np.ndarray:
     """(num_frames,) progress 0..1 along a path that starts and ends at rest: its speed rises
     evenly over the first `ramp_s` seconds, stays constant, and falls evenly over the last
-    (a trapezoid of speed; symmetric: progress(i) + progress(n-1-i) = 1)."""
+    (a trapezoid of speed; symmetric: progress(i) + progress(n-1-i) = 1). 0 seconds: constant
+    speed. The two ramps must fit in the path (at most half of it each)."""
     v = np.linspace(0.0, 1.0, num_frames)
-    r = min(ramp_s * fps / max(num_frames - 1, 1), 0.5)
+    if ramp_s <= 0:
+        return v
+    r = ramp_s * fps / max(num_frames - 1, 1)
+    if r > 0.5:
+        raise ValueError(f"a ramp of {ramp_s} s is longer than half the path's {num_frames} frames at {fps} frames/s")
     top = 1.0 / (1.0 - r)  # the constant part's speed, so that progress ends at 1
     return np.where(v < r, top * v * v / (2 * r),
                     np.where(v > 1 - r, 1 - top * (1 - v) ** 2 / (2 * r), top * (v - r / 2)))
