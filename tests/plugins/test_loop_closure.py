@@ -414,10 +414,31 @@ def test_a_loop_along_a_corridor_is_refused_or_kept_without_its_weakest_directio
         import gtsam
 
         fractions, directions = np.linalg.eigh(information[3:, 3:])
-        floor = 1e-3 / cfg.loop_sigma_m**2  # verification.INFORMATION_FLOOR per loop_sigma_m^2
+        floor = 1e-6 / cfg.loop_sigma_m**2  # verification.FREED_INFORMATION per loop_sigma_m^2
         assert fractions[0] == pytest.approx(floor, rel=1e-6) and abs(directions[:, 0] @ along) > 0.999
         R = gtsam.noiseModel.Gaussian.Information(information).R()  # what the optimiser weighs the edge by
         freed = np.r_[np.zeros(3), directions[:, 0]]
         assert freed @ R.T @ R @ freed == pytest.approx(floor, rel=1e-3)
         across = np.cross(along, truth[:3, :3].T @ y)
         assert across @ information[3:, 3:] @ across > 0.05 / cfg.loop_sigma_m**2
+        assert check.reason.startswith("freed along ("), check.reason  # loops.csv marks it
+
+
+def test_a_freed_direction_is_marginalised():
+    """Freeing a direction of a loop's information is its Schur complement: the direction is in
+    its null space and the covariance of every other direction is the full information's (a
+    projection would keep information that leaned on the freed direction)."""
+    from slamkit_plugins.loop_closures.pose_graph.verification import marginalised
+
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        a = rng.normal(size=(6, 6))
+        information = a @ a.T + 0.1 * np.eye(6)
+        direction = np.r_[np.zeros(3), rng.normal(size=3)]
+        direction /= np.linalg.norm(direction)
+        freed = marginalised(information, direction)
+        assert np.abs(freed @ direction).max() < 1e-9 * np.abs(information).max()
+        others = np.linalg.svd(np.outer(direction, direction))[0][:, 1:]  # an orthonormal basis of the rest
+        np.testing.assert_allclose(np.linalg.inv(others.T @ freed @ others),
+                                   others.T @ np.linalg.inv(information) @ others, rtol=1e-8, atol=1e-12)
+    assert marginalised(np.diag([1.0, 1, 1, 1, 1, 0]), np.eye(6)[5]) @ np.eye(6)[5] == pytest.approx(np.zeros(6))

@@ -200,8 +200,8 @@ class PoseGraphLoopClosure(LoopClosure):
             c, e = failed[0]
             return check.rejected(f"inconsistent with the graph: {e.kind} edge {e.source}->{e.target} chi-square "
                                   f"{c:.1f} > {bound:.1f} once optimised with it (largest: {figures})")
-        kept = replace(check, reason=f"consistent: largest chi-square once optimised with it: {figures} "
-                                     f"<= {bound:.1f}")
+        why = f"consistent: largest chi-square once optimised with it: {figures} <= {bound:.1f}"
+        kept = replace(check, reason=f"{why}; {check.reason}" if check.reason else why)
         self.accepted.append(kept)
         return kept
 

@@ -20,7 +20,7 @@ class WeakDirection(enum.Enum):
     """What becomes of a loop constrained less than `min_constraint` along its weakest direction."""
 
     reject = "reject"  # refused (loops.csv says by how much)
-    free = "free"  # kept, its information along that direction projected out
+    free = "free"  # kept, that direction marginalised out of its information (the graph places the pose along it)
 
 
 @dataclass

@@ -25,6 +25,11 @@ from slamkit_plugins.loop_closures.pose_graph.optimisation import chi_square_6_q
 #: not constrain (or a pair with no matched points) keeps a finite uncertainty: 1/sqrt(this) =
 #: ~30 times the edge's sigma.
 INFORMATION_FLOOR = 1e-3
+#: What a freed direction keeps of a loop's information per matched point: enough for gtsam to
+#: factorise it (an exactly singular one is factorised unchecked), 1000 times the loop's sigma.
+#: The floor's ~30 sigma pulled too: odometry along a wall is weak too, and a freed loop 23 cm
+#: off along it bent the graph by 7 cm between two keyframes (docs/loop_closure.md).
+FREED_INFORMATION = 1e-6
 #: A restart's seed is the candidate's plus this times its number: no other keyframe's (seed + id) meets it.
 RESTART_SEED_STRIDE = 1_000_003
 
@@ -38,33 +43,53 @@ def normalised_information(source: FeatureCloud, target: FeatureCloud, pose: np.
     return info / max(matched, 1), matched
 
 
-def restarts(query: FeatureCloud, match: FeatureCloud, pose: np.ndarray, starts: np.ndarray) -> np.ndarray:
+def restarts(query: FeatureCloud, match: FeatureCloud, pose: np.ndarray, starts: np.ndarray,
+             unknown: np.ndarray | None = None) -> np.ndarray:
     """(S, 2): how far (metres, degrees) G-ICP converges from `pose` (the query's pose in the
     match's frame) when started at pose @ exp(xi) for each of the (S, 6) `starts` xi ((rotation
     rad, translation m), in the query's frame). A pose the scene pins down draws every start back
     to it; one the scene lets slide (a corridor, a repeated structure) keeps them where they
-    started, or sends them elsewhere."""
+    started, or sends them elsewhere. `unknown` (a unit translation in the query's frame): a
+    direction the loop leaves free, not counted in the distance."""
     converged = [refine(query, match, pose @ se3_exp(xi)).pose for xi in np.asarray(starts, dtype=np.float64)]
-    return np.array([pose_difference(pose, found) for found in converged]).reshape(-1, 2)
+    away = np.array([relative_pose(pose, found) for found in converged]).reshape(-1, 4, 4)
+    if unknown is not None:
+        away[:, :3, 3] -= np.outer(away[:, :3, 3] @ unknown, unknown)
+    return np.array([pose_difference(np.eye(4), d) for d in away]).reshape(-1, 2)
 
 
 def sliding(query: FeatureCloud, match: FeatureCloud, pose: np.ndarray, weakest: np.ndarray, displacement_m: float,
-            tolerance_m: float) -> str:
+            tolerance_m: float, freed: np.ndarray | None = None) -> str:
     """Whether the registration's `pose` (the query's in the match's frame) is unique: "" when G-ICP
     restarted `displacement_m` either side of it along `weakest` (a unit translation in the
-    query's frame: the alignment's least constrained direction) comes back within
+    query's frame: the alignment's least constrained direction, or with `freed`, the direction
+    the loop leaves free, the least constrained of the others; drift along `freed` is not counted) comes back within
     `tolerance_m` both times; else, as loops.csv's reason, the restart that did not. A scene
     that lets the pose slide (repeated structure, a corridor) leaves the restarts where they
     started or sends them elsewhere; measured, the right loops' restarts came back within
     1.3 cm from 2 cm, the wrong ones' ended 1.9-4.6 cm away (docs/loop_closure.md)."""
     offsets = displacement_m * np.array([1.0, -1.0])
     starts = np.concatenate([np.zeros((2, 3)), offsets[:, None] * weakest], axis=1)
-    away = restarts(query, match, pose, starts)
+    away = restarts(query, match, pose, starts, freed)
     worst = int(np.argmax(away[:, 0]))
     if away[worst, 0] <= tolerance_m:
         return ""
-    return (f"not unique: from {100 * offsets[worst]:+.1f} cm along its weakest direction G-ICP converged "
+    name = "weakest" if freed is None else "second-weakest"
+    return (f"not unique: from {100 * offsets[worst]:+.1f} cm along its {name} direction G-ICP converged "
             f"{100 * away[worst, 0]:.1f} cm, {away[worst, 1]:.2f} deg away > {100 * tolerance_m:.1f} cm")
+
+
+def marginalised(information: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    """`information` (6x6) with the 6-vector `direction` (unit) unknown: its Schur complement, the
+    information on every other direction once the pose along `direction` may be anything. It
+    leaves `direction` in its null space, and the covariance of the other directions is that of
+    `information`'s: a rotation the loop pinned only through its coupling with `direction` is
+    freed with it (projecting `direction` out would keep that information)."""
+    coupling = information @ direction
+    along = float(direction @ coupling)
+    if along <= 1e-12 * max(float(np.trace(information)), 1e-300):  # nothing along it: nothing to free
+        return information
+    return information - np.outer(coupling, coupling) / along
 
 
 def verify(query: FeatureCloud, match: FeatureCloud, odometry: np.ndarray, odometry_covariance: np.ndarray,
@@ -89,20 +114,20 @@ def verify(query: FeatureCloud, match: FeatureCloud, odometry: np.ndarray, odome
         return failed, np.zeros((6, 6))
     correction_m, correction_deg = pose_difference(odometry, found.pose)
     information, _ = normalised_information(query, match, found.pose, cfg.voxel)
-    check = LoopCheck(*ids, relative_pose=found.pose, fitness=found.fitness, inliers=found.ransac_inliers,
-                      inlier_rmse_m=found.rmse_m, correction_m=correction_m, correction_deg=correction_deg,
-                      accepted=True)
     fractions, directions = np.linalg.eigh(information[3:, 3:])
     weakest = float(fractions[0])
     freed = weakest < cfg.min_constraint and cfg.weak_direction is WeakDirection.free
+    # loops.csv says which loops were kept without their weakest direction (the closure adds why it kept them)
+    kept_as = (f"freed along ({', '.join(f'{c:+.3f}' for c in directions[:, 0])}): constrained {weakest:.3f} < "
+               f"{cfg.min_constraint}" if freed else "")
+    check = LoopCheck(*ids, relative_pose=found.pose, fitness=found.fitness, inliers=found.ransac_inliers,
+                      inlier_rmse_m=found.rmse_m, correction_m=correction_m, correction_deg=correction_deg,
+                      accepted=True, reason=kept_as)
     if freed:
         # a wall seen again pins the pose across it but not along it: keep what it pins, and let
         # the graph place the pose along the weakest direction (a registration may have slid there)
         along = np.concatenate([np.zeros(3), directions[:, 0]])
-        project = np.eye(6) - np.outer(along, along)
-        # the floor keeps it positive definite: an exactly singular information is factorised by
-        # gtsam without a check, and the rounding of its last pivot can pin the freed direction
-        information = project @ information @ project + INFORMATION_FLOOR * np.outer(along, along)
+        information = marginalised(information, along) + FREED_INFORMATION * np.outer(along, along)
     # the loop's difference from odometry, whitened by both uncertainties: odometry's, accumulated
     # along the path (large where tracking slid along a wall), and the loop's own
     loop_covariance = cfg.loop_sigma_m**2 * np.linalg.inv(information + INFORMATION_FLOOR * np.eye(6))
@@ -123,5 +148,5 @@ def verify(query: FeatureCloud, match: FeatureCloud, odometry: np.ndarray, odome
     if not reason and cfg.uniqueness_displacement_m > 0:  # the costlier test last: only a loop that passed the rest
         # unique along the weakest direction the loop constrains
         reason = sliding(query, match, found.pose, directions[:, 1 if freed else 0], cfg.uniqueness_displacement_m,
-                         cfg.uniqueness_tolerance_m)
+                         cfg.uniqueness_tolerance_m, directions[:, 0] if freed else None)
     return (check.rejected(reason) if reason else check), information / cfg.loop_sigma_m**2
