@@ -41,6 +41,7 @@ from __future__ import annotations
 import argparse
 import json
 import platform
+import re
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -158,6 +159,23 @@ def tracked(name: str, keyframes_dir: Path | None) -> TrackedSequence:
     if cache is not None:
         seq.save(cache)
     return seq
+
+
+#: loops.csv's reason for a loop kept without its weakest direction (`loop_closure.weak_direction=free`)
+FREED = re.compile(r"freed along \(([-+0-9.]+), ([-+0-9.]+), ([-+0-9.]+)\)")
+
+
+def constrained_error(found: np.ndarray, truth: np.ndarray, reason: str) -> tuple[float, float]:
+    """(metres, degrees) between a loop's relative pose and the truth's, leaving out the
+    translation along the direction the loop left free (its reason names it, in the keyframe's
+    frame): the graph takes nothing from the loop along it."""
+    difference = relative_pose(found, truth)
+    freed = FREED.search(reason)
+    if freed:
+        direction = np.array([float(x) for x in freed.groups()])
+        direction /= np.linalg.norm(direction)
+        difference[:3, 3] -= (difference[:3, 3] @ direction) * direction
+    return pose_difference(np.eye(4), difference)
 
 
 def orthonormal(poses: np.ndarray) -> np.ndarray:
@@ -356,6 +374,8 @@ def measure(name: str, seq: TrackedSequence, overrides: list[str], wrong_loop: b
         overlap = geo.overlap.get((index[c.frame_index], index[c.match_frame_index]), 0.0)
         rows.append({**c.row(), "accepted": (c.keyframe_id, c.match_id) in final, "reason": c.reason,
                      "error_m": err_m, "error_deg": err_deg, "right": bool(err_m <= RIGHT_M and err_deg <= RIGHT_DEG),
+                     "constrained_error_m": constrained_error(
+                         c.relative_pose, relative_pose(gt[c.match_frame_index], gt[c.frame_index]), c.reason)[0],
                      "gt_overlap": overlap, "true_revisit": overlap >= TRUE_REVISIT_OVERLAP,
                      "injected_wrong": (c.keyframe_id, c.match_id) == injected})
     accepted = [r for r in rows if r["accepted"]]
