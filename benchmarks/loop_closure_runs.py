@@ -45,7 +45,15 @@ from slamkit.geometry import make_pose, quat_to_rotmat
 from slamkit.geometry.pose_graph import pose_difference, relative_pose
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from loop_closure import FREED, RIGHT_DEG, RIGHT_M, SEQUENCES, SYNTHETIC, constrained_error, orthonormal  # noqa: E402  (the offline benchmark's)
+from loop_closure import (  # noqa: E402  (the offline benchmark's)
+    FREED,
+    RIGHT_DEG,
+    RIGHT_M,
+    SEQUENCES,
+    SYNTHETIC,
+    constrained_error,
+    orthonormal,
+)
 
 #: A loop is **exact** (issue 46's acceptance on the synthetic paths) within these of the truth.
 EXACT_M, EXACT_DEG = 0.02, 1.0
@@ -87,6 +95,7 @@ def loops_against_truth(run_dir: Path) -> dict:
     right = [e for e in errors if e[0] <= RIGHT_M and e[1] <= RIGHT_DEG]
     exact = [e for e in errors if e[0] <= EXACT_M and e[1] <= EXACT_DEG]
     return {"loops": len(accepted), "loops_with_truth": len(errors), "loops_right": len(right),
+            # loops.csv marks freed loops since weak_direction=free's marginalisation (0 in older runs' files)
             "loops_exact": len(exact), "loops_freed": sum(bool(FREED.search(r["reason"])) for r in accepted),
             # within 2 cm and 1 degree along every direction the loop constrains (all of them unless freed)
             "loops_exact_constrained": sum(e[0] <= EXACT_M and e[1] <= EXACT_DEG for e in constrained),

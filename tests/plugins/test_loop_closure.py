@@ -394,8 +394,8 @@ def test_a_loop_whose_pose_can_slide_is_rejected_as_not_unique(scene):
 def test_a_loop_along_a_corridor_is_refused_or_kept_without_its_weakest_direction(weak_direction):
     """A corridor seen again (a floor and two walls, nothing across its length) pins the pose
     across it, not along it: `loop_closure.weak_direction=reject` refuses the loop in one line,
-    `free` keeps it with only the floor's information along the corridor (the graph places the
-    pose there), as the optimiser's noise model factorises it."""
+    `free` keeps it marginalised over the corridor's length, with a trace of information left
+    along it (the graph places the pose there), as the optimiser's noise model factorises it."""
     from slamkit_plugins.loop_closures.pose_graph.verification import verify
 
     x, y, z = np.eye(3)
@@ -422,6 +422,13 @@ def test_a_loop_along_a_corridor_is_refused_or_kept_without_its_weakest_directio
         across = np.cross(along, truth[:3, :3].T @ y)
         assert across @ information[3:, 3:] @ across > 0.05 / cfg.loop_sigma_m**2
         assert check.reason.startswith("freed along ("), check.reason  # loops.csv marks it
+        # what it keeps is the full registration's information marginalised: the same covariance on the other five
+        from slamkit_plugins.loop_closures.pose_graph.verification import normalised_information
+
+        full, _ = normalised_information(query, match, check.relative_pose, cfg.voxel)
+        others = np.linalg.svd(np.outer(freed, freed))[0][:, 1:]
+        np.testing.assert_allclose(np.linalg.inv(others.T @ information @ others) / cfg.loop_sigma_m**2,
+                                   others.T @ np.linalg.inv(full) @ others, rtol=1e-6)
 
 
 def test_a_freed_direction_is_marginalised():

@@ -26,9 +26,9 @@ from slamkit_plugins.loop_closures.pose_graph.optimisation import chi_square_6_q
 #: ~30 times the edge's sigma.
 INFORMATION_FLOOR = 1e-3
 #: What a freed direction keeps of a loop's information per matched point: enough for gtsam to
-#: factorise it (an exactly singular one is factorised unchecked), 1000 times the loop's sigma.
-#: The floor's ~30 sigma pulled too: odometry along a wall is weak too, and a freed loop 23 cm
-#: off along it bent the graph by 7 cm between two keyframes (docs/loop_closure.md).
+#: factorise it (an exactly singular one is factorised unchecked), 1000 times the loop's sigma;
+#: not the floor, whose ~30 sigma still pulls where odometry is weak along the same wall
+#: (docs/loop_closure.md, "A loop's weakest direction freed").
 FREED_INFORMATION = 1e-6
 #: A restart's seed is the candidate's plus this times its number: no other keyframe's (seed + id) meets it.
 RESTART_SEED_STRIDE = 1_000_003
@@ -62,9 +62,9 @@ def sliding(query: FeatureCloud, match: FeatureCloud, pose: np.ndarray, weakest:
             tolerance_m: float, freed: np.ndarray | None = None) -> str:
     """Whether the registration's `pose` (the query's in the match's frame) is unique: "" when G-ICP
     restarted `displacement_m` either side of it along `weakest` (a unit translation in the
-    query's frame: the alignment's least constrained direction, or with `freed`, the direction
-    the loop leaves free, the least constrained of the others; drift along `freed` is not counted) comes back within
-    `tolerance_m` both times; else, as loops.csv's reason, the restart that did not. A scene
+    query's frame: the alignment's least constrained direction; with `freed`, the direction the
+    loop leaves free, the least constrained of the others, and drift along `freed` not counted)
+    comes back within `tolerance_m` both times; else, as loops.csv's reason, the restart that did not. A scene
     that lets the pose slide (repeated structure, a corridor) leaves the restarts where they
     started or sends them elsewhere; measured, the right loops' restarts came back within
     1.3 cm from 2 cm, the wrong ones' ended 1.9-4.6 cm away (docs/loop_closure.md)."""
@@ -149,4 +149,6 @@ def verify(query: FeatureCloud, match: FeatureCloud, odometry: np.ndarray, odome
         # unique along the weakest direction the loop constrains
         reason = sliding(query, match, found.pose, directions[:, 1 if freed else 0], cfg.uniqueness_displacement_m,
                          cfg.uniqueness_tolerance_m, directions[:, 0] if freed else None)
-    return (check.rejected(reason) if reason else check), information / cfg.loop_sigma_m**2
+    # a freed loop refused keeps its mark after why (a benchmark leaves its freed direction out of its error)
+    refused = f"{reason}; {kept_as}" if kept_as else reason
+    return (check.rejected(refused) if reason else check), information / cfg.loop_sigma_m**2
