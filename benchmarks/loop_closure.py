@@ -39,9 +39,9 @@ Writes JSON (--out, default benchmarks/results/loop_closure.json).
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import platform
-import re
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -150,9 +150,28 @@ def track(dataset: list[str], max_frames: int | None = None, extra: tuple[str, .
     return TrackedSequence(np.array(poses), np.array(gts), np.array(kf_frames), points, covariances, images, overrides)
 
 
+def tracking_digest(name: str) -> str:
+    """12 hex digits of what decides sequence `name`'s tracked keyframes: its overrides, the
+    configuration files and the source of the package and its plugins but the loop closures (which
+    this benchmark runs on them), so that kept keyframes are never those of other code."""
+    root = Path(__file__).resolve().parents[1]
+    digest = hashlib.sha256(repr(SEQUENCES[name]).encode())
+    files = [f for folder in ("slamkit", "plugins", "conf") for f in (root / folder).rglob("*")
+             if f.suffix in (".py", ".yaml") and "loop_closures" not in f.parts]
+    for f in sorted(files):
+        digest.update(str(f.relative_to(root)).encode() + f.read_bytes())
+    return digest.hexdigest()[:12]
+
+
+def kept_keyframes(keyframes_dir: Path, name: str) -> Path:
+    """Where `tracked` keeps sequence `name`'s keyframes in `keyframes_dir` (`tracking_digest`)."""
+    return keyframes_dir / f"{name}-{tracking_digest(name)}.npz"
+
+
 def tracked(name: str, keyframes_dir: Path | None) -> TrackedSequence:
-    """Sequence `name` tracked (or read back from `keyframes_dir`/NAME.npz, saved there when new)."""
-    cache = keyframes_dir / f"{name}.npz" if keyframes_dir else None
+    """Sequence `name` tracked, or read back from `keyframes_dir` when kept there by the same code
+    (`kept_keyframes`; saved there when new)."""
+    cache = kept_keyframes(keyframes_dir, name) if keyframes_dir else None
     if cache is not None and cache.is_file():
         return TrackedSequence.load(cache)
     seq = track(SEQUENCES[name])
@@ -161,20 +180,14 @@ def tracked(name: str, keyframes_dir: Path | None) -> TrackedSequence:
     return seq
 
 
-#: loops.csv's reason for a loop kept without its weakest direction (`loop_closure.weak_direction=free`)
-FREED = re.compile(r"freed along \(([-+0-9.]+), ([-+0-9.]+), ([-+0-9.]+)\)")
-
-
 def constrained_error(found: np.ndarray, truth: np.ndarray, reason: str) -> tuple[float, float]:
     """(metres, degrees) between a loop's relative pose and the truth's, leaving out the
     translation along the direction the loop left free (its reason names it, in the keyframe's
     frame): the graph takes nothing from the loop along it."""
     difference = relative_pose(found, truth)
-    freed = FREED.search(reason)
-    if freed:
-        direction = np.array([float(x) for x in freed.groups()])
-        direction /= np.linalg.norm(direction)
-        difference[:3, 3] -= (difference[:3, 3] @ direction) * direction
+    direction = verification.freed_direction(reason)
+    if direction is not None:
+        difference[:3, 3] = verification.without_component(difference[:3, 3], direction)
     return pose_difference(np.eye(4), difference)
 
 

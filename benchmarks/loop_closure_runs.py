@@ -43,10 +43,10 @@ from slamkit.cli.bench import markdown_table, run_system
 from slamkit.formats.tum import read_tum_trajectory
 from slamkit.geometry import make_pose, quat_to_rotmat
 from slamkit.geometry.pose_graph import pose_difference, relative_pose
+from slamkit_plugins.loop_closures.pose_graph import verification
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from loop_closure import (  # noqa: E402  (the offline benchmark's)
-    FREED,
     RIGHT_DEG,
     RIGHT_M,
     SEQUENCES,
@@ -96,7 +96,7 @@ def loops_against_truth(run_dir: Path) -> dict:
     exact = [e for e in errors if e[0] <= EXACT_M and e[1] <= EXACT_DEG]
     return {"loops": len(accepted), "loops_with_truth": len(errors), "loops_right": len(right),
             # loops.csv marks freed loops since weak_direction=free's marginalisation (0 in older runs' files)
-            "loops_exact": len(exact), "loops_freed": sum(bool(FREED.search(r["reason"])) for r in accepted),
+            "loops_exact": len(exact), "loops_freed": sum(bool(verification.freed_mark(r["reason"])) for r in accepted),
             # within 2 cm and 1 degree along every direction the loop constrains (all of them unless freed)
             "loops_exact_constrained": sum(e[0] <= EXACT_M and e[1] <= EXACT_DEG for e in constrained),
             "candidates": len(rows), "rejected_by_consistency": sum(

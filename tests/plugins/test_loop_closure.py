@@ -422,6 +422,11 @@ def test_a_loop_along_a_corridor_is_refused_or_kept_without_its_weakest_directio
         across = np.cross(along, truth[:3, :3].T @ y)
         assert across @ information[3:, 3:] @ across > 0.05 / cfg.loop_sigma_m**2
         assert check.reason.startswith("freed along ("), check.reason  # loops.csv marks it
+        from slamkit_plugins.loop_closures.pose_graph.verification import freed_direction, freed_mark
+
+        assert abs(freed_direction(check.reason) @ along) > 0.999  # and the mark names the corridor's length
+        refused = f"inconsistent with the graph: loop edge 1->0; {check.reason}"
+        assert freed_mark(refused) == check.reason and freed_mark("consistent: largest chi-square 1.0") == ""
         # what it keeps is the full registration's information marginalised: the same covariance on the other five
         from slamkit_plugins.loop_closures.pose_graph.verification import normalised_information
 
@@ -429,6 +434,24 @@ def test_a_loop_along_a_corridor_is_refused_or_kept_without_its_weakest_directio
         others = np.linalg.svd(np.outer(freed, freed))[0][:, 1:]
         np.testing.assert_allclose(np.linalg.inv(others.T @ information @ others) / cfg.loop_sigma_m**2,
                                    others.T @ np.linalg.inv(full) @ others, rtol=1e-6)
+
+
+def test_a_wall_alone_is_refused_even_with_its_weakest_direction_freed():
+    """A single wall pins one direction: freeing the weakest still leaves the second unconstrained,
+    and the loop is refused in one line that keeps its freed mark."""
+    from slamkit_plugins.loop_closures.pose_graph.verification import freed_mark, verify
+
+    x, y, z = np.eye(3)
+    # a wall with two small ledges (1-2 % of its points) that let the registration find it, not pin it
+    wall = planes((np.zeros(3), 1.2 * x, 0.9 * y), (0.3 * x, 0.3 * y, -0.05 * z), (0.6 * y, 0.3 * x, -0.05 * z))
+    wall = wall + np.array([-0.6, -0.45, 1.2])
+    truth = se3_exp(np.r_[0.01, -0.02, 0.03, 0.02, -0.01, 0.01])
+    match = FeatureCloud(wall, 0.025)
+    query = FeatureCloud((wall - truth[:3, 3]) @ truth[:3, :3], 0.025)
+    cfg = PoseGraphConfig(**{**TEST_CONFIG, "weak_direction": WeakDirection.free})
+    check, _ = verify(query, match, truth, 1e-4 * np.eye(6), cfg, (1, 0, 10, 0), seed=0)
+    assert not check.accepted and check.reason.startswith("second-weakest direction constrained "), check.reason
+    assert freed_mark(check.reason), check.reason
 
 
 def test_a_freed_direction_is_marginalised():

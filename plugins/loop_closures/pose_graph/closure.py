@@ -57,6 +57,13 @@ class _Node:
     median_depth: float
 
 
+def _refused(check: LoopCheck, why: str) -> LoopCheck:
+    """`check` refused by the graph for `why`; a freed loop keeps its mark after it (a benchmark
+    leaves the freed direction out of the loop's error)."""
+    mark = verification.freed_mark(check.reason)
+    return check.rejected(f"{why}; {mark}" if mark else why)
+
+
 class PoseGraphLoopClosure(LoopClosure):
     """Loop detection by place and appearance, geometric verification, pose-graph optimisation."""
 
@@ -198,8 +205,8 @@ class PoseGraphLoopClosure(LoopClosure):
         if failed:
             self.edges.pop()
             c, e = failed[0]
-            return check.rejected(f"inconsistent with the graph: {e.kind} edge {e.source}->{e.target} chi-square "
-                                  f"{c:.1f} > {bound:.1f} once optimised with it (largest: {figures})")
+            return _refused(check, f"inconsistent with the graph: {e.kind} edge {e.source}->{e.target} chi-square "
+                                   f"{c:.1f} > {bound:.1f} once optimised with it (largest: {figures})")
         why = f"consistent: largest chi-square once optimised with it: {figures} <= {bound:.1f}"
         kept = replace(check, reason=f"{why}; {check.reason}" if check.reason else why)
         self.accepted.append(kept)
@@ -222,8 +229,8 @@ class PoseGraphLoopClosure(LoopClosure):
             key = (edge.target, edge.source)
             check = next(c for c in self.accepted if (c.keyframe_id, c.match_id) == key)
             self.accepted.remove(check)
-            dropped[key] = check.rejected(f"inconsistent with the pose graph: whitened residual "
-                                          f"{residuals[worst]:.1f} > {self.cfg.max_loop_residual}")
+            dropped[key] = _refused(check, f"inconsistent with the pose graph: whitened residual "
+                                           f"{residuals[worst]:.1f} > {self.cfg.max_loop_residual}")
         else:
             graph = self.pose_graph()
             poses = optimisation.optimise(graph, self.cfg.backend, self.cfg.robust_width)

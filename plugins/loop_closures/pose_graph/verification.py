@@ -13,6 +13,8 @@ registration 10 cm off that every other figure accepts).
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 
 from slamkit.geometry.registration import FeatureCloud, alignment_information, refine, register
@@ -32,6 +34,30 @@ INFORMATION_FLOOR = 1e-3
 FREED_INFORMATION = 1e-6
 #: A restart's seed is the candidate's plus this times its number: no other keyframe's (seed + id) meets it.
 RESTART_SEED_STRIDE = 1_000_003
+#: How loops.csv's reason marks a loop kept without its weakest direction, and that direction.
+FREED_MARK = re.compile(r"freed along \(([-+0-9.]+), ([-+0-9.]+), ([-+0-9.]+)\): constrained [0-9.]+ < [0-9.]+")
+
+
+def freed_mark(reason: str) -> str:
+    """The part of a loop's `reason` that says it was freed along a direction, or ""."""
+    found = FREED_MARK.search(reason)
+    return found.group(0) if found else ""
+
+
+def freed_direction(reason: str) -> np.ndarray | None:
+    """(3,) the unit direction (keyframe's camera frame) a loop's `reason` says it was freed
+    along, or None."""
+    found = FREED_MARK.search(reason)
+    if not found:
+        return None
+    direction = np.array([float(x) for x in found.groups()])
+    return direction / np.linalg.norm(direction)
+
+
+def without_component(translations: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    """(..., 3) `translations` with their component along the unit `direction` removed."""
+    translations = np.asarray(translations, dtype=np.float64)
+    return translations - (translations @ direction)[..., None] * direction
 
 
 def normalised_information(source: FeatureCloud, target: FeatureCloud, pose: np.ndarray,
@@ -44,17 +70,17 @@ def normalised_information(source: FeatureCloud, target: FeatureCloud, pose: np.
 
 
 def restarts(query: FeatureCloud, match: FeatureCloud, pose: np.ndarray, starts: np.ndarray,
-             unknown: np.ndarray | None = None) -> np.ndarray:
+             freed: np.ndarray | None = None) -> np.ndarray:
     """(S, 2): how far (metres, degrees) G-ICP converges from `pose` (the query's pose in the
     match's frame) when started at pose @ exp(xi) for each of the (S, 6) `starts` xi ((rotation
     rad, translation m), in the query's frame). A pose the scene pins down draws every start back
     to it; one the scene lets slide (a corridor, a repeated structure) keeps them where they
-    started, or sends them elsewhere. `unknown` (a unit translation in the query's frame): a
+    started, or sends them elsewhere. `freed` (a unit translation in the query's frame): a
     direction the loop leaves free, not counted in the distance."""
     converged = [refine(query, match, pose @ se3_exp(xi)).pose for xi in np.asarray(starts, dtype=np.float64)]
     away = np.array([relative_pose(pose, found) for found in converged]).reshape(-1, 4, 4)
-    if unknown is not None:
-        away[:, :3, 3] -= np.outer(away[:, :3, 3] @ unknown, unknown)
+    if freed is not None:
+        away[:, :3, 3] = without_component(away[:, :3, 3], freed)
     return np.array([pose_difference(np.eye(4), d) for d in away]).reshape(-1, 2)
 
 
@@ -116,14 +142,14 @@ def verify(query: FeatureCloud, match: FeatureCloud, odometry: np.ndarray, odome
     information, _ = normalised_information(query, match, found.pose, cfg.voxel)
     fractions, directions = np.linalg.eigh(information[3:, 3:])
     weakest = float(fractions[0])
-    freed = weakest < cfg.min_constraint and cfg.weak_direction is WeakDirection.free
+    free_weakest = weakest < cfg.min_constraint and cfg.weak_direction is WeakDirection.free
     # loops.csv says which loops were kept without their weakest direction (the closure adds why it kept them)
     kept_as = (f"freed along ({', '.join(f'{c:+.3f}' for c in directions[:, 0])}): constrained {weakest:.3f} < "
-               f"{cfg.min_constraint}" if freed else "")
+               f"{cfg.min_constraint}" if free_weakest else "")
     check = LoopCheck(*ids, relative_pose=found.pose, fitness=found.fitness, inliers=found.ransac_inliers,
                       inlier_rmse_m=found.rmse_m, correction_m=correction_m, correction_deg=correction_deg,
                       accepted=True, reason=kept_as)
-    if freed:
+    if free_weakest:
         # a wall seen again pins the pose across it but not along it: keep what it pins, and let
         # the graph place the pose along the weakest direction (a registration may have slid there)
         along = np.concatenate([np.zeros(3), directions[:, 0]])
@@ -141,14 +167,18 @@ def verify(query: FeatureCloud, match: FeatureCloud, odometry: np.ndarray, odome
         (found.rmse_m > cfg.max_inlier_rmse_m, f"inlier RMSE {found.rmse_m:.4f} m > {cfg.max_inlier_rmse_m}"),
         (chi2 > bound, f"{correction_m:.3f} m, {correction_deg:.2f} deg from odometry: chi-square {chi2:.1f} > "
                        f"{bound:.1f} of their uncertainties"),
-        (weakest < cfg.min_constraint and not freed,
+        (weakest < cfg.min_constraint and not free_weakest,
          f"weakest direction constrained {weakest:.3f} < {cfg.min_constraint}"),
+        # one direction is all a loop may leave to the graph: a wall alone leaves two
+        (free_weakest and fractions[1] < cfg.min_constraint,
+         f"second-weakest direction constrained {fractions[1]:.3f} < {cfg.min_constraint}"),
     ]
     reason = next((why for failed, why in failures if failed), "")
     if not reason and cfg.uniqueness_displacement_m > 0:  # the costlier test last: only a loop that passed the rest
         # unique along the weakest direction the loop constrains
-        reason = sliding(query, match, found.pose, directions[:, 1 if freed else 0], cfg.uniqueness_displacement_m,
-                         cfg.uniqueness_tolerance_m, directions[:, 0] if freed else None)
+        reason = sliding(query, match, found.pose, directions[:, 1 if free_weakest else 0],
+                         cfg.uniqueness_displacement_m, cfg.uniqueness_tolerance_m,
+                         directions[:, 0] if free_weakest else None)
     # a freed loop refused keeps its mark after why (a benchmark leaves its freed direction out of its error)
     refused = f"{reason}; {kept_as}" if kept_as else reason
     return (check.rejected(refused) if reason else check), information / cfg.loop_sigma_m**2
