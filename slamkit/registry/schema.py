@@ -45,6 +45,13 @@ class Mode(enum.Enum):
     localize = "localize"
 
 
+class LoopCorrections(enum.Enum):
+    """When the loop closure's corrections move the map, the tracker and the trajectory."""
+
+    during = "during"
+    at_end = "at_end"
+
+
 class Device(enum.Enum):
     """Where the map's tensors (and the keyframes the mapper trains on) live."""
 
@@ -204,6 +211,8 @@ class RunConfig(PluginConfig):
     mode: Mode = method_setting(Mode.sequential)
     #: mapper steps per frame in sequential mode
     iterations_per_frame: int = method_setting(10)
+    #: during: a loop's correction moves the map and the tracker when made | at_end: once, after the stream
+    loop_corrections: LoopCorrections = LoopCorrections.during
     #: seed of every random choice
     seed: int = 0
     #: torch threads for mapping (0: every CPU sequential, every CPU but tracking's in real time)

@@ -18,7 +18,7 @@ from slamkit.map.gaussian_map import GaussianMap
 from slamkit.native import available_threads
 from slamkit.registry.compose import compose_run, preset_not_applied
 from slamkit.registry.discovery import Registry, default_registry
-from slamkit.registry.schema import Mode, RunConfig
+from slamkit.registry.schema import LoopCorrections, Mode, RunConfig
 from slamkit.roles import Dataset, Tracker, Viewer
 from slamkit.run.boundary import PluginBoundary
 from slamkit.run.handover import KeyframeHandovers
@@ -78,7 +78,8 @@ def build(cfg: RunConfig, registry: Registry, names: dict[str, str]) -> BuiltRun
     mapper_parts = registry.get("mapper", names["mapper"]).cls.parts
     parts = {part: create(f"mapper.{part}", getattr(cfg.mapper, part)) for part in mapper_parts}
     tracker = create("tracker", cfg.tracker)
-    loop_closer = LoopCloser(_loop_closure(cfg, registry, names, context, create), boundary)
+    loop_closer = LoopCloser(_loop_closure(cfg, registry, names, context, create), boundary,
+                             at_end=cfg.loop_corrections is LoopCorrections.at_end)
     if loop_closer.active and type(tracker).move_world is Tracker.move_world:
         raise ConfigError(f"loop_closure={names['loop_closure']}: tracker={names['tracker']} cannot follow a loop "
                           "closure's corrections (it does not implement Tracker.move_world); use loop_closure=none "

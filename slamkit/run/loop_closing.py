@@ -162,11 +162,17 @@ class LoopCloser:
 
     The plugin is called by one thread at a time (`_plugin_lock`): the loop thread in real time,
     else the tracking thread. Every candidate it verified is kept as a loops.csv row (`rows`; a
-    loop a later optimisation dropped is marked rejected with the reason)."""
+    loop a later optimisation dropped is marked rejected with the reason).
 
-    def __init__(self, closure: LoopClosure | None = None, boundary: PluginBoundary | None = None):
+    `at_end` (`loop_corrections=at_end`): the decisions wait until the stream has ended, so that
+    the tracker and its map stay in odometry's frame and every keyframe reaches the loop closure
+    as tracked; one correction then moves everything (docs/loop_closure.md)."""
+
+    def __init__(self, closure: LoopClosure | None = None, boundary: PluginBoundary | None = None,
+                 at_end: bool = False):
         self.closure = closure
         self.active = closure is not None and closure.closes_loops
+        self.at_end = at_end
         self.boundary = boundary or PluginBoundary({})
         self.applied_world = 0  # the world of the last decision applied (LoopKeyframe.world)
         self.cost = LoopClosureCost()
@@ -190,11 +196,12 @@ class LoopCloser:
             self._centres[keyframe_id] = np.asarray(pose, dtype=np.float64)[:3, 3].copy()
             self._wake.notify_all()
 
-    def take(self, num_keyframes: int) -> Correction | None:
+    def take(self, num_keyframes: int, stream_ended: bool = False) -> Correction | None:
         """The decisions made since the last call, as one correction of the run's
-        `num_keyframes` keyframes (None when none moved a keyframe). The caller applies it
-        (`SLAM.correct`) before the next keyframe is queued."""
-        if not self.active:
+        `num_keyframes` keyframes (None when none moved a keyframe, or while `at_end` holds them
+        and the stream goes on). The caller applies it (`SLAM.correct`) before the next keyframe
+        is queued."""
+        if not self.active or (self.at_end and not stream_ended):
             return None
         with self._wake:
             decisions, self._decisions = self._decisions, []

@@ -276,7 +276,7 @@ class Pipeline:
         if slam.loop_closer.waiting():
             pause_point("loops", self.stop)
         slam.loop_closer.finish_stream(self.stop.check)
-        correction = slam.correct()
+        correction = slam.correct(stream_ended=True)
         if correction is not None:
             self.state.follow(correction)
             self.viewer.follow(correction)

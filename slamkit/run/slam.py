@@ -133,13 +133,14 @@ class SLAM:
         correction = self.correct()
         return step if correction is None else step.corrected(correction)
 
-    def correct(self) -> Correction | None:
-        """Apply the loop closure's decisions made by now: each keyframe's Gaussians and training
-        view move with its correction (`Mapper.move_keyframes`), the tracker follows the newest
-        keyframe's and aligns to the moved map from now on. Returns the correction (the run's
-        trajectory follows it), or None."""
+    def correct(self, stream_ended: bool = False) -> Correction | None:
+        """Apply the loop closure's decisions made by now (with `loop_corrections=at_end`, only
+        once `stream_ended`): each keyframe's Gaussians and training view move with its
+        correction (`Mapper.move_keyframes`), the tracker follows the newest keyframe's and
+        aligns to the moved map from now on. Returns the correction (the run's trajectory
+        follows it), or None."""
         start = time.perf_counter()
-        correction = self.loop_closer.take(self.num_keyframes)
+        correction = self.loop_closer.take(self.num_keyframes, stream_ended)
         if correction is None:
             return None
         self.settle()  # the mapper has every keyframe the correction moves

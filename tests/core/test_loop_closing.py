@@ -32,6 +32,7 @@ from support.loop_closing import (
     ShiftingLoopClosure,
     check_run_follows_shift,
     loop_registry,
+    offsets,
     run_shifted,
 )
 
@@ -140,6 +141,25 @@ def test_a_correction_spreads_over_the_keyframes_and_the_frames_follow_them():
 
 def test_the_run_follows_a_correction_its_map_tracker_and_trajectory(tmp_path, registry):
     check_run_follows_shift(tmp_path, registry, "sequential")
+
+
+def test_corrections_held_to_the_end_leave_tracking_in_odometry_s_frame_then_move_everything(tmp_path, registry):
+    """loop_corrections=at_end: the decision (made at the third keyframe) waits for the end of
+    the stream: every frame is tracked and shown where odometry puts it (millimetres from the
+    truth, where with corrections during the stream the frames after the decision are shown
+    10 cm off), then one correction moves the trajectory, the keyframes and the map by SHIFT, as
+    during the stream."""
+    shown = {}
+    for when in ("during", "at_end"):
+        metrics = run_shifted(registry, tmp_path / when, "viewer=recording", f"loop_corrections={when}")
+        assert metrics["loop_corrections"] == 1 and metrics["loops_accepted"] == 1
+        np.testing.assert_allclose(offsets(tmp_path / when), np.tile(SHIFT[:3, 3], (30, 1)), atol=0.01)
+        _, gt = read_tum_trajectory(tmp_path / when / "groundtruth.txt")
+        shown[when] = np.array([p[:3, 3] for p in RecordingViewer.poses]) - gt[:, :3, 3]
+    assert np.abs(shown["at_end"]).max() < 0.01
+    assert np.abs(shown["during"][-1] - SHIFT[:3, 3]).max() < 0.01
+    maps = {when: checkpoint.load_map(tmp_path / when)[0].entry_means.mean(dim=0).numpy() for when in shown}
+    np.testing.assert_allclose(maps["at_end"], maps["during"], atol=0.01)
 
 
 def test_viewers_are_shown_the_corrected_trajectory_and_the_loops(tmp_path, registry):

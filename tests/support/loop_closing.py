@@ -95,15 +95,19 @@ class ShiftingLoopClosure(LoopClosure):
 
 
 class RecordingViewer(Viewer):
-    """Test viewer: keeps the last ViewerFrame it was shown."""
+    """Test viewer: keeps the last ViewerFrame it was shown, and (`poses`) the pose of each
+    frame as it was shown, since the last run built one."""
 
     last: ViewerFrame | None = None
+    poses: list[np.ndarray] = []
 
     def __init__(self, cfg: ViewerConfig, context=None):
         self.cfg = cfg
+        RecordingViewer.poses = []
 
     def show(self, view: ViewerFrame) -> None:
         RecordingViewer.last = view
+        RecordingViewer.poses.append(np.array(view.pose))
 
 
 @hookimpl
