@@ -40,10 +40,11 @@ from pathlib import Path
 import numpy as np
 
 from slamkit.cli.bench import markdown_table, run_system
+from slamkit.formats.g2o import read_g2o
 from slamkit.formats.tum import read_tum_trajectory
 from slamkit.geometry import make_pose, quat_to_rotmat
 from slamkit.geometry.pose_graph import pose_difference, relative_pose
-from slamkit_plugins.loop_closures.pose_graph import verification
+from slamkit_plugins.loop_closures.pose_graph import optimisation, verification
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from loop_closure import (  # noqa: E402  (the offline benchmark's)
@@ -106,12 +107,32 @@ def loops_against_truth(run_dir: Path) -> dict:
             "loop_frames": [f"{r['frame']}->{r['match_frame']}" for r in accepted]}
 
 
+def noise_at_truth(run_dir: Path) -> dict:
+    """How well the pose graph's noise model fits (pose_graph.g2o): each edge's chi-square
+    (squared whitened residual) with its keyframes at the ground truth's poses, averaged per kind
+    of edge. A calibrated model gives 6 (the degrees of freedom); below, the edges are more
+    accurate than their information says."""
+    path = run_dir / "pose_graph.g2o"
+    if not path.is_file():
+        return {}
+    graph = read_g2o(path)
+    stamps, _ = read_tum_trajectory(run_dir / "keyframes.txt")
+    gt_stamps, gt = read_tum_trajectory(run_dir / "groundtruth.txt")
+    truth = dict(zip(np.round(gt_stamps, 6), orthonormal(gt)))
+    poses = [truth.get(round(float(stamps[int(k)]), 6)) for k in graph.keyframe_ids]
+    if not graph.edges or any(p is None or not np.isfinite(p).all() for p in poses):
+        return {}
+    chi2 = optimisation.whitened_residuals(graph, np.array(poses)) ** 2
+    return {f"{kind}_chi2_at_truth": float(np.mean([c for c, e in zip(chi2, graph.edges) if e.kind == kind]))
+            for kind in ("odometry", "loop") if any(e.kind == kind for e in graph.edges)}
+
+
 def run(case: str, sequence: str, overrides: list[str], closure: str, runs_dir: Path, repeat: int,
         timeout: float) -> dict:
     name = f"{case}_{sequence}_{closure}_{repeat}"
     record = run_system(name, [*overrides, f"loop_closure={closure}"], SEQUENCES[sequence], runs_dir, timeout)
     record.update(case=case, sequence=sequence, closure=closure, repeat=repeat, **loops_against_truth(runs_dir / name),
-                  digests=digests(runs_dir / name))
+                  **noise_at_truth(runs_dir / name), digests=digests(runs_dir / name))
     return record
 
 

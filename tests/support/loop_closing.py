@@ -130,9 +130,11 @@ def loop_registry():
 
 
 def run_shifted(registry, out: Path, *overrides: str) -> dict:
+    """The synthetic sequence's first 30 frames with `shifting`, corrections applied when made
+    (`loop_corrections=during`) unless `overrides` say otherwise."""
+    during = [] if any(o.startswith("loop_corrections=") for o in overrides) else ["loop_corrections=during"]
     cfg, names = compose_run(["dataset.num_frames=30", "mapper=none", "loop_closure=shifting", "output.progress=false",
-                              "checkpoint.save=true",
-                              "output.plot=false", *overrides], registry)
+                              "checkpoint.save=true", "output.plot=false", *during, *overrides], registry)
     return pipeline.run(cfg, registry, names, out)
 
 
