@@ -211,8 +211,8 @@ class RunConfig(PluginConfig):
     mode: Mode = method_setting(Mode.sequential)
     #: mapper steps per frame in sequential mode
     iterations_per_frame: int = method_setting(10)
-    #: at_end: the loop closure's corrections move the map and the tracker once, after the stream | during: when made
-    loop_corrections: LoopCorrections = LoopCorrections.at_end
+    #: during: a loop's correction moves the map and the tracker when made | at_end: once, after the stream
+    loop_corrections: LoopCorrections = LoopCorrections.during
     #: seed of every random choice
     seed: int = 0
     #: torch threads for mapping (0: every CPU sequential, every CPU but tracking's in real time)

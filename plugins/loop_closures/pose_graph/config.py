@@ -70,7 +70,7 @@ class PoseGraphConfig(PluginConfig):
     #: metres: standard deviation of an odometry edge along its best-constrained direction.
     odometry_sigma_m: float = 0.005
     #: metres: standard deviation of a loop edge along its best-constrained direction.
-    loop_sigma_m: float = 0.005
+    loop_sigma_m: float = 0.01
     #: whitened residual at which a loop edge's robust kernel halves its weight (gtsam: Cauchy; open3d: pruned there)
     robust_width: float = 3.0
     #: a new loop enters the graph only if, optimised with it, every edge's chi-square (6 dof) is below this quantile
