@@ -90,15 +90,17 @@ class Correction:
         motions = np.array([decision.updates[int(k)] for k in ids], dtype=np.float64)
         return cls(motions[owning_keyframes(np.arange(num_keyframes), ids)])
 
+    def covering(self, num_keyframes: int) -> Correction:
+        """This correction of at least keyframes 0..num_keyframes-1 (those it does not cover move
+        with its newest keyframe)."""
+        missing = max(num_keyframes - len(self.updates), 0)
+        return Correction(np.concatenate([self.updates, np.repeat(self.current[None], missing, axis=0)]))
+
     def then(self, later: Correction) -> Correction:
         """This correction followed by `later` (a keyframe one of them does not cover moved with
         its newest keyframe)."""
         n = max(len(self.updates), len(later.updates))
-
-        def padded(c: Correction) -> np.ndarray:
-            return np.concatenate([c.updates, np.repeat(c.current[None], n - len(c.updates), axis=0)])
-
-        return Correction(padded(later) @ padded(self))
+        return Correction(later.covering(n).updates @ self.covering(n).updates)
 
     def follow(self, poses: np.ndarray, keyframe_positions) -> np.ndarray:
         """(F,4,4) camera-to-world `poses` of a trajectory moved with their keyframes:
@@ -175,6 +177,9 @@ class LoopCloser:
         self.at_end = at_end
         self.boundary = boundary or PluginBoundary({})
         self.applied_world = 0  # the world of the last decision applied (LoopKeyframe.world)
+        # at_end: the decisions taken so far, folded into one correction, and the newest one's world
+        self._held: Correction | None = None
+        self._held_world = 0
         self.cost = LoopClosureCost()
         self.loop_segments = np.zeros((0, 2, 3))  # accepted loops' camera-centre pairs (viewers)
         self._rows: dict[tuple[int, int], dict[str, Any]] = {}
@@ -201,25 +206,33 @@ class LoopCloser:
         `num_keyframes` keyframes (None when none moved a keyframe, or while `at_end` holds them
         and the stream goes on). The caller applies it (`SLAM.correct`) before the next keyframe
         is queued."""
-        if not self.active or (self.at_end and not stream_ended):
+        if not self.active:
             return None
         with self._wake:
             decisions, self._decisions = self._decisions, []
-        correction = None
+        held = self._held  # folded as they come, so that holding them costs one correction's memory
         for decision in decisions:
-            self.applied_world = max(self.applied_world, decision.world)
-            if not decision:
-                continue
-            step = Correction.of(decision, num_keyframes)
-            correction = step if correction is None else correction.then(step)
-            for k, pose in decision.keyframe_poses.items():
-                self._centres[int(k)] = np.asarray(pose)[:3, 3].copy()
+            self._held_world = max(self._held_world, decision.world)
+            if decision:
+                step = Correction.of(decision, num_keyframes)
+                held = step if held is None else held.then(step)
+        self._held = held
+        if self.at_end and not stream_ended:
+            if any(decisions):
+                self._update_segments()  # the loops, between the keyframes' centres as tracked
+            return None
+        correction, self._held = self._held, None
+        self.applied_world = max(self.applied_world, self._held_world)
         if correction is not None:
+            correction = correction.covering(num_keyframes)  # keyframes since the last decision too
+            for k, centre in self._centres.items():  # each keyframe's centre moves with it
+                motion = correction.updates[min(k, len(correction.updates) - 1)]
+                self._centres[k] = motion[:3, :3] @ centre + motion[:3, 3]
             self.cost.corrections += 1
             largest_m, largest_deg = correction.largest()
             self.cost.largest_correction_m = max(self.cost.largest_correction_m, largest_m)
             self.cost.largest_correction_deg = max(self.cost.largest_correction_deg, largest_deg)
-        if decisions:
+        if decisions or correction is not None:
             self._update_segments()
         return correction
 
@@ -328,8 +341,9 @@ class LoopCloser:
         pending = [{"world": d.world, "ids": np.array(sorted(d.updates), dtype=np.int64),
                     "updates": np.array([d.updates[k] for k in sorted(d.updates)]).reshape(-1, 4, 4)}
                    for d in decisions]
+        held = None if self._held is None else {"world": self._held_world, "updates": self._held.updates}
         return {"plugin": plugin, "queued": [_keyframe_state(k) for k in queued], "decisions": pending,
-                "applied_world": self.applied_world, "rows": rows,
+                "held": held, "applied_world": self.applied_world, "rows": rows,
                 "centres": {"ids": np.array(sorted(self._centres), dtype=np.int64),
                             "centres": np.array([self._centres[k] for k in sorted(self._centres)]).reshape(-1, 3)},
                 "cost": dict(vars(self.cost))}
@@ -348,6 +362,9 @@ class LoopCloser:
                                                 world=int(d["world"])) for d in state["decisions"]]
                 self._rows = {(int(r["keyframe"]), int(r["match_keyframe"])): dict(r) for r in state["rows"]}
         self.applied_world = int(state["applied_world"])
+        held = state.get("held")  # checkpoints before loop_corrections have none
+        self._held = None if held is None else Correction(np.asarray(held["updates"], dtype=np.float64))
+        self._held_world = self.applied_world if held is None else int(held["world"])
         centres = state["centres"]
         self._centres = {int(k): np.asarray(c, dtype=np.float64) for k, c in zip(centres["ids"], centres["centres"])}
         self.cost = LoopClosureCost(**{k: type(getattr(LoopClosureCost(), k))(v) for k, v in state["cost"].items()})

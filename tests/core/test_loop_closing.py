@@ -147,8 +147,8 @@ def test_corrections_held_to_the_end_leave_tracking_in_odometry_s_frame_then_mov
     """loop_corrections=at_end: the decision (made at the third keyframe) waits for the end of
     the stream: every frame is tracked and shown where odometry puts it (millimetres from the
     truth, where with corrections during the stream the frames after the decision are shown
-    10 cm off), then one correction moves the trajectory, the keyframes and the map by SHIFT, as
-    during the stream."""
+    10 cm off), the loop shown all the same, then one correction moves the trajectory, the
+    keyframes and the map by SHIFT, as during the stream."""
     shown = {}
     for when in ("during", "at_end"):
         metrics = run_shifted(registry, tmp_path / when, "viewer=recording", f"loop_corrections={when}")
@@ -156,6 +156,7 @@ def test_corrections_held_to_the_end_leave_tracking_in_odometry_s_frame_then_mov
         np.testing.assert_allclose(offsets(tmp_path / when), np.tile(SHIFT[:3, 3], (30, 1)), atol=0.01)
         _, gt = read_tum_trajectory(tmp_path / when / "groundtruth.txt")
         shown[when] = np.array([p[:3, 3] for p in RecordingViewer.poses]) - gt[:, :3, 3]
+        assert RecordingViewer.loops[-1] == 1  # the loop is shown while the stream goes on, held or not
     assert np.abs(shown["at_end"]).max() < 0.01
     assert np.abs(shown["during"][-1] - SHIFT[:3, 3]).max() < 0.01
     maps = {when: checkpoint.load_map(tmp_path / when)[0].entry_means.mean(dim=0).numpy() for when in shown}

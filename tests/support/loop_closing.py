@@ -95,19 +95,21 @@ class ShiftingLoopClosure(LoopClosure):
 
 
 class RecordingViewer(Viewer):
-    """Test viewer: keeps the last ViewerFrame it was shown, and (`poses`) the pose of each
-    frame as it was shown, since the last run built one."""
+    """Test viewer: keeps the last ViewerFrame it was shown, and the pose of each frame as it
+    was shown (`poses`) and the loops shown with it (`loops`), since the last run built one."""
 
     last: ViewerFrame | None = None
     poses: list[np.ndarray] = []
+    loops: list[int] = []
 
     def __init__(self, cfg: ViewerConfig, context=None):
         self.cfg = cfg
-        RecordingViewer.poses = []
+        RecordingViewer.poses, RecordingViewer.loops = [], []
 
     def show(self, view: ViewerFrame) -> None:
         RecordingViewer.last = view
         RecordingViewer.poses.append(np.array(view.pose))
+        RecordingViewer.loops.append(len(view.loops))
 
 
 @hookimpl
