@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import inspect
 import json
 import platform
 import time
@@ -75,6 +76,8 @@ SEQUENCES = {  # name -> the dataset's overrides
 }
 #: The synthetic paths that come back, frames each, with the structured-light sensor: exact
 #: ground truth, odometry that drifts as a Kinect's does (as benchmarks/loop_closure_runs.py).
+#: What `tracking_digest` reads of the package's source: Python, configuration, the compiled kernels.
+SOURCE_SUFFIXES = (".py", ".yaml", ".cpp", ".c", ".h", ".cu")
 SYNTHETIC = {"room_loop": 600, "figure_eight": 720, "return": 900, "revisit_rotated": 900}
 SEQUENCES.update({f"synthetic_{path}": ["dataset=synthetic", f"dataset.camera_path={path}", f"dataset.num_frames={n}",
                                         "dataset.depth_model=structured_light"] for path, n in SYNTHETIC.items()})
@@ -155,9 +158,10 @@ def tracking_digest(name: str) -> str:
     configuration files and the source of the package and its plugins but the loop closures (which
     this benchmark runs on them), so that kept keyframes are never those of other code."""
     root = Path(__file__).resolve().parents[1]
-    digest = hashlib.sha256(repr(SEQUENCES[name]).encode())
+    overrides = [o.replace(str(DATA), "DATA") for o in SEQUENCES[name]]  # the same wherever the data is
+    digest = hashlib.sha256((repr(overrides) + inspect.getsource(track) + inspect.getsource(TrackedSequence)).encode())
     files = [f for folder in ("slamkit", "plugins", "conf") for f in (root / folder).rglob("*")
-             if f.suffix in (".py", ".yaml") and "loop_closures" not in f.parts]
+             if f.suffix in SOURCE_SUFFIXES and "loop_closures" not in f.parts]
     for f in sorted(files):
         digest.update(str(f.relative_to(root)).encode() + f.read_bytes())
     return digest.hexdigest()[:12]
@@ -166,6 +170,16 @@ def tracking_digest(name: str) -> str:
 def kept_keyframes(keyframes_dir: Path, name: str) -> Path:
     """Where `tracked` keeps sequence `name`'s keyframes in `keyframes_dir` (`tracking_digest`)."""
     return keyframes_dir / f"{name}-{tracking_digest(name)}.npz"
+
+
+def load_kept(keyframes_dir: Path, name: str) -> TrackedSequence:
+    """The keyframes this code's tracking of `name` kept in `keyframes_dir`, or a one-line exit
+    saying how to make them."""
+    path = kept_keyframes(keyframes_dir, name)
+    if not path.is_file():
+        raise SystemExit(f"{path}: no keyframes of {name} tracked by this code; make them with python "
+                         f"benchmarks/loop_closure.py --sequences {name} --keyframes {keyframes_dir}")
+    return TrackedSequence.load(path)
 
 
 def tracked(name: str, keyframes_dir: Path | None) -> TrackedSequence:

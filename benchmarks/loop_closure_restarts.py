@@ -31,7 +31,7 @@ from slamkit_plugins.loop_closures.pose_graph import verification
 from slamkit_plugins.loop_closures.pose_graph.config import PoseGraphConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from loop_closure import TrackedSequence, kept_keyframes  # noqa: E402  (the offline benchmark's)
+from loop_closure import TrackedSequence, load_kept  # noqa: E402  (the offline benchmark's)
 
 TRANSLATION_STEPS_M = (0.01, 0.02, 0.03)
 
@@ -79,7 +79,7 @@ def main() -> None:
     for row in json.loads(args.results.read_text())["rows"]:
         if row["sequence"] not in args.sequences.split(",") or row["setting"] != args.setting:
             continue
-        seq = TrackedSequence.load(kept_keyframes(args.keyframes, row["sequence"]))
+        seq = load_kept(args.keyframes, row["sequence"])
         for check in candidates(row):
             rows.append({"sequence": row["sequence"], **probe(seq, check, cfg, rotation_steps)})
             r = rows[-1]

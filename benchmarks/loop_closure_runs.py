@@ -73,6 +73,13 @@ CASES = {  # case -> [(sequence, overrides)]
 CLOSURES = ("none", "pose_graph")
 
 
+def truth_by_stamp(run_dir: Path) -> dict[float, np.ndarray]:
+    """The run's ground-truth poses (groundtruth.txt, rotations re-orthonormalised) by timestamp
+    rounded to the microsecond."""
+    gt_stamps, gt = read_tum_trajectory(run_dir / "groundtruth.txt")
+    return dict(zip(np.round(gt_stamps, 6), orthonormal(gt)))
+
+
 def loops_against_truth(run_dir: Path) -> dict:
     """The run's accepted loops (loops.csv) against the ground truth (groundtruth.txt, matched
     to the frames by timestamp): how many, how many right, the largest error."""
@@ -80,8 +87,7 @@ def loops_against_truth(run_dir: Path) -> dict:
     if not path.is_file():
         return {}
     stamps, _ = read_tum_trajectory(run_dir / "trajectory.txt")
-    gt_stamps, gt = read_tum_trajectory(run_dir / "groundtruth.txt")
-    truth = dict(zip(np.round(gt_stamps, 6), orthonormal(gt)))
+    truth = truth_by_stamp(run_dir)
     with open(path) as f:
         rows = list(csv.DictReader(f))
     accepted = [r for r in rows if r["accepted"] == "True"]
@@ -110,15 +116,15 @@ def loops_against_truth(run_dir: Path) -> dict:
 def noise_at_truth(run_dir: Path) -> dict:
     """How well the pose graph's noise model fits (pose_graph.g2o): each edge's chi-square
     (squared whitened residual) with its keyframes at the ground truth's poses, averaged per kind
-    of edge. A calibrated model gives 6 (the degrees of freedom); below, the edges are more
-    accurate than their information says."""
+    of edge. A calibrated model gives 6 (the degrees of freedom; 5 for a loop freed along a
+    direction, `weak_direction=free`); below, the edges are more accurate than their
+    information says."""
     path = run_dir / "pose_graph.g2o"
     if not path.is_file():
         return {}
     graph = read_g2o(path)
     stamps, _ = read_tum_trajectory(run_dir / "keyframes.txt")
-    gt_stamps, gt = read_tum_trajectory(run_dir / "groundtruth.txt")
-    truth = dict(zip(np.round(gt_stamps, 6), orthonormal(gt)))
+    truth = truth_by_stamp(run_dir)
     poses = [truth.get(round(float(stamps[int(k)]), 6)) for k in graph.keyframe_ids]
     if not graph.edges or any(p is None or not np.isfinite(p).all() for p in poses):
         return {}

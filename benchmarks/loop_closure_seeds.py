@@ -25,7 +25,7 @@ from slamkit.roles.loop_closure import pose_difference, relative_pose
 from slamkit_plugins.loop_closures.pose_graph.config import PoseGraphConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from loop_closure import TrackedSequence, kept_keyframes  # noqa: E402  (the offline benchmark's)
+from loop_closure import load_kept  # noqa: E402  (the offline benchmark's)
 
 
 def main() -> None:
@@ -38,7 +38,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
     cfg = PoseGraphConfig()
-    seq = TrackedSequence.load(kept_keyframes(args.keyframes, args.sequence))
+    seq = load_kept(args.keyframes, args.sequence)
     frames = [int(f) for f in seq.keyframe_frames]
     rows = []
     for pair in args.pairs.split(","):

@@ -212,7 +212,7 @@ class RunConfig(PluginConfig):
     #: mapper steps per frame in sequential mode
     iterations_per_frame: int = method_setting(10)
     #: during: a loop's correction moves the map and the tracker when made | at_end: once, after the stream
-    loop_corrections: LoopCorrections = LoopCorrections.during
+    loop_corrections: LoopCorrections = method_setting(LoopCorrections.during)
     #: seed of every random choice
     seed: int = 0
     #: torch threads for mapping (0: every CPU sequential, every CPU but tracking's in real time)

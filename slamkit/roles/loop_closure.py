@@ -45,8 +45,9 @@ class LoopKeyframe:
     of any size, for appearance, or None. odometry_information: 6x6 information of the relative
     pose from the previous keyframe to this one (see the module docstring), or None (the loop
     closure computes one from the two keyframes' points). world: the `LoopDecision.world` of the
-    last decision the run had applied when it tracked this keyframe (0 before any): a keyframe
-    tracked while a decision was being made is placed in that decision's world by the loop closure.
+    last decision the run had applied when it tracked this keyframe (0 before any; always 0
+    while the run holds the decisions to the end of the stream, `loop_corrections=at_end`): a
+    keyframe tracked in an older world is placed in the newest by the loop closure.
     """
 
     keyframe_id: int

@@ -34,8 +34,15 @@ INFORMATION_FLOOR = 1e-3
 FREED_INFORMATION = 1e-6
 #: A restart's seed is the candidate's plus this times its number: no other keyframe's (seed + id) meets it.
 RESTART_SEED_STRIDE = 1_000_003
-#: How loops.csv's reason marks a loop kept without its weakest direction, and that direction.
-FREED_MARK = re.compile(r"freed along \(([-+0-9.]+), ([-+0-9.]+), ([-+0-9.]+)\): constrained [0-9.]+ < [0-9.]+")
+#: How loops.csv's reason marks a loop kept without its weakest direction (`freed_reason`), and that direction.
+FREED_MARK = re.compile(r"freed along \(([-+0-9.]+), ([-+0-9.]+), ([-+0-9.]+)\): constrained [^\s;]+ < [^\s;]+")
+
+
+def freed_reason(direction: np.ndarray, constrained: float, bound: float) -> str:
+    """The mark of a loop kept without its weakest `direction` (unit, the keyframe's camera
+    frame), constrained `constrained` < `bound` along it (`FREED_MARK` reads it back)."""
+    along = ", ".join(f"{c:+.3f}" for c in direction)
+    return f"freed along ({along}): constrained {max(constrained, 0.0):.3f} < {bound}"
 
 
 def freed_mark(reason: str) -> str:
@@ -144,8 +151,7 @@ def verify(query: FeatureCloud, match: FeatureCloud, odometry: np.ndarray, odome
     weakest = float(fractions[0])
     free_weakest = weakest < cfg.min_constraint and cfg.weak_direction is WeakDirection.free
     # loops.csv says which loops were kept without their weakest direction (the closure adds why it kept them)
-    kept_as = (f"freed along ({', '.join(f'{c:+.3f}' for c in directions[:, 0])}): constrained {weakest:.3f} < "
-               f"{cfg.min_constraint}" if free_weakest else "")
+    kept_as = freed_reason(directions[:, 0], weakest, cfg.min_constraint) if free_weakest else ""
     check = LoopCheck(*ids, relative_pose=found.pose, fitness=found.fitness, inliers=found.ransac_inliers,
                       inlier_rmse_m=found.rmse_m, correction_m=correction_m, correction_deg=correction_deg,
                       accepted=True, reason=kept_as)
