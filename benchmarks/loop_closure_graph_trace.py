@@ -1,0 +1,100 @@
+"""Where a running system's pose graph differs from one built without loop closure (issue 46):
+for a run with `loop_closure=pose_graph` and the same sequence's run with `loop_closure=none`
+(both run folders of `benchmarks/loop_closure_runs.py --runs-dir DIR`, with ground truth):
+
+- each odometry edge's translation error against the ground truth's relative pose (the
+  pose_graph run's edges from pose_graph.g2o; the none run's from its keyframes.txt), summed
+  over the whole path: whether the odometry after the corrections is worse edge by edge;
+- the keyframes' ATE of the run's graph as it ended, and of the same graph with an exact loop
+  (the ground truth's relative pose, the loop's own information) at each accepted pair: whether
+  what is left is the loops' error or the graph's odometry.
+
+Prints a table and writes JSON (--out).
+
+    python benchmarks/loop_closure_runs.py --cases synthetic --sequences synthetic_revisit_rotated --runs-dir DIR
+    python benchmarks/loop_closure_graph_trace.py \\
+        DIR/synthetic_synthetic_revisit_rotated_pose_graph_0 DIR/synthetic_synthetic_revisit_rotated_none_0
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from slamkit.cli.bench import markdown_table
+from slamkit.formats.g2o import read_g2o
+from slamkit.formats.tum import read_tum_trajectory
+from slamkit.geometry.pose_graph import PoseGraph, PoseGraphEdge, relative_pose
+from slamkit.metrics.trajectory import ate
+from slamkit_plugins.loop_closures.pose_graph import optimisation
+from slamkit_plugins.loop_closures.pose_graph.config import PoseGraphConfig
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from loop_closure_runs import truth_by_stamp  # noqa: E402  (the running-system benchmark's)
+
+
+def keyframes_and_truth(run_dir: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(K,4,4) the run's keyframe poses (keyframes.txt) and the ground truth's at their stamps."""
+    stamps, poses = read_tum_trajectory(run_dir / "keyframes.txt")
+    truth = truth_by_stamp(run_dir)
+    return poses, np.array([truth[round(float(s), 6)] for s in stamps])
+
+
+def edge_errors(measured: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """(E,) metres: translation of each measured relative pose against the truth's ((E,4,4) each)."""
+    return np.linalg.norm(relative_pose(measured, truth)[:, :3, 3], axis=1)
+
+
+def trace(run: Path, none_run: Path) -> dict:
+    graph = read_g2o(run / "pose_graph.g2o")
+    poses, truth = keyframes_and_truth(run)
+    none_poses, none_truth = keyframes_and_truth(none_run)
+    odometry = [e for e in graph.edges if e.kind == "odometry"]
+    loops = [e for e in graph.edges if e.kind == "loop"]
+    index = {int(k): i for i, k in enumerate(graph.keyframe_ids)}
+
+    def truth_between(e: PoseGraphEdge) -> np.ndarray:
+        return relative_pose(truth[index[e.source]], truth[index[e.target]])
+
+    ran = edge_errors(np.array([e.relative_pose for e in odometry]), np.array([truth_between(e) for e in odometry]))
+    alone = edge_errors(relative_pose(none_poses[:-1], none_poses[1:]), relative_pose(none_truth[:-1], none_truth[1:]))
+    exact = [PoseGraphEdge("loop", e.source, e.target, truth_between(e), e.information) for e in loops]
+    cfg = PoseGraphConfig()
+    with_exact = optimisation.optimise(PoseGraph(graph.keyframe_ids, graph.poses, tuple(odometry + exact)),
+                                       cfg.backend, cfg.robust_width)
+    graph_truth = truth[[index[int(k)] for k in graph.keyframe_ids]]
+    return {"run": str(run), "none_run": str(none_run), "keyframes": len(poses), "none_keyframes": len(none_poses),
+            "loops": len(loops), "odometry_error_sum_m": float(ran.sum()),
+            "none_odometry_error_sum_m": float(alone.sum()),
+            "keyframe_ate_m": ate(graph.poses, graph_truth).rmse_m,
+            "keyframe_ate_exact_loops_m": ate(with_exact, graph_truth).rmse_m,
+            "none_keyframe_ate_m": ate(none_poses, none_truth).rmse_m}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("run", type=Path, help="a loop_closure=pose_graph run folder")
+    parser.add_argument("none_run", type=Path, help="the same sequence's loop_closure=none run folder")
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/loop_closure_graph_trace.json"))
+    args = parser.parse_args()
+    row = trace(args.run, args.none_run)
+    print(markdown_table([["keyframes (none)", "loops", "odometry error sum (none)", "keyframe ATE (none)",
+                           "keyframe ATE, exact loops at the accepted pairs"],
+                          [f"{row['keyframes']} ({row['none_keyframes']})", str(row["loops"]),
+                           f"{100 * row['odometry_error_sum_m']:.1f} cm ({100 * row['none_odometry_error_sum_m']:.1f})",
+                           f"{100 * row['keyframe_ate_m']:.2f} cm ({100 * row['none_keyframe_ate_m']:.2f})",
+                           f"{100 * row['keyframe_ate_exact_loops_m']:.2f} cm"]]))
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps({"machine": platform.node(), "when": time.strftime("%Y-%m-%d %H:%M:%S"),
+                                    "command": "python " + " ".join(sys.argv), **row}, indent=2) + "\n")
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
