@@ -163,6 +163,21 @@ def test_corrections_held_to_the_end_leave_tracking_in_odometry_s_frame_then_mov
     np.testing.assert_allclose(maps["at_end"], maps["during"], atol=0.01)
 
 
+def test_two_held_decisions_compose_as_the_two_applied_when_made(tmp_path, registry):
+    """Two decisions (at the third and the fourth keyframe), each moving every keyframe by SHIFT:
+    applied when made or held to the end and composed, the trajectory ends 2 SHIFT from the
+    truth, frames before, between and after the decisions alike; held, every frame was shown
+    where odometry put it and both loops were shown."""
+    for when in ("during", "at_end"):
+        metrics = run_shifted(registry, tmp_path / when, "viewer=recording", "loop_closure.again=4",
+                              f"loop_corrections={when}")
+        assert metrics["loops_accepted"] == 2 and metrics["loop_corrections"] == (2 if when == "during" else 1)
+        np.testing.assert_allclose(offsets(tmp_path / when), np.tile(2 * SHIFT[:3, 3], (30, 1)), atol=0.01)
+        assert RecordingViewer.loops[-1] == 2
+    _, gt = read_tum_trajectory(tmp_path / "at_end" / "groundtruth.txt")
+    assert np.abs(np.array([p[:3, 3] for p in RecordingViewer.poses]) - gt[:, :3, 3]).max() < 0.01
+
+
 def test_viewers_are_shown_the_corrected_trajectory_and_the_loops(tmp_path, registry):
     """The ViewerFrame after a correction: the trajectory and the keyframes moved with it, and
     the loop as a line between its two keyframes' corrected camera centres; rerun records it."""

@@ -35,6 +35,8 @@ class ShiftingConfig(PluginConfig):
 
     #: keyframes before the one decision that moves them
     after: int = 3
+    #: keyframes before a second decision that moves them all by SHIFT again (0: none)
+    again: int = 0
     #: seconds each detect_and_optimise sleeps (a slow loop closure)
     sleep_s: float = 0.0
     #: a file each detect_and_optimise appends its process id to (null: none)
@@ -43,7 +45,8 @@ class ShiftingConfig(PluginConfig):
 
 class ShiftingLoopClosure(LoopClosure):
     """Keeps its keyframes' poses (placed in the newest world); once it has `after` keyframes it
-    reports one accepted loop (the last to the first) and moves every keyframe by SHIFT."""
+    reports one accepted loop (the last to the first) and moves every keyframe by SHIFT (and,
+    with `again`, once more at that many keyframes)."""
 
     def __init__(self, cfg: ShiftingConfig, context=None):
         self.cfg = cfg
@@ -66,7 +69,8 @@ class ShiftingLoopClosure(LoopClosure):
                 pose = update @ pose
             self.poses[k.keyframe_id], self.frames[k.keyframe_id] = pose, k.frame_index
         self.pending = []
-        if self.world_updates or len(self.poses) < self.cfg.after:
+        due = self.cfg.after if not self.world_updates else self.cfg.again if len(self.world_updates) == 1 else 0
+        if not due or len(self.poses) < due:
             return LoopDecision(world=len(self.world_updates))
         before = dict(self.poses)
         self.poses = {k: SHIFT @ p for k, p in self.poses.items()}
@@ -75,7 +79,7 @@ class ShiftingLoopClosure(LoopClosure):
         check = LoopCheck(last, first, self.frames[last], self.frames[first], np.eye(4), 0.9, 100, 0.005, 0.1, 0.0,
                           True)
         return LoopDecision((check,), dict(self.poses), {k: self.poses[k] @ np.linalg.inv(before[k]) for k in before},
-                            world=1)
+                            world=len(self.world_updates))
 
     def pose_graph(self) -> PoseGraph:
         ids = sorted(self.poses)
