@@ -36,14 +36,7 @@ from slamkit_plugins.loop_closures.pose_graph import optimisation
 from slamkit_plugins.loop_closures.pose_graph.config import PoseGraphConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from loop_closure_runs import truth_by_stamp  # noqa: E402  (the running-system benchmark's)
-
-
-def keyframes_and_truth(run_dir: Path) -> tuple[np.ndarray, np.ndarray]:
-    """(K,4,4) the run's keyframe poses (keyframes.txt) and the ground truth's at their stamps."""
-    stamps, poses = read_tum_trajectory(run_dir / "keyframes.txt")
-    truth = truth_by_stamp(run_dir)
-    return poses, np.array([truth[round(float(s), 6)] for s in stamps])
+from loop_closure_runs import keyframe_truth  # noqa: E402  (the running-system benchmark's)
 
 
 def edge_errors(measured: np.ndarray, truth: np.ndarray) -> np.ndarray:
@@ -53,14 +46,14 @@ def edge_errors(measured: np.ndarray, truth: np.ndarray) -> np.ndarray:
 
 def trace(run: Path, none_run: Path) -> dict:
     graph = read_g2o(run / "pose_graph.g2o")
-    poses, truth = keyframes_and_truth(run)
-    none_poses, none_truth = keyframes_and_truth(none_run)
+    truth = keyframe_truth(run)  # by keyframe id
+    _, none_poses = read_tum_trajectory(none_run / "keyframes.txt")
+    none_truth = keyframe_truth(none_run)
     odometry = [e for e in graph.edges if e.kind == "odometry"]
     loops = [e for e in graph.edges if e.kind == "loop"]
-    index = {int(k): i for i, k in enumerate(graph.keyframe_ids)}
 
     def truth_between(e: PoseGraphEdge) -> np.ndarray:
-        return relative_pose(truth[index[e.source]], truth[index[e.target]])
+        return relative_pose(truth[e.source], truth[e.target])
 
     ran = edge_errors(np.array([e.relative_pose for e in odometry]), np.array([truth_between(e) for e in odometry]))
     alone = edge_errors(relative_pose(none_poses[:-1], none_poses[1:]), relative_pose(none_truth[:-1], none_truth[1:]))
@@ -68,8 +61,8 @@ def trace(run: Path, none_run: Path) -> dict:
     cfg = PoseGraphConfig()
     with_exact = optimisation.optimise(PoseGraph(graph.keyframe_ids, graph.poses, tuple(odometry + exact)),
                                        cfg.backend, cfg.robust_width)
-    graph_truth = truth[[index[int(k)] for k in graph.keyframe_ids]]
-    return {"run": str(run), "none_run": str(none_run), "keyframes": len(poses), "none_keyframes": len(none_poses),
+    graph_truth = truth[graph.keyframe_ids]
+    return {"run": str(run), "none_run": str(none_run), "keyframes": len(truth), "none_keyframes": len(none_poses),
             "loops": len(loops), "odometry_error_sum_m": float(ran.sum()),
             "none_odometry_error_sum_m": float(alone.sum()),
             "keyframe_ate_m": ate(graph.poses, graph_truth).rmse_m,

@@ -80,6 +80,14 @@ def truth_by_stamp(run_dir: Path) -> dict[float, np.ndarray]:
     return dict(zip(np.round(gt_stamps, 6), orthonormal(gt)))
 
 
+def keyframe_truth(run_dir: Path) -> np.ndarray:
+    """(K,4,4) the ground truth's pose at each keyframe of keyframes.txt (its row is the keyframe's
+    id), NaN where the ground truth has none at that stamp."""
+    stamps, _ = read_tum_trajectory(run_dir / "keyframes.txt")
+    truth = truth_by_stamp(run_dir)
+    return np.array([truth.get(round(float(s), 6), np.full((4, 4), np.nan)) for s in stamps]).reshape(-1, 4, 4)
+
+
 def loops_against_truth(run_dir: Path) -> dict:
     """The run's accepted loops (loops.csv) against the ground truth (groundtruth.txt, matched
     to the frames by timestamp): how many, how many right, the largest error."""
@@ -123,12 +131,10 @@ def noise_at_truth(run_dir: Path) -> dict:
     if not path.is_file():
         return {}
     graph = read_g2o(path)
-    stamps, _ = read_tum_trajectory(run_dir / "keyframes.txt")
-    truth = truth_by_stamp(run_dir)
-    poses = [truth.get(round(float(stamps[int(k)]), 6)) for k in graph.keyframe_ids]
-    if not graph.edges or any(p is None or not np.isfinite(p).all() for p in poses):
+    poses = keyframe_truth(run_dir)[graph.keyframe_ids]
+    if not graph.edges or not np.isfinite(poses).all():
         return {}
-    chi2 = optimisation.whitened_residuals(graph, np.array(poses)) ** 2
+    chi2 = optimisation.whitened_residuals(graph, poses) ** 2
     return {f"{kind}_chi2_at_truth": float(np.mean([c for c, e in zip(chi2, graph.edges) if e.kind == kind]))
             for kind in ("odometry", "loop") if any(e.kind == kind for e in graph.edges)}
 

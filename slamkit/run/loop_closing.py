@@ -226,7 +226,7 @@ class LoopCloser:
         if correction is not None:
             correction = correction.covering(num_keyframes)  # keyframes since the last decision too
             for k, centre in self._centres.items():  # each keyframe's centre moves with it
-                motion = correction.updates[min(k, len(correction.updates) - 1)]
+                motion = correction.updates[k]
                 self._centres[k] = motion[:3, :3] @ centre + motion[:3, 3]
             self.cost.corrections += 1
             largest_m, largest_deg = correction.largest()
