@@ -110,7 +110,7 @@ class RealSenseDataset(Dataset):
         if cfg.recorded_pace:
             self.stream.stop()
             self.stream = self._open(self.path, align=cfg.align, real_time=True)
-        self._next = 0  # the index of the frame set `reader` gives next
+        self._last: float | None = None  # the colour timestamp (s) of the frame set `reader` gave last
         self.where = self.stream.where
         self._camera = self.stream.camera
         self.units_per_metre = 1.0 / self.stream.depth_scale
@@ -169,7 +169,7 @@ class RealSenseDataset(Dataset):
     def _restarted(self, stream: Stream) -> Stream:
         """`stream` played again from the recording's start, frame set by frame set."""
         stream.stop()
-        self._next = 0
+        self._last = None
         return self._open(self.path, align=self.cfg.align)
 
     def _ground_truth(self) -> tuple[np.ndarray, np.ndarray] | None:
@@ -248,38 +248,45 @@ class RealSenseDataset(Dataset):
         return Frame(raw_index, timestamp, rgb, depth, self._camera, gt)
 
     def _played(self, k: int) -> FrameSet | None:
-        """Frame set k of the recording file, read in order (None: it is in `record` already)."""
+        """Frame set k of the recording file (None: it is in `record` already)."""
+        stamp = self.file_stamps[k]
+        with self._lock:
+            passed = self._last is not None and stamp <= self._last + SAME_STAMP_S
+            if passed and not self.cfg.live() and self.recorder is not None and k in self.recorder.files:
+                return None
+            frames = self._played_at(stamp, f"frame set {k}")
+        if self.recorder is not None and not self.cfg.live():
+            self.recorder.add(k, frames.timestamp, frames.rgb, frames.depth_raw)
+        return frames
+
+    def _played_at(self, stamp: float, name: str) -> FrameSet:
+        """The recording's frame set of colour timestamp `stamp` (seconds), read on from where the
+        reader is, or from the recording's start once passed. The frame sets before it are passed
+        over, those the start-up pass never saw too: the SDK's playback can skip one on any pass."""
         with self._lock:
             if self.reader is None:  # a recording at its pace, read again: frame by frame from here on
                 self.reader = self._open(self.path, align=self.cfg.align)
-                self._next = 0
-            if k < self._next:
-                if not self.cfg.live() and self.recorder is not None and k in self.recorder.files:
-                    return None
+                self._last = None
+            if self._last is not None and stamp <= self._last + SAME_STAMP_S:
                 self.reader = self._restarted(self.reader)
             restarts = 0
             while True:
                 frames = self.reader.next(self.cfg.timeout_s)
                 if frames is None:
-                    raise DataError(f"{self.where} ended at frame {self._next} of the {len(self.file_stamps)} it "
-                                    "had at start-up (expected the same frames on every pass)")
-                expected = self.file_stamps[self._next] if self._next < len(self.file_stamps) else None
-                if expected is not None and abs(frames.timestamp - expected) > SAME_STAMP_S:
-                    # the SDK skipped a frame set (its ROS1 playback did on a busy machine): counted
-                    # on, every later frame would be another's; played again from the start
-                    restarts += 1
-                    if restarts > MAX_RESTARTS:
-                        raise DataError(f"{self.where}: frame set {self._next} came with timestamp "
-                                        f"{frames.timestamp:.6f} s, expected {expected:.6f} s (the SDK skipped frame "
-                                        f"sets on {MAX_RESTARTS + 1} passes)")
-                    self.reader = self._restarted(self.reader)
+                    raise DataError(f"{self.where} ended before {name} ({stamp:.6f} s) of the {len(self.file_stamps)} "
+                                    "it had at start-up (expected the same frames on every pass)")
+                self._last = frames.timestamp
+                if frames.timestamp < stamp - SAME_STAMP_S:
                     continue
-                self._next += 1
-                if self._next - 1 == k:
-                    break
-        if self.recorder is not None and not self.cfg.live():
-            self.recorder.add(k, frames.timestamp, frames.rgb, frames.depth_raw)
-        return frames
+                if frames.timestamp <= stamp + SAME_STAMP_S:
+                    return frames
+                # the SDK skipped this frame set (its ROS1 playback did on a busy machine): the
+                # next one must not stand in for it; played again from the start
+                restarts += 1
+                if restarts > MAX_RESTARTS:
+                    raise DataError(f"{self.where}: {name} came with timestamp {frames.timestamp:.6f} s, expected "
+                                    f"{stamp:.6f} s (the SDK skipped frame sets on {MAX_RESTARTS + 1} passes)")
+                self.reader = self._restarted(self.reader)
 
     def _live(self, i: int) -> FrameSet | None:
         """Frame set i of a live source: waits for it. One the run has passed: from the
@@ -288,7 +295,7 @@ class RealSenseDataset(Dataset):
         if frames is not None:
             return frames
         if self.path is not None:  # passed: read again from the file, at the same device time
-            return self._played(int(np.searchsorted(self.file_stamps, self.timestamps[i] - 1e-7)))
+            return self._played_at(self.timestamps[i], f"frame {i}")
         if self.recorder is None:
             raise DataError(f"frame {i} of {self.where} has passed and was not kept (expected dataset.record=DIR "
                             "to read a live camera's frames again)")
