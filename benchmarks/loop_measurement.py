@@ -28,6 +28,8 @@ its odometry edges, frames following their keyframes). Writes JSON (--out).
 from __future__ import annotations
 
 import argparse
+import hashlib
+import inspect
 import json
 import platform
 import sys
@@ -48,7 +50,14 @@ from slamkit_plugins.loop_closures.pose_graph import optimisation, verification
 from slamkit_plugins.loop_closures.pose_graph.verification import INFORMATION_FLOOR
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from loop_closure import SEQUENCES, TRUE_REVISIT_OVERLAP, corrected_ate, geometry, orthonormal  # noqa: E402
+from loop_closure import (  # noqa: E402
+    SEQUENCES,
+    TRUE_REVISIT_OVERLAP,
+    corrected_ate,
+    geometry,
+    orthonormal,
+    tracking_digest,
+)
 
 #: ICP's correspondence distance, in voxels of the cloud it registers.
 ICP_DISTANCE_VOXELS = 1.0
@@ -125,7 +134,9 @@ def main() -> None:
     args = parser.parse_args()
     o3d = import_open3d()
     reg = o3d.pipelines.registration
-    cache = args.keyframes / "7scenes_colours.npz" if args.keyframes else None
+    # named by the code that tracked them, as benchmarks/loop_closure.py's kept keyframes: never another code's
+    code = hashlib.sha256((tracking_digest("7scenes") + inspect.getsource(track_with_colours)).encode()).hexdigest()
+    cache = args.keyframes / f"7scenes_colours-{code[:12]}.npz" if args.keyframes else None
     poses, gt_raw, kf, points, covariances, colours = track_with_colours(cache)
     gt = orthonormal(gt_raw)
     lc = compose_run(["loop_closure=pose_graph"])[0].loop_closure
