@@ -99,6 +99,7 @@ class RealSenseDataset(Dataset):
         self._lock = threading.RLock()
         self.path = None if not cfg.path else self._recording(cfg.path)
         self.file_stamps: list[float] = []  # a recording: the colour timestamp of each of its frame sets
+        self._last: float | None = None  # the colour timestamp (s) of the frame set `reader` gave last
         self._streams: list[Stream] = []  # every stream opened: stopped by `close`, or at exit
         weakref.finalize(self, _stop, self._streams)
         if self.path is None:
@@ -110,7 +111,6 @@ class RealSenseDataset(Dataset):
         if cfg.recorded_pace:
             self.stream.stop()
             self.stream = self._open(self.path, align=cfg.align, real_time=True)
-        self._last: float | None = None  # the colour timestamp (s) of the frame set `reader` gave last
         self.where = self.stream.where
         self._camera = self.stream.camera
         self.units_per_metre = 1.0 / self.stream.depth_scale
@@ -157,9 +157,16 @@ class RealSenseDataset(Dataset):
         while (frames := self.stream.next(self.cfg.timeout_s)) is not None:
             self.file_stamps.append(frames.timestamp)
         if not self.file_stamps:
-            raise DataError(f"{self.where} has no frame with both colour and depth (expected a recording of a "
+            raise DataError(f"{self.stream.where} has no frame with both colour and depth (expected a recording of a "
                             "colour and a depth stream)")
         self.stream = self._restarted(self.stream)
+        # the first pass of a file can lose its first frame set (CI saw a .bag's go): the second
+        # one's first frame set read now, kept where the first pass had not seen it
+        first = self.stream.next(self.cfg.timeout_s)
+        if first is not None:
+            self._last = first.timestamp
+            if first.timestamp < self.file_stamps[0] - SAME_STAMP_S:
+                self.file_stamps.insert(0, first.timestamp)
 
     def _open(self, *args, **kwargs) -> Stream:
         stream = Stream(*args, **kwargs)
