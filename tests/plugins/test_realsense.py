@@ -7,6 +7,7 @@ library, bad files). From the command line: tests/e2e/test_realsense_runs.py."""
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 
 import numpy as np
@@ -157,6 +158,21 @@ def test_a_first_frame_set_the_start_up_pass_missed_is_found_again_or_passed_ove
         _same_frame(ds[0], ref[0])  # passed: read again from the file by its own timestamp
     finally:
         ds.close()
+
+
+def test_a_recording_whose_times_go_back_is_one_line(recording, monkeypatch):
+    honest, read = sdk.Stream.next, [0]
+
+    def going_back(stream, timeout):
+        frames = honest(stream, timeout)
+        read[0] += 1
+        return frames if frames is None or read[0] != 3 else dataclasses.replace(frames, timestamp=frames.timestamp - 1)
+
+    monkeypatch.setattr(sdk.Stream, "next", going_back)
+    with pytest.raises(DataError, match=r"^RealSense recording .*fr1\.db3: frame set 2's colour timestamp [\d.]+ s is "
+                                        r"not after frame set 1's [\d.]+ s \(expected a recording whose device times "
+                                        r"increase\)$"):
+        RealSenseDataset(RealSenseConfig(path=str(recording)))
 
 
 def test_a_recording_without_a_frame_set_is_one_line(recording, monkeypatch):

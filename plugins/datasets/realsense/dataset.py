@@ -159,6 +159,12 @@ class RealSenseDataset(Dataset):
         if not self.file_stamps:
             raise DataError(f"{self.stream.where} has no frame with both colour and depth (expected a recording of a "
                             "colour and a depth stream)")
+        back = np.flatnonzero(np.diff(self.file_stamps) <= 0)
+        if len(back):  # frame sets are found by their timestamps (the SDK can skip one on any pass)
+            k = int(back[0]) + 1
+            raise DataError(f"{self.stream.where}: frame set {k}'s colour timestamp {self.file_stamps[k]:.6f} s is not "
+                            f"after frame set {k - 1}'s {self.file_stamps[k - 1]:.6f} s (expected a recording whose "
+                            "device times increase)")
         self.stream = self._restarted(self.stream)
         # the first pass of a file can lose its first frame set (CI saw a .bag's go): the second
         # one's first frame set read now, kept where the first pass had not seen it
