@@ -26,14 +26,20 @@ from slamkit.cli.bench import markdown_table
 from slamkit.formats.tum import read_tum_trajectory
 from slamkit.geometry.pose_graph import relative_pose
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from loop_closure_runs import truth_by_stamp  # noqa: E402  (the running-system benchmark's)
+
 
 def drift_since_start(run: Path) -> np.ndarray:
     """Metres, per frame of `run`: the translation between its pose in the first frame's camera
-    and the ground truth's."""
-    _, poses = read_tum_trajectory(run / "trajectory.txt")
-    _, truth = read_tum_trajectory(run / "groundtruth.txt")
-    if len(poses) != len(truth):
-        raise SystemExit(f"{run}: {len(poses)} poses against {len(truth)} ground-truth poses (expected one each)")
+    and the ground truth's (matched by timestamp)."""
+    stamps, poses = read_tum_trajectory(run / "trajectory.txt")
+    by_stamp = truth_by_stamp(run)
+    missing = [float(s) for s in stamps if round(float(s), 6) not in by_stamp]
+    if missing:
+        raise SystemExit(f"{run}: no ground truth at {len(missing)} frames, the first at {missing[0]:.6f} s "
+                         "(expected groundtruth.txt at every frame)")
+    truth = np.array([by_stamp[round(float(s), 6)] for s in stamps])
     return np.linalg.norm(relative_pose(relative_pose(poses[0], poses), relative_pose(truth[0], truth))[:, :3, 3],
                           axis=1)
 

@@ -264,13 +264,16 @@ class RealSenseDataset(Dataset):
         """Frame set k of the recording file (None: it is in `record` already)."""
         stamp = self.file_stamps[k]
         with self._lock:
-            passed = self._last is not None and stamp <= self._last + SAME_STAMP_S
-            if passed and not self.cfg.live() and self.recorder is not None and k in self.recorder.files:
+            if self._passed(stamp) and not self.cfg.live() and self.recorder is not None and k in self.recorder.files:
                 return None
             frames = self._played_at(stamp, f"frame set {k}")
         if self.recorder is not None and not self.cfg.live():
             self.recorder.add(k, frames.timestamp, frames.rgb, frames.depth_raw)
         return frames
+
+    def _passed(self, stamp: float) -> bool:
+        """Whether the reader has given the frame set of colour timestamp `stamp` (s) already."""
+        return self._last is not None and stamp <= self._last + SAME_STAMP_S
 
     def _played_at(self, stamp: float, name: str) -> FrameSet:
         """The recording's frame set of colour timestamp `stamp` (seconds), read on from where the
@@ -280,7 +283,7 @@ class RealSenseDataset(Dataset):
             if self.reader is None:  # a recording at its pace, read again: frame by frame from here on
                 self.reader = self._open(self.path, align=self.cfg.align)
                 self._last = None
-            if self._last is not None and stamp <= self._last + SAME_STAMP_S:
+            if self._passed(stamp):
                 self.reader = self._restarted(self.reader)
             restarts = 0
             while True:
