@@ -166,7 +166,7 @@ class RealSenseDataset(Dataset):
                             f"after frame set {k - 1}'s {self.file_stamps[k - 1]:.6f} s (expected a recording whose "
                             "device times increase)")
         self.stream = self._restarted(self.stream)
-        # the first pass of a file can lose its first frame set (CI saw a .bag's go): the second
+        # should a pass lose its first frame set (the SDK's pipeline did, CI saw a .bag's go): the second
         # one's first frame set read now, kept where the first pass had not seen it
         first = self.stream.next(self.cfg.timeout_s)
         if first is not None:
@@ -296,7 +296,7 @@ class RealSenseDataset(Dataset):
                     continue
                 if frames.timestamp <= stamp + SAME_STAMP_S:
                     return frames
-                # the SDK skipped this frame set (its ROS1 playback did on a busy machine): the
+                # the SDK skipped this frame set (its pipeline's playback did on a busy machine): the
                 # next one must not stand in for it; played again from the start
                 restarts += 1
                 if restarts > MAX_RESTARTS:

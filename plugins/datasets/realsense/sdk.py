@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import datetime
 import importlib
+import queue
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +28,11 @@ RECORDING_SUFFIXES = (".bag", ".db3")
 POLL_MS = 100
 #: Milliseconds a recording read to its end is still waited on for its last frame sets.
 END_DRAIN_MS = 1000
+#: Milliseconds a recording played frame by frame is waited on once it has ended (its end is
+#: signalled after its last frames are handed over: one more look).
+FILE_END_MS = POLL_MS
+#: Frames of each stream held between a recording's playback and the reader (the playback waits when full).
+FILE_QUEUE = 4
 
 
 def sdk():
@@ -97,9 +104,9 @@ class FrameSet:
 
 
 class Stream:
-    """An open RealSense pipeline of colour + depth frame sets, from a camera (`serial`) or a
-    recording (`path`: played one frame set at a time, never dropping one; `real_time`: at its
-    recorded pace, as a camera gives them). `camera`: the colour
+    """An open RealSense source of colour + depth frame sets: a camera (`serial`) or a recording
+    at its recorded pace (`real_time`: as a camera gives them) through the SDK's pipeline, or a
+    recording played one frame set at a time, never dropping one (`path`; `_FileFrames`). `camera`: the colour
     camera's intrinsics (pixels); `depth_scale`: metres per raw depth unit; `aligned`: whether
     depth is reprojected into the colour camera by the SDK (`rs.align`); `fps`: the colour
     stream's rate. `where` names the source in errors."""
@@ -107,8 +114,41 @@ class Stream:
     def __init__(self, path: Path | None = None, serial: str | None = None, width: int = 640, height: int = 480,
                  fps: int = 30, align: bool = True, real_time: bool = False):
         rs = self.rs = sdk()
-        config = rs.config()
         self.path = path
+        self.running = True
+        self.last_timestamp_ms: float | None = None  # a recording's last colour timestamp given
+        self.pipeline = self.playback = self.file = None  # what plays: a pipeline, or a file frame by frame
+        if path is not None and not real_time:
+            # frame by frame: the recording's own sensors, not a pipeline (see `_FileFrames`)
+            self.where = f"RealSense recording {path}"
+            self.file = _FileFrames(rs, path, self.where)
+            device, (color, depth) = self.file.device, self.file.profiles
+        else:
+            device, (color, depth) = self._start_pipeline(path, serial, width, height, fps, real_time)
+        sensor = device.first_depth_sensor()
+        self.depth_scale = decimal(sensor.get_depth_scale())
+        self.fps = int(color.fps())
+        self.camera = _camera(color.get_intrinsics())
+        self.color_format = color.format()
+        if self.color_format not in (rs.format.rgb8, rs.format.bgr8, rs.format.rgba8, rs.format.bgra8):
+            self.stop()
+            raise DataError(f"{self.where}: colour stream format {self.color_format} (expected rgb8, bgr8, rgba8 "
+                            "or bgra8)")
+        registered = _same_camera(depth, color)
+        self.aligned = align and not registered
+        self.align = rs.align(rs.stream.color) if self.aligned else None
+        if not self.aligned and not registered:
+            d = depth.get_intrinsics()
+            if (d.width, d.height) != (self.camera.width, self.camera.height):
+                self.stop()
+                raise DataError(f"{self.where}: depth {d.width}x{d.height} and colour {self.camera.width}x"
+                                f"{self.camera.height} with dataset.align=false (expected depth aligned to colour)")
+
+    def _start_pipeline(self, path, serial, width, height, fps, real_time):
+        """A camera, or a recording at its recorded pace, through the SDK's pipeline (its colour and
+        depth paired by the SDK as they come): (device, (colour profile, depth profile))."""
+        rs = self.rs
+        config = rs.config()
         if path is not None:
             self.where = f"RealSense recording {path}"
             try:
@@ -129,50 +169,36 @@ class Stream:
                       f" (expected a {width}x{height} colour and depth mode at {fps} frames/s; set dataset.width, "
                       "dataset.height, dataset.fps)")
             raise DataError(f"cannot start {self.where}: {_first_line(exc)}{wanted}") from None
-        self.running = True
-        self.last_timestamp_ms: float | None = None  # a recording's last colour timestamp given
         device = profile.get_device()
-        self.playback = device.as_playback() if path is not None else None
-        if self.playback is not None:
-            # real_time: at the recorded pace, frame sets not taken in time dropped (as a camera);
-            # else every frame set, at the pace they are taken
+        if path is not None:
+            # at its recorded pace, frame sets not taken in time dropped (as a camera); the pipeline
+            # started playing before this: paused at the start again (`next` skips a frame set given
+            # twice) until the reader is ready (`resume`)
+            self.playback = device.as_playback()
             self.playback.set_real_time(real_time)
-            # the pipeline started playing before this: from the start again (`next` skips a frame
-            # set given twice), so that none is played unseen
             self.playback.pause()
             self.playback.seek(datetime.timedelta(0))
-            if not real_time:  # at its recorded pace: paused until the reader is ready (`resume`)
-                self.playback.resume()
         try:
-            color = profile.get_stream(rs.stream.color).as_video_stream_profile()
-            depth = profile.get_stream(rs.stream.depth).as_video_stream_profile()
+            return device, (profile.get_stream(rs.stream.color).as_video_stream_profile(),
+                            profile.get_stream(rs.stream.depth).as_video_stream_profile())
         except RuntimeError:
             self.stop()
             kinds = ", ".join(str(s.stream_type()).split(".")[-1] for s in profile.get_streams()) or "none"
             raise DataError(f"{self.where} has no colour and depth stream pair (it has: {kinds}; expected both)") \
                 from None
-        sensor = device.first_depth_sensor()
-        self.depth_scale = decimal(sensor.get_depth_scale())
-        self.fps = int(color.fps())
-        self.camera = _camera(color.get_intrinsics())
-        self.color_format = color.format()
-        if self.color_format not in (rs.format.rgb8, rs.format.bgr8, rs.format.rgba8, rs.format.bgra8):
-            self.stop()
-            raise DataError(f"{self.where}: colour stream format {self.color_format} (expected rgb8, bgr8, rgba8 "
-                            "or bgra8)")
-        registered = _same_camera(depth, color)
-        self.aligned = align and not registered
-        self.align = rs.align(rs.stream.color) if self.aligned else None
-        if not self.aligned and not registered:
-            d = depth.get_intrinsics()
-            if (d.width, d.height) != (self.camera.width, self.camera.height):
-                self.stop()
-                raise DataError(f"{self.where}: depth {d.width}x{d.height} and colour {self.camera.width}x"
-                                f"{self.camera.height} with dataset.align=false (expected depth aligned to colour)")
 
     def next(self, timeout_s: float) -> FrameSet | None:
         """The next frame set: None at the end of a recording; DataError when a camera gives
         none within `timeout_s` seconds."""
+        if self.file is not None:
+            pair = self.file.next(timeout_s)
+            if pair is None:
+                return None  # the recording's end
+            color, depth = pair
+            if self.align is not None:
+                frames = self.align.process(self.file.frame_set(color, depth))
+                color, depth = frames.get_color_frame(), frames.get_depth_frame()
+            return self._frame_set(color, depth)
         deadline = time.monotonic() + timeout_s
         while True:
             ok, frames = self.pipeline.try_wait_for_frames(POLL_MS if self.playback is not None else
@@ -186,9 +212,7 @@ class Stream:
                     return None  # the recording's end
                 break
         if not ok:
-            why = "did it end early?" if self.playback is not None else "is it still connected?"
-            raise DataError(f"{self.where} gave no frame in {timeout_s:g} s (expected one every 1/{self.fps} s; "
-                            f"{why} dataset.timeout_s waits longer)")
+            raise _no_frame(self.where, timeout_s, self.fps, self.playback is not None)
         if self.align is not None:
             frames = self.align.process(frames)
         color, depth = frames.get_color_frame(), frames.get_depth_frame()
@@ -198,6 +222,9 @@ class Stream:
             if self.last_timestamp_ms is not None and color.get_timestamp() <= self.last_timestamp_ms:
                 return self.next(timeout_s)
             self.last_timestamp_ms = color.get_timestamp()
+        return self._frame_set(color, depth)
+
+    def _frame_set(self, color, depth) -> FrameSet:
         rgb = np.asanyarray(color.get_data())
         fmt = self.color_format
         if fmt in (self.rs.format.bgr8, self.rs.format.bgra8):
@@ -215,10 +242,150 @@ class Stream:
         """Stop the pipeline (the camera's streams, the playback); again is a no-op."""
         if self.running:
             self.running = False
+            if self.file is not None:
+                self.file.stop()
             try:
-                self.pipeline.stop()
+                if self.pipeline is not None:
+                    self.pipeline.stop()
             except RuntimeError:
                 pass
+
+
+class _FileFrames:
+    """A recording played frame by frame through its own sensors, without a pipeline: made
+    non-real-time and paused before any frame is played, each stream's frames queued (the
+    playback waits while a queue is full) and a colour frame paired here with the depth frame of
+    its time, so that every pass gives every frame set. Through the pipeline, which starts a
+    recording in real time and must seek back to its start, a 20-frame .bag lost its first frame
+    set in 2 of 80 passes with a busy loop beside it (CI's runs one frame short); this way, none
+    in 160 (.bag and .db3). The SDK's syncer also gives the first colour and depth frames apart.
+    `profiles`: the (colour, depth) stream profiles; `device`: the playback device."""
+
+    def __init__(self, rs, path: Path, where: str):
+        self.rs, self.where = rs, where
+        self.context = rs.context()
+        try:
+            self.device = self.context.load_device(str(path))
+        except RuntimeError as exc:
+            raise DataError(f"cannot play {where}: {_first_line(exc)} (expected a .bag or .db3 recording the "
+                            "RealSense SDK wrote)") from None
+        self.playback = self.device.as_playback()
+        self.playback.set_real_time(False)
+        # its status reads "stopped" before it starts playing too: the end is a stop after playing
+        self.playing, self.ended = threading.Event(), threading.Event()
+        self.playback.set_status_changed_callback(self._status_changed)
+        wanted = (rs.stream.color, rs.stream.depth)
+        sensors = list(self.device.query_sensors())
+        chosen: dict = {}  # stream kind -> (its sensor's index, its profile): the first of each kind
+        kinds = []
+        for i, sensor in enumerate(sensors):
+            for profile in sensor.get_stream_profiles():
+                kinds.append(str(profile.stream_type()).split(".")[-1])
+                if profile.stream_type() in wanted and profile.stream_type() not in chosen:
+                    chosen[profile.stream_type()] = (i, profile)
+        if len(chosen) < len(wanted):
+            raise DataError(f"{where} has no colour and depth stream pair (it has: {', '.join(kinds) or 'none'}; "
+                            "expected both)")
+        self.profiles = tuple(chosen[kind][1].as_video_stream_profile() for kind in wanted)
+        self.fps = self.profiles[0].fps()
+        self.half_period_ms = 500.0 / self.fps  # colour and depth within it are one frame set
+        self.queues = {kind: queue.Queue(FILE_QUEUE) for kind in wanted}
+        self.heads: dict = {}  # stream kind -> the frame taken from its queue and not yet paired
+        self.stopping = threading.Event()
+        self.sensors = [sensors[i] for i in sorted({i for i, _ in chosen.values()})]
+        # paused while the sensors start one after the other: a frame played before its sensor
+        # has started is lost (the first colour frame, in 2 of 60 plays of a .bag, unpaused)
+        self.playback.pause()
+        for sensor in self.sensors:
+            sensor.open([p for i, p in chosen.values() if sensors[i] is sensor])
+            sensor.start(self._queued)
+        self.playback.resume()
+        # a (colour, depth) pair the SDK did not pair itself, as the frame set `rs.align` takes
+        self._depth: list = []
+        self._composer = rs.processing_block(
+            lambda frame, source: source.frame_ready(source.allocate_composite_frame([frame, *self._depth])))
+        self._composed = rs.frame_queue(1)
+        self._composer.start(self._composed)
+
+    def _status_changed(self, status) -> None:
+        if status == self.rs.playback_status.playing:
+            self.playing.set()
+        elif status == self.rs.playback_status.stopped and self.playing.is_set():
+            self.ended.set()
+
+    def _queued(self, frame) -> None:
+        """The sensors' callback (their threads): the frame into its stream's queue, waiting while it is full."""
+        frames = self.queues.get(frame.get_profile().stream_type())
+        if frames is None:
+            return
+        frame.keep()
+        while not self.stopping.is_set():
+            try:
+                frames.put(frame, timeout=POLL_MS / 1000)
+                return
+            except queue.Full:
+                pass
+
+    def next(self, timeout_s: float):
+        """The next (colour, depth) frames of one time; None at the recording's end. A frame whose
+        other half was never recorded (more than half a colour period from the other's) is passed over."""
+        color_kind, depth_kind = self.rs.stream.color, self.rs.stream.depth
+        while True:
+            for kind in (color_kind, depth_kind):
+                if kind not in self.heads:
+                    frame = self._take(kind, timeout_s)
+                    if frame is None:
+                        return None
+                    self.heads[kind] = frame
+            color, depth = self.heads[color_kind], self.heads[depth_kind]
+            if abs(color.get_timestamp() - depth.get_timestamp()) <= self.half_period_ms:
+                self.heads.clear()
+                return color, depth
+            del self.heads[color_kind if color.get_timestamp() < depth.get_timestamp() else depth_kind]
+
+    def _take(self, kind, timeout_s: float):
+        """The next frame of stream `kind`: None once the playback has ended and no frame came
+        for FILE_END_MS; DataError when none came within `timeout_s` while it played."""
+        deadline, drained = time.monotonic() + timeout_s, None
+        while True:
+            try:
+                return self.queues[kind].get(timeout=POLL_MS / 1000)
+            except queue.Empty:
+                pass
+            now = time.monotonic()
+            if self.ended.is_set():
+                drained = drained or now + FILE_END_MS / 1000  # the last frames may still be on their way
+                if now > drained:
+                    return None
+            elif now > deadline:
+                raise _no_frame(self.where, timeout_s, self.fps, True)
+
+    def frame_set(self, color, depth):
+        """`color` and `depth` as one frame set (what `rs.align` takes)."""
+        self._depth[:] = [depth]
+        self._composer.invoke(color)
+        return self._composed.wait_for_frame().as_frameset()
+
+    def stop(self) -> None:
+        """Stop the sensors and let the playback go now: a playback device stopped mid-file and
+        destroyed only at the interpreter's exit aborts it ("FATAL: exception not rethrown")."""
+        self.stopping.set()  # a callback waiting on a full queue returns
+        for sensor in self.sensors:
+            for step in (sensor.stop, sensor.close):
+                try:
+                    step()
+                except RuntimeError:
+                    pass
+        self.heads.clear()
+        self.queues = {}
+        self.sensors, self.profiles, self._composer, self._composed = [], (), None, None
+        self.device = self.playback = self.context = None
+
+
+def _no_frame(where: str, timeout_s: float, fps: int, recording: bool) -> DataError:
+    why = "did it end early?" if recording else "is it still connected?"
+    return DataError(f"{where} gave no frame in {timeout_s:g} s (expected one every 1/{fps} s; {why} "
+                     "dataset.timeout_s waits longer)")
 
 
 def decimal(value: float) -> float:
