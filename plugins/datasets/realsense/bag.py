@@ -19,6 +19,7 @@ Layout (device 0; sensor 0 the depth sensor, sensor 1 the colour sensor):
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from pathlib import Path
 
 import numpy as np
@@ -87,12 +88,14 @@ def _static_messages(typestore, camera, units_per_metre: float, fps: int):
     return messages
 
 
-def write_bag_recording(dataset, path: Path, units_per_metre: float = 1000.0, fps: int = 30) -> Path:
+def write_bag_recording(dataset, path: Path, units_per_metre: float = 1000.0, fps: int = 30,
+                        color_frames: Collection[int] | None = None) -> Path:
     """Write every frame of `dataset` (a slamkit Dataset) as a RealSense ROS1 .bag at `path`
     (see the module docstring): colour rgb8, depth z16 (mono16) of `units_per_metre` raw units per
     metre (the device's depth scale is its inverse), device timestamps = the frames' (seconds),
-    played at the frames' pace. DataError for another suffix, an existing file, or a depth
-    beyond z16's range."""
+    played at the frames' pace; `color_frames`: the frames whose colour is written (None: all; a
+    colour stream that starts late or drops frames, as a camera's can). DataError for another
+    suffix, an existing file, or a depth beyond z16's range."""
     path = Path(path)
     if path.suffix != ".bag":
         raise DataError(f"{path}: a RealSense ROS1 recording is a .bag file (expected a name ending in .bag)")
@@ -125,6 +128,8 @@ def write_bag_recording(dataset, path: Path, units_per_metre: float = 1000.0, fp
             ns = FIRST_FRAME_NS + int(round((frame.timestamp - first) * 1e9))
             pixels = {"Depth": raw_depth(frame, k, units_per_metre), "Color": np.asarray(frame.rgb, dtype=np.uint8)}
             for sensor, _, stream, encoding, bpp in STREAMS:
+                if stream == "Color" and color_frames is not None and k not in color_frames:
+                    continue
                 prefix = f"/device_0/sensor_{sensor}/{stream}_0/image"
                 data = np.ascontiguousarray(pixels[stream]).view(np.uint8).reshape(-1)
                 stamp = header(seq=k, stamp=_time(typestore, frame.timestamp), frame_id="")

@@ -1,12 +1,13 @@
 """Intel's RealSense SDK (`pyrealsense2`, the optional extra `realsense`) as the `realsense`
-dataset uses it: the cameras connected, a camera or a recording opened as a pipeline of
-colour + depth frame sets, and one frame set as arrays (`FrameSet`).
+dataset uses it: the cameras connected, a camera or a recording opened as a source of
+colour + depth frame sets (`Stream`), and one frame set as arrays (`FrameSet`).
 
 Every failure is a one-line DataError saying what is missing: the library, a camera, the
 camera asked for, a stream mode the camera does not have, a recording it cannot play."""
 
 from __future__ import annotations
 
+import collections
 import datetime
 import importlib
 import queue
@@ -31,8 +32,10 @@ END_DRAIN_MS = 1000
 #: Milliseconds a recording played frame by frame is waited on once it has ended (its end is
 #: signalled after its last frames are handed over: one more look).
 FILE_END_MS = POLL_MS
-#: Frames of each stream held between a recording's playback and the reader (the playback waits when full).
-FILE_QUEUE = 4
+#: Frames held between a recording's playback and the reader (the playback waits while it is full).
+FILE_QUEUE = 8
+#: Seconds of one stream's frames held at the most while waiting for the other's of their time.
+HELD_S = 2.0
 
 
 def sdk():
@@ -125,13 +128,24 @@ class Stream:
             device, (color, depth) = self.file.device, self.file.profiles
         else:
             device, (color, depth) = self._start_pipeline(path, serial, width, height, fps, real_time)
-        sensor = device.first_depth_sensor()
-        self.depth_scale = decimal(sensor.get_depth_scale())
+        try:
+            self._describe(device, color, depth, align)
+        except RuntimeError as exc:  # the SDK refused a query of the device or its streams
+            self.stop()
+            raise DataError(f"{self.where}: {_first_line(exc)} (expected a colour and a depth stream with their "
+                            "intrinsics and a depth scale)") from None
+        except DataError:
+            self.stop()
+            raise
+
+    def _describe(self, device, color, depth, align: bool) -> None:
+        """The depth scale, rate, colour camera and format, and whether to align, from the source."""
+        rs = self.rs
+        self.depth_scale = decimal(device.first_depth_sensor().get_depth_scale())
         self.fps = int(color.fps())
         self.camera = _camera(color.get_intrinsics())
         self.color_format = color.format()
         if self.color_format not in (rs.format.rgb8, rs.format.bgr8, rs.format.rgba8, rs.format.bgra8):
-            self.stop()
             raise DataError(f"{self.where}: colour stream format {self.color_format} (expected rgb8, bgr8, rgba8 "
                             "or bgra8)")
         registered = _same_camera(depth, color)
@@ -140,7 +154,6 @@ class Stream:
         if not self.aligned and not registered:
             d = depth.get_intrinsics()
             if (d.width, d.height) != (self.camera.width, self.camera.height):
-                self.stop()
                 raise DataError(f"{self.where}: depth {d.width}x{d.height} and colour {self.camera.width}x"
                                 f"{self.camera.height} with dataset.align=false (expected depth aligned to colour)")
 
@@ -188,8 +201,8 @@ class Stream:
                 from None
 
     def next(self, timeout_s: float) -> FrameSet | None:
-        """The next frame set: None at the end of a recording; DataError when a camera gives
-        none within `timeout_s` seconds."""
+        """The next frame set: None at the end of a recording; DataError when none comes within
+        `timeout_s` seconds (a camera, or a recording still playing)."""
         if self.file is not None:
             pair = self.file.next(timeout_s)
             if pair is None:
@@ -239,7 +252,7 @@ class Stream:
             self.playback.resume()
 
     def stop(self) -> None:
-        """Stop the pipeline (the camera's streams, the playback); again is a no-op."""
+        """Stop the source (the camera's streams, the playback); again is a no-op."""
         if self.running:
             self.running = False
             if self.file is not None:
@@ -253,27 +266,35 @@ class Stream:
 
 class _FileFrames:
     """A recording played frame by frame through its own sensors, without a pipeline: made
-    non-real-time and paused before any frame is played, each stream's frames queued (the
-    playback waits while a queue is full) and a colour frame paired here with the depth frame of
-    its time, so that every pass gives every frame set. Through the pipeline, which starts a
-    recording in real time and must seek back to its start, a 20-frame .bag lost its first frame
-    set in 2 of 80 passes with a busy loop beside it (CI's runs one frame short); this way, none
-    in 160 (.bag and .db3). The SDK's syncer also gives the first colour and depth frames apart.
-    `profiles`: the (colour, depth) stream profiles; `device`: the playback device."""
+    non-real-time and paused before any frame is played, every stream's frames queued in the
+    order played (the playback waits while the queue is full), and a colour frame paired here
+    with the depth frame of its time, so that every pass gives every frame set. Through the
+    pipeline, which starts a recording in real time and must seek back to its start, a 20-frame
+    .bag lost its first frame set in 2 of 80 passes with a busy loop beside it (CI's runs one
+    frame short); this way, none in 160 passes (.bag and .db3). One queue for all the streams,
+    not one each: the SDK reads the file on one thread, in time order, so a stream that runs
+    ahead (colour starting late, a gap in one stream) must not fill a queue the reader is not
+    emptying. `profiles`: the (colour, depth) stream profiles; `device`: the playback device."""
 
     def __init__(self, rs, path: Path, where: str):
         self.rs, self.where = rs, where
+        self.sensors: list = []  # those started: stopped by `stop`
+        self.stopping = threading.Event()
         self.context = rs.context()
         try:
             self.device = self.context.load_device(str(path))
+            self.playback = self.device.as_playback()
+            self.playback.set_real_time(False)
+            self._start(rs)
         except RuntimeError as exc:
+            self.stop()
             raise DataError(f"cannot play {where}: {_first_line(exc)} (expected a .bag or .db3 recording the "
                             "RealSense SDK wrote)") from None
-        self.playback = self.device.as_playback()
-        self.playback.set_real_time(False)
-        # its status reads "stopped" before it starts playing too: the end is a stop after playing
-        self.playing, self.ended = threading.Event(), threading.Event()
-        self.playback.set_status_changed_callback(self._status_changed)
+        except DataError:
+            self.stop()
+            raise
+
+    def _start(self, rs) -> None:
         wanted = (rs.stream.color, rs.stream.depth)
         sensors = list(self.device.query_sensors())
         chosen: dict = {}  # stream kind -> (its sensor's index, its profile): the first of each kind
@@ -284,22 +305,28 @@ class _FileFrames:
                 if profile.stream_type() in wanted and profile.stream_type() not in chosen:
                     chosen[profile.stream_type()] = (i, profile)
         if len(chosen) < len(wanted):
-            raise DataError(f"{where} has no colour and depth stream pair (it has: {', '.join(kinds) or 'none'}; "
+            raise DataError(f"{self.where} has no colour and depth stream pair (it has: {', '.join(kinds) or 'none'}; "
                             "expected both)")
         self.profiles = tuple(chosen[kind][1].as_video_stream_profile() for kind in wanted)
-        self.fps = self.profiles[0].fps()
-        self.half_period_ms = 500.0 / self.fps  # colour and depth within it are one frame set
-        self.queues = {kind: queue.Queue(FILE_QUEUE) for kind in wanted}
-        self.heads: dict = {}  # stream kind -> the frame taken from its queue and not yet paired
-        self.stopping = threading.Event()
-        self.sensors = [sensors[i] for i in sorted({i for i, _ in chosen.values()})]
+        rates = [p.fps() for p in self.profiles]
+        if min(rates) <= 0:
+            raise DataError(f"{self.where}: colour and depth at {rates[0]} and {rates[1]} frames/s (expected both > 0)")
+        self.fps = rates[0]
+        # colour and depth within half the faster stream's period are one frame set: at most one
+        # frame of the faster stream is that near a frame of the other
+        self.tolerance_ms = 500.0 / max(rates)
+        self.played: queue.Queue = queue.Queue(FILE_QUEUE)  # every stream's frames, in the order played
+        # frames taken from `played` and not paired yet, by stream kind: a frame of one stream
+        # waits for the other's of its time (held HELD_S at the most: the file is read in time order)
+        self.held = {kind: collections.deque(maxlen=max(1, int(HELD_S * rate))) for kind, rate in zip(wanted, rates)}
         # paused while the sensors start one after the other: a frame played before its sensor
         # has started is lost (the first colour frame, in 2 of 60 plays of a .bag, unpaused)
         self.playback.pause()
-        for sensor in self.sensors:
+        for sensor in [sensors[i] for i in sorted({i for i, _ in chosen.values()})]:
             sensor.open([p for i, p in chosen.values() if sensors[i] is sensor])
+            self.sensors.append(sensor)
             sensor.start(self._queued)
-        self.playback.resume()
+        self.playback.resume()  # (its status now reads "playing" until the file's end)
         # a (colour, depth) pair the SDK did not pair itself, as the frame set `rs.align` takes
         self._depth: list = []
         self._composer = rs.processing_block(
@@ -307,63 +334,58 @@ class _FileFrames:
         self._composed = rs.frame_queue(1)
         self._composer.start(self._composed)
 
-    def _status_changed(self, status) -> None:
-        if status == self.rs.playback_status.playing:
-            self.playing.set()
-        elif status == self.rs.playback_status.stopped and self.playing.is_set():
-            self.ended.set()
-
     def _queued(self, frame) -> None:
-        """The sensors' callback (their threads): the frame into its stream's queue, waiting while it is full."""
-        frames = self.queues.get(frame.get_profile().stream_type())
-        if frames is None:
-            return
+        """The sensors' callback (the SDK's playback thread): the frame into `played`, waiting while it is full."""
         frame.keep()
         while not self.stopping.is_set():
             try:
-                frames.put(frame, timeout=POLL_MS / 1000)
+                self.played.put(frame, timeout=POLL_MS / 1000)
                 return
             except queue.Full:
                 pass
 
     def next(self, timeout_s: float):
         """The next (colour, depth) frames of one time; None at the recording's end. A frame whose
-        other half was never recorded (more than half a colour period from the other's) is passed over."""
-        color_kind, depth_kind = self.rs.stream.color, self.rs.stream.depth
+        other half was never recorded (none within `tolerance_ms`) is passed over."""
+        colors, depths = self.held[self.rs.stream.color], self.held[self.rs.stream.depth]
         while True:
-            for kind in (color_kind, depth_kind):
-                if kind not in self.heads:
-                    frame = self._take(kind, timeout_s)
-                    if frame is None:
-                        return None
-                    self.heads[kind] = frame
-            color, depth = self.heads[color_kind], self.heads[depth_kind]
-            if abs(color.get_timestamp() - depth.get_timestamp()) <= self.half_period_ms:
-                self.heads.clear()
-                return color, depth
-            del self.heads[color_kind if color.get_timestamp() < depth.get_timestamp() else depth_kind]
+            while colors and depths:
+                tc, td = colors[0].get_timestamp(), depths[0].get_timestamp()
+                if abs(tc - td) <= self.tolerance_ms:
+                    return colors.popleft(), depths.popleft()
+                (colors if tc < td else depths).popleft()
+            frame = self._take(timeout_s)
+            if frame is None:
+                return None
+            self.held[frame.get_profile().stream_type()].append(frame)
 
-    def _take(self, kind, timeout_s: float):
-        """The next frame of stream `kind`: None once the playback has ended and no frame came
-        for FILE_END_MS; DataError when none came within `timeout_s` while it played."""
-        deadline, drained = time.monotonic() + timeout_s, None
+    def _take(self, timeout_s: float):
+        """The next frame played: None once the playback has stopped at the file's end and no
+        frame came for FILE_END_MS; DataError when none came within `timeout_s` while it played."""
+        deadline, ended = time.monotonic() + timeout_s, None
         while True:
+            playback = self.playback
+            if self.stopping.is_set() or playback is None:  # stopped by another thread (the run's end)
+                raise DataError(f"{self.where} was closed while a frame was being read")
             try:
-                return self.queues[kind].get(timeout=POLL_MS / 1000)
+                return self.played.get(timeout=POLL_MS / 1000)
             except queue.Empty:
                 pass
             now = time.monotonic()
-            if self.ended.is_set():
-                drained = drained or now + FILE_END_MS / 1000  # the last frames may still be on their way
-                if now > drained:
+            if playback.current_status() == self.rs.playback_status.stopped:
+                ended = ended or now + FILE_END_MS / 1000  # the last frames may still be on their way
+                if now > ended:
                     return None
             elif now > deadline:
                 raise _no_frame(self.where, timeout_s, self.fps, True)
 
     def frame_set(self, color, depth):
         """`color` and `depth` as one frame set (what `rs.align` takes)."""
+        composer = self._composer
+        if composer is None:
+            raise DataError(f"{self.where} was closed while a frame was being read")
         self._depth[:] = [depth]
-        self._composer.invoke(color)
+        composer.invoke(color)
         return self._composed.wait_for_frame().as_frameset()
 
     def stop(self) -> None:
@@ -376,8 +398,8 @@ class _FileFrames:
                     step()
                 except RuntimeError:
                     pass
-        self.heads.clear()
-        self.queues = {}
+        for frames in getattr(self, "held", {}).values():
+            frames.clear()
         self.sensors, self.profiles, self._composer, self._composed = [], (), None, None
         self.device = self.playback = self.context = None
 
