@@ -172,20 +172,24 @@ def _register(o3d, source: FeatureCloud, target: FeatureCloud, ransac_iterations
     return replace(fine, ransac_inliers=len(coarse.correspondence_set))
 
 
-def refine(source: FeatureCloud, target: FeatureCloud, initial: np.ndarray, iterations: int = 50) -> Registration:
-    """The pose of `source` in `target`'s frame by generalized ICP alone (distance 1 voxel of
-    `target`), from `initial` (4x4); ransac_inliers 0. Deterministic, as `register`."""
+def refine(source: FeatureCloud, target: FeatureCloud, initial: np.ndarray, iterations: int = 50,
+           max_distance: float | None = None) -> Registration:
+    """The pose of `source` in `target`'s frame by generalized ICP alone, from `initial` (4x4);
+    correspondences within `max_distance` metres (None: 1 voxel of `target`, which also bounds
+    how far from `initial` it can pull the pose); ransac_inliers 0. Deterministic, as `register`."""
     if len(source) == 0 or len(target) == 0:
         return Registration(np.asarray(initial, dtype=np.float64).copy(), 0.0, 0.0, 0)
     o3d = import_open3d()
     with single_threaded():
-        return _refine(o3d, source, target, initial, iterations)
+        return _refine(o3d, source, target, initial, iterations, max_distance)
 
 
-def _refine(o3d, source: FeatureCloud, target: FeatureCloud, initial: np.ndarray, iterations: int) -> Registration:
+def _refine(o3d, source: FeatureCloud, target: FeatureCloud, initial: np.ndarray, iterations: int,
+            max_distance: float | None = None) -> Registration:
     reg = o3d.pipelines.registration
     fine = reg.registration_generalized_icp(
-        source.cloud, target.cloud, target.voxel, np.asarray(initial, dtype=np.float64),
+        source.cloud, target.cloud, target.voxel if max_distance is None else max_distance,
+        np.asarray(initial, dtype=np.float64),
         reg.TransformationEstimationForGeneralizedICP(), reg.ICPConvergenceCriteria(max_iteration=iterations))
     return Registration(np.asarray(fine.transformation, dtype=np.float64).copy(), float(fine.fitness),
                         float(fine.inlier_rmse))
