@@ -266,9 +266,9 @@ class Stream:
 
 class _FileFrames:
     """A recording played frame by frame through its own sensors, without a pipeline: made
-    non-real-time and paused before any frame is played, every stream's frames queued in the
-    order played (the playback waits while the queue is full), and a colour frame paired here
-    with the depth frame of its time, so that every pass gives every frame set. Through the
+    non-real-time and paused before any frame is played, every stream's frames queued as played
+    (in order within a stream; the playback waits while the queue is full), and a colour frame
+    paired here with the depth frame of its time, so that every pass gives every frame set. Through the
     pipeline, which starts a recording in real time and must seek back to its start, a 20-frame
     .bag lost its first frame set in 2 of 80 passes with a busy loop beside it (CI's runs one
     frame short); this way, none in 160 passes (.bag and .db3). One queue for all the streams,
@@ -280,8 +280,8 @@ class _FileFrames:
         self.rs, self.where = rs, where
         self.sensors: list = []  # those started: stopped by `stop`
         self.stopping = threading.Event()
-        self.context = rs.context()
         try:
+            self.context = rs.context()
             self.device = self.context.load_device(str(path))
             self.playback = self.device.as_playback()
             self.playback.set_real_time(False)
@@ -335,7 +335,8 @@ class _FileFrames:
         self._composer.start(self._composed)
 
     def _queued(self, frame) -> None:
-        """The sensors' callback (the SDK's playback thread): the frame into `played`, waiting while it is full."""
+        """The sensors' callback (the SDK's thread of each stream): the frame into `played`, waiting
+        while it is full."""
         frame.keep()
         while not self.stopping.is_set():
             try:
@@ -381,12 +382,12 @@ class _FileFrames:
 
     def frame_set(self, color, depth):
         """`color` and `depth` as one frame set (what `rs.align` takes)."""
-        composer = self._composer
-        if composer is None:
+        composer, composed = self._composer, self._composed
+        if composer is None or composed is None:
             raise DataError(f"{self.where} was closed while a frame was being read")
         self._depth[:] = [depth]
         composer.invoke(color)
-        return self._composed.wait_for_frame().as_frameset()
+        return composed.wait_for_frame().as_frameset()
 
     def stop(self) -> None:
         """Stop the sensors and let the playback go now: a playback device stopped mid-file and
@@ -398,8 +399,10 @@ class _FileFrames:
                     step()
                 except RuntimeError:
                     pass
-        for frames in getattr(self, "held", {}).values():
-            frames.clear()
+        played = getattr(self, "played", None)  # the frames kept for the reader go now (`held`'s: with it)
+        while played is not None and not played.empty():
+            played.get_nowait()
+        getattr(self, "_depth", []).clear()
         self.sensors, self.profiles, self._composer, self._composed = [], (), None, None
         self.device = self.playback = self.context = None
 
