@@ -109,8 +109,8 @@ class FrameSet:
 class Stream:
     """An open RealSense source of colour + depth frame sets: a camera (`serial`) or a recording
     at its recorded pace (`real_time`: as a camera gives them) through the SDK's pipeline, or a
-    recording played one frame set at a time, never dropping one (`path`; `_FileFrames`). `camera`: the colour
-    camera's intrinsics (pixels); `depth_scale`: metres per raw depth unit; `aligned`: whether
+    recording played one frame set at a time, never dropping one (`path`; `_FileFrames`).
+    `camera`: the colour camera's intrinsics (pixels); `depth_scale`: metres per raw depth unit; `aligned`: whether
     depth is reprojected into the colour camera by the SDK (`rs.align`); `fps`: the colour
     stream's rate. `where` names the source in errors."""
 
@@ -268,8 +268,8 @@ class _FileFrames:
     """A recording played frame by frame through its own sensors, without a pipeline: made
     non-real-time and paused before any frame is played, every stream's frames queued as played
     (in order within a stream; the playback waits while the queue is full), and a colour frame
-    paired here with the depth frame of its time, so that every pass gives every frame set. Through the
-    pipeline, which starts a recording in real time and must seek back to its start, a 20-frame
+    paired here with the depth frame of its time, so that every pass gives every frame set.
+    Through the pipeline, which starts a recording in real time and must seek back to its start, a 20-frame
     .bag lost its first frame set in 2 of 80 passes with a busy loop beside it (CI's runs one
     frame short); this way, none in 160 passes (.bag and .db3). One queue for all the streams,
     not one each: the SDK reads the file on one thread, in time order, so a stream that runs
@@ -400,8 +400,11 @@ class _FileFrames:
                 except RuntimeError:
                     pass
         played = getattr(self, "played", None)  # the frames kept for the reader go now (`held`'s: with it)
-        while played is not None and not played.empty():
-            played.get_nowait()
+        while played is not None:
+            try:
+                played.get_nowait()
+            except queue.Empty:  # (a read on another thread may take the last one first)
+                break
         getattr(self, "_depth", []).clear()
         self.sensors, self.profiles, self._composer, self._composed = [], (), None, None
         self.device = self.playback = self.context = None
