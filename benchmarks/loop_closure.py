@@ -291,15 +291,11 @@ def gicp_from_odometry(geo: Geometry, cfg, scales: tuple[float, ...] = (1.0,)):
     return measure
 
 
-def right_loop(found: np.ndarray, truth: np.ndarray) -> bool:
-    """Whether a measured relative pose is within RIGHT_LOOP_M and RIGHT_LOOP_DEG of the truth's."""
-    metres, degrees = pose_difference(found, truth)
-    return metres < RIGHT_LOOP_M and degrees < RIGHT_LOOP_DEG
-
-
-def agreement(seq: TrackedSequence, gt: np.ndarray, measure, pairs: list[tuple[int, int]]) -> dict:
+def agreement(seq: TrackedSequence, gt: np.ndarray, measure,
+              pairs: list[tuple[int, int]]) -> tuple[dict, list[tuple[int, int]]]:
     """Median distances (metres, degrees) between the relative poses of keyframe pairs (q, m) by
-    odometry, by G-ICP (`measure`) and by the ground truth."""
+    odometry, by G-ICP (`measure`) and by the ground truth, and how many G-ICP has right; and
+    those right pairs (within RIGHT_LOOP_M and RIGHT_LOOP_DEG of the ground truth)."""
     kf = seq.keyframe_frames
     rows = []
     for q, m in pairs:
@@ -311,10 +307,9 @@ def agreement(seq: TrackedSequence, gt: np.ndarray, measure, pairs: list[tuple[i
     median = np.median(np.array(rows), axis=0) if rows else [None] * 6
     names = ("odometry_vs_gt_m", "odometry_vs_gt_deg", "gicp_vs_gt_m", "gicp_vs_gt_deg", "odometry_vs_gicp_m",
              "odometry_vs_gicp_deg")
-    within = sum(1 for q, m in pairs if right_loop(measure(q, m, relative_pose(seq.poses[kf[m]], seq.poses[kf[q]])),
-                                                   relative_pose(gt[kf[m]], gt[kf[q]])))
+    right = [pair for pair, row in zip(pairs, rows) if row[2] < RIGHT_LOOP_M and row[3] < RIGHT_LOOP_DEG]
     return {"pairs": len(rows), **{n: None if v is None else float(v) for n, v in zip(names, median)},
-            "gicp_within_2cm_1deg": within}
+            "gicp_within_2cm_1deg": len(right)}, right
 
 
 def coverage(closure, geo: Geometry, seq: TrackedSequence, gt: np.ndarray, cfg) -> dict:
@@ -400,12 +395,11 @@ def measure(name: str, seq: TrackedSequence, overrides: list[str], wrong_loop: b
             measured = with_gt_loops(closure.pose_graph(), geo, seq, gt, cfg, register)
             ate_oracle = corrected_ate(seq, optimisation.optimise(measured, cfg.backend, cfg.robust_width))
             revisits = true_revisits(geo)
+            at_revisits, right = agreement(seq, gt, register, revisits)
             # what checks refusing every wrong one of these loops and no right one would leave
-            right = [(q, m) for q, m in revisits if right_loop(register(q, m, relative_pose(
-                seq.poses[kf[m]], seq.poses[kf[q]])), relative_pose(gt[kf[m]], gt[kf[q]]))]
             right_only = with_gt_loops(closure.pose_graph(), geo, seq, gt, cfg, register, right)
-            agree = {"true_revisits": agreement(seq, gt, register, revisits),
-                     "consecutive_keyframes": agreement(seq, gt, register, [(k, k - 1) for k in range(1, len(kf))]),
+            agree = {"true_revisits": at_revisits,
+                     "consecutive_keyframes": agreement(seq, gt, register, [(k, k - 1) for k in range(1, len(kf))])[0],
                      "ate_right_loops_only_m": corrected_ate(seq, optimisation.optimise(right_only, cfg.backend,
                                                                                         cfg.robust_width))}
         references[key] = (geo, ate_floor, ate_oracle, agree)

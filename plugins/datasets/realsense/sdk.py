@@ -268,10 +268,9 @@ class _FileFrames:
     """A recording played frame by frame through its own sensors, without a pipeline: made
     non-real-time and paused before any frame is played, every stream's frames queued as played
     (in order within a stream; the playback waits while the queue is full), and a colour frame
-    paired here with the depth frame of its time, so that every pass gives every frame set.
-    Through the pipeline, which starts a recording in real time and must seek back to its start, a 20-frame
-    .bag lost its first frame set in 2 of 80 passes with a busy loop beside it (CI's runs one
-    frame short); this way, none in 160 passes (.bag and .db3). One queue for all the streams,
+    paired here with the depth frame of its time, so that every pass gives every frame set (the
+    pipeline starts a recording in real time and must seek back to its start, and now and then
+    lost the first frame set doing so: docs/datasets.md). One queue for all the streams,
     not one each: the SDK reads the file on one thread, in time order, so a stream that runs
     ahead (colour starting late, a gap in one stream) must not fill a queue the reader is not
     emptying. `profiles`: the (colour, depth) stream profiles; `device`: the playback device."""
@@ -320,7 +319,7 @@ class _FileFrames:
         # waits for the other's of its time (held HELD_S at the most: the file is read in time order)
         self.held = {kind: collections.deque(maxlen=max(1, int(HELD_S * rate))) for kind, rate in zip(wanted, rates)}
         # paused while the sensors start one after the other: a frame played before its sensor
-        # has started is lost (the first colour frame, in 2 of 60 plays of a .bag, unpaused)
+        # has started is lost (a .bag's first colour frame, now and then, unpaused)
         self.playback.pause()
         for sensor in [sensors[i] for i in sorted({i for i, _ in chosen.values()})]:
             sensor.open([p for i, p in chosen.values() if sensors[i] is sensor])
