@@ -20,7 +20,8 @@ does in sequential mode. Prints per sequence and setting:
   from odometry's (within one voxel, or coarse to fine: --oracle-scales 4,2,1); --oracle also
   gives the median distances between odometry's, G-ICP's and the ground truth's relative poses
   of those pairs and of consecutive keyframes, how many are within 2 cm and 1 degree, and the
-  ATE with only those right ones as loops (`relative_pose_agreement` in the JSON);
+  ATE with only those right ones as loops, and with exact loops at those pairs and at the
+  other revisits (`relative_pose_agreement` in the JSON); --oracle-colour also by coloured ICP;
 - the loop closure's CPU seconds per keyframe (this process), and the CPU milliseconds of one
   optimisation of the final graph alone (indicative only: shared machine).
 
@@ -94,6 +95,10 @@ TRUE_REVISIT_OVERLAP, TRUE_REVISIT_VOXELS = 0.3, 2.0
 NEIGHBOURS = 8
 #: A loop within these of the ground truth's relative pose is right (the issue's bound: 2 cm, 1 degree).
 RIGHT_LOOP_M, RIGHT_LOOP_DEG = 0.02, 1.0
+#: --oracle lists this many of odometry's keyframe edges, the furthest from the truth first.
+ORACLE_EDGES = 8
+#: --oracle: an odometry edge this far (metres) from the truth's relative pose is one where tracking slipped.
+SLIPPED_EDGE_M = 0.015
 #: The wrong loop of --wrong-loop: its relative pose moved by this (rotation vector rad, translation m).
 WRONG_LOOP = np.array([0.0, np.radians(10.0), 0.0, 0.25, 0.0, 0.0])
 
@@ -291,6 +296,59 @@ def gicp_from_odometry(geo: Geometry, cfg, scales: tuple[float, ...] = (1.0,)):
     return measure
 
 
+def keyframe_colours(name: str, seq: TrackedSequence, geo: Geometry) -> list[np.ndarray]:
+    """Each keyframe's downsampled points' colours (N_k, 3) in [0, 1]: the points (its camera
+    frame) projected into the colour image of its frame, read again from the dataset."""
+    data, _, _ = build_run([*SEQUENCES[name], "mapper=none"])
+    colours = []
+    for k, frame_index in enumerate(seq.keyframe_frames):
+        frame = data[int(frame_index)]
+        p, c = geo.clouds[k].points, frame.camera
+        u = np.clip(np.round(c.fx * p[:, 0] / p[:, 2] + c.cx).astype(int), 0, c.width - 1)
+        v = np.clip(np.round(c.fy * p[:, 1] / p[:, 2] + c.cy).astype(int), 0, c.height - 1)
+        colours.append(np.asarray(frame.rgb)[v, u].astype(np.float64) / 255.0)
+    return colours
+
+
+def coloured_icp_from_odometry(geo: Geometry, colours: list[np.ndarray], cfg, scales: tuple[float, ...]):
+    """measure(q, m, odometry) as `gicp_from_odometry`, by open3d's coloured ICP (Park et al.
+    2017: point-to-plane and the colour's gradient on the tangent plane, 0.968 to 0.032, open3d's
+    default) from odometry's pose, coarse to fine at `scales` voxels; a scale with no
+    correspondence keeps the pose so far."""
+    from slamkit.geometry.registration import import_open3d, single_threaded
+
+    o3d = import_open3d()
+    reg = o3d.pipelines.registration
+    clouds: dict[int, object] = {}
+    found: dict[tuple[int, int], np.ndarray] = {}
+
+    def cloud(k: int):
+        if k not in clouds:
+            pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(geo.clouds[k].points.astype(np.float64)))
+            pc.colors = o3d.utility.Vector3dVector(colours[k])
+            pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * cfg.voxel, max_nn=30))
+            pc.orient_normals_towards_camera_location(np.zeros(3))
+            clouds[k] = pc
+        return clouds[k]
+
+    def measure(q: int, m: int, start: np.ndarray) -> np.ndarray:
+        if (q, m) not in found:
+            pose = np.asarray(start, dtype=np.float64)
+            with single_threaded():
+                for scale in scales:
+                    try:
+                        pose = np.asarray(reg.registration_colored_icp(
+                            cloud(q), cloud(m), scale * cfg.voxel, pose, reg.TransformationEstimationForColoredICP(),
+                            reg.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6,
+                                                       max_iteration=50)).transformation)
+                    except RuntimeError:  # "No correspondences found": diverged out of the overlap
+                        pass
+            found[(q, m)] = pose
+        return found[(q, m)]
+
+    return measure
+
+
 def agreement(seq: TrackedSequence, gt: np.ndarray, measure,
               pairs: list[tuple[int, int]]) -> tuple[dict, list[tuple[int, int]]]:
     """Median distances (metres, degrees) between the relative poses of keyframe pairs (q, m) by
@@ -310,6 +368,16 @@ def agreement(seq: TrackedSequence, gt: np.ndarray, measure,
     right = [pair for pair, row in zip(pairs, rows) if row[2] < RIGHT_LOOP_M and row[3] < RIGHT_LOOP_DEG]
     return {"pairs": len(rows), **{n: None if v is None else float(v) for n, v in zip(names, median)},
             "gicp_within_2cm_1deg": len(right)}, right
+
+
+def slipped_edges_freed(graph: PoseGraph, edge_errors: dict[int, float]) -> PoseGraph:
+    """`graph` with each odometry edge into keyframe k whose error `edge_errors[k]` (metres, against
+    the ground truth) exceeds SLIPPED_EDGE_M given 1/100 of its information: an oracle of where
+    tracking slipped."""
+    edges = tuple(replace(e, information=e.information / 100.0)
+                  if e.kind == "odometry" and edge_errors.get(e.target, 0.0) > SLIPPED_EDGE_M else e
+                  for e in graph.edges)
+    return PoseGraph(graph.keyframe_ids, graph.poses, edges)
 
 
 def coverage(closure, geo: Geometry, seq: TrackedSequence, gt: np.ndarray, cfg) -> dict:
@@ -380,7 +448,8 @@ def feed(seq: TrackedSequence, overrides: list[str], wrong_loop: bool):
 
 
 def measure(name: str, seq: TrackedSequence, overrides: list[str], wrong_loop: bool, oracle: bool,
-            references: dict, with_coverage: bool = False, oracle_scales: tuple[float, ...] = (1.0,)) -> dict:
+            references: dict, with_coverage: bool = False, oracle_scales: tuple[float, ...] = (1.0,),
+            oracle_colour: bool = False) -> dict:
     closure, cfg, checks, cpu, injected = feed(seq, overrides, wrong_loop)
     gt = orthonormal(seq.gt_poses)
     kf = seq.keyframe_frames
@@ -398,10 +467,44 @@ def measure(name: str, seq: TrackedSequence, overrides: list[str], wrong_loop: b
             at_revisits, right = agreement(seq, gt, register, revisits)
             # what checks refusing every wrong one of these loops and no right one would leave
             right_only = with_gt_loops(closure.pose_graph(), geo, seq, gt, cfg, register, right)
+            right_pairs = set(right)
+            others = [pair for pair in revisits if pair not in right_pairs]
+
+            def solved(graph: PoseGraph) -> float:
+                return corrected_ate(seq, optimisation.optimise(graph, cfg.backend, cfg.robust_width))
+
+            edge_errors = [(k, *pose_difference(relative_pose(seq.poses[kf[k - 1]], seq.poses[kf[k]]),
+                                                relative_pose(gt[kf[k - 1]], gt[kf[k]]))) for k in range(1, len(kf))]
             agree = {"true_revisits": at_revisits,
+                     # where odometry's drift is: its keyframe edges furthest from the truth's relative pose
+                     "odometry_edges_largest_errors": [
+                         {"keyframe": k, "frames": [int(kf[k - 1]), int(kf[k])], "error_m": e_m, "error_deg": e_deg}
+                         for k, e_m, e_deg in sorted(edge_errors, key=lambda row: -row[1])[:ORACLE_EDGES]],
+                     "odometry_edges_error_sum_m": float(sum(row[1] for row in edge_errors)),
+                     # were the graph told where odometry slipped: the accepted loops, and the odometry
+                     # edges further than SLIPPED_EDGE_M from the truth given 1/100 of their information
+                     "ate_slipped_edges_freed_m": solved(slipped_edges_freed(
+                         closure.pose_graph(), {k: e_m for k, e_m, _ in edge_errors})),
                      "consecutive_keyframes": agreement(seq, gt, register, [(k, k - 1) for k in range(1, len(kf))])[0],
-                     "ate_right_loops_only_m": corrected_ate(seq, optimisation.optimise(right_only, cfg.backend,
-                                                                                        cfg.robust_width))}
+                     "ate_right_loops_only_m": solved(right_only),
+                     # which revisits decide: exact loops at the pairs G-ICP has right, and at the others
+                     "ate_gt_at_right_pairs_m": solved(with_gt_loops(closure.pose_graph(), geo, seq, gt, cfg,
+                                                                     pairs=right)),
+                     "ate_gt_at_other_pairs_m": solved(with_gt_loops(closure.pose_graph(), geo, seq, gt, cfg,
+                                                                     pairs=others))}
+            if oracle_colour:
+                coloured = coloured_icp_from_odometry(geo, keyframe_colours(name, seq, geo), cfg, oracle_scales)
+                at_revisits, right_coloured = agreement(seq, gt, coloured, revisits)
+                agree["coloured_icp"] = {
+                    "true_revisits": at_revisits,
+                    "right_where_gicp_is_not": len(set(right_coloured) - set(right)),
+                    "ate_right_loops_only_m": solved(with_gt_loops(closure.pose_graph(), geo, seq, gt, cfg, coloured,
+                                                                   right_coloured)),
+                    # perfect checks choosing, pair by pair, whichever of the two is right
+                    "ate_either_right_m": solved(with_gt_loops(
+                        closure.pose_graph(), geo, seq, gt, cfg,
+                        lambda q, m, start: register(q, m, start) if (q, m) in right else coloured(q, m, start),
+                        sorted(set(right) | set(right_coloured))))}
         references[key] = (geo, ate_floor, ate_oracle, agree)
     geo, ate_floor, ate_oracle, agree = references[key]
     graph = closure.pose_graph()
@@ -504,6 +607,8 @@ def main() -> None:
                         help="the G-ICP-loops reference: G-ICP at every true revisit (minutes)")
     parser.add_argument("--oracle-scales", default="1", metavar="S1,S2,...",
                         help="--oracle's G-ICP correspondence distances, voxels, coarse to fine (1: refine's)")
+    parser.add_argument("--oracle-colour", action="store_true",
+                        help="--oracle also by coloured ICP (open3d's), the points' colours from their frames")
     parser.add_argument("--coverage", action="store_true",
                         help="ATE with exact loops at the accepted pairs, and with their neighbours (see coverage)")
     parser.add_argument("--square", action="store_true",
@@ -530,7 +635,7 @@ def main() -> None:
                 overrides = [*setting, f"loop_closure.backend={backend}"] if backend != "gtsam" else setting
                 for wrong in (False, True) if args.wrong_loop else (False,):
                     row = measure(name, seq, overrides, wrong, args.oracle, references, args.coverage,
-                                  tuple(float(v) for v in args.oracle_scales.split(",")))
+                                  tuple(float(v) for v in args.oracle_scales.split(",")), args.oracle_colour)
                     row["injected"] = wrong
                     rows.append(row)
                     print_table([row])
