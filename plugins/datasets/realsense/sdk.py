@@ -110,9 +110,9 @@ class Stream:
     """An open RealSense source of colour + depth frame sets: a camera (`serial`) or a recording
     at its recorded pace (`real_time`: as a camera gives them) through the SDK's pipeline, or a
     recording played one frame set at a time, never dropping one (`path`; `_FileFrames`).
-    `camera`: the colour camera's intrinsics (pixels); `depth_scale`: metres per raw depth unit; `aligned`: whether
-    depth is reprojected into the colour camera by the SDK (`rs.align`); `fps`: the colour
-    stream's rate. `where` names the source in errors."""
+    `camera`: the colour camera's intrinsics (pixels); `depth_scale`: metres per raw depth unit;
+    `aligned`: whether depth is reprojected into the colour camera by the SDK (`rs.align`);
+    `fps`: the colour stream's rate. `where` names the source in errors."""
 
     def __init__(self, path: Path | None = None, serial: str | None = None, width: int = 640, height: int = 480,
                  fps: int = 30, align: bool = True, real_time: bool = False):
@@ -187,10 +187,14 @@ class Stream:
             # at its recorded pace, frame sets not taken in time dropped (as a camera); the pipeline
             # started playing before this: paused at the start again (`next` skips a frame set given
             # twice) until the reader is ready (`resume`)
-            self.playback = device.as_playback()
-            self.playback.set_real_time(real_time)
-            self.playback.pause()
-            self.playback.seek(datetime.timedelta(0))
+            try:
+                self.playback = device.as_playback()
+                self.playback.set_real_time(real_time)
+                self.playback.pause()
+                self.playback.seek(datetime.timedelta(0))
+            except RuntimeError as exc:
+                self.stop()
+                raise DataError(f"cannot play {self.where} from its start: {_first_line(exc)}") from None
         try:
             return device, (profile.get_stream(rs.stream.color).as_video_stream_profile(),
                             profile.get_stream(rs.stream.depth).as_video_stream_profile())
