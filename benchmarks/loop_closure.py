@@ -52,7 +52,7 @@ from pathlib import Path
 import numpy as np
 
 from slamkit.cli.bench import markdown_table
-from slamkit.geometry import invert_pose, nearest_rotation, se3_exp, transform_points
+from slamkit.geometry import invert_pose, nearest_rotation, project_points, se3_exp, transform_points
 from slamkit.geometry.registration import refine
 from slamkit.metrics.trajectory import ate
 from slamkit.registry.compose import compose_run
@@ -271,6 +271,11 @@ def with_gt_loops(odometry: PoseGraph, geo: Geometry, seq: TrackedSequence, gt: 
     return PoseGraph(odometry.keyframe_ids, seq.poses[kf], tuple(edges))
 
 
+def solved_ate(seq: TrackedSequence, graph: PoseGraph, cfg) -> float:
+    """ATE RMSE (metres) of every frame once `graph` is optimised as the loop closure `cfg` does."""
+    return corrected_ate(seq, optimisation.optimise(graph, cfg.backend, cfg.robust_width))
+
+
 def corrected_ate(seq: TrackedSequence, keyframe_poses: np.ndarray) -> float:
     """ATE RMSE (metres) of every frame once the keyframes sit at `keyframe_poses`."""
     kf = seq.keyframe_frames
@@ -303,9 +308,9 @@ def keyframe_colours(name: str, seq: TrackedSequence, geo: Geometry) -> list[np.
     colours = []
     for k, frame_index in enumerate(seq.keyframe_frames):
         frame = data[int(frame_index)]
-        p, c = geo.clouds[k].points, frame.camera
-        u = np.clip(np.round(c.fx * p[:, 0] / p[:, 2] + c.cx).astype(int), 0, c.width - 1)
-        v = np.clip(np.round(c.fy * p[:, 1] / p[:, 2] + c.cy).astype(int), 0, c.height - 1)
+        u, v, _ = project_points(geo.clouds[k].points, np.eye(4), frame.camera)
+        u = np.clip(np.round(u).astype(int), 0, frame.camera.width - 1)
+        v = np.clip(np.round(v).astype(int), 0, frame.camera.height - 1)
         colours.append(np.asarray(frame.rgb)[v, u].astype(np.float64) / 255.0)
     return colours
 
@@ -405,7 +410,7 @@ def coverage(closure, geo: Geometry, seq: TrackedSequence, gt: np.ndarray, cfg) 
     measured = {**loops, **found}
 
     def solved(graph: PoseGraph) -> float:
-        return corrected_ate(seq, optimisation.optimise(graph, cfg.backend, cfg.robust_width))
+        return solved_ate(seq, graph, cfg)
 
     return {"ate_gt_at_accepted_m": solved(with_gt_loops(odometry_graph, geo, seq, gt, cfg, pairs=list(loops))),
             "neighbour_pairs": len(found),
@@ -457,12 +462,12 @@ def measure(name: str, seq: TrackedSequence, overrides: list[str], wrong_loop: b
     if key not in references:  # the references depend on these settings only (not on the thresholds)
         geo = geometry(seq, gt, cfg)
         floor = with_gt_loops(closure.pose_graph(), geo, seq, gt, cfg)
-        ate_floor = corrected_ate(seq, optimisation.optimise(floor, cfg.backend, cfg.robust_width))
+        ate_floor = solved_ate(seq, floor, cfg)
         ate_oracle, agree = None, None
         if oracle:
             register = gicp_from_odometry(geo, cfg, oracle_scales)
             measured = with_gt_loops(closure.pose_graph(), geo, seq, gt, cfg, register)
-            ate_oracle = corrected_ate(seq, optimisation.optimise(measured, cfg.backend, cfg.robust_width))
+            ate_oracle = solved_ate(seq, measured, cfg)
             revisits = true_revisits(geo)
             at_revisits, right = agreement(seq, gt, register, revisits)
             # what checks refusing every wrong one of these loops and no right one would leave
@@ -471,7 +476,7 @@ def measure(name: str, seq: TrackedSequence, overrides: list[str], wrong_loop: b
             others = [pair for pair in revisits if pair not in right_pairs]
 
             def solved(graph: PoseGraph) -> float:
-                return corrected_ate(seq, optimisation.optimise(graph, cfg.backend, cfg.robust_width))
+                return solved_ate(seq, graph, cfg)
 
             edge_errors = [(k, *pose_difference(relative_pose(seq.poses[kf[k - 1]], seq.poses[kf[k]]),
                                                 relative_pose(gt[kf[k - 1]], gt[kf[k]]))) for k in range(1, len(kf))]
