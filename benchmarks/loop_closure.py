@@ -357,8 +357,9 @@ def coloured_icp_from_odometry(geo: Geometry, colours: list[np.ndarray], cfg, sc
 def agreement(seq: TrackedSequence, gt: np.ndarray, measure,
               pairs: list[tuple[int, int]]) -> tuple[dict, list[tuple[int, int]]]:
     """Median distances (metres, degrees) between the relative poses of keyframe pairs (q, m) by
-    odometry, by G-ICP (`measure`) and by the ground truth, and how many G-ICP has right; and
-    those right pairs (within RIGHT_LOOP_M and RIGHT_LOOP_DEG of the ground truth)."""
+    odometry, by G-ICP (`measure`) and by the ground truth, how many G-ICP has right, and each
+    pair's distances ("per_pair": q, m, then the six as named); and those right pairs (within
+    RIGHT_LOOP_M and RIGHT_LOOP_DEG of the ground truth)."""
     kf = seq.keyframe_frames
     rows = []
     for q, m in pairs:
@@ -372,7 +373,8 @@ def agreement(seq: TrackedSequence, gt: np.ndarray, measure,
              "odometry_vs_gicp_deg")
     right = [pair for pair, row in zip(pairs, rows) if row[2] < RIGHT_LOOP_M and row[3] < RIGHT_LOOP_DEG]
     return {"pairs": len(rows), **{n: None if v is None else float(v) for n, v in zip(names, median)},
-            "gicp_within_2cm_1deg": len(right)}, right
+            "gicp_within_2cm_1deg": len(right),
+            "per_pair": [[int(q), int(m), *(float(v) for v in row)] for (q, m), row in zip(pairs, rows)]}, right
 
 
 def slipped_edges_freed(graph: PoseGraph, edge_errors: dict[int, float]) -> PoseGraph:
