@@ -121,14 +121,16 @@ class Stream:
         self.running = True
         self.last_timestamp_ms: float | None = None  # a recording's last colour timestamp given
         self.pipeline = self.playback = self.file = None  # what plays: a pipeline, or a file frame by frame
-        if path is not None and not real_time:
-            # frame by frame: the recording's own sensors, not a pipeline (see `_FileFrames`)
-            self.where = f"RealSense recording {path}"
-            self.file = _FileFrames(rs, path, self.where)
-            device, (color, depth) = self.file.device, self.file.profiles
-        else:
-            device, (color, depth) = self._start_pipeline(path, serial, width, height, fps, real_time)
+        self.where = f"RealSense recording {path}" if path is not None else "RealSense camera"
+        # whatever started stops on any failure here: a playback left running aborts the
+        # interpreter at its exit
         try:
+            if path is not None and not real_time:
+                # frame by frame: the recording's own sensors, not a pipeline (see `_FileFrames`)
+                self.file = _FileFrames(rs, path, self.where)
+                device, (color, depth) = self.file.device, self.file.profiles
+            else:
+                device, (color, depth) = self._start_pipeline(path, serial, width, height, fps, real_time)
             self._describe(device, color, depth, align)
         except RuntimeError as exc:  # the SDK refused a query of the device or its streams
             self.stop()
@@ -163,7 +165,6 @@ class Stream:
         rs = self.rs
         config = rs.config()
         if path is not None:
-            self.where = f"RealSense recording {path}"
             try:
                 config.enable_device_from_file(str(path), repeat_playback=False)
             except RuntimeError as exc:
@@ -193,13 +194,11 @@ class Stream:
                 self.playback.pause()
                 self.playback.seek(datetime.timedelta(0))
             except RuntimeError as exc:
-                self.stop()
                 raise DataError(f"cannot play {self.where} from its start: {_first_line(exc)}") from None
         try:
             return device, (profile.get_stream(rs.stream.color).as_video_stream_profile(),
                             profile.get_stream(rs.stream.depth).as_video_stream_profile())
         except RuntimeError:
-            self.stop()
             kinds = ", ".join(str(s.stream_type()).split(".")[-1] for s in profile.get_streams()) or "none"
             raise DataError(f"{self.where} has no colour and depth stream pair (it has: {kinds}; expected both)") \
                 from None
