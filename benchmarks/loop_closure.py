@@ -109,7 +109,8 @@ class TrackedSequence:
     dataset has none). keyframe_frames: (K,) indices into the F frames. points[k]: (N_k,3) float32,
     keyframe k's trackable Gaussian centres in its camera frame (metres); covariances[k]:
     (N_k,3,3) float32, their G-ICP covariances in the same frame (m^2, regularised as the tracker
-    uses them); images[k]: (h,w,3) uint8. overrides: the run's Hydra overrides."""
+    uses them); images[k]: (h,w,3) uint8; colours[k]: (N_k,3) float32, the centres' RGB in [0, 1].
+    overrides: the run's Hydra overrides."""
 
     poses: np.ndarray
     gt_poses: np.ndarray
@@ -117,13 +118,14 @@ class TrackedSequence:
     points: list[np.ndarray]
     covariances: list[np.ndarray]
     images: list[np.ndarray]
+    colours: list[np.ndarray]
     overrides: list[str]
 
     def save(self, path: Path) -> None:
         arrays = {"poses": self.poses, "gt_poses": self.gt_poses, "keyframe_frames": self.keyframe_frames,
                   "overrides": np.array(self.overrides)}
-        for k, (p, c, im) in enumerate(zip(self.points, self.covariances, self.images)):
-            arrays |= {f"points_{k}": p, f"covariances_{k}": c, f"image_{k}": im}
+        for k, (p, c, im, rgb) in enumerate(zip(self.points, self.covariances, self.images, self.colours)):
+            arrays |= {f"points_{k}": p, f"covariances_{k}": c, f"image_{k}": im, f"colours_{k}": rgb}
         path.parent.mkdir(parents=True, exist_ok=True)
         np.savez_compressed(path, **arrays)
 
@@ -133,7 +135,7 @@ class TrackedSequence:
             k = len(f["keyframe_frames"])
             return cls(f["poses"], f["gt_poses"], f["keyframe_frames"], [f[f"points_{i}"] for i in range(k)],
                        [f[f"covariances_{i}"] for i in range(k)], [f[f"image_{i}"] for i in range(k)],
-                       [str(o) for o in f["overrides"]])
+                       [f[f"colours_{i}"] for i in range(k)], [str(o) for o in f["overrides"]])
 
 
 def track(dataset: list[str], max_frames: int | None = None, extra: tuple[str, ...] = ()) -> TrackedSequence:
@@ -143,7 +145,7 @@ def track(dataset: list[str], max_frames: int | None = None, extra: tuple[str, .
     if max_frames:
         overrides.append(f"dataset.max_frames={max_frames}")
     data, slam, _ = build_run(overrides)
-    poses, gts, kf_frames, points, covariances, images = [], [], [], [], [], []
+    poses, gts, kf_frames, points, covariances, images, colours = [], [], [], [], [], [], []
     for i in range(len(data)):
         frame = data[i]
         if i == 0:
@@ -158,7 +160,9 @@ def track(dataset: list[str], max_frames: int | None = None, extra: tuple[str, .
             points.append(keyframe.points)
             covariances.append(keyframe.covariances)
             images.append(keyframe.image)
-    return TrackedSequence(np.array(poses), np.array(gts), np.array(kf_frames), points, covariances, images, overrides)
+            colours.append(keyframe.colours)
+    return TrackedSequence(np.array(poses), np.array(gts), np.array(kf_frames), points, covariances, images, colours,
+                           overrides)
 
 
 def tracking_digest(name: str) -> str:
@@ -446,7 +450,7 @@ def feed(seq: TrackedSequence, overrides: list[str], wrong_loop: bool):
         for k, frame in enumerate(seq.keyframe_frames):
             start = time.process_time()
             closure.add_keyframe(LoopKeyframe(k, int(frame), seq.poses[frame], seq.points[k], seq.covariances[k],
-                                              seq.images[k]))
+                                              seq.images[k], colours=seq.colours[k]))
             checks += closure.detect_and_optimise().checks
             cpu += time.process_time() - start
     finally:
@@ -460,7 +464,8 @@ def measure(name: str, seq: TrackedSequence, overrides: list[str], wrong_loop: b
     closure, cfg, checks, cpu, injected = feed(seq, overrides, wrong_loop)
     gt = orthonormal(seq.gt_poses)
     kf = seq.keyframe_frames
-    key = (cfg.voxel, cfg.exclude_recent, cfg.min_path_m, cfg.loop_sigma_m, cfg.backend, cfg.robust_width)
+    key = (cfg.voxel, cfg.exclude_recent, cfg.min_path_m, cfg.loop_sigma_m, cfg.backend, cfg.robust_width,
+           cfg.colour_odometry)  # (the odometry edges the exact loops join)
     if key not in references:  # the references depend on these settings only (not on the thresholds)
         geo = geometry(seq, gt, cfg)
         floor = with_gt_loops(closure.pose_graph(), geo, seq, gt, cfg)
@@ -548,11 +553,27 @@ def measure(name: str, seq: TrackedSequence, overrides: list[str], wrong_loop: b
         "ate_none_m": ate(seq.poses, seq.gt_poses).rmse_m, "ate_loop_m": corrected_ate(seq, closure.pose_graph().poses),
         "ate_gt_loops_m": ate_floor, "ate_gicp_loops_m": ate_oracle, "cpu_s_per_keyframe": cpu / len(kf),
         "optimise_cpu_ms": optimise_ms, "relative_pose_agreement": agree,
+        # the graph's odometry edges: how many colour_odometry moved from the tracked relative pose,
+        # and how far all of them are from the truth's, summed
+        **odometry_edges(graph, seq, gt),
         "wrong_loop": None if not wrong_loop else ("none accepted" if injected is None
                                                    else "dropped" if injected not in final else "kept"),
         "coverage": coverage(closure, geo, seq, gt, cfg) if with_coverage else None,
         "checks": rows,
     }
+
+
+def odometry_edges(graph: PoseGraph, seq: TrackedSequence, gt: np.ndarray) -> dict:
+    """{"odometry_edges_moved": the odometry edges of `graph` not at the tracked relative pose,
+    "odometry_edges_error_sum_m": their distances from the truth's relative pose, summed (metres)}."""
+    kf = seq.keyframe_frames
+    moved, error = 0, 0.0
+    for e in graph.edges:
+        if e.kind == "odometry":
+            a, b = kf[e.source], kf[e.target]
+            moved += not np.allclose(e.relative_pose, relative_pose(seq.poses[a], seq.poses[b]), atol=1e-9)
+            error += pose_difference(e.relative_pose, relative_pose(gt[a], gt[b]))[0]
+    return {"odometry_edges_moved": moved, "odometry_edges_error_sum_m": error}
 
 
 COLUMNS = [("sequence", "sequence"), ("backend", "backend"), ("setting", "setting"), ("keyframes", "keyframes"),

@@ -14,6 +14,7 @@ registered with many.
 Needs open3d (the optional extra `mesh`).
 
 `alignment_information` is the information matrix of such an alignment, from its correspondences.
+`refine_coloured` refines a pose with colour too (coloured ICP), for clouds given colours.
 """
 
 from __future__ import annotations
@@ -62,13 +63,17 @@ class FeatureCloud:
     features, computed on first use: most clouds of a loop closure are never registered (no
     candidate comes near them), and FPFH is the larger part of preparing one."""
 
-    def __init__(self, points: np.ndarray, voxel: float, covariances: np.ndarray | None = None):
-        """points: (N,3) metres; covariances: (N,3,3) m^2 in the same frame, or None."""
+    def __init__(self, points: np.ndarray, voxel: float, covariances: np.ndarray | None = None,
+                 colours: np.ndarray | None = None):
+        """points: (N,3) metres; covariances: (N,3,3) m^2 in the same frame, or None; colours:
+        (N,3) RGB in [0, 1] (averaged per voxel, for `refine_coloured`), or None."""
         o3d = import_open3d()
         self.voxel = float(voxel)
         cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
         if covariances is not None:
             cloud.covariances = o3d.utility.Matrix3dVector(np.asarray(covariances, dtype=np.float64))
+        if colours is not None:
+            cloud.colors = o3d.utility.Vector3dVector(np.asarray(colours, dtype=np.float64))
         cloud = cloud.voxel_down_sample(self.voxel)
         self.cloud: Any = cloud
         self._features: Any = None
@@ -91,14 +96,16 @@ class FeatureCloud:
         return self._features
 
     def arrays(self) -> dict[str, np.ndarray]:
-        """The cloud as arrays (points, normals, covariances when it has them, FPFH features
-        (33,M) when they were computed), from which `from_arrays` rebuilds it exactly (e.g. for
-        a checkpoint)."""
+        """The cloud as arrays (points, normals, covariances and colours when it has them, FPFH
+        features (33,M) when they were computed), from which `from_arrays` rebuilds it exactly
+        (e.g. for a checkpoint)."""
         out = {"points": np.asarray(self.cloud.points).copy(), "normals": np.asarray(self.cloud.normals).copy()}
         if self._features is not None:
             out["features"] = np.asarray(self._features.data).copy()
         if self.cloud.has_covariances():
             out["covariances"] = np.asarray(self.cloud.covariances).copy()
+        if self.cloud.has_colors():
+            out["colours"] = np.asarray(self.cloud.colors).copy()
         return out
 
     @classmethod
@@ -111,6 +118,8 @@ class FeatureCloud:
         cloud.normals = o3d.utility.Vector3dVector(np.asarray(arrays["normals"], dtype=np.float64))
         if "covariances" in arrays:
             cloud.covariances = o3d.utility.Matrix3dVector(np.asarray(arrays["covariances"], dtype=np.float64))
+        if "colours" in arrays:
+            cloud.colors = o3d.utility.Vector3dVector(np.asarray(arrays["colours"], dtype=np.float64))
         self.cloud = cloud
         self._features = None
         if "features" in arrays:
@@ -193,6 +202,31 @@ def _refine(o3d, source: FeatureCloud, target: FeatureCloud, initial: np.ndarray
         reg.TransformationEstimationForGeneralizedICP(), reg.ICPConvergenceCriteria(max_iteration=iterations))
     return Registration(np.asarray(fine.transformation, dtype=np.float64).copy(), float(fine.fitness),
                         float(fine.inlier_rmse))
+
+
+def refine_coloured(source: FeatureCloud, target: FeatureCloud, initial: np.ndarray,
+                    scales: tuple[float, ...] = (2.0, 1.0), iterations: int = 50) -> np.ndarray:
+    """The pose (4x4) of `source` in `target`'s frame by coloured ICP (Park, Zhou and Koltun
+    2017, open3d's: point-to-plane and the colour's gradient on the tangent plane, weighted 0.968
+    to 0.032) from `initial`, coarse to fine: correspondences within each of `scales` voxels of
+    `target` in turn, each from the last's pose; a scale that matches nothing keeps the pose so
+    far. Both clouds need colours. Deterministic, as `register`."""
+    pose = np.asarray(initial, dtype=np.float64).copy()
+    if len(source) == 0 or len(target) == 0:
+        return pose
+    if not (source.cloud.has_colors() and target.cloud.has_colors()):
+        raise ValueError("refine_coloured: both clouds need colours (FeatureCloud(..., colours=))")
+    reg = import_open3d().pipelines.registration
+    with single_threaded():
+        for scale in scales:
+            try:
+                pose = np.asarray(reg.registration_colored_icp(
+                    source.cloud, target.cloud, scale * target.voxel, pose, reg.TransformationEstimationForColoredICP(),
+                    reg.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6,
+                                               max_iteration=iterations)).transformation, dtype=np.float64).copy()
+            except RuntimeError:  # "No correspondences found": nothing within this scale
+                pass
+    return pose
 
 
 def alignment_information(source: FeatureCloud, target: FeatureCloud, pose: np.ndarray,

@@ -47,7 +47,8 @@ class LoopKeyframe:
     closure computes one from the two keyframes' points). world: the `LoopDecision.world` of the
     last decision the run had applied when it tracked this keyframe (0 before any; always 0
     while the run holds the decisions to the end of the stream, `loop_corrections=at_end`): a
-    keyframe tracked in an older world is placed in the newest by the loop closure.
+    keyframe tracked in an older world is placed in the newest by the loop closure. colours:
+    (N,3) the points' RGB in [0, 1], or None.
     """
 
     keyframe_id: int
@@ -58,6 +59,7 @@ class LoopKeyframe:
     image: np.ndarray | None = None
     odometry_information: np.ndarray | None = None
     world: int = 0
+    colours: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         pose = np.asarray(self.pose, dtype=np.float64)
@@ -69,6 +71,9 @@ class LoopKeyframe:
         if self.covariances is not None:
             _check(np.shape(self.covariances) == (len(points), 3, 3), "LoopKeyframe.covariances",
                    f"({len(points)},3,3), one per point", np.asarray(self.covariances))
+        if self.colours is not None:
+            _check(np.shape(self.colours) == (len(points), 3), "LoopKeyframe.colours",
+                   f"({len(points)},3), one RGB per point", np.asarray(self.colours))
         if self.image is not None:
             _check(np.ndim(self.image) == 3 and np.shape(self.image)[2] == 3, "LoopKeyframe.image",
                    "an (h,w,3) colour image", np.asarray(self.image))

@@ -51,20 +51,22 @@ def block_average(image: np.ndarray, block: int) -> np.ndarray:
 
 def loop_keyframe(keyframe_id: int, frame: Frame, pose: np.ndarray, gaussians: FrameGaussians | None,
                   world: int) -> LoopKeyframe:
-    """A keyframe as the loop closure takes it: its trackable Gaussian centres and their
-    covariances (as the tracker aligned them) in its camera frame (float32, metres and m^2), its
-    colour image block-averaged (`IMAGE_BLOCK`), its pose as tracked (camera-to-world)."""
+    """A keyframe as the loop closure takes it: its trackable Gaussian centres, their
+    covariances (as the tracker aligned them) in its camera frame (float32, metres and m^2) and
+    colours (float32 RGB in [0, 1]), its colour image block-averaged (`IMAGE_BLOCK`), its pose as
+    tracked (camera-to-world)."""
     world_to_camera = invert_pose(np.asarray(pose, dtype=np.float64))
     if gaussians is None:
-        points, covariances = np.zeros((0, 3), np.float32), None
+        points, covariances, colours = np.zeros((0, 3), np.float32), None, None
     else:
         keep = np.asarray(gaussians.trackable, dtype=bool)
         R = world_to_camera[:3, :3]
         points = transform_points(world_to_camera, np.asarray(gaussians.means, dtype=np.float64)[keep])
         covariances = (R @ np.asarray(gaussians.covariances, dtype=np.float64)[keep] @ R.T).astype(np.float32)
+        colours = np.asarray(gaussians.colors, dtype=np.float32)[keep]
         points = points.astype(np.float32)
     image = block_average(np.asarray(frame.rgb), IMAGE_BLOCK) if frame.rgb is not None else None
-    return LoopKeyframe(keyframe_id, frame.index, pose, points, covariances, image, world=world)
+    return LoopKeyframe(keyframe_id, frame.index, pose, points, covariances, image, world=world, colours=colours)
 
 
 @dataclass(frozen=True)
@@ -142,7 +144,7 @@ class LoopClosureCost:
 def _keyframe_state(k: LoopKeyframe) -> dict[str, Any]:
     return {"keyframe_id": k.keyframe_id, "frame_index": k.frame_index, "pose": k.pose, "points": k.points,
             "covariances": k.covariances, "image": k.image, "odometry_information": k.odometry_information,
-            "world": k.world}
+            "world": k.world, "colours": k.colours}
 
 
 def _keyframe_from_state(s: dict[str, Any]) -> LoopKeyframe:
@@ -151,7 +153,8 @@ def _keyframe_from_state(s: dict[str, Any]) -> LoopKeyframe:
 
     return LoopKeyframe(int(s["keyframe_id"]), int(s["frame_index"]), np.asarray(s["pose"], dtype=np.float64),
                         np.asarray(s["points"]), array(s["covariances"]), array(s["image"]),
-                        array(s["odometry_information"]), int(s["world"]))
+                        array(s["odometry_information"]), int(s["world"]),
+                        array(s.get("colours")))  # older checkpoints: none
 
 
 def _row(check: LoopCheck) -> dict[str, Any]:

@@ -3,7 +3,8 @@ by odometry edges, verified loops add loop edges, and each accepted loop re-opti
 
 Per `detect_and_optimise` call, for each keyframe added since the last one, in order:
 1. it joins the graph: its points are downsampled with FPFH features (`FeatureCloud`), and an
-   odometry edge from the previous keyframe holds the tracked relative pose, weighted by the
+   odometry edge from the previous keyframe holds the tracked relative pose (with
+   `colour_odometry`, moved by a slide coloured ICP finds: `odometry`), weighted by the
    point-to-plane information of the two keyframes' points under it (per matched point, over
    odometry_sigma_m^2);
 2. candidates: earlier keyframes (not the last `exclude_recent`, at least `min_path_m` of path
@@ -37,7 +38,7 @@ from slamkit.roles.loop_closure import (
     PoseGraphEdge,
     relative_pose,
 )
-from slamkit_plugins.loop_closures.pose_graph import detection, optimisation, verification
+from slamkit_plugins.loop_closures.pose_graph import detection, odometry, optimisation, verification
 from slamkit_plugins.loop_closures.pose_graph.config import Backend, PoseGraphConfig
 
 #: Optimise-and-drop rounds at most per decision (each drops the worst inconsistent loop).
@@ -128,13 +129,16 @@ class PoseGraphLoopClosure(LoopClosure):
         for update in self.world_updates[keyframe.world:]:
             pose = update @ pose
         cfg = self.cfg
-        cloud = FeatureCloud(keyframe.points, cfg.voxel, keyframe.covariances)
+        colours = keyframe.colours if cfg.colour_odometry else None
+        cloud = FeatureCloud(keyframe.points, cfg.voxel, keyframe.covariances, colours)
         depth = float(np.median(np.asarray(keyframe.points)[:, 2])) if len(keyframe.points) else 0.0
         descriptor = None if keyframe.image is None else detection.appearance_descriptor(keyframe.image)
         node = _Node(keyframe.keyframe_id, keyframe.frame_index, pose, cloud, descriptor, depth)
         if self.nodes:
             previous = self.nodes[-1]
             relative = relative_pose(previous.pose, pose)
+            if cloud.cloud.has_colors() and previous.cloud.cloud.has_colors():
+                relative, _ = odometry.coloured_odometry(cloud, previous.cloud, relative, cfg)
             information = keyframe.odometry_information
             if information is None:
                 per_point, _ = verification.normalised_information(cloud, previous.cloud, relative, cfg.voxel)

@@ -65,6 +65,16 @@ class PoseGraphConfig(PluginConfig):
     uniqueness_displacement_m: float = 0.02
     #: metres: those restarts must converge this close to the loop's pose, else it is not unique (the scene slides)
     uniqueness_tolerance_m: float = 0.015
+    #: consecutive keyframes registered again with colour (coloured ICP); the odometry edge takes a slide it finds
+    colour_odometry: bool = False
+    #: only an edge constrained less than this along its weakest direction is registered again (as min_constraint)
+    colour_max_constraint: float = 0.04
+    #: metres: coloured ICP's pose moving further than this across the edge's weakest direction is not taken
+    colour_max_across_m: float = 0.005
+    #: degrees: nor one turning it by more than this
+    colour_max_turn_deg: float = 0.5
+    #: metres: nor one moving it further than this along the weakest direction
+    colour_max_slide_m: float = 0.10
     #: the pose-graph optimiser: gtsam | open3d.
     backend: Backend = Backend.gtsam
     #: metres: standard deviation of an odometry edge along its best-constrained direction.
@@ -82,7 +92,8 @@ class PoseGraphConfig(PluginConfig):
 
     def validate(self) -> None:
         for name in ("voxel", "search_radius_m", "odometry_sigma_m", "loop_sigma_m", "robust_width",
-                     "max_loop_residual", "max_inlier_rmse_m", "uniqueness_tolerance_m"):
+                     "max_loop_residual", "max_inlier_rmse_m", "uniqueness_tolerance_m", "colour_max_across_m",
+                     "colour_max_turn_deg", "colour_max_slide_m", "colour_max_constraint"):
             require(getattr(self, name) > 0, f"loop_closure.{name}", "> 0", getattr(self, name))
         for name in ("min_path_m", "radius_per_path", "min_constraint", "uniqueness_displacement_m"):
             require(getattr(self, name) >= 0, f"loop_closure.{name}", ">= 0", getattr(self, name))

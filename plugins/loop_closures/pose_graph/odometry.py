@@ -1,0 +1,48 @@
+"""Odometry edges measured again with colour (`colour_odometry`).
+
+Where the geometry pins a keyframe only weakly along one direction (a wall and the floor leave
+the line along both free), the tracker's depth-only G-ICP can slide along it, pushed by the depth
+noise: the synthetic room_loop's drift is a few such slides of 2-7 cm between consecutive
+keyframes (docs/loop_closure.md, "Odometry's slides"). A striped wall, a picture, a radiator
+still pin that direction in colour. Each new keyframe's points are registered again in the
+previous keyframe's frame by coloured ICP (`slamkit.geometry.registration.refine_coloured`),
+from the tracked relative pose, where the edge is weakly constrained (its point-to-plane
+information per point along its weakest translation direction below `colour_max_constraint`,
+the measure of `min_constraint`: 0 for a wall alone, 1/3 for a box); the odometry edge takes
+the result only when it moves the pose along that direction and hardly otherwise: within
+`colour_max_across_m` across it, `colour_max_turn_deg` of rotation and `colour_max_slide_m` along
+it. Coloured ICP alone, taken whole, sends some edges a metre away (scenes whose colour
+gradients pull it off the overlap), and on well-constrained edges it is the less accurate of the
+two (7-Scenes: 24 of 47 such edges further from the truth); the geometry is trusted where it is
+strong.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from slamkit.geometry.registration import FeatureCloud, refine_coloured
+from slamkit.roles.loop_closure import pose_difference
+from slamkit_plugins.loop_closures.pose_graph.config import PoseGraphConfig
+from slamkit_plugins.loop_closures.pose_graph.verification import normalised_information
+
+
+def coloured_odometry(cloud: FeatureCloud, previous: FeatureCloud, relative: np.ndarray,
+                      cfg: PoseGraphConfig) -> tuple[np.ndarray, str]:
+    """(the relative pose the odometry edge from `previous` to `cloud` takes, why): the pose of
+    `cloud`'s keyframe in `previous`'s camera frame (4x4, metres), coloured ICP's from the
+    tracked `relative` when the edge is weakly constrained along one direction and coloured ICP
+    only slides along it, else `relative`. Both clouds need colours."""
+    per_point, _ = normalised_information(cloud, previous, relative, cfg.voxel)
+    values, vectors = np.linalg.eigh(per_point[3:, 3:])
+    if values[0] >= cfg.colour_max_constraint:
+        return relative, "constrained"  # where the geometry pins the pose, colour only adds its own errors
+    found = refine_coloured(cloud, previous, relative)
+    weakest = relative[:3, :3] @ vectors[:, 0]  # in the previous keyframe's frame, as the translations
+    moved = found[:3, 3] - relative[:3, 3]
+    along = float(moved @ weakest)
+    across = float(np.linalg.norm(moved - along * weakest))
+    turn = pose_difference(relative, found)[1]
+    if across > cfg.colour_max_across_m or turn > cfg.colour_max_turn_deg or abs(along) > cfg.colour_max_slide_m:
+        return relative, f"not a slide: {100 * along:.1f} cm along, {100 * across:.1f} cm across, {turn:.2f} deg"
+    return found, f"slide of {100 * along:.1f} cm"
