@@ -2,9 +2,9 @@
 
 Where the geometry pins a keyframe only weakly along one direction (a wall and the floor leave
 the line along both free), the tracker's depth-only G-ICP can slide along it, pushed by the depth
-noise: the synthetic room_loop's drift is a few such slides of 2-7 cm between consecutive
-keyframes (docs/loop_closure.md, "Odometry's slides"). A striped wall, a picture, a radiator
-still pin that direction in colour. Each new keyframe's points are registered again in the
+noise: the synthetic room_loop's drift is a few such slides between consecutive keyframes
+(docs/loop_closure.md, "Odometry's slides, measured with colour"). A striped wall, a picture,
+a radiator still pin that direction in colour. Each new keyframe's points are registered again in the
 previous keyframe's frame by coloured ICP (`slamkit.geometry.registration.refine_coloured`),
 from the tracked relative pose, where the edge is weakly constrained (its point-to-plane
 information per point along its weakest translation direction below `colour_max_constraint`,
@@ -13,8 +13,7 @@ the result only when it moves the pose along that direction and hardly otherwise
 `colour_max_across_m` across it, `colour_max_turn_deg` of rotation and `colour_max_slide_m` along
 it. Coloured ICP alone, taken whole, sends some edges a metre away (scenes whose colour
 gradients pull it off the overlap), and on well-constrained edges it is the less accurate of the
-two (7-Scenes: 24 of 47 such edges further from the truth); the geometry is trusted where it is
-strong.
+two: the geometry is trusted where it is strong.
 """
 
 from __future__ import annotations
