@@ -465,7 +465,8 @@ def measure(name: str, seq: TrackedSequence, overrides: list[str], wrong_loop: b
     gt = orthonormal(seq.gt_poses)
     kf = seq.keyframe_frames
     key = (cfg.voxel, cfg.exclude_recent, cfg.min_path_m, cfg.loop_sigma_m, cfg.backend, cfg.robust_width,
-           cfg.colour_odometry)  # (the odometry edges the exact loops join)
+           cfg.colour_odometry, cfg.colour_max_constraint, cfg.colour_max_across_m, cfg.colour_max_turn_deg,
+           cfg.colour_max_slide_m)  # (the odometry edges the exact loops join)
     if key not in references:  # the references depend on these settings only (not on the thresholds)
         geo = geometry(seq, gt, cfg)
         floor = with_gt_loops(closure.pose_graph(), geo, seq, gt, cfg)
@@ -553,8 +554,7 @@ def measure(name: str, seq: TrackedSequence, overrides: list[str], wrong_loop: b
         "ate_none_m": ate(seq.poses, seq.gt_poses).rmse_m, "ate_loop_m": corrected_ate(seq, closure.pose_graph().poses),
         "ate_gt_loops_m": ate_floor, "ate_gicp_loops_m": ate_oracle, "cpu_s_per_keyframe": cpu / len(kf),
         "optimise_cpu_ms": optimise_ms, "relative_pose_agreement": agree,
-        # the graph's odometry edges: how many colour_odometry moved from the tracked relative pose,
-        # and how far all of them are from the truth's, summed
+        # the graph's odometry edges: how many colour_odometry moved, how far all are from the truth
         **odometry_edges(graph, seq, gt),
         "wrong_loop": None if not wrong_loop else ("none accepted" if injected is None
                                                    else "dropped" if injected not in final else "kept"),
@@ -564,8 +564,10 @@ def measure(name: str, seq: TrackedSequence, overrides: list[str], wrong_loop: b
 
 
 def odometry_edges(graph: PoseGraph, seq: TrackedSequence, gt: np.ndarray) -> dict:
-    """{"odometry_edges_moved": the odometry edges of `graph` not at the tracked relative pose,
-    "odometry_edges_error_sum_m": their distances from the truth's relative pose, summed (metres)}."""
+    """{"odometry_edges_moved": how many odometry edges of `graph` are not at the tracked relative
+    pose, "graph_odometry_edges_error_sum_m": every odometry edge's distance from the truth's
+    relative pose, summed (metres; the tracked edges' sum is relative_pose_agreement's
+    "odometry_edges_error_sum_m")}."""
     kf = seq.keyframe_frames
     moved, error = 0, 0.0
     for e in graph.edges:
@@ -573,7 +575,7 @@ def odometry_edges(graph: PoseGraph, seq: TrackedSequence, gt: np.ndarray) -> di
             a, b = kf[e.source], kf[e.target]
             moved += not np.allclose(e.relative_pose, relative_pose(seq.poses[a], seq.poses[b]), atol=1e-9)
             error += pose_difference(e.relative_pose, relative_pose(gt[a], gt[b]))[0]
-    return {"odometry_edges_moved": moved, "odometry_edges_error_sum_m": error}
+    return {"odometry_edges_moved": moved, "graph_odometry_edges_error_sum_m": error}
 
 
 COLUMNS = [("sequence", "sequence"), ("backend", "backend"), ("setting", "setting"), ("keyframes", "keyframes"),

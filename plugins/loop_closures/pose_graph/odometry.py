@@ -30,13 +30,15 @@ def coloured_odometry(cloud: FeatureCloud, previous: FeatureCloud, relative: np.
                       cfg: PoseGraphConfig) -> tuple[np.ndarray, str]:
     """(the relative pose the odometry edge from `previous` to `cloud` takes, why): the pose of
     `cloud`'s keyframe in `previous`'s camera frame (4x4, metres), coloured ICP's from the
-    tracked `relative` when the edge is weakly constrained along one direction and coloured ICP
-    only slides along it, else `relative`. Both clouds need colours."""
+    tracked `relative` when the edge is weakly constrained along its weakest direction and
+    coloured ICP only slides along that one, else `relative`. Both clouds need colours."""
     per_point, _ = normalised_information(cloud, previous, relative, cfg.voxel)
     values, vectors = np.linalg.eigh(per_point[3:, 3:])
     if values[0] >= cfg.colour_max_constraint:
         return relative, "constrained"  # where the geometry pins the pose, colour only adds its own errors
     found = refine_coloured(cloud, previous, relative)
+    if not np.isfinite(found).all():
+        return relative, "coloured ICP gave no pose"
     weakest = relative[:3, :3] @ vectors[:, 0]  # in the previous keyframe's frame, as the translations
     moved = found[:3, 3] - relative[:3, 3]
     along = float(moved @ weakest)
