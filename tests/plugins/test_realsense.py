@@ -326,6 +326,20 @@ def test_device_enumeration_and_the_missing_camera_line():
     assert line.startswith("no RealSense camera connected (expected a D400-series camera") and "\n" not in line
 
 
+def test_a_library_that_cannot_query_usb_is_one_line(monkeypatch):
+    """The library's own failure to enumerate (USB permissions) is one line naming what to fix."""
+    class Context:
+        def query_devices(self):
+            raise RuntimeError("failed to open usb interface: 0, error: RS2_USB_STATUS_ACCESS\nmore")
+
+    monkeypatch.setattr(sdk.sdk(), "context", Context)
+    with pytest.raises(DataError) as info:
+        RealSenseDataset(RealSenseConfig())
+    line = str(info.value)
+    assert line.startswith("cannot list RealSense cameras: failed to open usb interface") and "udev rules" in line
+    assert "\n" not in line
+
+
 def test_the_missing_library_line(monkeypatch):
     monkeypatch.setitem(sys.modules, "pyrealsense2", None)  # import fails as where it is not installed
     with pytest.raises(DataError) as info:

@@ -65,11 +65,15 @@ def list_devices() -> list[DeviceInfo]:
     """The RealSense cameras connected now (DataError where the library is missing)."""
     rs = sdk()
     devices = []
-    for dev in rs.context().query_devices():
-        def info(key, dev=dev) -> str:
-            return dev.get_info(key) if dev.supports(key) else "?"
-        devices.append(DeviceInfo(info(rs.camera_info.name), info(rs.camera_info.serial_number),
-                                  info(rs.camera_info.firmware_version), info(rs.camera_info.usb_type_descriptor)))
+    try:
+        for dev in rs.context().query_devices():
+            def info(key, dev=dev) -> str:
+                return dev.get_info(key) if dev.supports(key) else "?"
+            devices.append(DeviceInfo(info(rs.camera_info.name), info(rs.camera_info.serial_number),
+                                      info(rs.camera_info.firmware_version), info(rs.camera_info.usb_type_descriptor)))
+    except RuntimeError as exc:  # the library could not query USB (permissions, a device gone mid-query)
+        raise DataError(f"cannot list RealSense cameras: {_first_line(exc)} (expected the RealSense library's "
+                        "access to USB devices: its udev rules installed, the camera plugged in)") from None
     return devices
 
 

@@ -126,6 +126,11 @@ class SyntheticConfig(DatasetConfig):
         require(0 < self.sensor_max_incidence_deg <= 90, "dataset.sensor_max_incidence_deg", "in (0, 90] degrees",
                 self.sensor_max_incidence_deg)
 
+    def camera(self) -> Camera:
+        """The pinhole camera of `width`, `height` and `fov_deg`, principal point at the centre."""
+        fx = (self.width / 2.0) / math.tan(math.radians(self.fov_deg) / 2.0)
+        return Camera(self.width, self.height, fx, fx, (self.width - 1) / 2.0, (self.height - 1) / 2.0)
+
     def sensor_model(self) -> SensorModel:
         """The structured-light model of these fields."""
         return SensorModel(*(getattr(self, f"sensor_{f.name}") for f in fields(SensorModel)))
@@ -158,8 +163,7 @@ class SyntheticDataset(Dataset):
     def __init__(self, cfg: SyntheticConfig, context: RunContext = RunContext()):
         super().__init__(cfg)
         self.cfg: SyntheticConfig = cfg
-        fx = (cfg.width / 2.0) / math.tan(math.radians(cfg.fov_deg) / 2.0)
-        self._camera = Camera(cfg.width, cfg.height, fx, fx, (cfg.width - 1) / 2.0, (cfg.height - 1) / 2.0)
+        self._camera = cfg.camera()
         self._lock = threading.Lock()
         self.sensor = cfg.sensor_model()
         self._store = None  # NpzFile or dict: rgb_%05d (uint8), depth_%05d (uint16), poses

@@ -137,11 +137,16 @@ class PoseGraphLoopClosure(LoopClosure):
         if self.nodes:
             previous = self.nodes[-1]
             relative = relative_pose(previous.pose, pose)
-            if cloud.cloud.has_colors() and previous.cloud.cloud.has_colors():
-                relative, _ = odometry.coloured_odometry(cloud, previous.cloud, relative, cfg)
             information = keyframe.odometry_information
-            if information is None:
+            coloured = cloud.cloud.has_colors() and previous.cloud.cloud.has_colors()
+            if information is None or coloured:
                 per_point, _ = verification.normalised_information(cloud, previous.cloud, relative, cfg.voxel)
+                if coloured:
+                    found = odometry.coloured_odometry(cloud, previous.cloud, relative, per_point, cfg)
+                    if found is not relative and information is None:  # moved: its information where it now is
+                        per_point, _ = verification.normalised_information(cloud, previous.cloud, found, cfg.voxel)
+                    relative = found
+            if information is None:
                 information = (per_point + verification.INFORMATION_FLOOR * np.eye(6)) / cfg.odometry_sigma_m**2
             self.edges.append(PoseGraphEdge("odometry", previous.keyframe_id, node.keyframe_id, relative,
                                             np.asarray(information, dtype=np.float64)))

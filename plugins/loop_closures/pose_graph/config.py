@@ -75,6 +75,8 @@ class PoseGraphConfig(PluginConfig):
     colour_max_turn_deg: float = 0.5
     #: metres: nor one moving it further than this along the weakest direction
     colour_max_slide_m: float = 0.10
+    #: metres: nor one moving it less than this along it (within what both registrations err by)
+    colour_min_slide_m: float = 0.01
     #: the pose-graph optimiser: gtsam | open3d.
     backend: Backend = Backend.gtsam
     #: metres: standard deviation of an odometry edge along its best-constrained direction.
@@ -95,8 +97,11 @@ class PoseGraphConfig(PluginConfig):
                      "max_loop_residual", "max_inlier_rmse_m", "uniqueness_tolerance_m", "colour_max_across_m",
                      "colour_max_turn_deg", "colour_max_slide_m", "colour_max_constraint"):
             require(getattr(self, name) > 0, f"loop_closure.{name}", "> 0", getattr(self, name))
-        for name in ("min_path_m", "radius_per_path", "min_constraint", "uniqueness_displacement_m"):
+        for name in ("min_path_m", "radius_per_path", "min_constraint", "uniqueness_displacement_m",
+                     "colour_min_slide_m"):
             require(getattr(self, name) >= 0, f"loop_closure.{name}", ">= 0", getattr(self, name))
+        require(self.colour_min_slide_m < self.colour_max_slide_m, "loop_closure.colour_min_slide_m",
+                f"below colour_max_slide_m ({self.colour_max_slide_m})", self.colour_min_slide_m)
         require(self.exclude_recent >= 1, "loop_closure.exclude_recent", "an integer >= 1", self.exclude_recent)
         require(0 < self.max_view_angle_deg <= 180, "loop_closure.max_view_angle_deg", "in (0, 180]",
                 self.max_view_angle_deg)

@@ -23,27 +23,29 @@ import numpy as np
 from slamkit.geometry.registration import FeatureCloud, refine_coloured
 from slamkit.roles.loop_closure import pose_difference
 from slamkit_plugins.loop_closures.pose_graph.config import PoseGraphConfig
-from slamkit_plugins.loop_closures.pose_graph.verification import normalised_information
 
 
-def coloured_odometry(cloud: FeatureCloud, previous: FeatureCloud, relative: np.ndarray,
-                      cfg: PoseGraphConfig) -> tuple[np.ndarray, str]:
-    """(the relative pose the odometry edge from `previous` to `cloud` takes, why): the pose of
-    `cloud`'s keyframe in `previous`'s camera frame (4x4, metres), coloured ICP's from the
-    tracked `relative` when the edge is weakly constrained along its weakest direction and
-    coloured ICP only slides along that one, else `relative`. Both clouds need colours."""
-    per_point, _ = normalised_information(cloud, previous, relative, cfg.voxel)
+def coloured_odometry(cloud: FeatureCloud, previous: FeatureCloud, relative: np.ndarray, per_point: np.ndarray,
+                      cfg: PoseGraphConfig) -> np.ndarray:
+    """The relative pose the odometry edge from `previous` to `cloud` takes: the pose of `cloud`'s
+    keyframe in `previous`'s camera frame (4x4, metres), coloured ICP's from the tracked
+    `relative` when the edge is weakly constrained along its weakest direction and coloured ICP
+    only slides along that one, else `relative` itself. `per_point`: the edge's point-to-plane
+    information per matched point at `relative` (`normalised_information`). Both clouds need
+    colours."""
     values, vectors = np.linalg.eigh(per_point[3:, 3:])
     if values[0] >= cfg.colour_max_constraint:
-        return relative, "constrained"  # where the geometry pins the pose, colour only adds its own errors
+        return relative  # where the geometry pins the pose, colour only adds its own errors
     found = refine_coloured(cloud, previous, relative)
     if not np.isfinite(found).all():
-        return relative, "coloured ICP gave no pose"
+        return relative
     weakest = relative[:3, :3] @ vectors[:, 0]  # in the previous keyframe's frame, as the translations
     moved = found[:3, 3] - relative[:3, 3]
     along = float(moved @ weakest)
     across = float(np.linalg.norm(moved - along * weakest))
     turn = pose_difference(relative, found)[1]
     if across > cfg.colour_max_across_m or turn > cfg.colour_max_turn_deg or abs(along) > cfg.colour_max_slide_m:
-        return relative, f"not a slide: {100 * along:.1f} cm along, {100 * across:.1f} cm across, {turn:.2f} deg"
-    return found, f"slide of {100 * along:.1f} cm"
+        return relative  # not a slide: colour pulled elsewhere, where the geometry disagrees
+    if abs(along) < cfg.colour_min_slide_m:
+        return relative  # a slide as short as the registrations' own errors: nothing to correct
+    return found
