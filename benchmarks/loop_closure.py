@@ -97,6 +97,8 @@ NEIGHBOURS = 8
 RIGHT_LOOP_M, RIGHT_LOOP_DEG = 0.02, 1.0
 #: --oracle lists this many of odometry's keyframe edges, the furthest from the truth first.
 ORACLE_EDGES = 8
+#: edges_at_truth sets this many of the odometry edges furthest from the truth to the truth, each in turn.
+TRUTH_EDGES = (5, 10, 20)
 #: --oracle: an odometry edge this far (metres) from the truth's relative pose is one where tracking slipped.
 SLIPPED_EDGE_M = 0.015
 #: The wrong loop of --wrong-loop: its relative pose moved by this (rotation vector rad, translation m).
@@ -555,7 +557,7 @@ def measure(name: str, seq: TrackedSequence, overrides: list[str], wrong_loop: b
         "ate_gt_loops_m": ate_floor, "ate_gicp_loops_m": ate_oracle, "cpu_s_per_keyframe": cpu / len(kf),
         "optimise_cpu_ms": optimise_ms, "relative_pose_agreement": agree,
         # the graph's odometry edges: how many colour_odometry moved, how far all are from the truth
-        **odometry_edges(graph, seq, gt),
+        **odometry_edges(graph, seq, gt), **edges_at_truth(graph, seq, gt, cfg),
         "wrong_loop": None if not wrong_loop else ("none accepted" if injected is None
                                                    else "dropped" if injected not in final else "kept"),
         "coverage": coverage(closure, geo, seq, gt, cfg) if with_coverage else None,
@@ -583,6 +585,32 @@ def odometry_edges(graph: PoseGraph, seq: TrackedSequence, gt: np.ndarray) -> di
     change = np.array([after - before for before, after, _ in moved])
     return {"odometry_edges_moved": len(moved), "graph_odometry_edges_error_sum_m": error, "moved_edges": moved,
             "moved_edges_better": int((change < -0.002).sum()), "moved_edges_worse": int((change > 0.002).sum())}
+
+
+def edges_at_truth(graph: PoseGraph, seq: TrackedSequence, gt: np.ndarray, cfg) -> dict:
+    """How the ATE (metres) of `graph` solved answers odometry edges made right: its moved edges
+    (not at the tracked relative pose: colour_odometry's) set to the truth's relative pose,
+    the `n` edges whose tracked relative pose is furthest from the truth's set to it, for each n
+    of TRUTH_EDGES, and every one. Where odometry's errors cancel along the path, making some of
+    them right can raise the ATE; where they add up, it lowers it."""
+    kf = seq.keyframe_frames
+
+    def truth(e: PoseGraphEdge) -> PoseGraphEdge:
+        return replace(e, relative_pose=relative_pose(gt[kf[e.source]], gt[kf[e.target]]))
+
+    def solved_with_truth(targets: set[int]) -> float:
+        edges = tuple(truth(e) if e.kind == "odometry" and e.target in targets else e for e in graph.edges)
+        return solved_ate(seq, PoseGraph(graph.keyframe_ids, graph.poses, edges), cfg)
+
+    odometry = [e for e in graph.edges if e.kind == "odometry"]
+    moved = {e.target for e in odometry if not np.allclose(
+        e.relative_pose, relative_pose(seq.poses[kf[e.source]], seq.poses[kf[e.target]]), atol=1e-9)}
+    tracked_error = {e.target: pose_difference(relative_pose(seq.poses[kf[e.source]], seq.poses[kf[e.target]]),
+                                               truth(e).relative_pose)[0] for e in odometry}
+    worst = sorted(tracked_error, key=lambda k: -tracked_error[k])
+    return {"ate_moved_edges_at_truth_m": solved_with_truth(moved) if moved else None,
+            "ate_worst_edges_at_truth_m": {n: solved_with_truth(set(worst[:n])) for n in TRUTH_EDGES},
+            "ate_every_edge_at_truth_m": solved_with_truth(set(tracked_error))}
 
 
 COLUMNS = [("sequence", "sequence"), ("backend", "backend"), ("setting", "setting"), ("keyframes", "keyframes"),
