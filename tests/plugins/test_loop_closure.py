@@ -498,8 +498,13 @@ def striped_wall_pair():
     return out
 
 
-@pytest.mark.parametrize("direction, min_slide_m", [("weakest", 0.01), ("strongest", 0.01), ("weakest", 0.08)])
-def test_colour_odometry_takes_a_slide_along_the_weakest_direction_only(striped_wall_pair, direction, min_slide_m):
+@pytest.mark.parametrize("direction, min_slide_m, taken", [
+    ("weakest", 0.01, True),
+    ("strongest", 0.01, False),  # coloured ICP's move is not a slide along the weakest direction
+    ("weakest", 0.08, False),  # the slide back (about 4 cm) is shorter than colour_min_slide_m
+])
+def test_colour_odometry_takes_a_slide_along_the_weakest_direction_only(striped_wall_pair, direction, min_slide_m,
+                                                                        taken):
     """With colour_odometry, the second keyframe tracked 4 cm off along the pair's least
     constrained direction gets an odometry edge coloured ICP brought back within 2 cm of the
     truth; 4 cm off along the best constrained direction, coloured ICP's pose is not a slide, and
@@ -519,7 +524,12 @@ def test_colour_odometry_takes_a_slide_along_the_weakest_direction_only(striped_
         closure.detect_and_optimise()
         (edges[colour],) = closure.pose_graph().edges
     np.testing.assert_allclose(edges[False].relative_pose, relative_pose(pose_a, tracked), atol=1e-12)
-    if direction == "weakest" and min_slide_m < 0.04:
+    if taken:
         assert pose_difference(edges[True].relative_pose, truth)[0] < 0.02
     else:
         np.testing.assert_allclose(edges[True].relative_pose, relative_pose(pose_a, tracked), atol=1e-12)
+
+
+def test_colour_slide_bounds_are_one_line():
+    with pytest.raises(ConfigError, match=r"^loop_closure.colour_min_slide_m: expected below colour_max_slide_m"):
+        PoseGraphConfig(colour_min_slide_m=0.2).validate()

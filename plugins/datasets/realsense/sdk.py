@@ -2,8 +2,8 @@
 dataset uses it: the cameras connected, a camera or a recording opened as a source of
 colour + depth frame sets (`Stream`), and one frame set as arrays (`FrameSet`).
 
-Every failure is a one-line DataError saying what is missing: the library, a camera, the
-camera asked for, a stream mode the camera does not have, a recording it cannot play."""
+Every failure is a one-line DataError saying what is missing: the library, its access to USB,
+a camera, the camera asked for, a stream mode the camera does not have, a recording it cannot play."""
 
 from __future__ import annotations
 
@@ -62,7 +62,8 @@ class DeviceInfo:
 
 
 def list_devices() -> list[DeviceInfo]:
-    """The RealSense cameras connected now (DataError where the library is missing)."""
+    """The RealSense cameras connected now (DataError where the library is missing or cannot
+    enumerate USB devices)."""
     rs = sdk()
     devices = []
     try:

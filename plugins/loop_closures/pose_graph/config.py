@@ -75,7 +75,7 @@ class PoseGraphConfig(PluginConfig):
     colour_max_turn_deg: float = 0.5
     #: metres: nor one moving it further than this along the weakest direction
     colour_max_slide_m: float = 0.10
-    #: metres: nor one moving it less than this along it (within what both registrations err by)
+    #: metres: nor one moving it less than this along it (as short as coloured ICP's own error)
     colour_min_slide_m: float = 0.01
     #: the pose-graph optimiser: gtsam | open3d.
     backend: Backend = Backend.gtsam
