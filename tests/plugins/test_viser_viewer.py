@@ -128,11 +128,12 @@ def test_headless_server_serves_the_page_and_splats_after_keyframes(tmp_path):
 
 
 def test_show_never_waits_for_the_viewers_work(tmp_path):
-    """Renders of 0.3 s each: 30 frames are handed over in far less than one render, the
-    worker skips frames it has no time for, and close() still sends the final map."""
+    """Renders of 1 s each: 30 frames are handed over in less than half a render (waiting for
+    even one would take a whole one; the margin is for a loaded machine), the worker skips
+    frames it has no time for, and close() still sends the final map."""
     gm = GaussianMap()
     _add_gaussians(gm, 20, seed=3)
-    mapper = SlowRenderMapper(0.3, gm)
+    mapper = SlowRenderMapper(1.0, gm)
     viewer = ViserViewer(ViserViewerConfig(port=0, render_every=1, splat_keyframes=1, splat_seconds=0))
     viewer.start(CAMERA, tmp_path)
     start = time.perf_counter()
@@ -140,6 +141,6 @@ def test_show_never_waits_for_the_viewers_work(tmp_path):
         viewer.show(_view(i, gm, mapper, keyframe=i % 3 == 0))
     handed_over = time.perf_counter() - start
     viewer.close(_view(29, gm, mapper, keyframe=False))
-    assert handed_over < 0.25, handed_over
+    assert handed_over < 0.5, handed_over
     assert 1 <= viewer.costs["render"].count < 30  # frames arriving during a render were skipped
     assert viewer.splats_sent == 20
