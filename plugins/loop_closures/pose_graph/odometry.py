@@ -33,9 +33,8 @@ def coloured_odometry(cloud: FeatureCloud, previous: FeatureCloud, relative: np.
     keyframe in `previous`'s camera frame (4x4, metres), coloured ICP's from the tracked
     `relative` when the edge is weakly constrained along its weakest direction and coloured ICP
     only slides along that one, by `colour_min_slide_m` to `colour_max_slide_m`, else
-    `relative` itself. `per_point`: the edge's point-to-plane
-    information per matched point at `relative` (`normalised_information`). Both clouds need
-    colours."""
+    `relative` itself. `per_point`: the edge's point-to-plane information per matched point at
+    `relative` (`normalised_information`). Both clouds need colours."""
     values, vectors = np.linalg.eigh(per_point[3:, 3:])
     if values[0] >= cfg.colour_max_constraint:
         return relative  # where the geometry pins the pose, colour only adds its own errors
