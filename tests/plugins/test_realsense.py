@@ -31,6 +31,7 @@ from slamkit_plugins.datasets.realsense import (  # noqa: E402
     sdk,  # noqa: E402
 )
 from slamkit_plugins.datasets.realsense.bag import write_bag_recording  # noqa: E402
+from slamkit_plugins.datasets.realsense.stream import Stream  # noqa: E402
 from slamkit_plugins.datasets.tum import TUMConfig, TUMDataset  # noqa: E402
 
 from support.realsense_writer import TUM_UNITS_PER_METRE, TumRecordings  # noqa: E402
@@ -102,7 +103,7 @@ def test_every_pass_over_a_recording_gives_every_frame_set(recordings, suffix):
     on a busy machine, which made CI's runs one frame short: these few passes catch that rarely)."""
     recording, want = recordings(suffix), [_tum().timestamp(i) for i in range(N)]
     for _ in range(PASSES):
-        stream = sdk.Stream(recording)
+        stream = Stream(recording)
         try:
             got = [frames.timestamp for frames in iter(lambda: stream.next(5.0), None)]
         finally:
@@ -134,7 +135,7 @@ def test_depth_the_sdk_aligns_to_colour_is_each_frames_own(recordings, suffix, m
     """Depth the SDK reprojects into the colour camera (`rs.align`; here between identical
     cameras, where only its resampling at depth edges changes a pixel) is each frame's own, the
     first included (the SDK gives the first colour and depth frames apart; the reader pairs them)."""
-    monkeypatch.setattr(sdk, "_same_camera", lambda depth, color: False)
+    monkeypatch.setattr("slamkit_plugins.datasets.realsense.stream._same_camera", lambda depth, color: False)
     ds = RealSenseDataset(RealSenseConfig(path=str(recordings(suffix))))
     ref = _tum()
     try:
@@ -155,7 +156,7 @@ def test_a_frame_set_the_sdk_skips_is_played_again_or_named(recording, monkeypat
     its own; skipped on every pass, a one-line error names the frame set."""
     ds = RealSenseDataset(RealSenseConfig(path=str(recording), groundtruth=str(TUM / "groundtruth.txt")))
     ref = _tum()
-    honest, left = sdk.Stream.next, [skipped_passes]
+    honest, left = Stream.next, [skipped_passes]
 
     def skipping(stream, timeout):
         frames = honest(stream, timeout)
@@ -164,7 +165,7 @@ def test_a_frame_set_the_sdk_skips_is_played_again_or_named(recording, monkeypat
             frames = honest(stream, timeout)  # frame set 3 never came: set 4 in its place
         return frames
 
-    monkeypatch.setattr(sdk.Stream, "next", skipping)
+    monkeypatch.setattr(Stream, "next", skipping)
     try:
         if plays:
             for i in range(N):
@@ -189,7 +190,7 @@ def test_a_first_frame_set_the_start_up_pass_missed_is_found_again_or_passed_ove
     passed over on every later pass; at the recorded pace it can come live, and read again once
     passed it is itself, found by its timestamp, not the frame set after it."""
     ref = _tum()
-    honest, left = sdk.Stream.next, [missed]
+    honest, left = Stream.next, [missed]
 
     def missing_the_first(stream, timeout):
         frames = honest(stream, timeout)
@@ -198,7 +199,7 @@ def test_a_first_frame_set_the_start_up_pass_missed_is_found_again_or_passed_ove
             frames = honest(stream, timeout)  # frame set 0 never came
         return frames
 
-    monkeypatch.setattr(sdk.Stream, "next", missing_the_first)
+    monkeypatch.setattr(Stream, "next", missing_the_first)
     ds = RealSenseDataset(RealSenseConfig(path=str(recording), recorded_pace=recorded_pace,
                                           groundtruth=str(TUM / "groundtruth.txt")))
     try:
@@ -220,14 +221,14 @@ def test_a_first_frame_set_the_start_up_pass_missed_is_found_again_or_passed_ove
 
 
 def test_a_recording_whose_times_go_back_is_one_line(recording, monkeypatch):
-    honest, read = sdk.Stream.next, [0]
+    honest, read = Stream.next, [0]
 
     def going_back(stream, timeout):
         frames = honest(stream, timeout)
         read[0] += 1
         return frames if frames is None or read[0] != 3 else dataclasses.replace(frames, timestamp=frames.timestamp - 1)
 
-    monkeypatch.setattr(sdk.Stream, "next", going_back)
+    monkeypatch.setattr(Stream, "next", going_back)
     with pytest.raises(DataError, match=r"^RealSense recording .*fr1\.db3: frame set 2's colour timestamp [\d.]+ s is "
                                         r"not after frame set 1's [\d.]+ s \(expected a recording whose device times "
                                         r"increase\)$"):
@@ -235,7 +236,7 @@ def test_a_recording_whose_times_go_back_is_one_line(recording, monkeypatch):
 
 
 def test_a_recording_without_a_frame_set_is_one_line(recording, monkeypatch):
-    monkeypatch.setattr(sdk.Stream, "next", lambda stream, timeout: None)
+    monkeypatch.setattr(Stream, "next", lambda stream, timeout: None)
     with pytest.raises(DataError, match=r"^RealSense recording .*fr1\.db3 has no frame with both colour and depth "
                                         r"\(expected a recording of a colour and a depth stream\)$"):
         RealSenseDataset(RealSenseConfig(path=str(recording)))

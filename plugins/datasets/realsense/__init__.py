@@ -7,10 +7,11 @@ device's timestamps, the resolution and rate asked for (`dataset.width/height/fp
 picked by `dataset.serial` among several; the run is real time with realtime.drop_frames unless the
 command line says otherwise, and Ctrl-C ends it with its outputs written. `dataset.record=DIR`
 keeps the frames in the TUM layout. docs/datasets.md, "`realsense`: a RealSense camera, live or
-recorded". Modules: `sdk` (the library: cameras, a pipeline, frame sets), `capture` (a live
-source's capture thread), `recording` (the TUM layout writer), `dataset` (the plugin: config and
-dataset); recordings made with no camera from any dataset's frames: `writer` (a .db3, with the
-SDK's software device and recorder) and `bag` (a ROS1 .bag in the SDK's layout, with rosbags).
+recorded". Modules: `sdk` (the library and its cameras), `stream` (a camera or recording as frame
+sets), `playback` (a recording played frame by frame), `capture` (a live source's capture thread),
+`recording` (the TUM layout writer), `dataset` (the plugin: config and dataset); recordings made
+with no camera from any dataset's frames: `writer` (a .db3, with the SDK's software device and
+recorder) and `bag` (a ROS1 .bag in the SDK's layout, with rosbags).
 """
 
 from slamkit.plugin import PluginSpec, hookimpl

@@ -13,7 +13,7 @@ import numpy as np
 from slamkit.errors import DataError
 from slamkit.roles import SourceEnded
 from slamkit_plugins.datasets.realsense.recording import TumRecorder
-from slamkit_plugins.datasets.realsense.sdk import FrameSet, Stream
+from slamkit_plugins.datasets.realsense.stream import FrameSet, Stream
 
 log = logging.getLogger(__name__)
 

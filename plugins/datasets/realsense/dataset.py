@@ -21,7 +21,8 @@ from slamkit.roles import Dataset, DatasetConfig, DatasetTuning, RunContext, req
 from slamkit.types import Camera, Frame
 from slamkit_plugins.datasets.realsense.capture import LiveCapture
 from slamkit_plugins.datasets.realsense.recording import TumRecorder
-from slamkit_plugins.datasets.realsense.sdk import RECORDING_SUFFIXES, FrameSet, Stream
+from slamkit_plugins.datasets.realsense.sdk import RECORDING_SUFFIXES
+from slamkit_plugins.datasets.realsense.stream import FrameSet, Stream
 
 log = logging.getLogger(__name__)
 
