@@ -4,10 +4,12 @@ asked for the recorded pace."""
 
 from __future__ import annotations
 
+import atexit
 import collections
 import queue
 import threading
 import time
+import weakref
 from pathlib import Path
 
 from slamkit.errors import DataError
@@ -20,6 +22,17 @@ FILE_END_MS = POLL_MS
 FILE_QUEUE = 8
 #: Seconds of one stream's frames held at the most while waiting for the other's of their time.
 HELD_S = 2.0
+
+# The playbacks not stopped yet: stopped at the interpreter's exit, before the SDK's own teardown,
+# which aborts the process when it meets a playback device still playing ("FATAL: exception not
+# rethrown"); a user who never calls `Stream.stop` loses nothing for it.
+_PLAYING: weakref.WeakSet = weakref.WeakSet()
+
+
+@atexit.register
+def _stop_playing() -> None:
+    for playback in list(_PLAYING):
+        playback.stop()
 
 
 class RecordingPlayback:
@@ -37,6 +50,7 @@ class RecordingPlayback:
         self.rs, self.where = rs, where
         self.sensors: list = []  # those started: stopped by `stop`
         self.stopping = threading.Event()
+        _PLAYING.add(self)
         try:
             self.context = rs.context()
             self.device = self.context.load_device(str(path))
@@ -147,9 +161,10 @@ class RecordingPlayback:
         return composed.wait_for_frame().as_frameset()
 
     def stop(self) -> None:
-        """Stop the sensors and let the playback go now: a playback device stopped mid-file and
-        destroyed only at the interpreter's exit aborts it ("FATAL: exception not rethrown")."""
+        """Stop the sensors and let the playback go now (at the interpreter's exit at the latest:
+        `_stop_playing`); again is a no-op."""
         self.stopping.set()  # a callback waiting on a full queue returns
+        _PLAYING.discard(self)
         for sensor in self.sensors:
             for step in (sensor.stop, sensor.close):
                 try:
