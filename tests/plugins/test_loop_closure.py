@@ -533,3 +533,35 @@ def test_colour_odometry_takes_a_slide_along_the_weakest_direction_only(striped_
 def test_colour_slide_bounds_are_one_line():
     with pytest.raises(ConfigError, match=r"^loop_closure.colour_min_slide_m: expected below colour_max_slide_m"):
         PoseGraphConfig(colour_min_slide_m=0.2).validate()
+
+
+def test_colour_odometry_gives_the_same_graph_whenever_it_is_read(striped_wall_pair):
+    """The odometry edge colour moves is the same read after each keyframe, once at the end, or
+    through a checkpoint taken before anything read the graph (its information finite there)."""
+    (points_a, colours_a, pose_a), (points_b, colours_b, pose_b) = striped_wall_pair[88], striped_wall_pair[98]
+    truth = relative_pose(pose_a, pose_b)
+    information, _ = alignment_information(FeatureCloud(points_b, 0.025), FeatureCloud(points_a, 0.025), truth, 0.025)
+    _, vectors = np.linalg.eigh(information[3:, 3:])
+    tracked = pose_a @ truth @ make_pose(np.eye(3), 0.04 * vectors[:, 0])
+    keyframes = [LoopKeyframe(0, 88, pose_a, points_a, colours=colours_a),
+                 LoopKeyframe(1, 98, tracked, points_b, colours=colours_b)]
+    cfg = PoseGraphConfig(colour_odometry=True)
+    each = PoseGraphLoopClosure(cfg)
+    for keyframe in keyframes:
+        each.add_keyframe(keyframe)
+        each.detect_and_optimise()
+        each.pose_graph()
+    once = PoseGraphLoopClosure(cfg)
+    for keyframe in keyframes:
+        once.add_keyframe(keyframe)
+    once.detect_and_optimise()
+    state = once.state_dict()
+    assert all(np.isfinite(e["information"]).all() for e in state["edges"])
+    loaded = PoseGraphLoopClosure(cfg)
+    loaded.load_state_dict(state)
+    (edge,) = each.pose_graph().edges
+    assert pose_difference(edge.relative_pose, truth)[0] < 0.02  # moved by colour
+    for closure in (once, loaded):
+        (other,) = closure.pose_graph().edges
+        np.testing.assert_array_equal(other.relative_pose, edge.relative_pose)
+        np.testing.assert_array_equal(other.information, edge.information)

@@ -4,9 +4,9 @@ by odometry edges, verified loops add loop edges, and each accepted loop re-opti
 Per `detect_and_optimise` call, for each keyframe added since the last one, in order:
 1. it joins the graph: its points are downsampled with FPFH features (`FeatureCloud`), and an
    odometry edge from the previous keyframe holds the tracked relative pose (with
-   `colour_odometry`, moved by a slide coloured ICP finds: `odometry`), weighted by the
-   point-to-plane information of the two keyframes' points under it (per matched point, over
-   odometry_sigma_m^2);
+   `colour_odometry`, moved by a slide coloured ICP finds: `odometry`, measured when the graph
+   is next read), weighted by the point-to-plane information of the two keyframes' points under
+   it (per matched point, over odometry_sigma_m^2);
 2. candidates: earlier keyframes (not the last `exclude_recent`, at least `min_path_m` of path
    back) near its place and similar in appearance (`detection`), at most `max_candidates`;
 3. each is verified (`verification`); a loop that passes is tried in the graph (`_consistent`):
@@ -43,6 +43,9 @@ from slamkit_plugins.loop_closures.pose_graph.config import Backend, PoseGraphCo
 
 #: Optimise-and-drop rounds at most per decision (each drops the worst inconsistent loop).
 MAX_DROP_ROUNDS = 10
+#: An odometry edge's information until it is measured (`_measure_with_colour`): NaN, so that a
+#: graph read before then fails loudly rather than optimising with a made-up weight.
+_UNMEASURED = np.full((6, 6), np.nan)
 
 
 @dataclass
@@ -77,6 +80,9 @@ class PoseGraphLoopClosure(LoopClosure):
         self.edges: list[PoseGraphEdge] = []
         self.accepted: list[LoopCheck] = []  # in the graph, in the order of self.edges' loop edges
         self.pending: list[LoopKeyframe] = []
+        # odometry edges in `edges` still as tracked, to be measured with colour before the graph
+        # is read: (the edge, its previous node, its node, the keyframe's information or None)
+        self.uncoloured: list[tuple[PoseGraphEdge, _Node, _Node, np.ndarray | None]] = []
         self.world = 0
         self.world_updates: list[np.ndarray] = []  # per decision that moved keyframes: its last keyframe's update
 
@@ -117,6 +123,7 @@ class PoseGraphLoopClosure(LoopClosure):
         return list(self.accepted)
 
     def pose_graph(self) -> PoseGraph:
+        self._measure_with_colour()
         ids = np.array([n.keyframe_id for n in self.nodes], dtype=np.int64)
         poses = np.array([n.pose for n in self.nodes]).reshape(-1, 4, 4)
         return PoseGraph(ids, poses, tuple(self.edges))
@@ -138,19 +145,42 @@ class PoseGraphLoopClosure(LoopClosure):
             previous = self.nodes[-1]
             relative = relative_pose(previous.pose, pose)
             information = keyframe.odometry_information
-            coloured = cloud.cloud.has_colors() and previous.cloud.cloud.has_colors()
-            if information is None or coloured:
-                per_point, _ = verification.normalised_information(cloud, previous.cloud, relative, cfg.voxel)
-                if coloured:
-                    found = odometry.coloured_odometry(cloud, previous.cloud, relative, per_point, cfg)
-                    if found is not relative and information is None:  # moved: its information where it now is
-                        per_point, _ = verification.normalised_information(cloud, previous.cloud, found, cfg.voxel)
-                    relative = found
-            if information is None:
-                information = (per_point + verification.INFORMATION_FLOOR * np.eye(6)) / cfg.odometry_sigma_m**2
-            self.edges.append(PoseGraphEdge("odometry", previous.keyframe_id, node.keyframe_id, relative,
-                                            np.asarray(information, dtype=np.float64)))
+            if cloud.cloud.has_colors() and previous.cloud.cloud.has_colors():
+                # measured with colour when the graph is next read (`_measure_with_colour`), not
+                # now: a sequence with no loop candidate runs no coloured ICP at all
+                edge = PoseGraphEdge("odometry", previous.keyframe_id, node.keyframe_id, relative, _UNMEASURED)
+                self.uncoloured.append((edge, previous, node, information))
+            else:
+                edge = self._odometry_edge(previous, node, relative, information)
+            self.edges.append(edge)
         self.nodes.append(node)
+
+    def _odometry_edge(self, previous: _Node, node: _Node, relative: np.ndarray,
+                       information: np.ndarray | None) -> PoseGraphEdge:
+        """The odometry edge from `previous` to `node`: the tracked `relative` pose (with colours,
+        moved by a slide coloured ICP finds: `odometry`) and the keyframe's `information`, or
+        where it has none the point-to-plane information of the two clouds under the edge."""
+        cfg = self.cfg
+        coloured = node.cloud.cloud.has_colors() and previous.cloud.cloud.has_colors()
+        if information is None or coloured:
+            per_point, _ = verification.normalised_information(node.cloud, previous.cloud, relative, cfg.voxel)
+            if coloured:
+                found = odometry.coloured_odometry(node.cloud, previous.cloud, relative, per_point, cfg)
+                if found is not relative and information is None:  # moved: its information where it now is
+                    per_point, _ = verification.normalised_information(node.cloud, previous.cloud, found, cfg.voxel)
+                relative = found
+        if information is None:
+            information = (per_point + verification.INFORMATION_FLOOR * np.eye(6)) / cfg.odometry_sigma_m**2
+        return PoseGraphEdge("odometry", previous.keyframe_id, node.keyframe_id, relative,
+                             np.asarray(information, dtype=np.float64))
+
+    def _measure_with_colour(self) -> None:
+        """The odometry edges joined with colours since the graph was last read, measured now
+        (`_odometry_edge`), in their places: called before anything reads the edges."""
+        for edge, previous, node, information in self.uncoloured:
+            index = next(i for i, e in enumerate(self.edges) if e is edge)
+            self.edges[index] = self._odometry_edge(previous, node, edge.relative_pose, information)
+        self.uncoloured = []
 
     def _path(self) -> np.ndarray:
         """(K,) metres of camera path from the first keyframe to each (current estimates)."""
@@ -190,6 +220,7 @@ class PoseGraphLoopClosure(LoopClosure):
     def _odometry_uncertainty(self, query: int) -> np.ndarray:
         """(query, 6, 6): element j is the covariance of odometry's relative pose from node j to
         node `query` (in the query's frame), accumulated along the odometry edges between them."""
+        self._measure_with_colour()
         odometry = [e for e in self.edges if e.kind == "odometry"][:query]  # edge k ends at node k + 1
         poses = np.array([e.relative_pose for e in odometry]).reshape(-1, 4, 4)
         covariances = np.linalg.inv(np.array([e.information for e in odometry]).reshape(-1, 6, 6))
@@ -252,6 +283,7 @@ class PoseGraphLoopClosure(LoopClosure):
     def state_dict(self) -> dict[str, Any]:
         if self.pending:  # a keyframe not yet in the graph would need its raw points: join it first
             raise ValueError("PoseGraphLoopClosure.state_dict: keyframes are pending; call detect_and_optimise first")
+        self._measure_with_colour()
         nodes = [{"keyframe_id": n.keyframe_id, "frame_index": n.frame_index, "pose": n.pose,
                   "median_depth": n.median_depth, "descriptor": n.descriptor, "cloud": n.cloud.arrays()}
                  for n in self.nodes]
@@ -277,4 +309,4 @@ class PoseGraphLoopClosure(LoopClosure):
                          for c in state["loops"]]
         self.world = int(state["world"])
         self.world_updates = [np.asarray(u, dtype=np.float64) for u in state["world_updates"]]
-        self.pending = []
+        self.pending, self.uncoloured = [], []
