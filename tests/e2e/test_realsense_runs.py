@@ -10,6 +10,8 @@ from __future__ import annotations
 import csv
 import json
 import signal
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -49,6 +51,17 @@ def _run(tmp_path, name: str, *args: str):
     proc = run_slamkit(*args, *COMMON, f"hydra.run.dir={out}", cwd=tmp_path, env_extra={"OMP_NUM_THREADS": "1"})
     assert proc.returncode == 0, proc.stderr[-2000:]
     return read_tum_trajectory(out / "trajectory.txt"), json.loads((out / "metrics.json").read_text()), out
+
+
+@pytest.mark.parametrize("suffix", RECORDING_SUFFIXES)
+def test_a_recording_left_playing_mid_file_does_not_abort_the_interpreters_exit(recordings, suffix):
+    """A script that reads one frame set of a recording and exits without stopping it ends
+    normally (the SDK's teardown met the playback still playing and aborted the process)."""
+    script = ("import sys; from slamkit_plugins.datasets.realsense.stream import Stream; "
+              "print(Stream(sys.argv[1]).next(5.0).number)")
+    proc = subprocess.run([sys.executable, "-c", script, str(recordings(suffix))], capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 0 and proc.stdout.strip(), proc.stderr[-2000:]
 
 
 @pytest.mark.slow
