@@ -9,6 +9,12 @@ for a run with `loop_closure=pose_graph` and the same sequence's run with `loop_
   (the ground truth's relative pose, the loop's own information) at each accepted pair: whether
   what is left is the loops' error or the graph's odometry.
 
+With `--other RUN` (the same sequence's pose_graph run with another setting, such as
+`loop_closure.colour_odometry=true`): each odometry edge between the same two keyframes (by
+timestamp) whose relative poses in the two graphs are more than `--apart-cm` apart, with its
+error against the ground truth in each: which edges the setting moved, and whether towards the
+truth.
+
 Prints a table and writes JSON (--out).
 
     python benchmarks/loop_closure_runs.py --cases synthetic --sequences synthetic_revisit_rotated --runs-dir DIR
@@ -70,13 +76,49 @@ def trace(run: Path, none_run: Path) -> dict:
             "none_keyframe_ate_m": ate(none_poses, none_truth).rmse_m}
 
 
+def odometry_by_stamps(run: Path) -> dict[tuple[float, float], tuple[np.ndarray, np.ndarray]]:
+    """(source stamp, target stamp) -> (the odometry edge's relative pose in pose_graph.g2o, the
+    ground truth's), for every odometry edge whose keyframes have ground truth."""
+    graph = read_g2o(run / "pose_graph.g2o")
+    stamps, _ = read_tum_trajectory(run / "keyframes.txt")
+    truth = keyframe_truth(run)
+    return {(round(float(stamps[e.source]), 6), round(float(stamps[e.target]), 6)):
+            (e.relative_pose, relative_pose(truth[e.source], truth[e.target]))
+            for e in graph.edges if e.kind == "odometry" and np.isfinite(truth[[e.source, e.target]]).all()}
+
+
+def edges_apart(run: Path, other: Path, apart_m: float) -> list[dict]:
+    """The odometry edges between the same keyframes whose relative poses in `run` and `other`
+    differ by more than `apart_m` metres of translation, each with its error against the truth in both."""
+    mine, theirs = odometry_by_stamps(run), odometry_by_stamps(other)
+    rows = []
+    for key in sorted(set(mine) & set(theirs)):
+        (a, truth), (b, _) = mine[key], theirs[key]
+        apart = float(edge_errors(a[None], b[None])[0])
+        if apart > apart_m:
+            rows.append({"from": key[0], "to": key[1], "apart_m": apart,
+                         "error_m": float(edge_errors(a[None], truth[None])[0]),
+                         "other_error_m": float(edge_errors(b[None], truth[None])[0])})
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("run", type=Path, help="a loop_closure=pose_graph run folder")
     parser.add_argument("none_run", type=Path, help="the same sequence's loop_closure=none run folder")
+    parser.add_argument("--other", type=Path, help="the same sequence's pose_graph run with another setting")
+    parser.add_argument("--apart-cm", type=float, default=0.5, help="edges further apart than this are listed")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/loop_closure_graph_trace.json"))
     args = parser.parse_args()
     row = trace(args.run, args.none_run)
+    if args.other is not None:
+        row["other_run"] = str(args.other)
+        row["other_trace"] = trace(args.other, args.none_run)
+        row["edges_apart"] = edges_apart(args.run, args.other, args.apart_cm / 100)
+        print(markdown_table([["edge (frames)", "apart", "error", "error in --other"]]
+                             + [[f"{r['from']:g} -> {r['to']:g}", f"{100 * r['apart_m']:.2f} cm",
+                                 f"{100 * r['error_m']:.2f} cm", f"{100 * r['other_error_m']:.2f} cm"]
+                                for r in row["edges_apart"]]))
     print(markdown_table([["keyframes (none)", "loops", "odometry error sum (none)", "keyframe ATE (none)",
                            "keyframe ATE, exact loops at the accepted pairs"],
                           [f"{row['keyframes']} ({row['none_keyframes']})", str(row["loops"]),
