@@ -96,7 +96,7 @@ def edges_apart(run: Path, other: Path, apart_m: float) -> list[dict]:
         (a, truth), (b, _) = mine[key], theirs[key]
         apart = float(edge_errors(a[None], b[None])[0])
         if apart > apart_m:
-            rows.append({"from": key[0], "to": key[1], "apart_m": apart,
+            rows.append({"from_stamp": key[0], "to_stamp": key[1], "apart_m": apart,
                          "error_m": float(edge_errors(a[None], truth[None])[0]),
                          "other_error_m": float(edge_errors(b[None], truth[None])[0])})
     return rows
@@ -115,8 +115,8 @@ def main() -> None:
         row["other_run"] = str(args.other)
         row["other_trace"] = trace(args.other, args.none_run)
         row["edges_apart"] = edges_apart(args.run, args.other, args.apart_cm / 100)
-        print(markdown_table([["edge (frames)", "apart", "error", "error in --other"]]
-                             + [[f"{r['from']:g} -> {r['to']:g}", f"{100 * r['apart_m']:.2f} cm",
+        print(markdown_table([["edge (keyframe timestamps)", "apart", "error", "error in --other"]]
+                             + [[f"{r['from_stamp']:.6f} -> {r['to_stamp']:.6f}", f"{100 * r['apart_m']:.2f} cm",
                                  f"{100 * r['error_m']:.2f} cm", f"{100 * r['other_error_m']:.2f} cm"]
                                 for r in row["edges_apart"]]))
     print(markdown_table([["keyframes (none)", "loops", "odometry error sum (none)", "keyframe ATE (none)",

@@ -537,7 +537,7 @@ def test_colour_slide_bounds_are_one_line():
 
 def test_colour_odometry_gives_the_same_graph_whenever_it_is_read(striped_wall_pair):
     """The odometry edge colour moves is the same read after each keyframe, once at the end, or
-    through a checkpoint taken before anything read the graph (its information finite there)."""
+    through a checkpoint taken before anything read the graph (which keeps it to be measured)."""
     (points_a, colours_a, pose_a), (points_b, colours_b, pose_b) = striped_wall_pair[88], striped_wall_pair[98]
     truth = relative_pose(pose_a, pose_b)
     information, _ = alignment_information(FeatureCloud(points_b, 0.025), FeatureCloud(points_a, 0.025), truth, 0.025)
@@ -556,7 +556,6 @@ def test_colour_odometry_gives_the_same_graph_whenever_it_is_read(striped_wall_p
         once.add_keyframe(keyframe)
     once.detect_and_optimise()
     state = once.state_dict()
-    assert all(np.isfinite(e["information"]).all() for e in state["edges"])
     loaded = PoseGraphLoopClosure(cfg)
     loaded.load_state_dict(state)
     (edge,) = each.pose_graph().edges

@@ -13,8 +13,10 @@ import weakref
 from pathlib import Path
 
 from slamkit.errors import DataError
-from slamkit_plugins.datasets.realsense.sdk import POLL_MS, first_line, no_frame
+from slamkit_plugins.datasets.realsense.sdk import first_line, no_frame
 
+#: Milliseconds between two looks at a recording's playback status while waiting for its next frame set.
+POLL_MS = 100
 #: Milliseconds a recording played frame by frame is waited on once it has ended (its end is
 #: signalled after its last frames are handed over: one more look).
 FILE_END_MS = POLL_MS
@@ -27,11 +29,14 @@ HELD_S = 2.0
 # which aborts the process when it meets a playback device still playing ("FATAL: exception not
 # rethrown"); a user who never calls `Stream.stop` loses nothing for it.
 _PLAYING: weakref.WeakSet = weakref.WeakSet()
+_PLAYING_LOCK = threading.Lock()  # a reader's thread may start or stop one while the exit looks
 
 
 @atexit.register
 def _stop_playing() -> None:
-    for playback in list(_PLAYING):
+    with _PLAYING_LOCK:
+        playing = list(_PLAYING)
+    for playback in playing:
         playback.stop()
 
 
@@ -50,7 +55,8 @@ class RecordingPlayback:
         self.rs, self.where = rs, where
         self.sensors: list = []  # those started: stopped by `stop`
         self.stopping = threading.Event()
-        _PLAYING.add(self)
+        with _PLAYING_LOCK:
+            _PLAYING.add(self)
         try:
             self.context = rs.context()
             self.device = self.context.load_device(str(path))
@@ -164,7 +170,8 @@ class RecordingPlayback:
         """Stop the sensors and let the playback go now (at the interpreter's exit at the latest:
         `_stop_playing`); again is a no-op."""
         self.stopping.set()  # a callback waiting on a full queue returns
-        _PLAYING.discard(self)
+        with _PLAYING_LOCK:
+            _PLAYING.discard(self)
         for sensor in self.sensors:
             for step in (sensor.stop, sensor.close):
                 try:

@@ -1,8 +1,9 @@
 """Intel's RealSense SDK (`pyrealsense2`, the optional extra `realsense`) as the `realsense`
 dataset uses it: the library, the cameras connected and the one to open, and the library's
 failures as one-line DataErrors saying what is missing (the library, its access to USB, a
-camera, the camera asked for). The sources it opens: `stream` (a camera or a recording as
-colour + depth frame sets) and `playback` (a recording played frame by frame)."""
+camera, the camera asked for), and the one-line errors its sources share (`first_line`,
+`no_frame`). The sources: `stream` (a camera or a recording as colour + depth frame sets) and
+`playback` (a recording played frame by frame)."""
 
 from __future__ import annotations
 
@@ -17,8 +18,6 @@ from slamkit.errors import DataError
 REQUIREMENT = "pyrealsense2==2.59.1.11053"
 #: The recordings the SDK plays: ROS1 bags (every SDK version) and ROS2 SQLite (SDK 2.59 records these).
 RECORDING_SUFFIXES = (".bag", ".db3")
-#: Milliseconds between two looks at a recording's playback status while waiting for its next frame set.
-POLL_MS = 100
 
 
 def sdk():
@@ -92,7 +91,6 @@ def no_frame(where: str, timeout_s: float, fps: int, recording: bool) -> DataErr
     why = "did it end early?" if recording else "is it still connected?"
     return DataError(f"{where} gave no frame in {timeout_s:g} s (expected one every 1/{fps} s; {why} "
                      "dataset.timeout_s waits longer)")
-
 
 
 def first_line(exc: BaseException) -> str:

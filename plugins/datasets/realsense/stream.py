@@ -14,8 +14,8 @@ import numpy as np
 
 from slamkit.errors import DataError
 from slamkit.types import Camera
-from slamkit_plugins.datasets.realsense.playback import RecordingPlayback
-from slamkit_plugins.datasets.realsense.sdk import POLL_MS, choose_device, decimal, first_line, no_frame, sdk
+from slamkit_plugins.datasets.realsense.playback import POLL_MS, RecordingPlayback
+from slamkit_plugins.datasets.realsense.sdk import choose_device, decimal, first_line, no_frame, sdk
 
 #: Milliseconds a recording read to its end is still waited on for its last frame sets.
 END_DRAIN_MS = 1000

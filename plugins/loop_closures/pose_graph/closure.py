@@ -43,9 +43,11 @@ from slamkit_plugins.loop_closures.pose_graph.config import Backend, PoseGraphCo
 
 #: Optimise-and-drop rounds at most per decision (each drops the worst inconsistent loop).
 MAX_DROP_ROUNDS = 10
-#: An odometry edge's information until it is measured (`_measure_with_colour`): NaN, so that a
-#: graph read before then fails loudly rather than optimising with a made-up weight.
+#: An odometry edge's information until it is measured (`_measure_with_colour`): NaN, which
+#: `pose_graph` refuses, so that a graph read before then fails rather than optimising with a
+#: made-up weight (the optimisers would take NaN silently).
 _UNMEASURED = np.full((6, 6), np.nan)
+_UNMEASURED.setflags(write=False)
 
 
 @dataclass
@@ -80,9 +82,10 @@ class PoseGraphLoopClosure(LoopClosure):
         self.edges: list[PoseGraphEdge] = []
         self.accepted: list[LoopCheck] = []  # in the graph, in the order of self.edges' loop edges
         self.pending: list[LoopKeyframe] = []
-        # odometry edges in `edges` still as tracked, to be measured with colour before the graph
-        # is read: (the edge, its previous node, its node, the keyframe's information or None)
-        self.uncoloured: list[tuple[PoseGraphEdge, _Node, _Node, np.ndarray | None]] = []
+        # odometry edges between coloured clouds, in `edges` still as tracked, to be measured with
+        # colour before the graph is read: (the edge, its previous node, its node, the keyframe's
+        # information or None)
+        self.unmeasured: list[tuple[PoseGraphEdge, _Node, _Node, np.ndarray | None]] = []
         self.world = 0
         self.world_updates: list[np.ndarray] = []  # per decision that moved keyframes: its last keyframe's update
 
@@ -124,6 +127,8 @@ class PoseGraphLoopClosure(LoopClosure):
 
     def pose_graph(self) -> PoseGraph:
         self._measure_with_colour()
+        if not all(np.isfinite(e.information).all() for e in self.edges):
+            raise RuntimeError("PoseGraphLoopClosure.pose_graph: an edge's information is not finite")
         ids = np.array([n.keyframe_id for n in self.nodes], dtype=np.int64)
         poses = np.array([n.pose for n in self.nodes]).reshape(-1, 4, 4)
         return PoseGraph(ids, poses, tuple(self.edges))
@@ -149,7 +154,7 @@ class PoseGraphLoopClosure(LoopClosure):
                 # measured with colour when the graph is next read (`_measure_with_colour`), not
                 # now: a sequence with no loop candidate runs no coloured ICP at all
                 edge = PoseGraphEdge("odometry", previous.keyframe_id, node.keyframe_id, relative, _UNMEASURED)
-                self.uncoloured.append((edge, previous, node, information))
+                self.unmeasured.append((edge, previous, node, information))
             else:
                 edge = self._odometry_edge(previous, node, relative, information)
             self.edges.append(edge)
@@ -177,10 +182,11 @@ class PoseGraphLoopClosure(LoopClosure):
     def _measure_with_colour(self) -> None:
         """The odometry edges joined with colours since the graph was last read, measured now
         (`_odometry_edge`), in their places: called before anything reads the edges."""
-        for edge, previous, node, information in self.uncoloured:
-            index = next(i for i, e in enumerate(self.edges) if e is edge)
+        while self.unmeasured:  # one at a time: a registration that raises leaves the rest to measure
+            edge, previous, node, information = self.unmeasured[0]
+            index = next(i for i, e in enumerate(self.edges) if e is edge)  # by identity: edges hold arrays
             self.edges[index] = self._odometry_edge(previous, node, edge.relative_pose, information)
-        self.uncoloured = []
+            self.unmeasured.pop(0)
 
     def _path(self) -> np.ndarray:
         """(K,) metres of camera path from the first keyframe to each (current estimates)."""
@@ -283,12 +289,15 @@ class PoseGraphLoopClosure(LoopClosure):
     def state_dict(self) -> dict[str, Any]:
         if self.pending:  # a keyframe not yet in the graph would need its raw points: join it first
             raise ValueError("PoseGraphLoopClosure.state_dict: keyframes are pending; call detect_and_optimise first")
-        self._measure_with_colour()
+        unmeasured = {id(edge): information for edge, _, _, information in self.unmeasured}
         nodes = [{"keyframe_id": n.keyframe_id, "frame_index": n.frame_index, "pose": n.pose,
                   "median_depth": n.median_depth, "descriptor": n.descriptor, "cloud": n.cloud.arrays()}
                  for n in self.nodes]
+        # an edge not yet measured with colour stays so (measured when the loaded graph is read),
+        # with the keyframe's information or None: a checkpoint runs no coloured ICP
         edges = [{"kind": e.kind, "source": e.source, "target": e.target, "relative_pose": e.relative_pose,
-                  "information": e.information} for e in self.edges]
+                  "information": unmeasured.get(id(e), e.information), "measured": id(e) not in unmeasured}
+                 for e in self.edges]
         loops = [{**c.row(), "relative_pose": c.relative_pose, "reason": c.reason} for c in self.accepted]
         return {"nodes": nodes, "edges": edges, "loops": loops, "world": self.world,
                 "world_updates": list(self.world_updates)}
@@ -299,9 +308,18 @@ class PoseGraphLoopClosure(LoopClosure):
                             FeatureCloud.from_arrays(n["cloud"], voxel),
                             None if n["descriptor"] is None else np.asarray(n["descriptor"], dtype=np.float32),
                             float(n["median_depth"])) for n in state["nodes"]]
-        self.edges = [PoseGraphEdge(str(e["kind"]), int(e["source"]), int(e["target"]),
-                                    np.asarray(e["relative_pose"], dtype=np.float64),
-                                    np.asarray(e["information"], dtype=np.float64)) for e in state["edges"]]
+        by_id = {n.keyframe_id: n for n in self.nodes}
+        self.edges, self.unmeasured = [], []
+        for e in state["edges"]:
+            source, target = int(e["source"]), int(e["target"])
+            relative = np.asarray(e["relative_pose"], dtype=np.float64)
+            information = None if e["information"] is None else np.asarray(e["information"], dtype=np.float64)
+            if e.get("measured", True):
+                self.edges.append(PoseGraphEdge(str(e["kind"]), source, target, relative, information))
+            else:
+                edge = PoseGraphEdge("odometry", source, target, relative, _UNMEASURED)
+                self.unmeasured.append((edge, by_id[source], by_id[target], information))
+                self.edges.append(edge)
         self.accepted = [LoopCheck(int(c["keyframe"]), int(c["match_keyframe"]), int(c["frame"]),
                                    int(c["match_frame"]), np.asarray(c["relative_pose"], dtype=np.float64),
                                    float(c["fitness"]), int(c["inliers"]), float(c["inlier_rmse_m"]),
@@ -309,4 +327,4 @@ class PoseGraphLoopClosure(LoopClosure):
                          for c in state["loops"]]
         self.world = int(state["world"])
         self.world_updates = [np.asarray(u, dtype=np.float64) for u in state["world_updates"]]
-        self.pending, self.uncoloured = [], []
+        self.pending = []
