@@ -4,9 +4,9 @@ by odometry edges, verified loops add loop edges, and each accepted loop re-opti
 Per `detect_and_optimise` call, for each keyframe added since the last one, in order:
 1. it joins the graph: its points are downsampled with FPFH features (`FeatureCloud`), and an
    odometry edge from the previous keyframe holds the tracked relative pose (with
-   `colour_odometry`, moved by a slide coloured ICP finds: `odometry`, measured when the graph
-   is next read), weighted by the point-to-plane information of the two keyframes' points under
-   it (per matched point, over odometry_sigma_m^2);
+   `colour_odometry`, moved by a slide coloured ICP finds, measured when the graph is next
+   read: `odometry.OdometryEdges`), weighted by the keyframe's information or the point-to-plane
+   information of the two keyframes' points under it;
 2. candidates: earlier keyframes (not the last `exclude_recent`, at least `min_path_m` of path
    back) near its place and similar in appearance (`detection`), at most `max_candidates`;
 3. each is verified (`verification`); a loop that passes is tried in the graph (`_consistent`):
@@ -43,11 +43,6 @@ from slamkit_plugins.loop_closures.pose_graph.config import Backend, PoseGraphCo
 
 #: Optimise-and-drop rounds at most per decision (each drops the worst inconsistent loop).
 MAX_DROP_ROUNDS = 10
-#: An odometry edge's information until it is measured (`_measure_with_colour`): NaN, which
-#: `pose_graph` refuses, so that a graph read before then fails rather than optimising with a
-#: made-up weight (the optimisers would take NaN silently).
-_UNMEASURED = np.full((6, 6), np.nan)
-_UNMEASURED.setflags(write=False)
 
 
 @dataclass
@@ -79,13 +74,10 @@ class PoseGraphLoopClosure(LoopClosure):
         if cfg.backend is Backend.gtsam:
             optimisation.import_gtsam()
         self.nodes: list[_Node] = []
-        self.edges: list[PoseGraphEdge] = []
-        self.accepted: list[LoopCheck] = []  # in the graph, in the order of self.edges' loop edges
+        self.odometry = odometry.OdometryEdges(cfg)
+        self.loop_edges: list[PoseGraphEdge] = []  # in the order they joined
+        self.accepted: list[LoopCheck] = []  # in the graph, in the order of loop_edges
         self.pending: list[LoopKeyframe] = []
-        # odometry edges between coloured clouds, in `edges` still as tracked, to be measured with
-        # colour before the graph is read: (the edge, its previous node, its node, the keyframe's
-        # information or None)
-        self.unmeasured: list[tuple[PoseGraphEdge, _Node, _Node, np.ndarray | None]] = []
         self.world = 0
         self.world_updates: list[np.ndarray] = []  # per decision that moved keyframes: its last keyframe's update
 
@@ -126,12 +118,18 @@ class PoseGraphLoopClosure(LoopClosure):
         return list(self.accepted)
 
     def pose_graph(self) -> PoseGraph:
-        self._measure_with_colour()
-        if not all(np.isfinite(e.information).all() for e in self.edges):
+        edges = self._edges()
+        if not all(np.isfinite(e.information).all() for e in edges):
             raise RuntimeError("PoseGraphLoopClosure.pose_graph: an edge's information is not finite")
         ids = np.array([n.keyframe_id for n in self.nodes], dtype=np.int64)
         poses = np.array([n.pose for n in self.nodes]).reshape(-1, 4, 4)
-        return PoseGraph(ids, poses, tuple(self.edges))
+        return PoseGraph(ids, poses, tuple(edges))
+
+    def _edges(self) -> list[PoseGraphEdge]:
+        """Every edge, measured, in the order they joined: each keyframe's odometry edge, then
+        the loops found from it (the order fixes the optimisers' and pose_graph.g2o's)."""
+        order = {n.keyframe_id: k for k, n in enumerate(self.nodes)}
+        return sorted(self.odometry.measured() + self.loop_edges, key=lambda e: (order[e.target], e.kind == "loop"))
 
     # -- the steps ----------------------------------------------------------------------------
 
@@ -148,45 +146,9 @@ class PoseGraphLoopClosure(LoopClosure):
         node = _Node(keyframe.keyframe_id, keyframe.frame_index, pose, cloud, descriptor, depth)
         if self.nodes:
             previous = self.nodes[-1]
-            relative = relative_pose(previous.pose, pose)
-            information = keyframe.odometry_information
-            if cloud.cloud.has_colors() and previous.cloud.cloud.has_colors():
-                # measured with colour when the graph is next read (`_measure_with_colour`), not
-                # now: a sequence with no loop candidate runs no coloured ICP at all
-                edge = PoseGraphEdge("odometry", previous.keyframe_id, node.keyframe_id, relative, _UNMEASURED)
-                self.unmeasured.append((edge, previous, node, information))
-            else:
-                edge = self._odometry_edge(previous, node, relative, information)
-            self.edges.append(edge)
+            self.odometry.join(previous.keyframe_id, previous.cloud, node.keyframe_id, cloud,
+                               relative_pose(previous.pose, pose), keyframe.odometry_information)
         self.nodes.append(node)
-
-    def _odometry_edge(self, previous: _Node, node: _Node, relative: np.ndarray,
-                       information: np.ndarray | None) -> PoseGraphEdge:
-        """The odometry edge from `previous` to `node`: the tracked `relative` pose (with colours,
-        moved by a slide coloured ICP finds: `odometry`) and the keyframe's `information`, or
-        where it has none the point-to-plane information of the two clouds under the edge."""
-        cfg = self.cfg
-        coloured = node.cloud.cloud.has_colors() and previous.cloud.cloud.has_colors()
-        if information is None or coloured:
-            per_point, _ = verification.normalised_information(node.cloud, previous.cloud, relative, cfg.voxel)
-            if coloured:
-                found = odometry.coloured_odometry(node.cloud, previous.cloud, relative, per_point, cfg)
-                if found is not relative and information is None:  # moved: its information where it now is
-                    per_point, _ = verification.normalised_information(node.cloud, previous.cloud, found, cfg.voxel)
-                relative = found
-        if information is None:
-            information = (per_point + verification.INFORMATION_FLOOR * np.eye(6)) / cfg.odometry_sigma_m**2
-        return PoseGraphEdge("odometry", previous.keyframe_id, node.keyframe_id, relative,
-                             np.asarray(information, dtype=np.float64))
-
-    def _measure_with_colour(self) -> None:
-        """The odometry edges joined with colours since the graph was last read, measured now
-        (`_odometry_edge`), in their places: called before anything reads the edges."""
-        while self.unmeasured:  # one at a time: a registration that raises leaves the rest to measure
-            edge, previous, node, information = self.unmeasured[0]
-            index = next(i for i, e in enumerate(self.edges) if e is edge)  # by identity: edges hold arrays
-            self.edges[index] = self._odometry_edge(previous, node, edge.relative_pose, information)
-            self.unmeasured.pop(0)
 
     def _path(self) -> np.ndarray:
         """(K,) metres of camera path from the first keyframe to each (current estimates)."""
@@ -214,8 +176,8 @@ class PoseGraphLoopClosure(LoopClosure):
         for j in candidates:
             match = self.nodes[j]
             ids = (node.keyframe_id, match.keyframe_id, node.frame_index, match.frame_index)
-            odometry = relative_pose(match.pose, node.pose)
-            check, information = verification.verify(node.cloud, match.cloud, odometry, uncertainty[j], cfg, ids,
+            tracked = relative_pose(match.pose, node.pose)
+            check, information = verification.verify(node.cloud, match.cloud, tracked, uncertainty[j], cfg, ids,
                                                      cfg.seed + node.keyframe_id)
             if check.accepted:
                 check = self._consistent(check, PoseGraphEdge("loop", match.keyframe_id, node.keyframe_id,
@@ -226,10 +188,9 @@ class PoseGraphLoopClosure(LoopClosure):
     def _odometry_uncertainty(self, query: int) -> np.ndarray:
         """(query, 6, 6): element j is the covariance of odometry's relative pose from node j to
         node `query` (in the query's frame), accumulated along the odometry edges between them."""
-        self._measure_with_colour()
-        odometry = [e for e in self.edges if e.kind == "odometry"][:query]  # edge k ends at node k + 1
-        poses = np.array([e.relative_pose for e in odometry]).reshape(-1, 4, 4)
-        covariances = np.linalg.inv(np.array([e.information for e in odometry]).reshape(-1, 6, 6))
+        edges = self.odometry.measured()[:query]  # edge k ends at node k + 1
+        poses = np.array([e.relative_pose for e in edges]).reshape(-1, 4, 4)
+        covariances = np.linalg.inv(np.array([e.information for e in edges]).reshape(-1, 6, 6))
         return chain_covariances(poses, covariances)
 
     def _consistent(self, check: LoopCheck, edge: PoseGraphEdge) -> LoopCheck:
@@ -239,17 +200,17 @@ class PoseGraphLoopClosure(LoopClosure):
         loops already there. A wrong loop that passed verification bends the graph, and the
         edges it bends (or itself, when the robust kernel lets it go) fail; a right one's
         correction spreads over the odometry edges within their noise. Else the edge is left out."""
-        self.edges.append(edge)
+        self.loop_edges.append(edge)
         graph = self.pose_graph()
         chi2 = optimisation.whitened_residuals(graph, optimisation.optimise(graph, self.cfg.backend,
                                                                              self.cfg.robust_width)) ** 2
         bound = optimisation.chi_square_6_quantile(self.cfg.consistency_confidence)
-        worst = {kind: max(((float(c), e) for c, e in zip(chi2, self.edges) if e.kind == kind),
+        worst = {kind: max(((float(c), e) for c, e in zip(chi2, graph.edges) if e.kind == kind),
                            key=lambda pair: pair[0], default=(0.0, None)) for kind in ("odometry", "loop")}
         figures = ", ".join(f"{kind} {c:.1f}" for kind, (c, _) in worst.items())
         failed = [(c, e) for c, e in worst.values() if c > bound]
         if failed:
-            self.edges.pop()
+            self.loop_edges.pop()
             c, e = failed[0]
             return _refused(check, f"inconsistent with the graph: {e.kind} edge {e.source}->{e.target} chi-square "
                                    f"{c:.1f} > {bound:.1f} once optimised with it (largest: {figures})")
@@ -267,11 +228,12 @@ class PoseGraphLoopClosure(LoopClosure):
             graph = self.pose_graph()
             poses = optimisation.optimise(graph, self.cfg.backend, self.cfg.robust_width)
             residuals = optimisation.whitened_residuals(graph, poses)
-            loops = [i for i, e in enumerate(self.edges) if e.kind == "loop"]
+            loops = [i for i, e in enumerate(graph.edges) if e.kind == "loop"]
             worst = max(loops, key=lambda i: residuals[i], default=None)
             if worst is None or residuals[worst] <= self.cfg.max_loop_residual:
                 break
-            edge = self.edges.pop(worst)
+            edge = graph.edges[worst]
+            self.loop_edges = [e for e in self.loop_edges if e is not edge]
             key = (edge.target, edge.source)
             check = next(c for c in self.accepted if (c.keyframe_id, c.match_id) == key)
             self.accepted.remove(check)
@@ -289,15 +251,12 @@ class PoseGraphLoopClosure(LoopClosure):
     def state_dict(self) -> dict[str, Any]:
         if self.pending:  # a keyframe not yet in the graph would need its raw points: join it first
             raise ValueError("PoseGraphLoopClosure.state_dict: keyframes are pending; call detect_and_optimise first")
-        unmeasured = {id(edge): information for edge, _, _, information in self.unmeasured}
         nodes = [{"keyframe_id": n.keyframe_id, "frame_index": n.frame_index, "pose": n.pose,
                   "median_depth": n.median_depth, "descriptor": n.descriptor, "cloud": n.cloud.arrays()}
                  for n in self.nodes]
-        # an edge not yet measured with colour stays so (measured when the loaded graph is read),
-        # with the keyframe's information or None: a checkpoint runs no coloured ICP
-        edges = [{"kind": e.kind, "source": e.source, "target": e.target, "relative_pose": e.relative_pose,
-                  "information": unmeasured.get(id(e), e.information), "measured": id(e) not in unmeasured}
-                 for e in self.edges]
+        edges = self.odometry.state_dict() + [
+            {"kind": e.kind, "source": e.source, "target": e.target, "relative_pose": e.relative_pose,
+             "information": e.information} for e in self.loop_edges]
         loops = [{**c.row(), "relative_pose": c.relative_pose, "reason": c.reason} for c in self.accepted]
         return {"nodes": nodes, "edges": edges, "loops": loops, "world": self.world,
                 "world_updates": list(self.world_updates)}
@@ -308,18 +267,12 @@ class PoseGraphLoopClosure(LoopClosure):
                             FeatureCloud.from_arrays(n["cloud"], voxel),
                             None if n["descriptor"] is None else np.asarray(n["descriptor"], dtype=np.float32),
                             float(n["median_depth"])) for n in state["nodes"]]
-        by_id = {n.keyframe_id: n for n in self.nodes}
-        self.edges, self.unmeasured = [], []
-        for e in state["edges"]:
-            source, target = int(e["source"]), int(e["target"])
-            relative = np.asarray(e["relative_pose"], dtype=np.float64)
-            information = None if e["information"] is None else np.asarray(e["information"], dtype=np.float64)
-            if e.get("measured", True):
-                self.edges.append(PoseGraphEdge(str(e["kind"]), source, target, relative, information))
-            else:
-                edge = PoseGraphEdge("odometry", source, target, relative, _UNMEASURED)
-                self.unmeasured.append((edge, by_id[source], by_id[target], information))
-                self.edges.append(edge)
+        self.odometry.load_state_dict([e for e in state["edges"] if e["kind"] == "odometry"],
+                                      {n.keyframe_id: n.cloud for n in self.nodes})
+        self.loop_edges = [PoseGraphEdge("loop", int(e["source"]), int(e["target"]),
+                                         np.asarray(e["relative_pose"], dtype=np.float64),
+                                         np.asarray(e["information"], dtype=np.float64))
+                           for e in state["edges"] if e["kind"] == "loop"]
         self.accepted = [LoopCheck(int(c["keyframe"]), int(c["match_keyframe"]), int(c["frame"]),
                                    int(c["match_frame"]), np.asarray(c["relative_pose"], dtype=np.float64),
                                    float(c["fitness"]), int(c["inliers"]), float(c["inlier_rmse_m"]),
