@@ -55,6 +55,7 @@ from pathlib import Path
 import numpy as np
 
 from slamkit.cli.bench import markdown_table
+from slamkit.config import RunContext
 from slamkit.geometry import invert_pose, nearest_rotation, project_points, se3_exp, transform_points
 from slamkit.geometry.registration import refine
 from slamkit.metrics.trajectory import ate
@@ -439,8 +440,11 @@ def coverage(closure, geo: Geometry, seq: TrackedSequence, gt: np.ndarray, cfg) 
 def feed(seq: TrackedSequence, overrides: list[str], wrong_loop: bool):
     """(the loop closure after every keyframe went through it, every check it made, CPU seconds,
     the (keyframe, match) of the injected wrong loop or None)."""
-    cfg, names = compose_run(["loop_closure=pose_graph", *overrides])
-    closure = default_registry().create("loop_closure", names["loop_closure"], cfg.loop_closure)
+    cfg, names = compose_run([*seq.overrides, "loop_closure=pose_graph", *overrides])
+    registry = default_registry()
+    # the sequence's dataset tuning, as in a run (colour_odometry left null follows its colour_registered)
+    context = RunContext(tuning=registry.create("dataset", names["dataset"], cfg.dataset).tuning, build=registry.create)
+    closure = registry.create("loop_closure", names["loop_closure"], cfg.loop_closure, context)
     injected: list[tuple[int, int]] = []
     honest = verification.verify
 
@@ -462,7 +466,7 @@ def feed(seq: TrackedSequence, overrides: list[str], wrong_loop: bool):
             cpu += time.process_time() - start
     finally:
         pose_graph_closure.verification.verify = honest
-    return closure, cfg.loop_closure, checks, cpu, injected[0] if injected else None
+    return closure, closure.cfg, checks, cpu, injected[0] if injected else None
 
 
 def measure(name: str, seq: TrackedSequence, overrides: list[str], wrong_loop: bool, oracle: bool,

@@ -31,3 +31,5 @@ class DatasetTuning:
     keyframe_threshold: float = 0.81
     #: the reference code's tracking target holds map Gaussians more opaque than this (0.09 TUM, 0.05 Replica)
     target_min_opacity: float = 0.09
+    #: a depth pixel's colour is its own surface point's (false: colour and depth cameras not registered to each other)
+    colour_registered: bool = True

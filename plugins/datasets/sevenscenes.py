@@ -66,7 +66,9 @@ def read_intrinsics(path: Path) -> tuple[float, float, float, float]:
 class SevenScenesDataset(Dataset):
     """7-Scenes / 3DMatch sequence. Depth in metres (0 = invalid); gt_pose camera-to-world."""
 
-    default_tuning = DatasetTuning(depth_trunc=4.0)  # a Kinect v1, like TUM's (depth_scale: the config's)
+    # a Kinect v1, like TUM's (depth_scale: the config's), whose colour and depth images come from
+    # two cameras never registered to each other (docs/datasets.md, "Colour against depth")
+    default_tuning = DatasetTuning(depth_trunc=4.0, colour_registered=False)
 
     def __init__(self, cfg: SevenScenesConfig, context: RunContext = RunContext()):
         super().__init__(cfg)

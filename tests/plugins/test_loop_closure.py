@@ -9,6 +9,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from slamkit.config import RunContext
 from slamkit.errors import ConfigError
 from slamkit.formats.g2o import read_g2o, to_g2o
 from slamkit.geometry import backproject, make_pose, nearest_rotation, se3_exp, so3_exp, so3_log
@@ -24,6 +25,7 @@ from slamkit.roles.loop_closure import (
     pose_difference,
     relative_pose,
 )
+from slamkit.tuning import DatasetTuning
 from slamkit_plugins.datasets.synthetic import SyntheticConfig
 from slamkit_plugins.datasets.synthetic import sensor as synthetic_sensor
 from slamkit_plugins.datasets.synthetic.path import loop_path
@@ -564,3 +566,26 @@ def test_colour_odometry_gives_the_same_graph_whenever_it_is_read(striped_wall_p
         (other,) = closure.pose_graph().edges
         np.testing.assert_array_equal(other.relative_pose, edge.relative_pose)
         np.testing.assert_array_equal(other.information, edge.information)
+
+
+@pytest.mark.parametrize("registered", [True, False])
+def test_colour_odometry_left_null_follows_whether_the_datasets_colour_is_registered(striped_wall_pair, registered):
+    """`colour_odometry` left null: the slide is measured with colour where the dataset's colour
+    is registered to its depth, and the tracked edge kept where it is not (7-Scenes); set, it
+    holds whatever the dataset."""
+    (points_a, colours_a, pose_a), (points_b, colours_b, pose_b) = striped_wall_pair[88], striped_wall_pair[98]
+    truth = relative_pose(pose_a, pose_b)
+    information, _ = alignment_information(FeatureCloud(points_b, 0.025), FeatureCloud(points_a, 0.025), truth, 0.025)
+    _, vectors = np.linalg.eigh(information[3:, 3:])
+    tracked = pose_a @ truth @ make_pose(np.eye(3), 0.04 * vectors[:, 0])
+    context = RunContext(tuning=DatasetTuning(colour_registered=registered))
+    registry = default_registry()
+    moved = {}
+    for setting in (None, True):
+        closure = registry.create("loop_closure", "pose_graph", PoseGraphConfig(colour_odometry=setting), context)
+        closure.add_keyframe(LoopKeyframe(0, 88, pose_a, points_a, colours=colours_a))
+        closure.add_keyframe(LoopKeyframe(1, 98, tracked, points_b, colours=colours_b))
+        closure.detect_and_optimise()
+        (edge,) = closure.pose_graph().edges
+        moved[setting] = pose_difference(edge.relative_pose, truth)[0] < 0.02
+    assert moved == {None: registered, True: True}

@@ -69,7 +69,7 @@ class PoseGraphLoopClosure(LoopClosure):
     """Loop detection by place and appearance, geometric verification, pose-graph optimisation."""
 
     def __init__(self, cfg: PoseGraphConfig, context: RunContext = RunContext()):
-        self.cfg = cfg
+        cfg = self.cfg = cfg.resolve(context)
         import_open3d()  # the libraries it needs, now: a missing one fails here, in one line
         if cfg.backend is Backend.gtsam:
             optimisation.import_gtsam()

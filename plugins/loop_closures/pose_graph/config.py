@@ -5,7 +5,7 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass
 
-from slamkit.roles import PluginConfig, require
+from slamkit.roles import PluginConfig, RunContext, require
 
 
 class Backend(enum.Enum):
@@ -65,8 +65,8 @@ class PoseGraphConfig(PluginConfig):
     uniqueness_displacement_m: float = 0.02
     #: metres: those restarts must converge this close to the loop's pose, else it is not unique (the scene slides)
     uniqueness_tolerance_m: float = 0.015
-    #: consecutive keyframes registered again with colour (coloured ICP); the odometry edge takes a slide it finds
-    colour_odometry: bool = False
+    #: consecutive keyframes registered again with colour (coloured ICP), taking a slide it finds (null: if registered)
+    colour_odometry: bool | None = None
     #: only an edge constrained less than this along its weakest direction is registered again (as min_constraint)
     colour_max_constraint: float = 0.04
     #: metres: coloured ICP's pose moving further than this across the edge's weakest direction is not taken
@@ -118,3 +118,7 @@ class PoseGraphConfig(PluginConfig):
         require(0 < self.correction_confidence < 1, "loop_closure.correction_confidence", "in (0, 1)",
                 self.correction_confidence)
         require(0 < self.min_fitness <= 1, "loop_closure.min_fitness", "in (0, 1]", self.min_fitness)
+
+    def resolve(self, context: RunContext) -> PoseGraphConfig:
+        # colour read at a point that is not the point's (7-Scenes) pulls coloured ICP off (docs/loop_closure.md)
+        return self.fill_nulls(colour_odometry=context.tuning.colour_registered)
