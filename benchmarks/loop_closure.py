@@ -44,6 +44,7 @@ Writes JSON (--out, default benchmarks/results/loop_closure.json).
 from __future__ import annotations
 
 import argparse
+import functools
 import hashlib
 import inspect
 import json
@@ -71,6 +72,7 @@ from slamkit.roles.loop_closure import (
 )
 from slamkit.run.build import build_run
 from slamkit.run.loop_closing import loop_keyframe
+from slamkit.tuning import DatasetTuning
 from slamkit_plugins.loop_closures.pose_graph import closure as pose_graph_closure
 from slamkit_plugins.loop_closures.pose_graph import optimisation, verification
 
@@ -437,13 +439,20 @@ def coverage(closure, geo: Geometry, seq: TrackedSequence, gt: np.ndarray, cfg) 
             "neighbours_within_2cm": int((errors[:, 0] <= 0.02).sum()) if len(found) else 0}
 
 
+@functools.cache
+def dataset_tuning(overrides: tuple[str, ...]) -> DatasetTuning:
+    """The tuning of the dataset `overrides` name (built once per sequence)."""
+    cfg, names = compose_run(list(overrides))
+    return default_registry().create("dataset", names["dataset"], cfg.dataset).tuning
+
+
 def feed(seq: TrackedSequence, overrides: list[str], wrong_loop: bool):
     """(the loop closure after every keyframe went through it, every check it made, CPU seconds,
     the (keyframe, match) of the injected wrong loop or None)."""
     cfg, names = compose_run([*seq.overrides, "loop_closure=pose_graph", *overrides])
     registry = default_registry()
     # the sequence's dataset tuning, as in a run (colour_odometry left null follows its colour_registered)
-    context = RunContext(tuning=registry.create("dataset", names["dataset"], cfg.dataset).tuning, build=registry.create)
+    context = RunContext(tuning=dataset_tuning(tuple(seq.overrides)), build=registry.create)
     closure = registry.create("loop_closure", names["loop_closure"], cfg.loop_closure, context)
     injected: list[tuple[int, int]] = []
     honest = verification.verify

@@ -26,11 +26,13 @@ from slamkit.roles.loop_closure import (
     relative_pose,
 )
 from slamkit.tuning import DatasetTuning
+from slamkit_plugins.datasets.sevenscenes import SevenScenesDataset
 from slamkit_plugins.datasets.synthetic import SyntheticConfig
 from slamkit_plugins.datasets.synthetic import sensor as synthetic_sensor
 from slamkit_plugins.datasets.synthetic.path import loop_path
 from slamkit_plugins.datasets.synthetic.raycast import render
 from slamkit_plugins.loop_closures.pose_graph import Backend, PoseGraphConfig, PoseGraphLoopClosure, WeakDirection
+from slamkit_plugins.loop_closures.pose_graph import odometry as pose_graph_odometry
 from slamkit_plugins.loop_closures.pose_graph.optimisation import optimise, whitened_residuals
 
 from support.data import SEVENSCENES, require_data
@@ -571,8 +573,8 @@ def test_colour_odometry_gives_the_same_graph_whenever_it_is_read(striped_wall_p
 @pytest.mark.parametrize("registered", [True, False])
 def test_colour_odometry_left_null_follows_whether_the_datasets_colour_is_registered(striped_wall_pair, registered):
     """`colour_odometry` left null: the slide is measured with colour where the dataset's colour
-    is registered to its depth, and the tracked edge kept where it is not (7-Scenes); set, it
-    holds whatever the dataset."""
+    is registered to its depth, and the tracked edge kept where it is not (7-Scenes, whose
+    tuning says so); set, it holds whatever the dataset."""
     (points_a, colours_a, pose_a), (points_b, colours_b, pose_b) = striped_wall_pair[88], striped_wall_pair[98]
     truth = relative_pose(pose_a, pose_b)
     information, _ = alignment_information(FeatureCloud(points_b, 0.025), FeatureCloud(points_a, 0.025), truth, 0.025)
@@ -581,11 +583,39 @@ def test_colour_odometry_left_null_follows_whether_the_datasets_colour_is_regist
     context = RunContext(tuning=DatasetTuning(colour_registered=registered))
     registry = default_registry()
     moved = {}
-    for setting in (None, True):
+    for setting in (None, True, False):
         closure = registry.create("loop_closure", "pose_graph", PoseGraphConfig(colour_odometry=setting), context)
         closure.add_keyframe(LoopKeyframe(0, 88, pose_a, points_a, colours=colours_a))
         closure.add_keyframe(LoopKeyframe(1, 98, tracked, points_b, colours=colours_b))
         closure.detect_and_optimise()
         (edge,) = closure.pose_graph().edges
         moved[setting] = pose_difference(edge.relative_pose, truth)[0] < 0.02
-    assert moved == {None: registered, True: True}
+    assert moved == {None: registered, True: True, False: False}
+    assert SevenScenesDataset.default_tuning.colour_registered is False
+
+
+def test_an_edge_whose_colour_registration_failed_is_measured_when_the_graph_is_next_read(striped_wall_pair,
+                                                                                          monkeypatch):
+    """A coloured registration that raises while the graph is read leaves its edge to be measured:
+    the next read measures it, and gives the graph an uninterrupted read gives."""
+    (points_a, colours_a, pose_a), (points_b, colours_b, pose_b) = striped_wall_pair[88], striped_wall_pair[98]
+    tracked = pose_a @ relative_pose(pose_a, pose_b) @ make_pose(np.eye(3), np.array([0.04, 0.0, 0.0]))
+    graphs = []
+    for fail_once in (False, True):
+        closure = PoseGraphLoopClosure(PoseGraphConfig(colour_odometry=True))
+        closure.add_keyframe(LoopKeyframe(0, 88, pose_a, points_a, colours=colours_a))
+        closure.add_keyframe(LoopKeyframe(1, 98, tracked, points_b, colours=colours_b))
+        closure.detect_and_optimise()
+        if fail_once:
+            with monkeypatch.context() as patch:
+                patch.setattr(pose_graph_odometry, "coloured_odometry", _raises)
+                with pytest.raises(RuntimeError, match="registration failed"):
+                    closure.pose_graph()
+        graphs.append(closure.pose_graph())
+    (edge,), (again,) = graphs[0].edges, graphs[1].edges
+    np.testing.assert_array_equal(again.relative_pose, edge.relative_pose)
+    np.testing.assert_array_equal(again.information, edge.information)
+
+
+def _raises(*args, **kwargs):
+    raise RuntimeError("registration failed")

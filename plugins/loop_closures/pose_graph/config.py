@@ -5,7 +5,7 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass
 
-from slamkit.roles import PluginConfig, RunContext, require
+from slamkit.roles import PluginConfig, RunContext, method_setting, require
 
 
 class Backend(enum.Enum):
@@ -66,7 +66,7 @@ class PoseGraphConfig(PluginConfig):
     #: metres: those restarts must converge this close to the loop's pose, else it is not unique (the scene slides)
     uniqueness_tolerance_m: float = 0.015
     #: consecutive keyframes registered again with colour (coloured ICP), taking a slide it finds (null: if registered)
-    colour_odometry: bool | None = None
+    colour_odometry: bool | None = method_setting(None)
     #: only an edge constrained less than this along its weakest direction is registered again (as min_constraint)
     colour_max_constraint: float = 0.04
     #: metres: coloured ICP's pose moving further than this across the edge's weakest direction is not taken
