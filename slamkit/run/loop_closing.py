@@ -139,6 +139,7 @@ class LoopClosureCost:
     largest_correction_m: float = 0.0
     largest_correction_deg: float = 0.0
     after_stream: int = 0  # keyframes not taken yet when the stream ended (real time: the loop thread's backlog)
+    graph_cpu_s: float = 0.0  # CPU seconds reading the graph for pose_graph.g2o (work a plugin left until then)
 
 
 def _keyframe_state(k: LoopKeyframe) -> dict[str, Any]:
@@ -313,7 +314,10 @@ class LoopCloser:
     def pose_graph(self) -> PoseGraph:
         """The loop closure's pose graph as it stands (for pose_graph.g2o)."""
         with self._plugin_lock, self.boundary("loop_closure", "pose_graph"):
-            return self.closure.pose_graph()
+            cpu = self._cpu_clock()
+            graph = self.closure.pose_graph()
+            self.cost.graph_cpu_s += self._cpu_clock() - cpu
+            return graph
 
     def metrics(self) -> dict[str, Any]:
         """metrics.json's loop-closure figures ({} when inactive)."""
@@ -327,7 +331,8 @@ class LoopCloser:
                 "loop_correction_max_deg": c.largest_correction_deg, "loop_closure_keyframes": c.keyframes,
                 "loop_closure_calls": c.calls, "loop_closure_cpu_s": c.cpu_s, "loop_closure_wall_s": c.wall_s,
                 "loop_closure_cpu_s_per_keyframe": c.cpu_s / c.keyframes if c.keyframes else None,
-                "loop_closure_apply_s": c.apply_s, "loop_keyframes_after_stream": c.after_stream}
+                "loop_closure_apply_s": c.apply_s, "loop_keyframes_after_stream": c.after_stream,
+                "loop_closure_graph_cpu_s": c.graph_cpu_s}
 
     # -- checkpoints ---------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
