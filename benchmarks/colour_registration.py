@@ -3,7 +3,8 @@ occlusion edges, measured on the frames themselves.
 
 A depth pixel p is given the colour at c + s (p - c) + t (c: the image centre; s: a scale, t: a
 shift in pixels). For each (s, t) on a grid, the mean colour-gradient magnitude at the depth's
-occlusion edges (a neighbour at least 5 cm and 5 % nearer or farther), over the image's mean, is
+occlusion edges (a 4-neighbour more than 5 % nearer or farther, and the pixel next to it: the
+synthetic sensor's `edges`), over the image's mean, is
 summed over frames spread along the sequence. Registered colour peaks at s = 1, t = 0; colour
 from a second camera with another focal length peaks at the ratio of the two (7-Scenes' Kinect:
 its colour camera's 525 px over its depth camera's 585 px, 0.90) and at the cameras' offset.
@@ -31,6 +32,7 @@ import numpy as np
 from slamkit.cli.bench import markdown_table
 from slamkit.registry.compose import compose_run
 from slamkit.registry.discovery import default_registry
+from slamkit_plugins.datasets.synthetic.sensor import edges as depth_edges
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from loop_closure import SEQUENCES  # noqa: E402  (the offline benchmark's)
@@ -38,26 +40,13 @@ from loop_closure import SEQUENCES  # noqa: E402  (the offline benchmark's)
 #: the built-in scene with exact depth (the structured-light model drops depth at occlusion edges)
 SEQUENCES = {**SEQUENCES, "synthetic": ["dataset=synthetic"]}
 
-#: metres and fraction: an occlusion edge is a jump between neighbours of at least both.
-EDGE_JUMP_M, EDGE_JUMP_FRACTION = 0.05, 0.05
+#: an occlusion edge is a jump between 4-neighbours of more than this fraction of the nearer depth
+EDGE_JUMP_FRACTION = 0.05
 #: the grid searched: scales, and shifts in pixels along x and y.
 SCALES = np.round(np.arange(0.84, 1.1601, 0.02), 3)
 SHIFTS = np.arange(-20, 21, 2)
 #: a frame with fewer occlusion-edge pixels says nothing and is skipped.
 MIN_EDGE_PIXELS = 200
-
-
-def occlusion_edges(depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(rows, columns) of the pixels where the depth (metres, 0 invalid) jumps to a valid neighbour."""
-    valid = depth > 0
-    jump = np.zeros(depth.shape, dtype=bool)
-    for axis in (0, 1):
-        a, b = np.split(depth, [1], axis=axis)[1], np.split(depth, [depth.shape[axis] - 1], axis=axis)[0]
-        both = np.split(valid, [1], axis=axis)[1] & np.split(valid, [depth.shape[axis] - 1], axis=axis)[0]
-        step = both & (np.abs(a - b) > np.maximum(EDGE_JUMP_M, EDGE_JUMP_FRACTION * np.minimum(a, b)))
-        for side in ((0, 1), (1, 0)):  # both pixels of the jump, so that neither side biases the shift
-            jump |= np.pad(step, [side if k == axis else (0, 0) for k in range(2)])
-    return np.nonzero(jump)
 
 
 def alignment_scores(rgb: np.ndarray, depth: np.ndarray) -> np.ndarray | None:
@@ -67,7 +56,8 @@ def alignment_scores(rgb: np.ndarray, depth: np.ndarray) -> np.ndarray | None:
     gy, gx = np.gradient(grey)
     gradient = np.hypot(gx, gy)
     gradient /= gradient.mean()
-    rows, cols = occlusion_edges(depth.astype(np.float32))
+    # band 1: both pixels of each jump, so that neither side biases the shift
+    rows, cols = np.nonzero(depth_edges(depth.astype(np.float32), EDGE_JUMP_FRACTION, 1))
     if len(rows) < MIN_EDGE_PIXELS:
         return None
     h, w = gradient.shape

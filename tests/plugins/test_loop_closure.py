@@ -514,24 +514,20 @@ def test_colour_odometry_takes_a_slide_along_the_weakest_direction_only(striped_
     truth; 4 cm off along the best constrained direction, coloured ICP's pose is not a slide, and
     a slide shorter than colour_min_slide_m is not taken: the edge keeps the tracked pose, as
     without colour_odometry."""
-    (points_a, colours_a, pose_a), (points_b, colours_b, pose_b) = striped_wall_pair[88], striped_wall_pair[98]
-    truth = relative_pose(pose_a, pose_b)
-    information, _ = alignment_information(FeatureCloud(points_b, 0.025), FeatureCloud(points_a, 0.025), truth, 0.025)
-    _, vectors = np.linalg.eigh(information[3:, 3:])
-    off = make_pose(np.eye(3), 0.04 * vectors[:, 0 if direction == "weakest" else 2])  # in b's frame
-    tracked = pose_a @ truth @ off
+    keyframes, truth = _pair_tracked_off(striped_wall_pair, 0 if direction == "weakest" else 2)
+    tracked = relative_pose(keyframes[0].pose, keyframes[1].pose)
     edges = {}
     for colour in (False, True):
         closure = PoseGraphLoopClosure(PoseGraphConfig(colour_odometry=colour, colour_min_slide_m=min_slide_m))
-        closure.add_keyframe(LoopKeyframe(0, 88, pose_a, points_a, colours=colours_a))
-        closure.add_keyframe(LoopKeyframe(1, 98, tracked, points_b, colours=colours_b))
+        for keyframe in keyframes:
+            closure.add_keyframe(keyframe)
         closure.detect_and_optimise()
         (edges[colour],) = closure.pose_graph().edges
-    np.testing.assert_allclose(edges[False].relative_pose, relative_pose(pose_a, tracked), atol=1e-12)
+    np.testing.assert_allclose(edges[False].relative_pose, tracked, atol=1e-12)
     if taken:
         assert pose_difference(edges[True].relative_pose, truth)[0] < 0.02
     else:
-        np.testing.assert_allclose(edges[True].relative_pose, relative_pose(pose_a, tracked), atol=1e-12)
+        np.testing.assert_allclose(edges[True].relative_pose, tracked, atol=1e-12)
 
 
 def test_colour_slide_bounds_are_one_line():
@@ -542,13 +538,7 @@ def test_colour_slide_bounds_are_one_line():
 def test_colour_odometry_gives_the_same_graph_whenever_it_is_read(striped_wall_pair):
     """The odometry edge colour moves is the same read after each keyframe, once at the end, or
     through a checkpoint taken before anything read the graph (which keeps it to be measured)."""
-    (points_a, colours_a, pose_a), (points_b, colours_b, pose_b) = striped_wall_pair[88], striped_wall_pair[98]
-    truth = relative_pose(pose_a, pose_b)
-    information, _ = alignment_information(FeatureCloud(points_b, 0.025), FeatureCloud(points_a, 0.025), truth, 0.025)
-    _, vectors = np.linalg.eigh(information[3:, 3:])
-    tracked = pose_a @ truth @ make_pose(np.eye(3), 0.04 * vectors[:, 0])
-    keyframes = [LoopKeyframe(0, 88, pose_a, points_a, colours=colours_a),
-                 LoopKeyframe(1, 98, tracked, points_b, colours=colours_b)]
+    keyframes, truth = _pair_tracked_off(striped_wall_pair)
     cfg = PoseGraphConfig(colour_odometry=True)
     each = PoseGraphLoopClosure(cfg)
     for keyframe in keyframes:
@@ -575,18 +565,14 @@ def test_colour_odometry_left_null_follows_whether_the_datasets_colour_is_regist
     """`colour_odometry` left null: the slide is measured with colour where the dataset's colour
     is registered to its depth, and the tracked edge kept where it is not (7-Scenes, whose
     tuning says so); set, it holds whatever the dataset."""
-    (points_a, colours_a, pose_a), (points_b, colours_b, pose_b) = striped_wall_pair[88], striped_wall_pair[98]
-    truth = relative_pose(pose_a, pose_b)
-    information, _ = alignment_information(FeatureCloud(points_b, 0.025), FeatureCloud(points_a, 0.025), truth, 0.025)
-    _, vectors = np.linalg.eigh(information[3:, 3:])
-    tracked = pose_a @ truth @ make_pose(np.eye(3), 0.04 * vectors[:, 0])
+    keyframes, truth = _pair_tracked_off(striped_wall_pair)
     context = RunContext(tuning=DatasetTuning(colour_registered=registered))
     registry = default_registry()
     moved = {}
     for setting in (None, True, False):
         closure = registry.create("loop_closure", "pose_graph", PoseGraphConfig(colour_odometry=setting), context)
-        closure.add_keyframe(LoopKeyframe(0, 88, pose_a, points_a, colours=colours_a))
-        closure.add_keyframe(LoopKeyframe(1, 98, tracked, points_b, colours=colours_b))
+        for keyframe in keyframes:
+            closure.add_keyframe(keyframe)
         closure.detect_and_optimise()
         (edge,) = closure.pose_graph().edges
         moved[setting] = pose_difference(edge.relative_pose, truth)[0] < 0.02
@@ -598,13 +584,12 @@ def test_an_edge_whose_colour_registration_failed_is_measured_when_the_graph_is_
                                                                                           monkeypatch):
     """A coloured registration that raises while the graph is read leaves its edge to be measured:
     the next read measures it, and gives the graph an uninterrupted read gives."""
-    (points_a, colours_a, pose_a), (points_b, colours_b, pose_b) = striped_wall_pair[88], striped_wall_pair[98]
-    tracked = pose_a @ relative_pose(pose_a, pose_b) @ make_pose(np.eye(3), np.array([0.04, 0.0, 0.0]))
+    keyframes, _ = _pair_tracked_off(striped_wall_pair)
     graphs = []
     for fail_once in (False, True):
         closure = PoseGraphLoopClosure(PoseGraphConfig(colour_odometry=True))
-        closure.add_keyframe(LoopKeyframe(0, 88, pose_a, points_a, colours=colours_a))
-        closure.add_keyframe(LoopKeyframe(1, 98, tracked, points_b, colours=colours_b))
+        for keyframe in keyframes:
+            closure.add_keyframe(keyframe)
         closure.detect_and_optimise()
         if fail_once:
             with monkeypatch.context() as patch:
@@ -619,3 +604,16 @@ def test_an_edge_whose_colour_registration_failed_is_measured_when_the_graph_is_
 
 def _raises(*args, **kwargs):
     raise RuntimeError("registration failed")
+
+
+def _pair_tracked_off(striped_wall_pair, direction: int = 0) -> tuple[list[LoopKeyframe], np.ndarray]:
+    """The striped wall's keyframes at frames 88 and 98 (with colours), the second tracked 4 cm
+    off along the pair's `direction`-th least constrained translation (0: the weakest, 2: the
+    best constrained), and the truth's relative pose between them."""
+    (points_a, colours_a, pose_a), (points_b, colours_b, pose_b) = striped_wall_pair[88], striped_wall_pair[98]
+    truth = relative_pose(pose_a, pose_b)
+    information, _ = alignment_information(FeatureCloud(points_b, 0.025), FeatureCloud(points_a, 0.025), truth, 0.025)
+    _, vectors = np.linalg.eigh(information[3:, 3:])
+    tracked = pose_a @ truth @ make_pose(np.eye(3), 0.04 * vectors[:, direction])  # off in b's frame
+    return [LoopKeyframe(0, 88, pose_a, points_a, colours=colours_a),
+            LoopKeyframe(1, 98, tracked, points_b, colours=colours_b)], truth
