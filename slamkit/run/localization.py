@@ -31,7 +31,8 @@ from slamkit.formats.atomic import write_atomic
 from slamkit.formats.checkpoint import checkpoint_path
 from slamkit.formats.tum import write_tum_trajectory
 from slamkit.geometry.registration import GlobalRegistration
-from slamkit.geometry.transforms import backproject, invert_pose, project_points
+from slamkit.geometry.surface import surface_cells
+from slamkit.geometry.transforms import backproject
 from slamkit.metrics import trajectory as evaluation
 from slamkit.native import available_threads
 from slamkit.registry.discovery import Registry
@@ -47,12 +48,6 @@ log = logging.getLogger(__name__)
 
 #: Pixel stride of the frame points given to global registration (they are voxel-downsampled).
 REGISTRATION_PIXEL_STRIDE = 4
-#: A map Gaussian's centre lies on a frame's observed surface when its depth differs from the
-#: depth observed at its pixel by at most SURFACE_TOLERANCE_M metres plus SURFACE_TOLERANCE_REL
-#: of that depth (a Kinect's depth error grows with the range).
-SURFACE_TOLERANCE_M, SURFACE_TOLERANCE_REL = 0.05, 0.02
-#: Image cells (pixels a side) in which the map's nearest centre is compared with the frame.
-SURFACE_CELL_PX = 8
 
 
 @dataclass
@@ -85,8 +80,8 @@ def inlier_fraction(result: TrackingResult) -> float | None:
 @dataclass
 class MapFit:
     """How well the map seen from a pose explains a frame. surface_agreement: of the image cells
-    (SURFACE_CELL_PX a side) where a map centre projects onto valid depth, the fraction whose
-    nearest such centre lies on the observed surface (SURFACE_TOLERANCE_*): a frame placed
+    where a map centre projects onto valid depth, the fraction whose nearest such centre lies on
+    the observed surface (`slamkit.geometry.surface`): a frame placed
     wrongly, or in another scene, sees map centres in front of or behind its surface, and
     centres hidden behind others do not count against it (only each cell's nearest is compared).
     color_correlation: over the cells that agree, the correlation of the map centres' luminance
@@ -109,28 +104,17 @@ LUMA = np.array([0.299, 0.587, 0.114])
 def map_fit(frame: Frame, pose: np.ndarray, centres: np.ndarray, colors: np.ndarray) -> MapFit:
     """`MapFit` of the map's centres ((N,3) world metres) and colours ((N,3) RGB in [0, 1]) seen
     from `pose` (camera-to-world) by the frame's camera."""
-    camera = frame.camera
-    u, v, z = project_points(centres, invert_pose(np.asarray(pose, dtype=np.float64)), camera)
-    col, row = np.rint(u), np.rint(v)
-    inside = (z > 0) & (col >= 0) & (col < camera.width) & (row >= 0) & (row < camera.height)
-    col, row, z, colors = col[inside].astype(np.int64), row[inside].astype(np.int64), z[inside], colors[inside]
-    observed = np.asarray(frame.depth, dtype=np.float32)[row, col]
-    seen = observed > 0  # beyond depth_trunc too: a map centre in front of a far wall is as wrong
-    if not seen.any():
+    cells = surface_cells(centres, frame.depth, frame.camera, pose)
+    if cells.agreement is None:
         return MapFit(None, None)
-    col, row, z, colors, observed = col[seen], row[seen], z[seen], colors[seen], observed[seen]
-    cell = (row // SURFACE_CELL_PX) * (camera.width // SURFACE_CELL_PX + 1) + col // SURFACE_CELL_PX
-    order = np.lexsort((z, cell))  # by cell, then nearest first
-    nearest = order[np.r_[True, cell[order][1:] != cell[order][:-1]]]
-    on = np.abs(z[nearest] - observed[nearest]) <= SURFACE_TOLERANCE_M + SURFACE_TOLERANCE_REL * observed[nearest]
-    agreeing = nearest[on]
-    if len(agreeing) < MIN_COLOR_CELLS:
-        return MapFit(float(on.mean()), None)
-    pixels = np.asarray(frame.rgb[row[agreeing], col[agreeing]], dtype=np.float64) / 255.0
-    seen_luma, map_luma = pixels @ LUMA, np.clip(colors[agreeing], 0.0, 1.0) @ LUMA
+    on = cells.on
+    if on.sum() < MIN_COLOR_CELLS:
+        return MapFit(cells.agreement, None)
+    pixels = np.asarray(frame.rgb[cells.row[on], cells.col[on]], dtype=np.float64) / 255.0
+    seen_luma, map_luma = pixels @ LUMA, np.clip(colors[cells.index[on]], 0.0, 1.0) @ LUMA
     if seen_luma.std() < MIN_LUMINANCE_STD or map_luma.std() < MIN_LUMINANCE_STD:
-        return MapFit(float(on.mean()), None)
-    return MapFit(float(on.mean()), float(np.corrcoef(seen_luma, map_luma)[0, 1]))
+        return MapFit(cells.agreement, None)
+    return MapFit(cells.agreement, float(np.corrcoef(seen_luma, map_luma)[0, 1]))
 
 
 @dataclass
