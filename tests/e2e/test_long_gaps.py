@@ -51,9 +51,10 @@ def test_forced_gaps_and_a_delay_per_frame(tmp_path):
     assert metrics["delay_max_ms"] == pytest.approx(max(delays), abs=0.01)
 
 
-def relative_errors(out, frames: list[int]) -> dict[int, tuple[float, float]]:
-    """For each frame after a gap (dataset index): its motion since the last frame before the gap
-    against the ground truth's, as (metres, degrees); asserts it was tracked, not lost."""
+def relative_errors(out, frames: list[int], length: int = 20) -> dict[int, tuple[float, float]]:
+    """For each frame after a gap of `length` frames (dataset index): its motion since the last
+    frame before the gap against the ground truth's, as (metres, degrees); asserts it was tracked,
+    not lost."""
     table = rows(out)
     stamps, poses = read_tum_trajectory(out / "trajectory.txt")
     estimate = dict(zip(np.round(stamps, 4), poses))
@@ -62,7 +63,7 @@ def relative_errors(out, frames: list[int]) -> dict[int, tuple[float, float]]:
     at = [round(float(r["timestamp"]), 4) for r in table]
     errors = {}
     for after in frames:
-        before = after - 21
+        before = after - length - 1
         assert table[after]["note"] != "dropped" and table[after]["lost"] == "0", table[after]
         assert all(table[i]["note"] == "dropped" for i in range(before + 1, after))
         moved = invert_pose(estimate[at[before]]) @ estimate[at[after]]
@@ -73,10 +74,10 @@ def relative_errors(out, frames: list[int]) -> dict[int, tuple[float, float]]:
     return errors
 
 
-def run_with_gaps(tmp_path, *overrides: str):
+def run_with_gaps(tmp_path, *overrides: str, every: int = 50, length: int = 20):
     out = tmp_path / "run"
     proc = run_slamkit(*overrides, "tracker=gicp", "keyframe=overlap", "mapper=none",
-                       "eval.forced_gap_every=50", "eval.forced_gap_length=20", "output.progress=false",
+                       f"eval.forced_gap_every={every}", f"eval.forced_gap_length={length}", "output.progress=false",
                        "output.plot=false", f"hydra.run.dir={out}", cwd=tmp_path, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
     return out
@@ -103,6 +104,22 @@ def test_tracking_across_long_gaps_on_7scenes(tmp_path):
                         "dataset.max_frames=480")
     for after, (metres, degrees) in relative_errors(out, [70, 120, 220, 270, 320, 370, 420, 470]).items():
         assert metres < 0.05 and degrees < 2.0, (after, metres, degrees)
+
+
+def test_a_pose_on_a_surface_the_map_holds_twice_is_not_kept_after_a_long_gap(tmp_path):
+    """7-Scenes redkitchen, frames 0-100 with 30 dropped after 70: at frame 100 the start from the
+    previous pose converges 37.5 cm off, matching 0.60 of the frame's points, onto a surface the
+    map holds twice, where the right pose matches 0.54 (the camera turned to surface the map does
+    not hold yet; below 0.7 x the last frame's 0.81, so matched points alone do not trust it).
+    Judged from the map's side, the right pose has the map on the frame's depth in 0.95 of the
+    cells and the wrong one in 0.65 (it sees through the map): global registration's alignment is
+    trusted and kept, within 5 cm and 2 degrees of the ground truth's motion (measured 1.9 cm,
+    0.8 degrees; before, 37.5 cm, and the schedule's ATE 13.9 against 8.5 cm now: docs/results.md)."""
+    out = run_with_gaps(tmp_path, "dataset=sevenscenes", f"dataset.path={require_data(SEVENSCENES)}",
+                        "dataset.max_frames=101", every=70, length=30)
+    assert rows(out)[100]["fallback"] == "global registration", rows(out)[100]
+    metres, degrees = relative_errors(out, [100], length=30)[100]
+    assert metres < 0.05 and degrees < 2.0, (metres, degrees)
 
 
 def test_global_registration_draws_again_after_a_long_gap(tmp_path):

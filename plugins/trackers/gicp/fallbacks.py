@@ -16,14 +16,20 @@ relocalize_restarts seeds while none is trusted) and aligned from there. After a
 gap longer than the prediction spans (max_prediction_intervals), where the input waits, every start
 is tried, global registration included, whatever the first gave: the capped prediction is a
 guess, and a first alignment from it can converge to a surface the map holds twice (drift) or
-match a few points fewer than the right pose. No fallback starts past the frame's budget
-(frame_budget_ms, real time).
+match a few points fewer than the right pose. There each attempt is also judged from the map's
+side (`slamkit.geometry.surface`: of the image cells seeing the map, the fraction whose nearest
+map centre lies on the frame's depth): one with at least min_surface_agreement is trusted however
+few of its points matched (the camera turned to surface the map does not hold yet), and the
+trusted attempt kept is the one whose matched fraction x agreement is the largest: a pose hugging
+a surface the map holds twice matches many points but sees through the map elsewhere. No
+fallback starts past the frame's budget (frame_budget_ms, real time).
 """
 
 from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 
 import numpy as np
 
@@ -59,7 +65,8 @@ class FallbackPolicy:
 
     def solve(self, target: Target, src: np.ndarray, src_cov: np.ndarray, predicted: np.ndarray,
               previous: np.ndarray | None, stats: dict, intervals: float = 1.0, deadline: float | None = None,
-              last_matched: float | None = None, beyond_prediction: bool = False):
+              last_matched: float | None = None, beyond_prediction: bool = False,
+              map_agreement: Callable[[np.ndarray], float | None] | None = None):
         """G-ICP of the source points (camera frame, metres) and covariances to the target from
         the predicted pose, with fallbacks; previous: the last tracked pose (None before the
         first); intervals: frame intervals the prediction spans (> 1 after dropped frames: the
@@ -71,7 +78,10 @@ class FallbackPolicy:
         gap, one converged to a wrong pose; docs/results.md, "Tracking first"): the fallbacks run,
         and when none is trusted the frame is lost. After a gap longer than the prediction spans
         (`beyond_prediction`: more than max_prediction_intervals) and without a deadline, every
-        start is tried and the trusted attempt matching most points kept.
+        start is tried and, with `map_agreement` (a camera-to-world pose -> the map's surface
+        agreement with the frame seen from it, None where no map is in view), an attempt whose
+        agreement reaches min_surface_agreement is trusted too and the trusted attempt with the
+        largest matched fraction x agreement kept; else the trusted attempt matching most points.
         Returns (pose, ok, squared NN distances of the kept attempt's last search)."""
         aligner = self.aligner
         slide_limit = self.cfg.fallback_slide * aligner.max_corr * min(max(1.0, intervals), MAX_SLIDE_GROWTH)
@@ -84,16 +94,16 @@ class FallbackPolicy:
         # overlap with the map may fall for good (a camera leaving it, until the next keyframe)
         reference = (last_matched or 0.0) if intervals > 1 else 0.0
         self._floor = max(self.cfg.min_matched_fraction, self.cfg.min_matched_ratio * reference)
-        ok = ok and self._trusted(sq, stats)
         slid = rms_travel(moments, predicted, pose) > slide_limit
         # only where the input waits (no deadline): a global registration outlasts many frame
         # intervals, and the frames dropped meanwhile would make the next frame another long gap
         relocalize = beyond_prediction and deadline is None
+        agreement = map_agreement if relocalize else None
+        ok = ok and self._trusted(sq, stats, pose, agreement)
         if ok and (stats["converged"] or not self.retry_unconverged) and not slid and not relocalize:
             return pose, ok, sq
         # stopped on its way (stop_slid) its pose is anywhere along the slide: any trusted fallback is better
-        matched = 0 if stats.get("slid") else stats.get("num_correspondences", 0)
-        best = (pose, ok, sq, matched if ok else -1)
+        best = (pose, ok, sq, -1 if not ok else 0 if stats.get("slid") else self._rank(sq, stats, agreement))
         for name, start, coarse in self._starts(predicted, previous, target, src, deadline, stats, best[1],
                                                 relocalize):
             if deadline is not None and time.perf_counter() > deadline:
@@ -112,27 +122,49 @@ class FallbackPolicy:
                 # the fine stage slid away from the coarse alignment: keep the coarse pose
                 pose2, sq2 = start, aligner.match(target, src, start)
                 retry["num_correspondences"] = int(np.isfinite(sq2).sum())
-            ok2 = ok2 and self._trusted(sq2, retry)
+            ok2 = ok2 and self._trusted(sq2, retry, pose2, agreement)
+            rank = self._rank(sq2, retry, agreement) if ok2 else -1
             _add_effort(stats, retry)
             stats.setdefault("retried", []).append(name)
-            if ok2 and retry["num_correspondences"] > best[3]:
+            if ok2 and rank > best[3]:
                 stats.pop("lost_reason", None)
                 stats.update({k: v for k, v in retry.items() if k not in _EFFORT and k != "covariance_s"})
                 stats["fallback"] = name
-                best = (pose2, ok2, sq2, retry["num_correspondences"])
+                best = (pose2, ok2, sq2, rank)
             elif not best[1] and "lost_reason" in retry:
                 stats["lost_reason"] = retry["lost_reason"]
         return best[:3]
 
-    def _trusted(self, sq: np.ndarray, stats: dict) -> bool:
-        """Whether an alignment matched at least the frame's floor (`solve`) of the points within
-        the correspondence distance at its last search (else stats["lost_reason"] says so)."""
+    def _trusted(self, sq: np.ndarray, stats: dict, pose: np.ndarray,
+                 agreement: Callable[[np.ndarray], float | None] | None = None) -> bool:
+        """Whether an alignment ending at `pose` matched at least the frame's floor (`solve`) of the
+        points within the correspondence distance at its last search, or, with `agreement` (its
+        value kept in stats["surface_agreement"]), at least min_matched_fraction of them and the
+        map seen from it agrees with the frame in min_surface_agreement of its cells (else
+        stats["lost_reason"] says why not)."""
         fraction = float(np.isfinite(sq).mean()) if len(sq) else 0.0
+        if agreement is not None:
+            stats["surface_agreement"] = agreement(pose)
         if fraction >= self._floor:
             return True
+        surface = stats.get("surface_agreement")
+        cfg = self.cfg
+        if surface is not None and fraction >= cfg.min_matched_fraction and surface >= cfg.min_surface_agreement:
+            return True  # the map in view lies on the frame's depth: what did not match is new surface
         stats["lost_reason"] = (f"matched fraction {fraction:.2f} < {self._floor:.2f} (tracker.min_matched_fraction, "
                                 "tracker.min_matched_ratio x the last frame's)")
+        if surface is not None:
+            stats["lost_reason"] += f", surface agreement {surface:.2f} < {cfg.min_surface_agreement:.2f}"
         return False
+
+    @staticmethod
+    def _rank(sq: np.ndarray, stats: dict, agreement: Callable | None) -> float:
+        """How much a trusted attempt is preferred: its matched points; where the map's agreement is
+        judged (`_trusted`), its matched fraction x that agreement (the frame on the map and the map
+        on the frame)."""
+        if agreement is None:
+            return stats.get("num_correspondences", 0)
+        return (float(np.isfinite(sq).mean()) if len(sq) else 0.0) * (stats.get("surface_agreement") or 0.0)
 
     def _starts(self, predicted: np.ndarray, previous: np.ndarray | None, target: Target, src: np.ndarray,
                 deadline: float | None, stats: dict, trusted: bool, relocalize: bool = False):

@@ -21,6 +21,7 @@ import time
 import numpy as np
 
 from slamkit.geometry.gaussians import Regularization
+from slamkit.geometry.surface import surface_cells
 from slamkit.geometry.transforms import backproject, invert_pose, motion_power
 from slamkit.map.gaussian_map import GaussianMap
 from slamkit.map.growth import gaussians_at_pose
@@ -184,8 +185,13 @@ class GICPTracker(Tracker):
             stats["note"] = "no target yet"
         else:
             previous = self.poses[-1] if self.poses else None
-            pose, ok, sq_track = self.fallbacks.solve(self.target, src, src_cov, predicted, previous, stats,
-                                                      intervals, deadline, self.last_matched, beyond_prediction)
+            target = self.target
+
+            def map_agreement(pose: np.ndarray) -> float | None:
+                return surface_cells(target.means, depth, frame.camera, pose).agreement
+
+            pose, ok, sq_track = self.fallbacks.solve(target, src, src_cov, predicted, previous, stats, intervals,
+                                                      deadline, self.last_matched, beyond_prediction, map_agreement)
             if not ok:
                 return TrackingResult(pose=predicted, lost=True, stats=stats)
 
