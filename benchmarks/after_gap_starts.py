@@ -13,7 +13,9 @@ G-ICP, no fallbacks) from each start:
 - global registration: FPFH + RANSAC to the map's trackable Gaussians (tracker.relocalize_voxel),
   from RANSAC seed 0 as the tracker draws (`--seeds N`: seeds 0 to N-1).
 
-For each: the fraction of the frame's points matched, whether it converged, and its error against
+For each: the fraction of the frame's points matched, the map's surface agreement with the frame
+seen from its pose (`slamkit.geometry.surface`: of the image cells seeing the map, the fraction
+whose nearest map centre lies on the frame's depth), whether it converged, and its error against
 the ground truth's motion since the frame before the gap (cm, degrees). Then the system tracks
 the frame as the CLI would (the `tracked` row). Prints a table, writes JSON (`--out`).
 
@@ -32,6 +34,7 @@ import numpy as np
 
 from slamkit.cli.bench import markdown_table
 from slamkit.geometry.registration import FeatureCloud, register
+from slamkit.geometry.surface import surface_cells
 from slamkit.geometry.transforms import backproject, invert_pose, rotation_angle_deg
 from slamkit.registry.schema import EvalConfig
 from slamkit.run.build import build_run
@@ -74,7 +77,8 @@ def main() -> int:
     dataset, slam, _ = build_run(overrides + ["tracker=gicp", "keyframe=overlap", "mapper=none"] + args.set)
     last_study = max(chosen) if chosen else len(dataset) - 1
     slam.initialize(dataset[0].gt_pose)
-    rows, table = [], [["frame", "after", "start", "matched", "converged", "error cm", "error deg"]]
+    rows, table = [], [["frame", "after", "start", "matched", "surface agreement", "converged", "error cm",
+                        "error deg"]]
     last, dropped = None, False
     for i in range(last_study + 1):
         if gaps.in_forced_gap(i):
@@ -96,19 +100,26 @@ def main() -> int:
                 name = "global registration" + (f" (seed {seed})" if seed else "")
                 starts[name] = register(cloud, copy.target.features(voxel), seed=seed).pose
             attempts = {}
+
+            def surface(pose: np.ndarray) -> float | None:
+                return surface_cells(copy.target.means, np.nan_to_num(frame.depth), frame.camera, pose).agreement
+
             for name, start in starts.items():
                 stats = new_stats()
                 pose, ok, sq = copy.aligner.align(copy.target, src, src_cov, start, stats)
-                attempts[name] = {"matched": float(np.isfinite(sq).mean()), "converged": bool(stats.get("converged")),
-                                  "ok": bool(ok), "error": pose_error(ideal, pose)}
+                attempts[name] = {"matched": float(np.isfinite(sq).mean()), "surface": surface(pose),
+                                  "converged": bool(stats.get("converged")), "ok": bool(ok),
+                                  "error": pose_error(ideal, pose)}
             result = slam.process(frame).tracking
-            attempts["tracked"] = {"matched": result.stats.get("matched_fraction"), "converged": None,
-                                   "ok": not result.lost, "fallback": result.stats.get("fallback", ""),
+            attempts["tracked"] = {"matched": result.stats.get("matched_fraction"), "surface": surface(result.pose),
+                                   "converged": None, "ok": not result.lost,
+                                   "fallback": result.stats.get("fallback", ""),
                                    "error": pose_error(ideal, result.pose)}
             rows.append({"index": i, "before": last, "attempts": attempts})
             for name, a in attempts.items():
                 label = name if name != "tracked" else f"tracked ({a['fallback'] or 'first'}{', lost' * (not a['ok'])})"
                 table.append([str(i), str(last), label, "-" if a["matched"] is None else f"{a['matched']:.3f}",
+                              "-" if a["surface"] is None else f"{a['surface']:.3f}",
                               "-" if a["converged"] is None else str(a["converged"]),
                               f"{a['error'][0]:.1f}", f"{a['error'][1]:.2f}"])
         else:
