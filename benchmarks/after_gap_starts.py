@@ -102,7 +102,7 @@ def main() -> int:
             attempts = {}
 
             def surface(pose: np.ndarray) -> float | None:
-                return surface_cells(copy.target.means, np.nan_to_num(frame.depth), frame.camera, pose).agreement
+                return surface_cells(copy.target.means, frame.depth, frame.camera, pose).agreement
 
             for name, start in starts.items():
                 stats = new_stats()

@@ -40,8 +40,8 @@ class SurfaceCells:
 
 def surface_cells(centres: np.ndarray, depth: np.ndarray, camera, camera_to_world: np.ndarray) -> SurfaceCells:
     """`SurfaceCells` of the map's `centres` ((N,3) world, metres) seen from `camera_to_world`
-    (4x4) by `camera` in a frame of observed `depth` ((H,W) metres; <= 0 or NaN: none). Depth
-    beyond the tracker's truncation counts too: a centre in front of a far wall is as wrong."""
+    (4x4) by `camera` in a frame of observed `depth` ((H,W) metres; <= 0 or not finite: none).
+    Depth beyond a frame's `depth_trunc` counts too: a centre in front of a far wall is as wrong."""
     u, v, z = project_points(np.asarray(centres, dtype=np.float64), invert_pose(np.asarray(camera_to_world,
                                                                                         dtype=np.float64)), camera)
     col, row = np.rint(u), np.rint(v)
@@ -49,7 +49,7 @@ def surface_cells(centres: np.ndarray, depth: np.ndarray, camera, camera_to_worl
     index = np.flatnonzero(inside)
     col, row, z = col[inside].astype(np.int64), row[inside].astype(np.int64), z[inside]
     observed = np.asarray(depth, dtype=np.float32)[row, col]
-    seen = observed > 0  # NaN compares false
+    seen = np.isfinite(observed) & (observed > 0)
     index, col, row, z, observed = index[seen], col[seen], row[seen], z[seen], observed[seen]
     cell = (row // SURFACE_CELL_PX) * (camera.width // SURFACE_CELL_PX + 1) + col // SURFACE_CELL_PX
     order = np.lexsort((z, cell))  # by cell, then nearest first

@@ -81,9 +81,9 @@ def inlier_fraction(result: TrackingResult) -> float | None:
 class MapFit:
     """How well the map seen from a pose explains a frame. surface_agreement: of the image cells
     where a map centre projects onto valid depth, the fraction whose nearest such centre lies on
-    the observed surface (`slamkit.geometry.surface`): a frame placed
-    wrongly, or in another scene, sees map centres in front of or behind its surface, and
-    centres hidden behind others do not count against it (only each cell's nearest is compared).
+    the observed surface (`slamkit.geometry.surface`): a frame placed wrongly, or in another
+    scene, sees map centres in front of or behind its surface, and centres hidden behind others
+    do not count against it (only each cell's nearest is compared).
     color_correlation: over the cells that agree, the correlation of the map centres' luminance
     with the frame's at their pixels (gain and offset do not matter, so exposure does not): a
     pose that puts the map's shapes on the frame's but not its appearance scores near 0. Each is

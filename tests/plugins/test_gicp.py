@@ -446,6 +446,33 @@ def test_an_alignment_matching_too_few_points_is_not_trusted():
             assert 0.3 < result.stats["matched_fraction"] < 0.7
 
 
+def test_after_a_long_gap_an_alignment_the_map_agrees_with_is_trusted_below_the_ratio():
+    """The map holds the left half of the view only, and the last frame before a long gap (30
+    frame intervals, beyond max_prediction_intervals) matched 0.95 of its points: the right pose
+    matches about half of the frame's, below min_matched_ratio x 0.95, as every start does.
+    Judged from the map's side, the map in view lies on the frame's depth in every cell: trusted
+    (tracker.min_surface_agreement), the frame is tracked at the right pose. Not judged (null),
+    it is lost, the reason naming the ratio; where the input does not wait (a frame budget), the
+    map's side is not judged either."""
+    frame = make_frame(POSE, index=40)
+    half = frame.depth.copy()
+    half[:, CAMERA.width // 2:] = 0.0
+    gmap = map_from_frame(make_frame(POSE, depth=half), POSE)
+    start = POSE @ make_pose(so3_exp(np.radians([0.5, -0.5, 0.3])), [0.01, -0.01, 0.005])
+    for bound, budget, lost in ((0.9, None, False), (None, None, True), (0.9, 1e4, True)):
+        tracker = GICPTracker(tight_config(min_surface_agreement=bound, frame_budget_ms=budget, relocalize_voxel=0.0))
+        tracker.update_target(gmap)
+        tracker.poses, tracker.frame_indices, tracker.last_matched = [start, start], [9, 10], 0.95
+        result = tracker.track(frame)
+        assert result.lost is lost, (bound, budget, result.stats)
+        if lost:
+            assert "tracker.min_matched_ratio" in result.stats["lost_reason"], result.stats
+            assert "surface_agreement" not in result.stats
+        else:
+            assert result.stats["surface_agreement"] > 0.9 and 0.3 < result.stats["matched_fraction"] < 0.665
+            np.testing.assert_allclose(result.pose, POSE, atol=1e-3)  # metres and rotation entries
+
+
 def test_a_prediction_over_a_long_gap_is_capped():
     """After 20 dropped frames the constant-velocity prediction spans at most
     max_prediction_intervals of the last motion; a shorter gap is predicted in full."""
@@ -611,6 +638,8 @@ def test_config_validation_and_hints():
         GICPConfig(pixel_stride=0)
     with pytest.raises(ConfigError, match="tracker.relocalize_restarts"):
         GICPConfig(relocalize_restarts=0)
+    with pytest.raises(ConfigError, match="tracker.min_surface_agreement"):
+        GICPConfig(min_surface_agreement=0.0)
     cfg = GICPConfig()
     assert cfg.pixel_stride is None and cfg.max_correspondence_distance is None and cfg.min_target_opacity == 0
     with pytest.raises(ConfigError, match="tracker.pixel_stride"):

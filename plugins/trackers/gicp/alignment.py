@@ -31,6 +31,12 @@ def new_stats() -> dict:
     return {"covariance_s": 0.0, "nn_search_s": 0.0, "solve_s": 0.0, "iterations": 0}
 
 
+def matched_fraction(sq: np.ndarray) -> float:
+    """The fraction of an alignment's points matched at its last search: `sq`, their squared
+    distances to the nearest target mean (m^2), inf where none was within reach (0 for no point)."""
+    return float(np.isfinite(sq).mean()) if len(sq) else 0.0
+
+
 def point_moments(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The points' mean (3,) and mean outer product (3, 3), enough for `rms_travel`."""
     return points.mean(axis=0), points.T @ points / len(points)

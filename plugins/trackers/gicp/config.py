@@ -92,8 +92,8 @@ class GICPConfig(PluginConfig):
     relocalize_voxel: float = 0.05
     #: global registrations from up to this many RANSAC seeds: the next only while no alignment is trusted
     relocalize_restarts: int = 3
-    #: after a long gap, an alignment whose map in view lies on the frame's depth in this fraction of cells is trusted
-    min_surface_agreement: float = 0.9
+    #: after a long gap (sequential), trusted too: the map on the frame's depth in this fraction of cells (null: off)
+    min_surface_agreement: float | None = 0.9
     #: ms from a frame's start: no fallback (nor its iterations) starts after it (null: 100 where frames drop; 0: none)
     frame_budget_ms: float | None = None
     #: a first alignment that fails or slides is also tried coarse to fine, from this x the distance (1: off)
@@ -138,8 +138,8 @@ class GICPConfig(PluginConfig):
                 self.relocalize_voxel)
         require(self.relocalize_restarts >= 1, "tracker.relocalize_restarts", "an integer >= 1",
                 self.relocalize_restarts)
-        require(0 < self.min_surface_agreement <= 1, "tracker.min_surface_agreement", "in (0, 1]",
-                self.min_surface_agreement)
+        require(self.min_surface_agreement is None or 0 < self.min_surface_agreement <= 1,
+                "tracker.min_surface_agreement", "null or in (0, 1]", self.min_surface_agreement)
         require(self.frame_budget_ms is None or self.frame_budget_ms >= 0, "tracker.frame_budget_ms",
                 "null or >= 0 ms (0: no budget)", self.frame_budget_ms)
         require(self.fallback_slide > 0, "tracker.fallback_slide", "> 0", self.fallback_slide)

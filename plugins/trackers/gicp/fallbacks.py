@@ -18,11 +18,13 @@ is tried, global registration included, whatever the first gave: the capped pred
 guess, and a first alignment from it can converge to a surface the map holds twice (drift) or
 match a few points fewer than the right pose. There each attempt is also judged from the map's
 side (`slamkit.geometry.surface`: of the image cells seeing the map, the fraction whose nearest
-map centre lies on the frame's depth): one with at least min_surface_agreement is trusted however
-few of its points matched (the camera turned to surface the map does not hold yet), and the
-trusted attempt kept is the one whose matched fraction x agreement is the largest: a pose hugging
-a surface the map holds twice matches many points but sees through the map elsewhere. No
-fallback starts past the frame's budget (frame_budget_ms, real time).
+map centre lies on the frame's depth): one matching at least min_matched_fraction whose
+agreement reaches min_surface_agreement is trusted below the ratio (the camera turned to surface
+the map does not hold yet), and the trusted attempt kept is the one whose matched fraction x
+agreement is the largest: a pose hugging a surface the map holds twice matches many points but
+sees through the map elsewhere. The check is symmetric: map surface behind the frame's (new
+foreground, a person walking in) lowers the right pose's agreement too. No fallback starts past
+the frame's budget (frame_budget_ms, real time).
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from slamkit_plugins.trackers.gicp.alignment import Aligner, new_stats, point_moments, rms_travel
+from slamkit_plugins.trackers.gicp.alignment import Aligner, matched_fraction, new_stats, point_moments, rms_travel
 from slamkit_plugins.trackers.gicp.config import GICPConfig
 from slamkit_plugins.trackers.gicp.target import Target
 
@@ -79,9 +81,9 @@ class FallbackPolicy:
         and when none is trusted the frame is lost. After a gap longer than the prediction spans
         (`beyond_prediction`: more than max_prediction_intervals) and without a deadline, every
         start is tried and, with `map_agreement` (a camera-to-world pose -> the map's surface
-        agreement with the frame seen from it, None where no map is in view), an attempt whose
-        agreement reaches min_surface_agreement is trusted too and the trusted attempt with the
-        largest matched fraction x agreement kept; else the trusted attempt matching most points.
+        agreement with the frame seen from it, None where too little map is in view) and
+        min_surface_agreement set, each attempt is judged from the map's side too (`_judge`);
+        else the trusted attempt matching most points is kept.
         Returns (pose, ok, squared NN distances of the kept attempt's last search)."""
         aligner = self.aligner
         slide_limit = self.cfg.fallback_slide * aligner.max_corr * min(max(1.0, intervals), MAX_SLIDE_GROWTH)
@@ -98,12 +100,13 @@ class FallbackPolicy:
         # only where the input waits (no deadline): a global registration outlasts many frame
         # intervals, and the frames dropped meanwhile would make the next frame another long gap
         relocalize = beyond_prediction and deadline is None
-        agreement = map_agreement if relocalize else None
-        ok = ok and self._trusted(sq, stats, pose, agreement)
+        # judged from the map's side only where every start is tried: one projection of the map per attempt
+        agreement = map_agreement if relocalize and self.cfg.min_surface_agreement is not None else None
+        ok, rank = self._judge(sq, pose, stats, agreement) if ok else (False, -1.0)
         if ok and (stats["converged"] or not self.retry_unconverged) and not slid and not relocalize:
             return pose, ok, sq
         # stopped on its way (stop_slid) its pose is anywhere along the slide: any trusted fallback is better
-        best = (pose, ok, sq, -1 if not ok else 0 if stats.get("slid") else self._rank(sq, stats, agreement))
+        best = (pose, ok, sq, -0.5 if ok and stats.get("slid") else rank)
         for name, start, coarse in self._starts(predicted, previous, target, src, deadline, stats, best[1],
                                                 relocalize):
             if deadline is not None and time.perf_counter() > deadline:
@@ -122,8 +125,7 @@ class FallbackPolicy:
                 # the fine stage slid away from the coarse alignment: keep the coarse pose
                 pose2, sq2 = start, aligner.match(target, src, start)
                 retry["num_correspondences"] = int(np.isfinite(sq2).sum())
-            ok2 = ok2 and self._trusted(sq2, retry, pose2, agreement)
-            rank = self._rank(sq2, retry, agreement) if ok2 else -1
+            ok2, rank = self._judge(sq2, pose2, retry, agreement) if ok2 else (False, -1.0)
             _add_effort(stats, retry)
             stats.setdefault("retried", []).append(name)
             if ok2 and rank > best[3]:
@@ -135,36 +137,33 @@ class FallbackPolicy:
                 stats["lost_reason"] = retry["lost_reason"]
         return best[:3]
 
-    def _trusted(self, sq: np.ndarray, stats: dict, pose: np.ndarray,
-                 agreement: Callable[[np.ndarray], float | None] | None = None) -> bool:
-        """Whether an alignment ending at `pose` matched at least the frame's floor (`solve`) of the
-        points within the correspondence distance at its last search, or, with `agreement` (its
-        value kept in stats["surface_agreement"]), at least min_matched_fraction of them and the
-        map seen from it agrees with the frame in min_surface_agreement of its cells (else
-        stats["lost_reason"] says why not)."""
-        fraction = float(np.isfinite(sq).mean()) if len(sq) else 0.0
-        if agreement is not None:
-            stats["surface_agreement"] = agreement(pose)
-        if fraction >= self._floor:
-            return True
-        surface = stats.get("surface_agreement")
+    def _judge(self, sq: np.ndarray, pose: np.ndarray, stats: dict,
+               agreement: Callable[[np.ndarray], float | None] | None) -> tuple[bool, float]:
+        """Whether an alignment ending at `pose` is trusted, and its rank among the trusted ones
+        (-1 when it is not). Trusted: it matched at least the frame's floor (`solve`) of the points
+        within the correspondence distance at its last search; or, judged from the map's side
+        (`agreement` given; its value kept in stats["surface_agreement"]), at least
+        min_matched_fraction of them with the map seen from `pose` on the frame's depth in at
+        least min_surface_agreement of the cells. Rank: its matched points; judged from the map's
+        side, its matched fraction x surface agreement (the frame on the map and the map on the
+        frame). Not trusted: stats["lost_reason"] says why."""
         cfg = self.cfg
+        fraction = matched_fraction(sq)
+        surface = None
+        if agreement is not None:
+            surface = stats["surface_agreement"] = agreement(pose)
+        rank = float(stats.get("num_correspondences", 0)) if agreement is None else fraction * (surface or 0.0)
+        if fraction >= self._floor:
+            return True, rank
         if surface is not None and fraction >= cfg.min_matched_fraction and surface >= cfg.min_surface_agreement:
-            return True  # the map in view lies on the frame's depth: what did not match is new surface
-        stats["lost_reason"] = (f"matched fraction {fraction:.2f} < {self._floor:.2f} (tracker.min_matched_fraction, "
-                                "tracker.min_matched_ratio x the last frame's)")
-        if surface is not None:
-            stats["lost_reason"] += f", surface agreement {surface:.2f} < {cfg.min_surface_agreement:.2f}"
-        return False
-
-    @staticmethod
-    def _rank(sq: np.ndarray, stats: dict, agreement: Callable | None) -> float:
-        """How much a trusted attempt is preferred: its matched points; where the map's agreement is
-        judged (`_trusted`), its matched fraction x that agreement (the frame on the map and the map
-        on the frame)."""
-        if agreement is None:
-            return stats.get("num_correspondences", 0)
-        return (float(np.isfinite(sq).mean()) if len(sq) else 0.0) * (stats.get("surface_agreement") or 0.0)
+            return True, rank  # the map in view lies on the frame's depth: what did not match is new surface
+        reason = (f"matched fraction {fraction:.2f} < {self._floor:.2f} (tracker.min_matched_fraction, "
+                  "tracker.min_matched_ratio x the last frame's)")
+        if agreement is not None and fraction >= cfg.min_matched_fraction:
+            reason += (f", surface agreement {'none' if surface is None else f'{surface:.2f}'} < "
+                       f"{cfg.min_surface_agreement:.2f} (tracker.min_surface_agreement)")
+        stats["lost_reason"] = reason
+        return False, -1.0
 
     def _starts(self, predicted: np.ndarray, previous: np.ndarray | None, target: Target, src: np.ndarray,
                 deadline: float | None, stats: dict, trusted: bool, relocalize: bool = False):

@@ -27,11 +27,15 @@ from slamkit.map.gaussian_map import GaussianMap
 from slamkit.map.growth import gaussians_at_pose
 from slamkit.roles import RunContext, Tracker, require
 from slamkit.types import Frame, FrameGaussians, TrackingResult
-from slamkit_plugins.trackers.gicp.alignment import Aligner, new_stats, orthonormalize
+from slamkit_plugins.trackers.gicp.alignment import Aligner, matched_fraction, new_stats, orthonormalize
 from slamkit_plugins.trackers.gicp.config import GICPConfig, InitialGuess, TargetGeometry
 from slamkit_plugins.trackers.gicp.fallbacks import FallbackPolicy
 from slamkit_plugins.trackers.gicp.kernels import create_kernels
 from slamkit_plugins.trackers.gicp.target import Target
+
+#: Image cells seeing the map, at least, for its surface agreement to judge a pose: an agreement
+#: over a few cells (a corner of the map in view) says little.
+MIN_SURFACE_CELLS = 20
 
 
 class GICPTracker(Tracker):
@@ -187,8 +191,11 @@ class GICPTracker(Tracker):
             previous = self.poses[-1] if self.poses else None
             target = self.target
 
-            def map_agreement(pose: np.ndarray) -> float | None:
-                return surface_cells(target.means, depth, frame.camera, pose).agreement
+            def map_agreement(at: np.ndarray) -> float | None:
+                """The map's surface agreement with the frame seen from `at` (camera-to-world):
+                judged per attempt after a long gap (`FallbackPolicy.solve`)."""
+                cells = surface_cells(target.means, depth, frame.camera, at)
+                return cells.agreement if len(cells.on) >= MIN_SURFACE_CELLS else None
 
             pose, ok, sq_track = self.fallbacks.solve(target, src, src_cov, predicted, previous, stats, intervals,
                                                       deadline, self.last_matched, beyond_prediction, map_agreement)
@@ -196,7 +203,7 @@ class GICPTracker(Tracker):
                 return TrackingResult(pose=predicted, lost=True, stats=stats)
 
         gaussians = self._frame_gaussians(frame, points, pix, trackable, pose, cov_cam, raw_cam, sq_track)
-        stats["matched_fraction"] = float(np.isfinite(sq_track).mean()) if n_track else 0.0
+        stats["matched_fraction"] = matched_fraction(sq_track)
         if self.target is not None and len(self.target):
             self.last_matched = stats["matched_fraction"]
         return TrackingResult(pose=pose, lost=False, gaussians=gaussians, stats=stats)
