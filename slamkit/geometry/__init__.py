@@ -1,5 +1,7 @@
 """Geometry, vectorised, each formula in one place: rigid transforms and projection
-(`transforms`, re-exported here) and Gaussian covariances (`gaussians`)."""
+(`transforms`, re-exported here), Gaussian covariances (`gaussians`), global registration
+(`registration`), pose graphs (`pose_graph`) and the map's surface agreement with a frame
+(`surface`)."""
 
 from slamkit.geometry.transforms import (
                                          backproject,
