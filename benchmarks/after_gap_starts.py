@@ -38,7 +38,7 @@ from slamkit.geometry.surface import surface_cells
 from slamkit.geometry.transforms import backproject, invert_pose, rotation_angle_deg
 from slamkit.registry.schema import EvalConfig
 from slamkit.run.build import build_run
-from slamkit_plugins.trackers.gicp.alignment import new_stats
+from slamkit_plugins.trackers.gicp.alignment import matched_fraction, new_stats
 from slamkit_plugins.trackers.gicp.tracker import GICPTracker
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -107,7 +107,7 @@ def main() -> int:
             for name, start in starts.items():
                 stats = new_stats()
                 pose, ok, sq = copy.aligner.align(copy.target, src, src_cov, start, stats)
-                attempts[name] = {"matched": float(np.isfinite(sq).mean()), "surface": surface(pose),
+                attempts[name] = {"matched": matched_fraction(sq), "surface": surface(pose),
                                   "converged": bool(stats.get("converged")), "ok": bool(ok),
                                   "error": pose_error(ideal, pose)}
             result = slam.process(frame).tracking
