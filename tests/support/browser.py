@@ -4,7 +4,9 @@ exceptions it threw, and the state of its images once loaded (for the HTML repor
 from __future__ import annotations
 
 import json
+import os
 import shutil
+import signal
 import subprocess
 import tempfile
 import time
@@ -32,30 +34,62 @@ def open_page(path: Path, timeout: float = 60.0) -> PageReport:
     from websockets.sync.client import connect
 
     exe = chromium()
-    with tempfile.TemporaryDirectory() as profile:
-        proc = subprocess.Popen([exe, "--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-run",
-                                 "--remote-debugging-port=0", f"--user-data-dir={profile}", "about:blank"],
-                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        try:
-            port_file = Path(profile) / "DevToolsActivePort"
-            deadline = time.monotonic() + timeout
-            while not port_file.exists() or len(port_file.read_text().splitlines()) < 2:
-                if time.monotonic() > deadline or proc.poll() is not None:
-                    raise RuntimeError("chromium did not start its DevTools endpoint")
-                time.sleep(0.1)
-            port = port_file.read_text().splitlines()[0]
-            import urllib.request
+    profile = tempfile.mkdtemp(prefix="slamkit-chromium-")
+    # Its own process group: Chromium's helpers (renderer, crashpad) outlive the browser process
+    # and keep writing into the profile, so all of them are stopped before it is removed.
+    proc = subprocess.Popen([exe, "--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-run",
+                             "--remote-debugging-port=0", f"--user-data-dir={profile}", "about:blank"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        port_file = Path(profile) / "DevToolsActivePort"
+        deadline = time.monotonic() + timeout
+        while not port_file.exists() or len(port_file.read_text().splitlines()) < 2:
+            if time.monotonic() > deadline or proc.poll() is not None:
+                raise RuntimeError("chromium did not start its DevTools endpoint")
+            time.sleep(0.1)
+        port = port_file.read_text().splitlines()[0]
+        import urllib.request
 
-            targets = json.loads(urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=10).read())
-            page = next(t for t in targets if t["type"] == "page")
-            return _drive(connect(page["webSocketDebuggerUrl"], max_size=None, open_timeout=timeout),
-                          Path(path).resolve().as_uri(), timeout)
-        finally:
-            proc.terminate()
-            try:
-                proc.wait(10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
+        targets = json.loads(urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=10).read())
+        page = next(t for t in targets if t["type"] == "page")
+        return _drive(connect(page["webSocketDebuggerUrl"], max_size=None, open_timeout=timeout),
+                      Path(path).resolve().as_uri(), timeout)
+    finally:
+        _stop_group(proc)
+        _remove_profile(Path(profile))
+
+
+def _stop_group(proc: subprocess.Popen) -> None:
+    """SIGTERM to the browser's whole process group; SIGKILL to whatever of it is left after 10 s."""
+    _signal_group(proc.pid, signal.SIGTERM)
+    deadline = time.monotonic() + 10.0
+    try:
+        proc.wait(10.0)
+    except subprocess.TimeoutExpired:
+        pass
+    while _signal_group(proc.pid, 0) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    _signal_group(proc.pid, signal.SIGKILL)
+    proc.wait(5.0)
+
+
+def _signal_group(pgid: int, sig: int) -> bool:
+    """Send `sig` to the process group; False when none of it is left."""
+    try:
+        os.killpg(pgid, sig)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+def _remove_profile(profile: Path) -> None:
+    """Remove the profile, retrying while a helper that escaped the group still writes into it."""
+    for _ in range(20):
+        shutil.rmtree(profile, ignore_errors=True)
+        if not profile.exists():
+            return
+        time.sleep(0.25)
+    shutil.rmtree(profile)  # still there after 5 s: let its error say which file
 
 
 def _drive(ws, url: str, timeout: float) -> PageReport:
